@@ -1,0 +1,28 @@
+"""The `virus-nerf` console command (design 7). Each subcommand lives beside its stage."""
+
+from __future__ import annotations
+
+import sys
+
+
+def _commands() -> dict:
+    """Subcommand name -> function; imports are light (torch is imported inside the commands)."""
+    commands: dict = {}
+    return commands
+
+
+def main(argv: list[str] | None = None) -> None:
+    import tyro
+
+    from virus_nerf.errors import DataFormatError, OutputExistsError
+
+    argv = sys.argv[1:] if argv is None else argv
+    try:
+        tyro.extras.subcommand_cli_from_dict(_commands(), prog="virus-nerf", args=argv)
+    except (DataFormatError, OutputExistsError) as exc:
+        print(f"virus-nerf: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+if __name__ == "__main__":
+    main()

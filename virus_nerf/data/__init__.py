@@ -1,0 +1,1 @@
+"""Reading and writing recordings in the ETHZ format (design 4)."""

@@ -1,0 +1,353 @@
+"""Reader for recordings in the ETHZ format (design 4).
+
+Layout under DATA/: camera_intrinsics.CSV and per room ROOM/measurements, ROOM/poses,
+ROOM/lidars/filtered, ROOM/maps, ROOM/split. Everything returned is in metres, seconds and
+RGB order; invalid readings are NaN. Images and depth maps are read lazily, one at a time.
+Nothing under DATA/ is ever written unless `write_split=True` is asked for.
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from virus_nerf.data.csvtable import check_sorted_times, read_numeric_csv
+from virus_nerf.data.pcd import read_pcd_xyz
+from virus_nerf.data.split import make_split, read_split, read_split_ratios, write_split
+from virus_nerf.errors import DataFormatError
+from virus_nerf.sensors import irs, uss
+from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.sensors.geometry import pose_matrix
+
+PoseSource = Literal["optimised", "odometry"]
+POSE_COLUMNS = ("time", "x", "y", "z", "qx", "qy", "qz", "qw")
+TOF_COLUMNS = ("time",) + tuple(f"meas_{k}" for k in range(64))
+DEPTH_INVALID_MM = (0, 65535)
+
+
+@dataclass
+class SensorStack:
+    """All samples of one sensor stack (camera, aligned depth, USS, IRS); row i = sample i."""
+
+    stack_id: int
+    intrinsics: Intrinsics
+    times: np.ndarray  # (N,) s, camera timestamps
+    cam_to_world: np.ndarray  # (N, 4, 4) OpenCV camera axes, metres
+    lidar_to_world: np.ndarray  # (N, 4, 4) LiDAR pose at the same timestamps
+    uss_range: np.ndarray  # (N,) m radial, NaN = no echo
+    irs_range: np.ndarray  # (N, 8, 8) m z-depth, image zone order, NaN = invalid
+    image_paths: list[Path]
+    depth_paths: list[Path]
+    split: np.ndarray  # (N,) 'train' | 'val' | 'test' | 'skip'
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    def indices(self, label: str) -> np.ndarray:
+        """Sample indices with split label `label` ('train', 'val', 'test')."""
+        return np.flatnonzero(self.split == label)
+
+    def image(self, i: int) -> np.ndarray:
+        """(H, W, 3) uint8 RGB."""
+        return read_rgb(self.image_paths[i], self.intrinsics)
+
+    def depth(self, i: int) -> np.ndarray:
+        """(H, W) float32 z-depth in metres, NaN where invalid."""
+        return read_depth(self.depth_paths[i], self.intrinsics)
+
+
+@dataclass
+class Recording:
+    """One room of an ETHZ-format dataset."""
+
+    root: Path
+    room: str
+    stacks: dict[int, SensorStack]
+    lidar_times: np.ndarray  # (K,) s
+    lidar_paths: list[Path]
+    map_path: Path | None
+    pose_source: PoseSource = "optimised"
+    _map_cache: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def room_dir(self) -> Path:
+        return self.root / self.room
+
+    def lidar_scan(self, k: int) -> np.ndarray:
+        """(M, 3) float32 points of LiDAR scan k in the sensor frame."""
+        return read_pcd_xyz(self.lidar_paths[k])
+
+    def lidar_map(self) -> np.ndarray:
+        """(P, 3) float32 global map points, world frame (cached after the first read)."""
+        if self.map_path is None:
+            raise DataFormatError(self.room_dir / "maps", "no map_*.pcd found; ground truth needs the LiDAR map")
+        if self._map_cache is None:
+            self._map_cache = read_pcd_xyz(self.map_path)
+        return self._map_cache
+
+    @cached_property
+    def _lidar_pose_track(self) -> tuple[np.ndarray, np.ndarray]:
+        times = np.concatenate([s.times for s in self.stacks.values()])
+        poses = np.concatenate([s.lidar_to_world for s in self.stacks.values()])
+        order = np.argsort(times, kind="stable")
+        return times[order], poses[order]
+
+    def lidar_pose_at(self, t: float) -> np.ndarray:
+        """LiDAR-to-world (4, 4) at time t, interpolated (slerp) between the stacks' samples."""
+        from scipy.spatial.transform import Rotation, Slerp
+
+        times, poses = self._lidar_pose_track
+        if t <= times[0]:
+            return poses[0].copy()
+        if t >= times[-1]:
+            return poses[-1].copy()
+        j = int(np.searchsorted(times, t))
+        t0, t1 = times[j - 1], times[j]
+        a = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
+        rot = Slerp([0.0, 1.0], Rotation.from_matrix(poses[j - 1 : j + 1, :3, :3]))([a])
+        out = np.eye(4)
+        out[:3, :3] = rot.as_matrix()[0]
+        out[:3, 3] = (1 - a) * poses[j - 1, :3, 3] + a * poses[j, :3, 3]
+        return out
+
+    @property
+    def duration(self) -> float:
+        t = np.concatenate([s.times for s in self.stacks.values()])
+        return float(t.max() - t.min())
+
+
+def read_intrinsics(path: Path) -> dict[int, Intrinsics]:
+    """camera_intrinsics.CSV (cam_id,fx,fy,cx,cy) -> {stack id: Intrinsics}."""
+    if not path.is_file():
+        raise DataFormatError(path, "camera intrinsics file not found (expected cam_id,fx,fy,cx,cy)")
+    with path.open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    expected = ["cam_id", "fx", "fy", "cx", "cy"]
+    if not rows or [h.strip() for h in rows[0]] != expected:
+        raise DataFormatError(path, f"header must be {','.join(expected)}", row=1)
+    out: dict[int, Intrinsics] = {}
+    for row_no, row in enumerate(rows[1:], start=2):
+        if not row:
+            continue
+        if len(row) != 5:
+            raise DataFormatError(path, f"has {len(row)} values; expected 5", row=row_no)
+        m = re.fullmatch(r"CAM(\d+)", row[0].strip())
+        if not m:
+            raise DataFormatError(path, f"cam_id {row[0]!r} is not CAM<number>", row=row_no, field="cam_id")
+        values = []
+        for name, text in zip(expected[1:], row[1:], strict=True):
+            try:
+                v = float(text)
+            except ValueError:
+                raise DataFormatError(path, f"value {text!r} is not a number", row=row_no, field=name) from None
+            if not np.isfinite(v) or (name in ("fx", "fy") and v <= 0):
+                raise DataFormatError(path, f"value {v} must be finite (and positive for focal lengths)", row=row_no, field=name)
+            values.append(v)
+        out[int(m.group(1))] = Intrinsics(*values)
+    return out
+
+
+def read_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Pose CSV (time,x,y,z,qx,qy,qz,qw) -> times (N,), poses (N, 4, 4)."""
+    table = read_numeric_csv(path, POSE_COLUMNS)
+    times = table["time"]
+    check_sorted_times(path, times)
+    xyz = np.stack([table[c] for c in ("x", "y", "z")], axis=1)
+    quat = np.stack([table[c] for c in ("qx", "qy", "qz", "qw")], axis=1)
+    for name, arr in (("x/y/z", xyz), ("qx/qy/qz/qw", quat)):
+        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+        if bad.size:
+            raise DataFormatError(path, "pose is not finite", row=int(bad[0]) + 2, field=name)
+    norms = np.linalg.norm(quat, axis=1)
+    bad = np.flatnonzero(norms < 1e-6)
+    if bad.size:
+        raise DataFormatError(
+            path, "quaternion has (near) zero norm and cannot be normalised", row=int(bad[0]) + 2, field="qx/qy/qz/qw"
+        )
+    return times, pose_matrix(xyz, quat / norms[:, None])
+
+
+def read_uss(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """USS<id>.csv (time,meas: echo time in us) -> times (N,), ranges (N,) m, NaN = no echo."""
+    table = read_numeric_csv(path, ("time", "meas"))
+    check_sorted_times(path, table["time"])
+    return table["time"], uss.range_from_raw(table["meas"])
+
+
+def read_tof(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """TOF<id>.csv (time, meas_0..63 in mm) -> times (N,), (N, 8, 8) m in image zone order."""
+    table = read_numeric_csv(path, TOF_COLUMNS)
+    check_sorted_times(path, table["time"])
+    mm = np.stack([table[f"meas_{k}"] for k in range(64)], axis=1)
+    metres = mm / 1000.0
+    metres[~np.isfinite(mm) | (metres <= irs.IRS_MIN_VALID_M)] = np.nan
+    return table["time"], irs.grid_from_measurements(metres)
+
+
+def read_rgb(path: Path, intr: Intrinsics) -> np.ndarray:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            arr = np.asarray(im.convert("RGB"))
+    except FileNotFoundError:
+        raise DataFormatError(path, "image file not found") from None
+    except OSError as exc:
+        raise DataFormatError(path, f"not a readable image: {exc}") from exc
+    if arr.shape[:2] != (intr.height, intr.width):
+        raise DataFormatError(
+            path, f"image is {arr.shape[1]}x{arr.shape[0]}; the intrinsics expect {intr.width}x{intr.height}"
+        )
+    return arr
+
+
+def read_depth(path: Path, intr: Intrinsics) -> np.ndarray:
+    try:
+        raw = np.load(path)
+    except FileNotFoundError:
+        raise DataFormatError(path, "depth file not found") from None
+    except (OSError, ValueError) as exc:
+        raise DataFormatError(path, f"not a readable .npy depth map: {exc}") from exc
+    if raw.shape != (intr.height, intr.width):
+        raise DataFormatError(path, f"depth map has shape {raw.shape}; expected ({intr.height}, {intr.width})")
+    depth = raw.astype(np.float32) / 1000.0
+    depth[np.isin(raw, DEPTH_INVALID_MM)] = np.nan
+    return depth
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except FileNotFoundError:
+        raise DataFormatError(path, "image file not found") from None
+    except OSError as exc:
+        raise DataFormatError(path, f"not a readable image: {exc}") from exc
+
+
+def _numbered_files(folder: Path, suffix: str) -> list[Path]:
+    """img0.png, img1.png, ... in numeric order; the numbers must run 0..N-1 without gaps."""
+    if not folder.is_dir():
+        raise DataFormatError(folder, "folder not found")
+    found: dict[int, Path] = {}
+    for p in folder.iterdir():
+        m = re.fullmatch(rf"img(\d+){re.escape(suffix)}", p.name)
+        if m:
+            found[int(m.group(1))] = p
+    missing = sorted(set(range(len(found))) - set(found))
+    if missing:
+        raise DataFormatError(folder / f"img{missing[0]}{suffix}", "file missing (images must be numbered img0..imgN-1)")
+    return [found[i] for i in range(len(found))]
+
+
+def _pose_file(poses_dir: Path, kind: str, stack: int, source: PoseSource) -> Path:
+    name = f"poses_{kind}_balm_sync{stack}.csv" if source == "optimised" else f"poses_{kind}_sync{stack}.csv"
+    return poses_dir / name
+
+
+def available_stacks(room_dir: Path) -> list[int]:
+    meas = room_dir / "measurements"
+    if not meas.is_dir():
+        raise DataFormatError(meas, "measurements folder not found")
+    ids = sorted(int(m.group(1)) for p in meas.iterdir() if (m := re.fullmatch(r"USS(\d+)\.csv", p.name)))
+    if not ids:
+        raise DataFormatError(meas, "no USS<id>.csv found; expected one per sensor stack (USS1.csv, USS3.csv)")
+    return ids
+
+
+def load_recording(
+    data_dir: str | Path,
+    room: str,
+    *,
+    poses: PoseSource = "optimised",
+    stacks: list[int] | None = None,
+    write_split: bool = False,
+    check_images: bool = True,
+) -> Recording:
+    """Open one room of an ETHZ dataset; reads the tables now, images later on demand.
+
+    If ROOM/split/split.csv is missing, a split is made from split_description.csv (or
+    60/0/40) with the same labels for all stacks; it is written only if `write_split`.
+    """
+    root = Path(data_dir)
+    room_dir = root / room
+    if not room_dir.is_dir():
+        raise DataFormatError(room_dir, f"room folder not found under {root}")
+    intrinsics = read_intrinsics(root / "camera_intrinsics.CSV")
+    stack_ids = stacks or available_stacks(room_dir)
+    meas = room_dir / "measurements"
+
+    loaded: dict[int, dict] = {}
+    for s in stack_ids:
+        if s not in intrinsics:
+            raise DataFormatError(root / "camera_intrinsics.CSV", f"no row for CAM{s}", field="cam_id")
+        intr = intrinsics[s]
+        cam_path = _pose_file(room_dir / "poses", "cam", s, poses)
+        lidar_path = _pose_file(room_dir / "poses", "lidar", s, poses)
+        t_cam, cam_to_world = read_poses(cam_path)
+        t_lidar, lidar_to_world = read_poses(lidar_path)
+        _, uss_range = read_uss(meas / f"USS{s}.csv")
+        _, irs_range = read_tof(meas / f"TOF{s}.csv")
+        images = _numbered_files(meas / f"CAM{s}_color_image_raw", ".png")
+        depths = _numbered_files(meas / f"CAM{s}_aligned_depth_to_color_image_raw", ".npy")
+        counts = {
+            cam_path.name: len(t_cam),
+            lidar_path.name: len(t_lidar),
+            f"USS{s}.csv": len(uss_range),
+            f"TOF{s}.csv": len(irs_range),
+            f"CAM{s}_color_image_raw/": len(images),
+            f"CAM{s}_aligned_depth_to_color_image_raw/": len(depths),
+        }
+        if len(set(counts.values())) != 1:
+            raise DataFormatError(
+                room_dir, f"stack {s} files disagree in sample count (row i of each is one sample): {counts}"
+            )
+        if check_images and images:
+            for p in images:
+                size = _image_size(p)
+                if size != (intr.width, intr.height):
+                    raise DataFormatError(
+                        p, f"image is {size[0]}x{size[1]}; the intrinsics of CAM{s} expect {intr.width}x{intr.height}"
+                    )
+        loaded[s] = dict(
+            intrinsics=intr, times=t_cam, cam_to_world=cam_to_world, lidar_to_world=lidar_to_world,
+            uss_range=uss_range, irs_range=irs_range, image_paths=images, depth_paths=depths,
+        )
+
+    split_path = room_dir / "split" / "split.csv"
+    if split_path.is_file():
+        splits = read_split(split_path, {s: len(v["times"]) for s, v in loaded.items()})
+    else:
+        ratios = read_split_ratios(room_dir / "split" / "split_description.csv")
+        splits = {s: make_split(len(v["times"]), ratios) for s, v in loaded.items()}
+        if write_split:
+            write_split(split_path, splits)
+
+    lidar_dir = room_dir / "lidars" / "filtered"
+    lidar_entries: list[tuple[float, Path]] = []
+    if lidar_dir.is_dir():
+        for p in lidar_dir.iterdir():
+            m = re.fullmatch(r"(\d+)\.(\d+)\.pcd", p.name)
+            if m:
+                lidar_entries.append((int(m.group(1)) + int(m.group(2)) * 1e-9, p))
+    lidar_entries.sort()
+    maps = sorted((room_dir / "maps").glob("map*.pcd")) if (room_dir / "maps").is_dir() else []
+    map_path = next((p for p in maps if p.name == "map_balm.pcd"), maps[0] if maps else None)
+
+    return Recording(
+        root=root,
+        room=room,
+        stacks={s: SensorStack(stack_id=s, split=splits[s], **v) for s, v in loaded.items()},
+        lidar_times=np.array([t for t, _ in lidar_entries]),
+        lidar_paths=[p for _, p in lidar_entries],
+        map_path=map_path,
+        pose_source=poses,
+    )

@@ -1,0 +1,89 @@
+"""Train/val/test split per sample (design 4): read from split.csv or made deterministically."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from virus_nerf.errors import DataFormatError
+from virus_nerf.utils.io import write_text_atomic
+
+LABELS = ("train", "val", "test", "skip")
+DEFAULT_RATIOS = (0.6, 0.0, 0.4)
+
+
+def make_split(n: int, ratios: tuple[float, float, float] = DEFAULT_RATIOS) -> np.ndarray:
+    """Interleaved labels for n samples: test and val spread evenly along the recording.
+
+    Deterministic (no seed): sample i is 'test' where the running count of test samples
+    i * r_test crosses an integer, likewise for 'val'; the rest is 'train'.
+    """
+    r_train, r_val, r_test = ratios
+    total = r_train + r_val + r_test
+    if total <= 0 or min(ratios) < 0:
+        raise ValueError(f"split ratios must be non-negative with a positive sum, got {ratios}")
+    r_val, r_test = r_val / total, r_test / total
+    i = np.arange(n)
+    is_test = np.floor((i + 1) * r_test + 1e-9) > np.floor(i * r_test + 1e-9)
+    is_val = (np.floor((i + 1) * (r_val + r_test) + 1e-9) > np.floor(i * (r_val + r_test) + 1e-9)) & ~is_test
+    labels = np.full(n, "train", dtype=object)
+    labels[is_val] = "val"
+    labels[is_test] = "test"
+    return labels
+
+
+def read_split(path: Path, stacks: dict[int, int]) -> dict[int, np.ndarray]:
+    """Read split.csv (columns CAM<id>) -> {stack id: (N,) labels}; N must match each stack."""
+    if not path.is_file():
+        raise DataFormatError(path, "split file not found")
+    with path.open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        raise DataFormatError(path, "empty split file; expected header CAM1,CAM3")
+    header = [h.strip() for h in rows[0]]
+    out: dict[int, np.ndarray] = {}
+    for stack, n in stacks.items():
+        col = f"CAM{stack}"
+        if col not in header:
+            raise DataFormatError(path, f"header {header} lacks column {col}", row=1)
+        k = header.index(col)
+        labels = []
+        for row_no, row in enumerate(rows[1:], start=2):
+            if len(row) != len(header):
+                raise DataFormatError(path, f"has {len(row)} values; expected {len(header)}", row=row_no)
+            value = row[k].strip()
+            if value == "":
+                continue
+            if value not in LABELS:
+                raise DataFormatError(path, f"label {value!r} is not one of {LABELS}", row=row_no, field=col)
+            labels.append(value)
+        if len(labels) != n:
+            raise DataFormatError(
+                path, f"column {col} has {len(labels)} labels; the stack has {n} samples", field=col
+            )
+        out[stack] = np.array(labels, dtype=object)
+    return out
+
+
+def read_split_ratios(path: Path) -> tuple[float, float, float]:
+    """Ratios from split_description.csv (train,val,test columns) or the default."""
+    if not path.is_file():
+        return DEFAULT_RATIOS
+    with path.open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    try:
+        return (float(rows[0]["train"]), float(rows[0]["val"]), float(rows[0]["test"]))
+    except (IndexError, KeyError, ValueError) as exc:
+        raise DataFormatError(path, f"expected columns train,val,test with numbers: {exc}", row=2) from exc
+
+
+def write_split(path: Path, splits: dict[int, np.ndarray]) -> None:
+    """Write split.csv with one column per stack (shorter stacks padded with empty cells)."""
+    stacks = sorted(splits)
+    n = max(len(v) for v in splits.values())
+    lines = [",".join(f"CAM{s}" for s in stacks)]
+    for i in range(n):
+        lines.append(",".join(str(splits[s][i]) if i < len(splits[s]) else "" for s in stacks))
+    write_text_atomic(path, "\n".join(lines) + "\n")

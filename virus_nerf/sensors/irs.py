@@ -1,0 +1,72 @@
+"""Infrared time-of-flight sensor (VL53L5CX): 8x8 zones over 45x45 deg, ranges as z-depth.
+
+Zone layout and range convention were determined from the real sample (design 4): comparing
+the 64 ranges with the aligned RGB-D depth over all dihedral re-orderings of the 8x8 block and
+both range conventions, the best agreement is
+
+    grid[r, c] = meas[8 * (7 - c) + r]        (r = image zone row, c = image zone column)
+
+i.e. the sensor's rows run along the image columns in reverse, and ranges are z-depth
+(perpendicular to the sensor plane), not radial. `tests/test_irs_layout.py` shows it.
+Zones are equal angular steps of 45/8 deg around the camera's optical axis, in the camera's
+image orientation (the IRS shares its stack camera's origin and axis).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+IRS_FOV_DEG = 45.0
+IRS_ZONES = 8
+IRS_MIN_VALID_M = 0.1  # readings at or below this are invalid (design 4)
+IRS_MAX_RANGE_M = 4.0
+
+
+def grid_from_measurements(meas: np.ndarray) -> np.ndarray:
+    """(..., 64) ranges in sensor order -> (..., 8, 8) grid in image zone order [row, col]."""
+    m = np.asarray(meas).reshape(np.shape(meas)[:-1] + (8, 8))  # m[a, b] = meas[8a + b]
+    # grid[r, c] = m[7 - c, r]  (a 90-degree clockwise rotation of the sensor block)
+    return np.rot90(m, k=3, axes=(-2, -1)).copy()
+
+
+def measurements_from_grid(grid: np.ndarray) -> np.ndarray:
+    """Inverse of `grid_from_measurements`: (..., 8, 8) image order -> (..., 64) sensor order."""
+    g = np.asarray(grid)
+    m = np.rot90(g, k=1, axes=(-2, -1))
+    return m.reshape(g.shape[:-2] + (64,)).copy()
+
+
+def zone_edges_rad() -> np.ndarray:
+    """(9,) zone boundary angles (rad) along either image axis, from -22.5 to +22.5 deg."""
+    return np.deg2rad(np.linspace(-IRS_FOV_DEG / 2, IRS_FOV_DEG / 2, IRS_ZONES + 1))
+
+
+def zone_of_directions(dirs_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Zone (row, col) of camera-frame directions (N, 3); -1 where outside the field of view."""
+    d = np.asarray(dirs_cam)
+    ax = np.arctan2(d[..., 0], d[..., 2])  # horizontal angle (image columns)
+    ay = np.arctan2(d[..., 1], d[..., 2])  # vertical angle (image rows)
+    step = np.deg2rad(IRS_FOV_DEG / IRS_ZONES)
+    col = np.floor((ax + np.deg2rad(IRS_FOV_DEG / 2)) / step).astype(np.int64)
+    row = np.floor((ay + np.deg2rad(IRS_FOV_DEG / 2)) / step).astype(np.int64)
+    outside = (col < 0) | (col >= IRS_ZONES) | (row < 0) | (row >= IRS_ZONES) | (d[..., 2] <= 0)
+    col[outside] = -1
+    row[outside] = -1
+    return row, col
+
+
+def zone_directions(samples_per_axis: int = 1) -> np.ndarray:
+    """Camera-frame unit directions sampling each zone: (8, 8, s*s, 3).
+
+    With s = 1 these are the zone centres; larger s covers each zone evenly.
+    """
+    edges = zone_edges_rad()
+    step = edges[1] - edges[0]
+    sub = (np.arange(samples_per_axis) + 0.5) / samples_per_axis * step
+    angles = (edges[:-1, None] + sub[None, :]).reshape(-1)  # (8*s,)
+    ay, ax = np.meshgrid(angles, angles, indexing="ij")
+    d = np.stack([np.tan(ax), np.tan(ay), np.ones_like(ax)], axis=-1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    s = samples_per_axis
+    d = d.reshape(IRS_ZONES, s, IRS_ZONES, s, 3).transpose(0, 2, 1, 3, 4)
+    return d.reshape(IRS_ZONES, IRS_ZONES, s * s, 3)

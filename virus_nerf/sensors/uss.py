@@ -1,0 +1,48 @@
+"""Ultrasonic sensor (URM37): one range, the first echo inside a 55x35 deg elliptic cone.
+
+The cone shares its stack camera's origin and optical axis; its wide (55 deg) axis is the
+camera's x axis, which is horizontal on the robot. Ranges are radial (time of flight).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+USS_FOV_H_DEG = 55.0
+USS_FOV_V_DEG = 35.0
+USS_NO_ECHO_RAW = 50000.0  # raw echo time (us) at or above which there was no echo
+USS_RAW_PER_M = 5000.0  # raw microseconds per metre of range (design 4)
+
+
+def range_from_raw(raw: np.ndarray) -> np.ndarray:
+    """Raw echo times (us) -> ranges in metres, NaN where there was no echo."""
+    raw = np.asarray(raw, dtype=np.float64)
+    out = raw / USS_RAW_PER_M
+    out[~np.isfinite(raw) | (raw >= USS_NO_ECHO_RAW) | (raw <= 0)] = np.nan
+    return out
+
+
+def raw_from_range(range_m: np.ndarray) -> np.ndarray:
+    """Inverse of `range_from_raw`; NaN (no echo) becomes the no-echo code."""
+    r = np.asarray(range_m, dtype=np.float64)
+    return np.where(np.isfinite(r), np.round(r * USS_RAW_PER_M), USS_NO_ECHO_RAW)
+
+
+def in_cone(dirs_cam: np.ndarray) -> np.ndarray:
+    """Whether camera-frame directions (N, 3) lie inside the elliptic cone (in angle space)."""
+    d = np.asarray(dirs_cam)
+    ax = np.arctan2(d[..., 0], d[..., 2])
+    ay = np.arctan2(d[..., 1], d[..., 2])
+    a = np.deg2rad(USS_FOV_H_DEG / 2)
+    b = np.deg2rad(USS_FOV_V_DEG / 2)
+    return ((ax / a) ** 2 + (ay / b) ** 2 <= 1.0) & (d[..., 2] > 0)
+
+
+def cone_directions(n_h: int = 56, n_v: int = 36) -> np.ndarray:
+    """Camera-frame unit directions on a regular angular grid inside the cone: (M, 3)."""
+    ax = np.deg2rad(np.linspace(-USS_FOV_H_DEG / 2, USS_FOV_H_DEG / 2, n_h))
+    ay = np.deg2rad(np.linspace(-USS_FOV_V_DEG / 2, USS_FOV_V_DEG / 2, n_v))
+    ay, ax = np.meshgrid(ay, ax, indexing="ij")
+    d = np.stack([np.tan(ax), np.tan(ay), np.ones_like(ax)], axis=-1).reshape(-1, 3)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return d[in_cone(d)]
