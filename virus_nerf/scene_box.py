@@ -17,7 +17,7 @@ class SceneBox:
     hi: tuple[float, float, float]
 
     def __post_init__(self) -> None:
-        if not all(h > l for l, h in zip(self.lo, self.hi, strict=True)):
+        if not all(hi > lo for lo, hi in zip(self.lo, self.hi, strict=True)):
             raise ValueError(f"scene box needs hi > lo on every axis, got lo={self.lo} hi={self.hi}")
 
     @property

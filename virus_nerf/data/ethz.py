@@ -19,7 +19,8 @@ import numpy as np
 
 from virus_nerf.data.csvtable import check_sorted_times, read_numeric_csv
 from virus_nerf.data.pcd import read_pcd_xyz
-from virus_nerf.data.split import make_split, read_split, read_split_ratios, write_split
+from virus_nerf.data.split import make_split, read_split, read_split_ratios
+from virus_nerf.data.split import write_split as write_split_file
 from virus_nerf.errors import DataFormatError
 from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics
@@ -329,7 +330,7 @@ def load_recording(
         ratios = read_split_ratios(room_dir / "split" / "split_description.csv")
         splits = {s: make_split(len(v["times"]), ratios) for s, v in loaded.items()}
         if write_split:
-            write_split(split_path, splits)
+            write_split_file(split_path, splits)
 
     lidar_dir = room_dir / "lidars" / "filtered"
     lidar_entries: list[tuple[float, Path]] = []

@@ -15,22 +15,25 @@ DEFAULT_RATIOS = (0.6, 0.0, 0.4)
 
 
 def make_split(n: int, ratios: tuple[float, float, float] = DEFAULT_RATIOS) -> np.ndarray:
-    """Interleaved labels for n samples: test and val spread evenly along the recording.
+    """Interleaved labels for n samples: held-out samples spread evenly along the recording.
 
-    Deterministic (no seed): sample i is 'test' where the running count of test samples
-    i * r_test crosses an integer, likewise for 'val'; the rest is 'train'.
+    Deterministic (no seed): sample i is held out where the running count i * (r_val + r_test)
+    crosses an integer; held-out samples alternate between 'test' and 'val' in the same way.
     """
     r_train, r_val, r_test = ratios
     total = r_train + r_val + r_test
     if total <= 0 or min(ratios) < 0:
         raise ValueError(f"split ratios must be non-negative with a positive sum, got {ratios}")
     r_val, r_test = r_val / total, r_test / total
+    r_held = r_val + r_test
     i = np.arange(n)
-    is_test = np.floor((i + 1) * r_test + 1e-9) > np.floor(i * r_test + 1e-9)
-    is_val = (np.floor((i + 1) * (r_val + r_test) + 1e-9) > np.floor(i * (r_val + r_test) + 1e-9)) & ~is_test
+    held = np.flatnonzero(np.floor((i + 1) * r_held + 1e-9) > np.floor(i * r_held + 1e-9))
+    q = r_test / r_held if r_held > 0 else 0.0
+    k = np.arange(len(held))
+    held_is_test = np.floor((k + 1) * q + 1e-9) > np.floor(k * q + 1e-9)
     labels = np.full(n, "train", dtype=object)
-    labels[is_val] = "val"
-    labels[is_test] = "test"
+    labels[held[held_is_test]] = "test"
+    labels[held[~held_is_test]] = "val"
     return labels
 
 

@@ -1,0 +1,32 @@
+"""Shared fixtures: the real sample at ../shared/data, skipped cleanly when absent."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+SAMPLE = SHARED_DATA / "sample_dataset"
+USS_BENCH = SHARED_DATA / "uss_characterisation"
+
+
+@pytest.fixture(scope="session")
+def sample_dir() -> Path:
+    if not (SAMPLE / "office").is_dir():
+        pytest.skip(f"real sample not found at {SAMPLE} (it lives in ../shared/data beside the repo)")
+    return SAMPLE
+
+
+@pytest.fixture(scope="session")
+def sample_recording(sample_dir):
+    from virus_nerf.data.ethz import load_recording
+
+    return load_recording(sample_dir, "office")
+
+
+@pytest.fixture(scope="session")
+def uss_bench_dir() -> Path:
+    if not USS_BENCH.is_dir():
+        pytest.skip(f"USS bench data not found at {USS_BENCH}")
+    return USS_BENCH

@@ -1,0 +1,65 @@
+"""Pose and camera geometry with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from virus_nerf.sensors import uss
+from virus_nerf.sensors.camera import Intrinsics, pixel_directions, pixel_rays, project
+from virus_nerf.sensors.geometry import invert_pose, matrix_to_quat, pose_matrix, quat_to_matrix
+
+INTR = Intrinsics(388.0, 388.4, 327.6, 244.3)
+
+quats = st.tuples(*[st.floats(-1, 1, allow_nan=False) for _ in range(4)]).filter(
+    lambda q: np.linalg.norm(q) > 0.1
+)
+vec3 = st.tuples(*[st.floats(-50, 50, allow_nan=False) for _ in range(3)])
+
+
+def test_principal_point_ray_is_the_optical_axis():
+    pose = pose_matrix(np.array([1.0, 2.0, 0.5]), np.array([0.3, -0.2, 0.1, 0.9]))
+    rays = pixel_rays(INTR, pose, np.array([INTR.cx]), np.array([INTR.cy]))
+    np.testing.assert_allclose(rays.directions[0], pose[:3, 2], atol=1e-12)
+    np.testing.assert_allclose(rays.origins[0], [1.0, 2.0, 0.5])
+
+
+def test_pixel_right_of_centre_points_to_camera_x():
+    d = pixel_directions(INTR, np.array([INTR.cx + INTR.fx]), np.array([INTR.cy]))[0]
+    np.testing.assert_allclose(d, np.array([1.0, 0.0, 1.0]) / np.sqrt(2), atol=1e-12)
+
+
+def test_quaternion_known_rotation():
+    # 90 deg about z: x -> y
+    r = quat_to_matrix(np.array([0.0, 0.0, np.sin(np.pi / 4), np.cos(np.pi / 4)]))
+    np.testing.assert_allclose(r @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(q=quats, t=vec3)
+def test_pose_round_trips(q, t):
+    pose = pose_matrix(np.array(t), np.array(q))
+    np.testing.assert_allclose(pose @ invert_pose(pose), np.eye(4), atol=1e-9)
+    q_back = matrix_to_quat(pose[:3, :3])
+    np.testing.assert_allclose(quat_to_matrix(q_back), pose[:3, :3], atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(u=st.floats(0, 639), v=st.floats(0, 479), z=st.floats(0.1, 20))
+def test_project_inverts_pixel_directions(u, v, z):
+    d = pixel_directions(INTR, np.array([u]), np.array([v]))
+    pu, pv, pz = project(INTR, d * z / d[:, 2:3])
+    np.testing.assert_allclose([pu[0], pv[0], pz[0]], [u, v, z], rtol=1e-9, atol=1e-9)
+
+
+def test_uss_raw_conversion_and_cone():
+    np.testing.assert_allclose(uss.range_from_raw(np.array([3752.0, 50000.0]))[0], 0.7504)
+    assert np.isnan(uss.range_from_raw(np.array([50000.0]))[0])
+    dirs = uss.cone_directions()
+    ax = np.degrees(np.arctan2(dirs[:, 0], dirs[:, 2]))
+    ay = np.degrees(np.arctan2(dirs[:, 1], dirs[:, 2]))
+    assert ax.max() <= 27.5 + 1e-9 and ax.min() >= -27.5 - 1e-9
+    assert ay.max() <= 17.5 + 1e-9 and ay.min() >= -17.5 - 1e-9
+    assert uss.in_cone(np.array([[np.tan(np.radians(27)), 0, 1.0]]))[0]
+    assert not uss.in_cone(np.array([[0, np.tan(np.radians(20)), 1.0]]))[0]

@@ -1,0 +1,208 @@
+"""Multiresolution hash encoding (Muller et al. 2022; design 3.5), layout and PyTorch backend.
+
+Level l has `resolutions[l]` cells per axis of the unit box, i.e. res+1 vertices per axis; the
+resolutions grow geometrically from `base_resolution` to `max_resolution` (N_l = floor(N_min b^l)).
+A level whose (res+1)^3 vertices fit the table is indexed densely (one entry per vertex, the
+table shrunk to exactly (res+1)^3 entries); otherwise vertex (i, j, k) goes to
+(i * 1 ^ j * 2654435761 ^ k * 805459861) mod T. Features of the 8 corners of the cell holding a
+point are blended trilinearly. All levels live in one flat (n_entries, F) parameter, level l at
+rows offsets[l] .. offsets[l] + sizes[l].
+
+Two backends with the same signature `encode(x (N, 3) in [0,1]^3, table (E, F)) -> (N, L*F)`:
+- "torch": gathers + weights in plain PyTorch; autograd gives the table gradient; runs on CUDA.
+- "numba": fused CPU kernels (hash_kernels.py); deterministic backward.
+"auto" picks numba for CPU tensors and torch otherwise. Neither backend returns a gradient for
+the input coordinates: the field never needs one (poses are not optimised through the field),
+and dropping it saves the weight-derivative pass. Inputs outside [0,1]^3 are clamped onto the
+box surface; NaN coordinates are mapped to 0 (the field masks such points anyway).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import torch
+from torch import nn
+
+PRIMES = (1, 2654435761, 805459861)
+BACKENDS = ("auto", "numba", "torch")
+
+
+@dataclass(frozen=True)
+class HashGridLayout:
+    """Level geometry shared by both backends; pure function of the five hyper-parameters."""
+
+    n_levels: int = 16
+    n_features: int = 2
+    log2_table_size: int = 16
+    base_resolution: int = 16
+    max_resolution: int = 512
+
+    def __post_init__(self) -> None:
+        if self.n_levels < 1 or self.n_features < 1:
+            raise ValueError(f"need n_levels >= 1 and n_features >= 1, got {self.n_levels}, {self.n_features}")
+        if not 4 <= self.log2_table_size <= 30:
+            raise ValueError(f"log2_table_size must be in [4, 30], got {self.log2_table_size}")
+        if not 1 <= self.base_resolution <= self.max_resolution:
+            raise ValueError(
+                f"need 1 <= base_resolution <= max_resolution, got {self.base_resolution}, {self.max_resolution}"
+            )
+
+    @property
+    def table_size(self) -> int:
+        return 1 << self.log2_table_size
+
+    @property
+    def per_level_scale(self) -> float:
+        """Growth factor b between levels (paper eq. 3)."""
+        if self.n_levels == 1:
+            return 1.0
+        return math.exp((math.log(self.max_resolution) - math.log(self.base_resolution)) / (self.n_levels - 1))
+
+    @cached_property
+    def resolutions(self) -> tuple[int, ...]:
+        """Cells per axis of every level; the last is max_resolution (float rounding guarded)."""
+        b = self.per_level_scale
+        res = [int(math.floor(self.base_resolution * b**lvl + 1e-6)) for lvl in range(self.n_levels)]
+        return tuple(res)
+
+    @cached_property
+    def dense(self) -> tuple[bool, ...]:
+        return tuple((r + 1) ** 3 <= self.table_size for r in self.resolutions)
+
+    @cached_property
+    def sizes(self) -> tuple[int, ...]:
+        return tuple((r + 1) ** 3 if d else self.table_size for r, d in zip(self.resolutions, self.dense, strict=True))
+
+    @cached_property
+    def offsets(self) -> tuple[int, ...]:
+        return tuple(int(v) for v in np.concatenate([[0], np.cumsum(self.sizes)[:-1]]))
+
+    @property
+    def n_entries(self) -> int:
+        return int(sum(self.sizes))
+
+    @property
+    def out_dim(self) -> int:
+        return self.n_levels * self.n_features
+
+    @cached_property
+    def arrays(self) -> LayoutArrays:
+        """Numpy copies for the numba kernels (built once)."""
+        return LayoutArrays(
+            res_f=np.asarray(self.resolutions, dtype=np.float32),
+            res_i=np.asarray(self.resolutions, dtype=np.int64),
+            offsets=np.asarray(self.offsets, dtype=np.int64),
+            sizes=np.asarray(self.sizes, dtype=np.int64),
+            dense=np.asarray(self.dense, dtype=np.bool_),
+            hash_mask=np.int64(self.table_size - 1),
+        )
+
+
+@dataclass(frozen=True)
+class LayoutArrays:
+    res_f: np.ndarray  # (L,) float32 cells per axis
+    res_i: np.ndarray  # (L,) int64
+    offsets: np.ndarray  # (L,) int64 first row of the level in the flat table
+    sizes: np.ndarray  # (L,) int64 rows of the level
+    dense: np.ndarray  # (L,) bool
+    hash_mask: np.int64  # T - 1
+
+
+def prepare_coords(x: torch.Tensor) -> torch.Tensor:
+    """(N, 3) -> contiguous float32 (N, 3) clamped to [0, 1], NaN -> 0, detached."""
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"hash encoding expects points of shape (N, 3), got {tuple(x.shape)}")
+    x = x.detach().to(torch.float32)
+    return torch.nan_to_num(x, nan=0.0).clamp_(0.0, 1.0).contiguous()
+
+
+def hash_encode_torch(x: torch.Tensor, table: torch.Tensor, layout: HashGridLayout) -> torch.Tensor:
+    """Plain PyTorch backend: x (N, 3) in [0,1]^3, table (E, F) -> (N, L*F); autograd for table.
+
+    All levels are processed at once; peak memory is about N * L * 8 * 20 bytes.
+    """
+    x = prepare_coords(x)
+    dev = x.device
+    n = x.shape[0]
+    L, F = layout.n_levels, layout.n_features
+    res_f = torch.tensor(layout.resolutions, dtype=torch.float32, device=dev)  # (L,)
+    res_i = torch.tensor(layout.resolutions, dtype=torch.int64, device=dev)  # (L,)
+    pos = x[:, None, :] * res_f[None, :, None]  # (N, L, 3) float32
+    cell = torch.minimum(pos.floor().to(torch.int64), (res_i - 1)[None, :, None])  # (N, L, 3)
+    frac = pos - cell.to(torch.float32)  # (N, L, 3) in [0, 1]
+    cidx = torch.stack([cell, cell + 1], dim=-1)  # (N, L, 3, 2) vertex coordinate per axis and bit
+    wts = torch.stack([1.0 - frac, frac], dim=-1)  # (N, L, 3, 2) linear weight per axis and bit
+
+    # Dense: i + j (r+1) + k (r+1)^2 ; hashed: (i p0 ^ j p1 ^ k p2) & (T-1). Corner order k = dx + 2dy + 4dz.
+    stride = torch.stack([torch.ones_like(res_i), res_i + 1, (res_i + 1) ** 2], dim=-1)  # (L, 3)
+    primes = torch.tensor(PRIMES, dtype=torch.int64, device=dev)  # (3,)
+    d_terms = cidx * stride[None, :, :, None]  # (N, L, 3, 2)
+    h_terms = cidx * primes[None, None, :, None]  # (N, L, 3, 2)
+    dense_idx = (
+        d_terms[:, :, 0, None, None, :] + d_terms[:, :, 1, None, :, None] + d_terms[:, :, 2, :, None, None]
+    )  # (N, L, 2dz, 2dy, 2dx)
+    hash_idx = (
+        h_terms[:, :, 0, None, None, :] ^ h_terms[:, :, 1, None, :, None] ^ h_terms[:, :, 2, :, None, None]
+    ) & (layout.table_size - 1)
+    is_dense = torch.tensor(layout.dense, device=dev)[None, :, None, None, None]
+    offsets = torch.tensor(layout.offsets, dtype=torch.int64, device=dev)[None, :, None, None, None]
+    idx = (torch.where(is_dense, dense_idx, hash_idx) + offsets).reshape(n, L, 8)  # (N, L, 8)
+    w = (
+        wts[:, :, 0, None, None, :] * wts[:, :, 1, None, :, None] * wts[:, :, 2, :, None, None]
+    ).reshape(n, L, 8)  # (N, L, 8) trilinear weights, sum 1
+    feats = table[idx]  # (N, L, 8, F)
+    out = (w[..., None] * feats).sum(dim=2)  # (N, L, F)
+    return out.reshape(n, L * F)
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown hash-encoding backend {backend!r}; choose one of {BACKENDS}")
+    if backend == "auto":
+        return "numba" if device.type == "cpu" else "torch"
+    if backend == "numba" and device.type != "cpu":
+        raise ValueError(f"the numba hash-encoding backend runs on CPU tensors only, got device {device}")
+    return backend
+
+
+def hash_encode(x: torch.Tensor, table: torch.Tensor, layout: HashGridLayout, backend: str = "auto") -> torch.Tensor:
+    """Encode x (N, 3) in [0,1]^3 with table (E, F) -> (N, L*F) float32 on the chosen backend."""
+    if table.shape != (layout.n_entries, layout.n_features):
+        raise ValueError(f"table shape {tuple(table.shape)} does not match layout {(layout.n_entries, layout.n_features)}")
+    if resolve_backend(backend, table.device) == "numba":
+        from virus_nerf.field.hash_kernels import hash_encode_numba
+
+        return hash_encode_numba(x, table, layout)
+    return hash_encode_torch(x, table, layout)
+
+
+class HashEncoding(nn.Module):
+    """The trainable multiresolution hash grid; table initialised U(-1e-4, 1e-4) from `generator`."""
+
+    def __init__(self, layout: HashGridLayout, backend: str = "auto", generator: torch.Generator | None = None):
+        super().__init__()
+        resolve_backend(backend, torch.device("cpu") if backend != "torch" else torch.device("cpu"))
+        self.layout = layout
+        self.backend = backend
+        table = torch.empty(layout.n_entries, layout.n_features, dtype=torch.float32)
+        table.uniform_(-1e-4, 1e-4, generator=generator)
+        self.table = nn.Parameter(table)  # (E, F)
+
+    @property
+    def out_dim(self) -> int:
+        return self.layout.out_dim
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """x (N, 3) box coordinates in [0,1]^3 -> (N, L*F) float32."""
+        return hash_encode(x, self.table, self.layout, self.backend)
+
+    def extra_repr(self) -> str:
+        lay = self.layout
+        return (
+            f"levels={lay.n_levels}, features={lay.n_features}, T=2^{lay.log2_table_size}, "
+            f"res={lay.resolutions[0]}..{lay.resolutions[-1]}, dense_levels={sum(lay.dense)}, backend={self.backend}"
+        )
