@@ -185,7 +185,8 @@ class HashEncoding(nn.Module):
 
     def __init__(self, layout: HashGridLayout, backend: str = "auto", generator: torch.Generator | None = None):
         super().__init__()
-        resolve_backend(backend, torch.device("cpu") if backend != "torch" else torch.device("cpu"))
+        if backend not in BACKENDS:
+            raise ValueError(f"unknown hash-encoding backend {backend!r}; choose one of {BACKENDS}")
         self.layout = layout
         self.backend = backend
         table = torch.empty(layout.n_entries, layout.n_features, dtype=torch.float32)

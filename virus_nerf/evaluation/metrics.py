@@ -1,0 +1,268 @@
+"""Nearest-neighbour distance metrics per distance zone (design 6.5, 6.6) and metrics.json (design 7).
+
+Definitions (all distances 2D, metres; depth = distance from the test point's scan origin):
+- accuracy: for each predicted point, the distance to its nearest FoV-GT point. The point's zone
+  is decided by the depth of that nearest GT point. An outlier (distance >= inlier threshold)
+  is "too close" when the predicted point's depth is shorter than its nearest GT point's depth,
+  otherwise "too far".
+- coverage: for each FoV-GT point, the distance to its nearest predicted point. The zone is
+  decided by the GT point's own depth. An outlier is "too close" when that nearest predicted
+  point is nearer to the origin than the GT point (the prediction is too close), else "too far".
+- Zones are closed intervals lo <= depth <= hi on float depths (design 9.7); zones nest.
+- inlier + too_close + too_far = 1 in every zone with points.
+- A test point contributes accuracy only if it has FoV-GT points, and coverage only if the
+  sensor returned at least one point there (a nearest neighbour must exist). Points are pooled
+  over test points before the statistics. No points -> None (JSON null), never NaN.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from virus_nerf.utils.io import write_json_atomic
+
+INLIER_M = 0.1
+METRIC_KEYS = (
+    "acc_mean", "acc_median", "acc_inlier", "acc_too_close", "acc_too_far",
+    "cov_mean", "cov_median", "cov_inlier", "cov_too_close", "cov_too_far",
+    "n_pred", "n_gt",
+)
+
+
+@dataclass(frozen=True)
+class Zone:
+    """Distance zone [lo, hi] metres, both ends included."""
+
+    name: str
+    lo: float
+    hi: float
+
+    def contains(self, depth: np.ndarray) -> np.ndarray:
+        depth = np.asarray(depth, dtype=np.float64)
+        return (depth >= self.lo) & (depth <= self.hi)
+
+
+DEFAULT_ZONES: tuple[Zone, ...] = (Zone("zone1", 0.0, 1.0), Zone("zone2", 0.0, 2.0), Zone("zone3", 0.0, 100.0))
+
+
+@dataclass
+class NNDSamples:
+    """Per-point nearest-neighbour data of one sensor, pooled over any number of test points."""
+
+    acc_dist: np.ndarray  # (M,) m, predicted point -> nearest GT point
+    acc_pred_depth: np.ndarray  # (M,) m, depth of the predicted point
+    acc_gt_depth: np.ndarray  # (M,) m, depth of its nearest GT point (decides the zone)
+    cov_dist: np.ndarray  # (K,) m, GT point -> nearest predicted point
+    cov_gt_depth: np.ndarray  # (K,) m, depth of the GT point (decides the zone)
+    cov_pred_depth: np.ndarray  # (K,) m, depth of its nearest predicted point
+
+    @staticmethod
+    def empty() -> NNDSamples:
+        return NNDSamples(*(np.zeros(0) for _ in range(6)))
+
+    @staticmethod
+    def concat(items: Sequence[NNDSamples]) -> NNDSamples:
+        if not items:
+            return NNDSamples.empty()
+        return NNDSamples(
+            *(np.concatenate([getattr(s, f.name) for s in items]) for f in fields(NNDSamples))
+        )
+
+
+def nnd_samples(pred: np.ndarray, gt: np.ndarray, origin: np.ndarray) -> NNDSamples:
+    """Nearest neighbours between predicted points (M, 2) and FoV-GT points (K, 2) of one test point."""
+    pred = np.asarray(pred, dtype=np.float64).reshape(-1, 2)
+    gt = np.asarray(gt, dtype=np.float64).reshape(-1, 2)
+    origin = np.asarray(origin, dtype=np.float64).reshape(1, 2)
+    pred_depth = np.linalg.norm(pred - origin, axis=1)
+    gt_depth = np.linalg.norm(gt - origin, axis=1)
+    out = NNDSamples.empty()
+    if len(gt) and len(pred):
+        d_acc, j = cKDTree(gt).query(pred)
+        d_cov, i = cKDTree(pred).query(gt)
+        out = NNDSamples(
+            acc_dist=np.asarray(d_acc, dtype=np.float64),
+            acc_pred_depth=pred_depth,
+            acc_gt_depth=gt_depth[j],
+            cov_dist=np.asarray(d_cov, dtype=np.float64),
+            cov_gt_depth=gt_depth,
+            cov_pred_depth=pred_depth[i],
+        )
+    return out
+
+
+@dataclass
+class ZoneMetrics:
+    """The design-7 numbers of one sensor in one zone; None where no point was scored."""
+
+    acc_mean: float | None
+    acc_median: float | None
+    acc_inlier: float | None
+    acc_too_close: float | None
+    acc_too_far: float | None
+    cov_mean: float | None
+    cov_median: float | None
+    cov_inlier: float | None
+    cov_too_close: float | None
+    cov_too_far: float | None
+    n_pred: int
+    n_gt: int
+
+    def to_json(self) -> dict[str, float | int | None]:
+        d = asdict(self)
+        return {k: d[k] for k in METRIC_KEYS}
+
+
+@dataclass
+class SensorMetrics:
+    """Zone name -> metrics of one sensor (or model)."""
+
+    zones: dict[str, ZoneMetrics]
+
+    def to_json(self) -> dict[str, dict[str, float | int | None]]:
+        return {name: zm.to_json() for name, zm in self.zones.items()}
+
+
+def _stats(dist: np.ndarray, too_close: np.ndarray, inlier_m: float) -> tuple[float | None, ...]:
+    """mean, median, inlier share, too-close share, too-far share (shares of all points)."""
+    if dist.size == 0:
+        return (None,) * 5
+    inl = dist < inlier_m
+    close = ~inl & too_close
+    far = ~inl & ~too_close
+    n = dist.size
+    return (float(dist.mean()), float(np.median(dist)), inl.sum() / n, close.sum() / n, far.sum() / n)
+
+
+def zone_metrics(
+    samples: NNDSamples, zones: Sequence[Zone] = DEFAULT_ZONES, inlier_m: float = INLIER_M
+) -> SensorMetrics:
+    """Statistics of pooled NND samples in every zone."""
+    out: dict[str, ZoneMetrics] = {}
+    for z in zones:
+        a = z.contains(samples.acc_gt_depth)
+        c = z.contains(samples.cov_gt_depth)
+        acc = _stats(samples.acc_dist[a], samples.acc_pred_depth[a] < samples.acc_gt_depth[a], inlier_m)
+        cov = _stats(samples.cov_dist[c], samples.cov_pred_depth[c] < samples.cov_gt_depth[c], inlier_m)
+        vals = [None if v is None else float(v) for v in acc + cov]
+        out[z.name] = ZoneMetrics(*vals, n_pred=int(a.sum()), n_gt=int(c.sum()))
+    return SensorMetrics(out)
+
+
+def _json_number(v: float) -> float | int:
+    return int(v) if float(v).is_integer() else float(v)
+
+
+def metrics_document(
+    sensors: Mapping[str, SensorMetrics],
+    zones: Sequence[Zone] = DEFAULT_ZONES,
+    train: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The metrics.json object of design 7 (zones, sensors, optional train block)."""
+    doc: dict[str, Any] = {
+        "zones": {z.name: [_json_number(z.lo), _json_number(z.hi)] for z in zones},
+        "sensors": {name: m.to_json() for name, m in sensors.items()},
+    }
+    if train is not None:
+        doc["train"] = dict(train)
+    check_metrics_document(doc)
+    return doc
+
+
+def check_metrics_document(doc: Mapping[str, Any]) -> None:
+    """Raise ValueError unless `doc` follows the design-7 schema (finite numbers or null)."""
+    if set(doc) - {"zones", "sensors", "train"} or not {"zones", "sensors"} <= set(doc):
+        raise ValueError(f"metrics document keys must be zones, sensors[, train]; got {sorted(doc)}")
+    zone_names = list(doc["zones"])
+    for name, bounds in doc["zones"].items():
+        if not (isinstance(bounds, list) and len(bounds) == 2):
+            raise ValueError(f"zone {name!r} must be [lo, hi], got {bounds!r}")
+    for sensor, per_zone in doc["sensors"].items():
+        if list(per_zone) != zone_names:
+            raise ValueError(f"sensor {sensor!r} has zones {list(per_zone)}, expected {zone_names}")
+        for zname, block in per_zone.items():
+            if tuple(block) != METRIC_KEYS:
+                raise ValueError(f"{sensor}/{zname} keys {list(block)} != {list(METRIC_KEYS)}")
+            for k, v in block.items():
+                if k.startswith("n_"):
+                    if not isinstance(v, int) or v < 0:
+                        raise ValueError(f"{sensor}/{zname}/{k} must be a non-negative int, got {v!r}")
+                elif v is not None and not (isinstance(v, float | int) and math.isfinite(v)):
+                    raise ValueError(f"{sensor}/{zname}/{k} must be a finite number or null, got {v!r}")
+
+
+def write_metrics_json(
+    path: str | Path,
+    sensors: Mapping[str, SensorMetrics],
+    zones: Sequence[Zone] = DEFAULT_ZONES,
+    train: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Write metrics.json atomically; returns the written object."""
+    doc = metrics_document(sensors, zones, train)
+    write_json_atomic(path, doc)
+    return doc
+
+
+def _fmt(v: float | int | None, width: int = 7) -> str:
+    if v is None:
+        return "-".rjust(width)
+    if isinstance(v, int):
+        return str(v).rjust(width)
+    return f"{v:.3f}".rjust(width)
+
+
+def format_table(sensors: Mapping[str, SensorMetrics], zones: Sequence[Zone] = DEFAULT_ZONES) -> str:
+    """Compact text table: one row per sensor and zone; NND in metres, shares in [0, 1]."""
+    head = ("sensor", "zone", "acc_mean", "acc_med", "acc_inl", "cov_mean", "cov_med", "cov_inl", "n_pred", "n_gt")
+    widths = (8, 6, 8, 8, 8, 8, 8, 8, 7, 7)
+    lines = [" ".join(h.rjust(w) if i > 1 else h.ljust(w) for i, (h, w) in enumerate(zip(head, widths, strict=True)))]
+    for name, m in sensors.items():
+        for z in zones:
+            zm = m.zones.get(z.name)
+            if zm is None:
+                continue
+            vals = (zm.acc_mean, zm.acc_median, zm.acc_inlier, zm.cov_mean, zm.cov_median, zm.cov_inlier, zm.n_pred, zm.n_gt)
+            cells = [name.ljust(widths[0]), z.name.ljust(widths[1])]
+            cells += [_fmt(v, w) for v, w in zip(vals, widths[2:], strict=True)]
+            lines.append(" ".join(cells))
+    return "\n".join(lines)
+
+
+@dataclass
+class MetricsAggregate:
+    """Mean and std over runs: sensor -> zone -> metric key -> value (None where no run had one)."""
+
+    mean: dict[str, dict[str, dict[str, float | None]]]
+    std: dict[str, dict[str, dict[str, float | None]]]
+    n_runs: dict[str, dict[str, dict[str, int]]]  # how many runs had a value
+
+
+def aggregate_runs(runs: Sequence[Mapping[str, SensorMetrics]]) -> MetricsAggregate:
+    """Mean and sample std (ddof=1; 0 for a single run) of every metric over runs, skipping None."""
+    mean: dict[str, dict[str, dict[str, float | None]]] = {}
+    std: dict[str, dict[str, dict[str, float | None]]] = {}
+    count: dict[str, dict[str, dict[str, int]]] = {}
+    sensors = list(dict.fromkeys(s for run in runs for s in run))
+    for s in sensors:
+        zones = list(dict.fromkeys(z for run in runs if s in run for z in run[s].zones))
+        mean[s], std[s], count[s] = {}, {}, {}
+        for z in zones:
+            mean[s][z], std[s][z], count[s][z] = {}, {}, {}
+            for k in METRIC_KEYS:
+                vals = [
+                    getattr(run[s].zones[z], k)
+                    for run in runs
+                    if s in run and z in run[s].zones and getattr(run[s].zones[z], k) is not None
+                ]
+                arr = np.asarray(vals, dtype=np.float64)
+                count[s][z][k] = len(vals)
+                mean[s][z][k] = float(arr.mean()) if len(vals) else None
+                std[s][z][k] = (float(arr.std(ddof=1)) if len(vals) > 1 else 0.0) if len(vals) else None
+    return MetricsAggregate(mean=mean, std=std, n_runs=count)

@@ -1,0 +1,132 @@
+"""The batch sampler (design 3.6): random pixels + USS-cone pixels + IRS-zone pixels.
+
+Every ray is a camera pixel and carries colour; rays whose pixel lies in a sensor's footprint
+also carry that sensor's range, converted to a distance along the ray in metres (the IRS
+z-depth divided by the pixel direction's z; the USS range is radial already).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from virus_nerf.sampler.frames import FrameStore
+
+SENSORS = ("camera", "uss", "irs", "rgbd")
+
+
+@dataclass(frozen=True)
+class BatchShares:
+    """Shares of the batch drawn from IRS-zone and USS-cone pixels; the rest are random pixels."""
+
+    irs: float = 0.4
+    uss: float = 0.4
+
+
+@dataclass
+class RayBatch:
+    """B training rays, world frame, metres. NaN target = that sensor has no value on the ray."""
+
+    origins: torch.Tensor  # (B, 3)
+    directions: torch.Tensor  # (B, 3) unit
+    rgb: torch.Tensor  # (B, 3) in [0, 1]
+    irs_range: torch.Tensor  # (B,) distance along the ray from the IRS zone reading
+    uss_range: torch.Tensor  # (B,) echo range (radial) for rays inside the USS cone
+    rgbd_range: torch.Tensor  # (B,) distance along the ray from the RGB-D depth
+    frames: torch.Tensor  # (B,) int64 frame rows in the FrameStore
+
+    def __len__(self) -> int:
+        return self.origins.shape[0]
+
+    def to(self, device: torch.device) -> RayBatch:
+        return RayBatch(**{k: v.to(device) for k, v in self.__dict__.items()})
+
+
+class BatchSampler:
+    """Draws RayBatches from a FrameStore with a numpy Generator (seeded, resumable)."""
+
+    def __init__(self, store: FrameStore, sensors: tuple[str, ...], shares: BatchShares = BatchShares()):
+        unknown = set(sensors) - set(SENSORS)
+        if unknown:
+            raise ValueError(f"unknown sensors {sorted(unknown)}; expected a subset of {SENSORS}")
+        self.store = store
+        self.sensors = tuple(sensors)
+        self.share_irs = shares.irs if "irs" in sensors else 0.0
+        self.share_uss = shares.uss if "uss" in sensors else 0.0
+        if self.share_irs + self.share_uss > 1:
+            raise ValueError("batch shares of IRS and USS rays must add up to at most 1")
+
+    def sample(self, rng: np.random.Generator, n_rays: int, frames: np.ndarray | None = None) -> RayBatch:
+        """Draw n_rays rays from the given frame rows (default: all frames of the store)."""
+        store = self.store
+        if frames is None:
+            frames = np.arange(len(store))
+        if len(frames) == 0:
+            raise ValueError("no frames available to sample rays from")
+        n_irs = int(round(self.share_irs * n_rays))
+        n_uss = int(round(self.share_uss * n_rays))
+        kind = np.zeros(n_rays, dtype=np.int8)  # 0 random, 1 uss cone, 2 irs zone
+        kind[:n_uss] = 1
+        kind[n_uss : n_uss + n_irs] = 2
+        f = frames[rng.integers(0, len(frames), size=n_rays)]
+        pix = np.empty(n_rays, dtype=np.int64)
+        u01 = rng.random(n_rays)
+        zone_pick = rng.random((n_rays, 64))
+        hw = store.height * store.width
+        for s, fp in store.footprints.items():
+            in_stack = store.stack_ids[f] == s
+            sel = in_stack & (kind == 0)
+            pix[sel] = np.minimum((u01[sel] * hw).astype(np.int64), hw - 1)
+            sel = in_stack & (kind == 1)
+            pix[sel] = fp.uss_pixels[np.minimum((u01[sel] * len(fp.uss_pixels)).astype(np.int64), len(fp.uss_pixels) - 1)]
+            sel = np.flatnonzero(in_stack & (kind == 2))
+            if sel.size:
+                valid = np.isfinite(store.irs_range[f[sel]].reshape(-1, 64))  # (n, 64)
+                # a valid zone of the frame, uniformly; frames without one fall back to any zone
+                weights = np.where(valid.any(axis=1, keepdims=True), valid, True)
+                zone = np.argmax(zone_pick[sel] * weights, axis=1)
+                start, count = fp.zone_start[zone], np.diff(fp.zone_start)[zone]
+                pix[sel] = fp.zone_pixels[start + np.minimum((u01[sel] * count).astype(np.int64), count - 1)]
+        return self._rays(f, pix)
+
+    def _rays(self, f: np.ndarray, pix: np.ndarray) -> RayBatch:
+        store = self.store
+        n = len(f)
+        dirs_cam = np.empty((n, 3), dtype=np.float64)
+        irs_range = np.full(n, np.nan)
+        uss_range = np.full(n, np.nan)
+        for s, fp in store.footprints.items():
+            sel = store.stack_ids[f] == s
+            dirs_cam[sel] = fp.dirs_cam[pix[sel]]
+            zone = fp.irs_zone[pix[sel]].astype(np.int64)
+            z = np.where(zone >= 0, store.irs_range[f[sel]].reshape(-1, 64)[np.arange(sel.sum()), np.maximum(zone, 0)], np.nan)
+            irs_range[sel] = z / dirs_cam[sel, 2]
+            uss_range[sel] = np.where(fp.in_uss[pix[sel]], store.uss_range[f[sel]], np.nan)
+        if "irs" not in self.sensors:
+            irs_range[:] = np.nan
+        if "uss" not in self.sensors:
+            uss_range[:] = np.nan
+        rgbd_range = np.full(n, np.nan)
+        if "rgbd" in self.sensors and store.depths_mm is not None:
+            mm = store.depths_mm.reshape(len(store), -1)[f, pix].astype(np.float64)
+            rgbd_range = np.where(mm > 0, mm / 1000.0, np.nan) / dirs_cam[:, 2]
+        pose = store.cam_to_world[f]  # (n, 4, 4)
+        dirs = np.einsum("nij,nj->ni", pose[:, :3, :3], dirs_cam)
+        v, u = np.divmod(pix, store.width)
+        rgb = store.images[f, v, u].astype(np.float32) / 255.0
+        return RayBatch(
+            origins=torch.from_numpy(pose[:, :3, 3].astype(np.float32)),
+            directions=torch.from_numpy(dirs.astype(np.float32)),
+            rgb=torch.from_numpy(rgb),
+            irs_range=torch.from_numpy(irs_range.astype(np.float32)),
+            uss_range=torch.from_numpy(uss_range.astype(np.float32)),
+            rgbd_range=torch.from_numpy(rgbd_range.astype(np.float32)),
+            frames=torch.from_numpy(f.astype(np.int64)),
+        )
+
+    def frame_rays(self, frame: int) -> RayBatch:
+        """All pixels of one frame, row-major (for rendering a full image)."""
+        hw = self.store.height * self.store.width
+        return self._rays(np.full(hw, frame, dtype=np.int64), np.arange(hw, dtype=np.int64))

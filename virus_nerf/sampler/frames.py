@@ -1,0 +1,147 @@
+"""Decoded training frames in one compact uint8 store (memory-mapped for long recordings).
+
+Images are decoded once at the training resolution; a 10-minute two-camera recording at
+640x480 is ~5.5 GB of uint8, so above `mmap_above_bytes` the store lives in a .npy file
+under the run folder and the OS pages it in and out (design: train within 8 GB of RAM).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from virus_nerf.data.ethz import Recording
+from virus_nerf.sensors import irs, uss
+from virus_nerf.sensors.camera import Intrinsics, pixel_directions
+
+
+@dataclass
+class StackFootprints:
+    """Per-pixel sensor footprints of one stack's camera at training resolution."""
+
+    dirs_cam: np.ndarray  # (H*W, 3) float32 unit directions, camera frame
+    irs_zone: np.ndarray  # (H*W,) int16 zone id row*8+col, -1 outside the IRS field of view
+    zone_pixels: np.ndarray  # (P,) int32 pixel ids sorted by zone
+    zone_start: np.ndarray  # (65,) int64 offsets of each zone's pixels in zone_pixels
+    uss_pixels: np.ndarray  # (Q,) int32 pixel ids inside the USS cone
+    in_uss: np.ndarray  # (H*W,) bool
+
+    @staticmethod
+    def of(intr: Intrinsics) -> StackFootprints:
+        v, u = np.mgrid[0 : intr.height, 0 : intr.width]
+        dirs = pixel_directions(intr, u.ravel(), v.ravel())
+        row, col = irs.zone_of_directions(dirs)
+        zone = np.where(row >= 0, row * irs.IRS_ZONES + col, -1).astype(np.int16)
+        inside = np.flatnonzero(zone >= 0)
+        order = inside[np.argsort(zone[inside], kind="stable")]
+        counts = np.bincount(zone[order], minlength=64)
+        start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        in_cone = uss.in_cone(dirs)
+        return StackFootprints(
+            dirs_cam=dirs.astype(np.float32),
+            irs_zone=zone,
+            zone_pixels=order.astype(np.int32),
+            zone_start=start,
+            uss_pixels=np.flatnonzero(in_cone).astype(np.int32),
+            in_uss=in_cone,
+        )
+
+
+@dataclass
+class FrameStore:
+    """Frames of all stacks used for training, row f = one frame."""
+
+    stack_ids: np.ndarray  # (F,) int
+    rows: np.ndarray  # (F,) sample index within its stack
+    times: np.ndarray  # (F,) s
+    cam_to_world: np.ndarray  # (F, 4, 4) float64
+    images: np.ndarray  # (F, H, W, 3) uint8, RGB (may be a np.memmap)
+    depths_mm: np.ndarray | None  # (F, H, W) uint16 z-depth mm, 0 = invalid (RGB-D runs only)
+    uss_range: np.ndarray  # (F,) m, NaN = no echo
+    irs_range: np.ndarray  # (F, 8, 8) m z-depth, NaN = invalid
+    intrinsics: dict[int, Intrinsics]  # per stack, at training resolution
+    footprints: dict[int, StackFootprints]
+
+    def __len__(self) -> int:
+        return len(self.stack_ids)
+
+    @property
+    def height(self) -> int:
+        return self.images.shape[1]
+
+    @property
+    def width(self) -> int:
+        return self.images.shape[2]
+
+
+def _resize_rgb(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    from PIL import Image
+
+    if (img.shape[1], img.shape[0]) == size:
+        return img
+    return np.asarray(Image.fromarray(img).resize(size, Image.Resampling.BOX))
+
+
+def _resize_depth_mm(depth_m: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Nearest-neighbour resize (never mixes valid and invalid pixels) -> uint16 mm, 0 invalid."""
+    h, w = depth_m.shape
+    ys = ((np.arange(size[1]) + 0.5) * h / size[1]).astype(int)
+    xs = ((np.arange(size[0]) + 0.5) * w / size[0]).astype(int)
+    d = depth_m[np.ix_(ys, xs)]
+    mm = np.where(np.isfinite(d), np.clip(np.round(d * 1000), 1, 65534), 0)
+    return mm.astype(np.uint16)
+
+
+def build_frame_store(
+    recording: Recording,
+    labels: tuple[str, ...] = ("train",),
+    image_scale: float = 0.5,
+    with_depth: bool = False,
+    cache_dir: Path | None = None,
+    mmap_above_bytes: int = 1 << 30,
+    progress: bool = False,
+) -> FrameStore:
+    """Decode the frames with the given split labels of every stack, at `image_scale`."""
+    entries = [
+        (s, int(i)) for s, stack in sorted(recording.stacks.items()) for i in np.flatnonzero(np.isin(stack.split, labels))
+    ]
+    intrinsics = {s: st.intrinsics.scaled(image_scale) for s, st in recording.stacks.items()}
+    sizes = {(i.width, i.height) for i in intrinsics.values()}
+    if len(sizes) != 1:
+        raise ValueError(f"all stacks must share one image size, got {sizes}")
+    width, height = sizes.pop()
+    n = len(entries)
+    nbytes = n * height * width * 3
+    if cache_dir is not None and nbytes > mmap_above_bytes:
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        images = np.lib.format.open_memmap(cache_dir / "images.npy", mode="w+", dtype=np.uint8, shape=(n, height, width, 3))
+    else:
+        images = np.empty((n, height, width, 3), dtype=np.uint8)
+    depths = np.zeros((n, height, width), dtype=np.uint16) if with_depth else None
+    iterator = range(n)
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(iterator, desc="decoding frames", unit="img", leave=False)
+    for f in iterator:
+        s, i = entries[f]
+        stack = recording.stacks[s]
+        images[f] = _resize_rgb(stack.image(i), (width, height))
+        if depths is not None:
+            depths[f] = _resize_depth_mm(stack.depth(i), (width, height))
+    stack_ids = np.array([s for s, _ in entries], dtype=np.int64)
+    rows = np.array([i for _, i in entries], dtype=np.int64)
+    return FrameStore(
+        stack_ids=stack_ids,
+        rows=rows,
+        times=np.array([recording.stacks[s].times[i] for s, i in entries]),
+        cam_to_world=np.stack([recording.stacks[s].cam_to_world[i] for s, i in entries]) if n else np.zeros((0, 4, 4)),
+        images=images,
+        depths_mm=depths,
+        uss_range=np.array([recording.stacks[s].uss_range[i] for s, i in entries]),
+        irs_range=np.stack([recording.stacks[s].irs_range[i] for s, i in entries]) if n else np.zeros((0, 8, 8)),
+        intrinsics=intrinsics,
+        footprints={s: StackFootprints.of(intr) for s, intr in intrinsics.items()},
+    )
