@@ -49,7 +49,9 @@ def test_shares_and_targets(store):
     assert set(np.round(uss[:400].astype(float), 1)) == {0.8, 2.0}  # USS1 0.75 m, USS3 1.96 m
     # IRS rays: at least the valid-zone rays carry a range; ranges are >= the zone z-depth
     irs_r = batch.irs_range.numpy()[400:800]
-    assert np.isfinite(irs_r).mean() > 0.9
+    has_valid_zone = np.isfinite(store.irs_range[batch.frames.numpy()[400:800]]).any(axis=(1, 2))
+    assert has_valid_zone.sum() > 100
+    assert np.isfinite(irs_r[has_valid_zone]).all()  # IRS rays go to valid zones when there are any
     assert np.isnan(batch.rgbd_range.numpy()).all()  # rgbd not requested
 
 
