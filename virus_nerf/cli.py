@@ -7,8 +7,22 @@ import sys
 
 def _commands() -> dict:
     """Subcommand name -> function; imports are light (torch is imported inside the commands)."""
-    commands: dict = {}
-    return commands
+    from virus_nerf.evaluation.command import sensors
+    from virus_nerf.experiments.ablation import ablation
+    from virus_nerf.experiments.demo import demo
+    from virus_nerf.experiments.online import online
+    from virus_nerf.sim.command import simulate
+    from virus_nerf.trainer.command import evaluate, train
+
+    return {
+        "simulate": simulate,
+        "sensors": sensors,
+        "train": train,
+        "evaluate": evaluate,
+        "demo": demo,
+        "ablation": ablation,
+        "online": online,
+    }
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -33,10 +33,11 @@ class DataFormatError(ValueError):
 
 
 class OutputExistsError(FileExistsError):
-    """Refusal to touch an output folder that already exists (nothing is ever overwritten)."""
+    """Refusal to touch an output file or folder that already exists (nothing is overwritten)."""
 
     def __init__(self, path: str | Path) -> None:
+        kind = "folder" if Path(path).is_dir() else "file"
         super().__init__(
-            f"{path}: output folder already exists; choose a new --out (nothing was overwritten)"
+            f"{path}: output {kind} already exists; choose a new --out (nothing was overwritten)"
         )
         self.path = Path(path)

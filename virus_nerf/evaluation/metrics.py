@@ -198,6 +198,15 @@ def check_metrics_document(doc: Mapping[str, Any]) -> None:
                     raise ValueError(f"{sensor}/{zname}/{k} must be a finite number or null, got {v!r}")
 
 
+def sensor_metrics_from_json(doc: Mapping[str, Any]) -> dict[str, SensorMetrics]:
+    """Inverse of `metrics_document` for the sensors block (e.g. to aggregate saved runs)."""
+    check_metrics_document(doc)
+    return {
+        name: SensorMetrics({z: ZoneMetrics(**{k: block[k] for k in METRIC_KEYS}) for z, block in per_zone.items()})
+        for name, per_zone in doc["sensors"].items()
+    }
+
+
 def write_metrics_json(
     path: str | Path,
     sensors: Mapping[str, SensorMetrics],

@@ -15,7 +15,7 @@ import numpy as np
 from virus_nerf.evaluation.testpoints import TestPoint
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Sector:
     """A horizontal wedge: apex (2,) m, heading (rad, about world z), half opening angle (rad).
 
@@ -37,7 +37,7 @@ class Sector:
         return np.abs(ang) <= self.half_angle + 1e-12
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class FieldOfView:
     """Union of sectors; an empty union sees nothing."""
 

@@ -15,7 +15,7 @@ MAIN_STACK = 1
 PARTNER_STACK = 3
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class TestPoint:
     """Where and when a 2D scan is taken; the scan origin is the camera-1 position (design 9.9)."""
 

@@ -137,25 +137,28 @@ def hash_encode_torch(x: torch.Tensor, table: torch.Tensor, layout: HashGridLayo
     cidx = torch.stack([cell, cell + 1], dim=-1)  # (N, L, 3, 2) vertex coordinate per axis and bit
     wts = torch.stack([1.0 - frac, frac], dim=-1)  # (N, L, 3, 2) linear weight per axis and bit
 
-    # Dense: i + j (r+1) + k (r+1)^2 ; hashed: (i p0 ^ j p1 ^ k p2) & (T-1). Corner order k = dx + 2dy + 4dz.
-    stride = torch.stack([torch.ones_like(res_i), res_i + 1, (res_i + 1) ** 2], dim=-1)  # (L, 3)
-    primes = torch.tensor(PRIMES, dtype=torch.int64, device=dev)  # (3,)
-    d_terms = cidx * stride[None, :, :, None]  # (N, L, 3, 2)
-    h_terms = cidx * primes[None, None, :, None]  # (N, L, 3, 2)
-    dense_idx = (
-        d_terms[:, :, 0, None, None, :] + d_terms[:, :, 1, None, :, None] + d_terms[:, :, 2, :, None, None]
-    )  # (N, L, 2dz, 2dy, 2dx)
-    hash_idx = (
-        h_terms[:, :, 0, None, None, :] ^ h_terms[:, :, 1, None, :, None] ^ h_terms[:, :, 2, :, None, None]
-    ) & (layout.table_size - 1)
-    is_dense = torch.tensor(layout.dense, device=dev)[None, :, None, None, None]
-    offsets = torch.tensor(layout.offsets, dtype=torch.int64, device=dev)[None, :, None, None, None]
-    idx = (torch.where(is_dense, dense_idx, hash_idx) + offsets).reshape(n, L, 8)  # (N, L, 8)
+    # Dense levels form a prefix (resolutions grow). Dense row: i + j (r+1) + k (r+1)^2;
+    # hashed row: (i p0 ^ j p1 ^ k p2) & (T-1). Corner order k = dx + 2 dy + 4 dz.
+    n_dense = sum(layout.dense)
+    parts = []
+    if n_dense:
+        r1 = res_i[:n_dense] + 1
+        stride = torch.stack([torch.ones_like(r1), r1, r1 * r1], dim=-1)  # (Ld, 3)
+        t = cidx[:, :n_dense] * stride[None, :, :, None]  # (N, Ld, 3, 2)
+        parts.append(t[:, :, 0, None, None, :] + t[:, :, 1, None, :, None] + t[:, :, 2, :, None, None])
+    if n_dense < L:
+        primes = torch.tensor(PRIMES, dtype=torch.int64, device=dev)  # (3,)
+        t = cidx[:, n_dense:] * primes[None, None, :, None]  # (N, Lh, 3, 2)
+        h = t[:, :, 0, None, None, :] ^ t[:, :, 1, None, :, None] ^ t[:, :, 2, :, None, None]
+        parts.append(h & (layout.table_size - 1))
+    rows = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]  # (N, L, 2dz, 2dy, 2dx)
+    offsets = torch.tensor(layout.offsets, dtype=torch.int64, device=dev)
+    idx = (rows.reshape(n, L, 8) + offsets[None, :, None]).reshape(-1)  # (N*L*8,)
     w = (
         wts[:, :, 0, None, None, :] * wts[:, :, 1, None, :, None] * wts[:, :, 2, :, None, None]
     ).reshape(n, L, 8)  # (N, L, 8) trilinear weights, sum 1
-    feats = table[idx]  # (N, L, 8, F)
-    out = (w[..., None] * feats).sum(dim=2)  # (N, L, F)
+    feats = table.index_select(0, idx).reshape(n * L, 8, F)  # (N*L, 8, F); 3x faster than table[idx]
+    out = torch.bmm(w.reshape(n * L, 1, 8), feats)  # (N*L, 1, F)
     return out.reshape(n, L * F)
 
 

@@ -23,6 +23,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        os.chmod(tmp_path, 0o644)  # mkstemp makes 0600; results are ordinary files
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
@@ -60,6 +61,7 @@ def new_output_dir(path: str | Path) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-", dir=path.parent))
     yield tmp
+    os.chmod(tmp, 0o755)  # mkdtemp makes 0700
     if path.exists():
         raise OutputExistsError(path)
     os.replace(tmp, path)

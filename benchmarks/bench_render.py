@@ -1,0 +1,146 @@
+"""Speed of the ray marcher, the compositor and the Instant-NGP grid update (design 10).
+
+Prints one JSON object. Marching: 4096 rays in a 9 x 8 x 2.6 m room whose 128-cell grid is ~20 %
+occupied (walls, floor, ceiling, furniture blocks), numba vs torch. Compositing: 4096 x 64
+samples, forward + backward. NgpGrid: one full-grid (warm-up) update and one post-warm-up update
+with a cheap density_fn at max_resolution 64 and 128. Times are medians of a few repeats after a
+warm-up call (numba compile excluded, reported separately). Run:
+    .venv/bin/python benchmarks/bench_render.py
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+
+import numba
+import torch
+
+from virus_nerf.grid.base import GridSpec
+from virus_nerf.grid.ngp import NgpGrid, NgpGridConfig
+from virus_nerf.render import PackedSamples, composite, march_rays
+from virus_nerf.scene_box import SceneBox
+
+BOX = SceneBox((-4.5, -4.0, 0.0), (4.5, 4.0, 2.6))
+
+
+def timed(fn, repeats: int = 5) -> float:
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def room_occupancy(spec: GridSpec, seed: int = 0) -> torch.Tensor:
+    """Walls/floor/ceiling 0.15 m thick and random furniture blocks up to ~20 % of the cells."""
+    g = torch.Generator().manual_seed(seed)
+    centres = spec.cell_centers().reshape(*spec.resolution, 3)
+    x, y, z = centres.unbind(-1)
+    lo, hi = BOX.lo, BOX.hi
+    occ = (x < lo[0] + 0.15) | (x > hi[0] - 0.15) | (y < lo[1] + 0.15) | (y > hi[1] - 0.15)
+    occ |= (z < 0.15) | (z > hi[2] - 0.15)
+    while float(occ.float().mean()) < 0.2:
+        sx, sy = (torch.rand(2, generator=g) * torch.tensor([1.5, 1.2]) + 0.4).tolist()
+        sz = float(torch.rand(1, generator=g)) * 1.8 + 0.4  # tables to cupboards
+        cx, cy = (torch.rand(2, generator=g) * torch.tensor([8.0, 7.0]) - torch.tensor([4.0, 3.5])).tolist()
+        occ |= (abs(x - cx) < sx / 2) & (abs(y - cy) < sy / 2) & (z < sz)
+    return occ
+
+
+def camera_rays(n: int, seed: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    o = torch.rand(n, 3, generator=g) * torch.tensor([7.0, 6.0, 0.6]) + torch.tensor([-3.5, -3.0, 0.7])
+    yaw = torch.rand(n, generator=g) * 2 * torch.pi
+    pitch = (torch.rand(n, generator=g) - 0.5) * torch.pi / 3  # +-30 deg
+    d = torch.stack([torch.cos(yaw) * torch.cos(pitch), torch.sin(yaw) * torch.cos(pitch),
+                     torch.sin(pitch)], dim=-1)
+    return o, d
+
+
+def bench_marching(n_rays: int = 4096) -> dict:
+    spec = GridSpec.from_box(BOX, 128)
+    occ = room_occupancy(spec)
+    o, d = camera_rays(n_rays)
+    out: dict = {"resolution": list(spec.resolution), "occupied_share": round(float(occ.float().mean()), 3)}
+    cases = {
+        "const_0.01m": dict(step_size=0.01, cone_angle=0.0),
+        "cone_1/256": dict(step_size=0.01, cone_angle=1 / 256),
+    }
+    for name, kw in cases.items():
+        res = {}
+        t = time.perf_counter()
+        s = march_rays(o, d, occ, spec, 0.05, 15.0, max_samples_per_ray=1024, backend="numba", **kw)
+        res["numba_first_call_s"] = round(time.perf_counter() - t, 3)
+        res["samples_per_ray"] = round(s.n_samples / n_rays, 1)
+        for label, extra, reps in (
+            ("numba_skip", dict(backend="numba", skip_empty=True), 7),
+            ("numba_noskip", dict(backend="numba", skip_empty=False), 5),
+            ("torch", dict(backend="torch"), 2),
+        ):
+            sec = timed(lambda extra=extra: march_rays(
+                o, d, occ, spec, 0.05, 15.0, max_samples_per_ray=1024,
+                jitter=torch.Generator().manual_seed(0), **kw, **extra), reps)
+            res[label] = {"ms": round(sec * 1e3, 2), "rays_per_s": round(n_rays / sec),
+                          "samples_per_s": round(s.n_samples / sec)}
+        out[name] = res
+    return out
+
+
+def bench_compositing(n_rays: int = 4096, per_ray: int = 64) -> dict:
+    g = torch.Generator().manual_seed(0)
+    counts = torch.full((n_rays,), per_ray)
+    ts = (torch.arange(per_ray) * 0.02).repeat(n_rays)
+    samples = PackedSamples.from_counts(counts, ts, ts + 0.02)
+    s = samples.n_samples
+    sig = (torch.rand(s, generator=g) ** 4 * 300).requires_grad_()
+    rgb = torch.rand(s, 3, generator=g).requires_grad_()
+    bg = torch.ones(3)
+
+    out: dict = {"n_samples": s}
+    for backend in ("numba", "torch"):
+        def step(backend=backend):
+            r = composite(sig, rgb, samples, n_rays, bg, backend)
+            loss = (r.rgb ** 2).sum() + r.depth.sum() + r.opacity.sum()
+            loss.backward()
+
+        t = time.perf_counter()
+        step()
+        first = time.perf_counter() - t
+        fwd = timed(lambda backend=backend: composite(sig.detach(), rgb.detach(), samples,
+                                                      n_rays, bg, backend), 7)
+        sec = timed(step, 7)
+        out[backend] = {"first_call_s": round(first, 3), "forward_ms": round(fwd * 1e3, 2),
+                        "fwd_bwd_ms": round(sec * 1e3, 2), "fwd_bwd_samples_per_s": round(s / sec)}
+    return out
+
+
+def bench_ngp_grid() -> dict:
+    density = lambda p: p.norm(dim=-1)  # noqa: E731 - cheap stand-in for the field
+    out = {}
+    for res in (64, 128):
+        grid = NgpGrid(BOX, NgpGridConfig(max_resolution=res))
+        g = torch.Generator().manual_seed(0)
+        full = timed(lambda grid=grid, g=g: grid.update(0, density, None, g), 3)
+        part = timed(lambda grid=grid, g=g: grid.update(10_000, density, None, g), 3)
+        out[f"res{res}"] = {"cells": grid.spec.n_cells, "resolution": list(grid.spec.resolution),
+                            "full_update_s": round(full, 4), "half_update_s": round(part, 4)}
+    return out
+
+
+def main() -> None:
+    t = time.perf_counter()
+    result = {
+        "threads": {"torch": torch.get_num_threads(), "numba": numba.get_num_threads()},
+        "marching_4096_rays": bench_marching(),
+        "compositing_4096x64": bench_compositing(),
+        "ngp_grid_update": bench_ngp_grid(),
+    }
+    result["bench_seconds"] = round(time.perf_counter() - t, 1)
+    print(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,307 @@
+"""The Bayesian VIRUS grid (design 3.4): sensor model, traversal, eq. 9, warm-up, resume."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from virus_nerf.grid.base import GridUpdateBatch, cell_index
+from virus_nerf.grid.sensor_model import cells_along_ray, depth_log_odds, nerf_log_odds
+from virus_nerf.grid.virus import VirusGrid, VirusGridConfig, benchmark_update
+from virus_nerf.scene_box import SceneBox
+
+L_INIT = math.log(0.55 / 0.45)
+L_PRIOR = math.log(0.49 / 0.51)
+
+
+def _phi(x: float) -> float:
+    return 0.5 * (1.0 + math.erf(x / math.sqrt(2.0)))
+
+
+def _reference_increment(a, b, m, cfg: VirusGridConfig) -> float:
+    """The sensor-model formula written out independently of the numba kernel."""
+    sigma = cfg.std_per_m * m + cfg.std_floor
+    s, d = b - a, 0.5 * (a + b)
+    p_det = cfg.hit_probability * (1.0 - math.exp(-s / cfg.stop_length))
+    n_bar = (_phi((b - m) / sigma) - _phi((a - m) / sigma)) / s
+    lam = cfg.false_rate
+    ratio = 1.0 - p_det * _phi((m - d) / sigma) + p_det * math.exp(lam * (m - d)) * n_bar / lam
+    return max(-cfg.max_increment, min(cfg.max_increment, math.log(ratio)))
+
+
+def _batch(depth=None, nerf=None) -> GridUpdateBatch:
+    """depth = (origins, directions, ranges), nerf = (origins, directions, far); None = no rays."""
+    e3, e = torch.zeros(0, 3), torch.zeros(0)
+    do, dd, dr = depth if depth is not None else (e3, e3, e)
+    no, nd, nf = nerf if nerf is not None else (e3, e3, e)
+    return GridUpdateBatch(do, dd, dr, no, nd, nf)
+
+
+def _unit(v) -> torch.Tensor:
+    t = torch.tensor(v, dtype=torch.float32)
+    return t / t.norm(dim=-1, keepdim=True)
+
+
+# ---------------------------------------------------------------- Depth-Update
+BAR = SceneBox((0.0, 0.0, 0.0), (4.0, 1.0, 1.0))  # 40 x 10 x 10 cells of 0.1 m
+
+
+def test_depth_update_profile_along_one_ray():
+    cfg = VirusGridConfig(max_resolution=40)
+    grid = VirusGrid(BAR, cfg)
+    assert grid.spec.resolution == (40, 10, 10)
+    m = 2.0
+    sigma = cfg.std_per_m * m + cfg.std_floor  # 0.08 m: visit up to 2.24 m
+    before = grid.logodds.clone()
+    grid.depth_update(torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([m]))
+    change = grid.logodds - before
+    row = change[:, 5, 5].double()
+    # every cell up to m + 3 sigma, each against the formula; the last one only up to 2.24 m
+    for i in range(23):
+        a, b = 0.1 * i, min(0.1 * (i + 1), m + 3 * sigma)
+        assert row[i].item() == pytest.approx(_reference_increment(a, b, m, cfg), abs=1e-5)
+    assert torch.all(row[:17] < 0), "free before the range"
+    assert row[0].item() == pytest.approx(math.log(1 - 0.7 * (1 - math.exp(-5))), abs=1e-5)
+    assert row[19].item() > 0 and row[20].item() > 0, "occupied on both sides of m = 2.0 m"
+    assert torch.all(row[23:] == 0), "untouched beyond m + 3 sigma"
+    assert int(torch.argmax(row)) in (19, 20)
+    change[:, 5, 5] = 0
+    assert torch.all(change == 0), "no other cell touched"
+
+
+def test_depth_update_convergence_to_the_clamps():
+    cfg = VirusGridConfig(max_resolution=40)
+    grid = VirusGrid(BAR, cfg)
+    o, d, m = torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([2.05])
+    for _ in range(30):
+        grid.depth_update(o, d, m)
+    row = grid.logodds[:, 5, 5]
+    assert row[20].item() == 4.0  # the cell holding the hit, [2.0, 2.1]
+    assert torch.all(row[:17] == -4.0)  # well before the hit
+    assert torch.all(row[24:] == torch.tensor(L_INIT, dtype=torch.float32))  # beyond 2.05 + 3 * 0.0815
+
+
+def test_depth_update_with_tiny_noise_still_hits_the_peak_cell():
+    # sigma far below the cell size: the segment-averaged Gaussian still finds the peak (design 9.4)
+    cfg = VirusGridConfig(max_resolution=40, std_per_m=0.0, std_floor=0.002)
+    grid = VirusGrid(BAR, cfg)
+    before = grid.logodds.clone()
+    grid.depth_update(torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([1.234]))
+    row = (grid.logodds - before)[:, 5, 5]
+    assert row[12].item() == pytest.approx(cfg.max_increment)
+    assert torch.all(row[:12] < 0) and torch.all(row[13:] == 0)
+
+
+def test_depth_log_odds_is_unimodal_in_distance():
+    cfg = VirusGridConfig()
+    for m in (0.3, 1.0, 2.5, 4.0):
+        starts = np.arange(0.0, m + 0.3, 0.01)
+        inc = [depth_log_odds(a, a + 0.05, m, cfg.std_per_m * m + cfg.std_floor, cfg.false_rate,
+                              cfg.hit_probability, cfg.stop_length, 50.0) for a in starts]
+        k = int(np.argmax(inc))
+        assert abs(starts[k] + 0.025 - m) < 0.03
+        assert np.all(np.diff(inc[: k + 1]) >= -1e-12) and np.all(np.diff(inc[k:]) <= 1e-12)
+        assert min(inc) >= math.log(1 - cfg.hit_probability) - 1e-12
+
+
+def test_traversal_visits_a_gapless_chain_of_every_crossed_cell():
+    grid = VirusGrid(SceneBox((0.0, 0.0, 0.0), (2.0, 1.5, 1.0)), VirusGridConfig(max_resolution=20))
+    spec = grid.spec  # 20 x 15 x 10 cells of 0.1 m
+    o = np.array([0.03, 0.07, 0.11])
+    d = np.array([1.0, 0.73, 0.41])
+    d /= np.linalg.norm(d)
+    cells, a, b = cells_along_ray(spec, o, d, t_end=10.0)
+    t_exit = min((np.array([2.0, 1.5, 1.0]) - o) / d)
+    assert a[0] == 0.0 and b[-1] == pytest.approx(t_exit)
+    assert np.array_equal(a[1:], b[:-1]), "segments tile the ray"
+    res = np.array(spec.resolution)
+    ijk = np.stack(np.unravel_index(cells, res), axis=-1)
+    steps = np.abs(np.diff(ijk, axis=0)).sum(axis=-1)
+    assert np.all(steps == 1), "consecutive cells share a face"
+    u0 = np.floor(o / 0.1)
+    u1 = np.floor((o + d * (t_exit - 1e-9)) / 0.1)
+    assert len(cells) == 1 + int(np.abs(u1 - u0).sum()) == len(set(cells.tolist()))
+    mids = torch.from_numpy(o + d * ((a + b) / 2)[:, None])
+    assert torch.equal(cell_index(mids, spec), torch.from_numpy(cells)), "the marcher's formula"
+
+
+def test_traversal_of_a_ray_from_outside_starts_at_the_box():
+    spec = VirusGrid(SceneBox((0.0, 0.0, 0.0), (2.0, 1.5, 1.0)), VirusGridConfig(max_resolution=20)).spec
+    cells, a, b = cells_along_ray(spec, [-1.0, 0.52, 0.47], [1.0, 0.1, 0.0], t_end=100.0)
+    assert a[0] == pytest.approx(math.sqrt(1.01))
+    assert len(cells) == 20 + 1  # x crosses 20 cells, y one boundary (0.52 -> 0.72)
+    assert len(cells_along_ray(spec, [-1.0, 0.5, 0.5], [-1.0, 0.0, 0.0], t_end=100.0)[0]) == 0
+
+
+def test_marcher_reads_the_cell_the_depth_update_writes():
+    cfg = VirusGridConfig()
+    grid = VirusGrid(SceneBox((0.0, 0.0, 0.0), (9.0, 8.0, 2.6)), cfg)  # 128 x 114 x 37
+    o = torch.tensor([[1.0, 1.2, 0.9]])
+    d = _unit([[0.83, 0.51, 0.13]])
+    m = 3.1
+    g = torch.Generator().manual_seed(0)
+    for k in range(4):
+        grid.update(cfg.warmup_steps + 16 * k, None, _batch(depth=(o, d, torch.tensor([m]))), g)
+    occ = grid.occupied.reshape(-1)
+    hit = cell_index(o + d * m, grid.spec)
+    assert occ[hit].item(), "the cell the marcher looks up at the measured point is occupied"
+    assert not occ[cell_index(o + d * (m / 2), grid.spec)].item()
+    centres = grid.spec.cell_centers()[occ]
+    dist = (centres - (o + d * m)).norm(dim=-1)
+    sigma = cfg.std_per_m * m + cfg.std_floor
+    assert 1 <= occ.sum() <= 20 and torch.all(dist < 3 * sigma + 0.07 * math.sqrt(3))
+
+
+# ----------------------------------------------------------------- NeRF-Update
+CUBE = SceneBox((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))  # 10^3 cells of 0.1 m
+
+
+def test_eq9_increment_sign_and_value():
+    s = np.array([2.0, 2.0 * math.e, 2.0 / math.e, 0.0])
+    inc = nerf_log_odds(s, 2.0, zeta=0.5, max_increment=10.0, sigma_floor=1e-6)
+    assert inc[0] == 0.0
+    assert inc[1] == pytest.approx(0.5)
+    assert inc[2] == pytest.approx(-0.5)
+    assert inc[3] == pytest.approx(max(-10.0, 0.5 * math.log(1e-6 / 2.0)))
+
+
+def test_nerf_update_hand_computed_bayes_step_then_clamp():
+    cfg = VirusGridConfig(max_resolution=10, pos_noise_per_m=0.0)
+    grid = VirusGrid(CUBE, cfg)
+    rays = (torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([1.0]))
+    g = torch.Generator().manual_seed(1)
+    grid.nerf_update(lambda p: torch.full((p.shape[0],), 10.0), *rays, g)
+    # sigma_T = min(sigma_T_max, mean = 10) = -ln(0.99) / 0.01 = 1.005 /m
+    sigma_t = -math.log(0.99) / 0.01
+    expected = L_INIT + 0.25 * math.log(10.0 / sigma_t)
+    touched = grid.logodds != torch.tensor(L_INIT, dtype=torch.float32)
+    assert touched[:, 5, 5].sum() >= 5 and touched.sum() == touched[:, 5, 5].sum()
+    assert torch.allclose(grid.logodds[touched], torch.tensor(expected, dtype=torch.float32))
+    for _ in range(30):
+        grid.nerf_update(lambda p: torch.full((p.shape[0],), 10.0), *rays, g)
+    assert torch.all(grid.logodds[:, 5, 5] == 4.0), "l + increment is clamped at the upper bound"
+
+
+def test_nerf_update_at_threshold_changes_nothing_and_splits_above_below():
+    cfg = VirusGridConfig(max_resolution=10, pos_noise_per_m=0.0, nerf_points_per_ray=64)
+    o = torch.tensor([[0.0, y, z] for y in (0.15, 0.55, 0.85) for z in (0.25, 0.65)])
+    rays = (o, torch.tensor([[1.0, 0.0, 0.0]]).expand(6, 3), torch.full((6,), 1.0))
+    g = torch.Generator().manual_seed(2)
+    grid = VirusGrid(CUBE, cfg)
+    grid.nerf_update(lambda p: torch.full((p.shape[0],), 0.5), *rays, g)  # sigma_T = mean = 0.5
+    assert torch.all(grid.logodds == torch.tensor(L_INIT, dtype=torch.float32))
+    # dense for x > 0.5, thin before: sigma_T = sigma_T_max; raised behind, lowered in front
+    grid.nerf_update(lambda p: torch.where(p[:, 0] > 0.5, 50.0, 0.02), *rays, g)
+    assert grid.last_nerf_update.sigma_threshold == pytest.approx(-math.log(0.99) / 0.01)
+    rows = grid.logodds[:, [1, 5, 8]][:, :, [2, 6]]
+    assert torch.all(rows[5:] > L_INIT) and torch.all(rows[:5] < L_INIT)
+
+
+# --------------------------------------------------------------------- warm-up
+def test_untouched_cells_empty_after_warmup_counted_in_steps():
+    cfg = VirusGridConfig(max_resolution=8, update_interval=16, warmup_steps=256)
+    g = torch.Generator().manual_seed(0)
+    every = VirusGrid(CUBE, cfg)
+    for step in range(0, 257, 16):
+        every.update(step, None, None, g)
+        if step == 128:
+            assert every.occupied.all(), "still marched in the middle of the warm-up"
+    once = VirusGrid(CUBE, cfg)
+    once.update(256, None, None, g)
+    for grid in (every, once):
+        assert not grid.occupied.any()
+        assert torch.allclose(grid.logodds, torch.tensor(L_PRIOR, dtype=torch.float32), atol=1e-6)
+
+
+def test_evidence_holds_a_cell_up_through_the_warmup():
+    cfg = VirusGridConfig(max_resolution=40, warmup_steps=256)
+    grid = VirusGrid(BAR, cfg)
+    g = torch.Generator().manual_seed(0)
+    depth = (torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([2.05]))
+    grid.update(16, None, _batch(depth=depth), g)
+    grid.update(400, None, None, g)
+    occ = grid.occupied
+    assert occ[20, 5, 5], "the hit cell stays occupied"
+    assert occ.sum() == occ[17:24, 5, 5].sum() >= 2, "only cells around the hit survive"
+    assert not occ[:17].any(), "free and untouched cells end empty"
+
+
+# ------------------------------------------------------ sensor sets and resume
+def _mixed_batch(gen: torch.Generator) -> GridUpdateBatch:
+    n = 40
+    o = torch.rand(n, 3, generator=gen) * 0.5 + 0.25
+    d = _unit(torch.randn(n, 3, generator=gen).tolist())
+    return GridUpdateBatch(o, d, 0.1 + torch.rand(n, generator=gen) * 0.5, o.clone(), d.clone(), torch.full((n,), 1.5))
+
+
+def _density(p: torch.Tensor) -> torch.Tensor:
+    return torch.exp(4.0 * (p[:, 0] - 0.5))
+
+
+def test_camera_only_and_depth_only_batches_run():
+    cfg = VirusGridConfig(max_resolution=10, rays_per_update=32)
+    b = _mixed_batch(torch.Generator().manual_seed(3))
+    camera_only = _batch(nerf=(b.nerf_origins, b.nerf_directions, b.nerf_far))
+    depth_only = _batch(depth=(b.depth_origins, b.depth_directions, b.depth_ranges))
+    g = torch.Generator().manual_seed(0)
+    for batch, fn in ((camera_only, _density), (depth_only, _density), (depth_only, None), (None, _density), (_batch(), _density)):
+        grid = VirusGrid(CUBE, cfg)
+        grid.update(0, fn, batch, g)
+        assert torch.isfinite(grid.logodds).all()
+    grid = VirusGrid(CUBE, cfg)
+    grid.update(0, _density, camera_only, g)
+    assert grid.last_nerf_update.n_drawn == 32 * cfg.nerf_points_per_ray, "whole budget to NeRF-Update"
+
+
+def test_state_round_trip_and_resume_are_exact():
+    cfg = VirusGridConfig(max_resolution=12, rays_per_update=32)
+    data = _mixed_batch(torch.Generator().manual_seed(4))
+    a = VirusGrid(CUBE, cfg)
+    ga = torch.Generator().manual_seed(5)
+    for step in (0, 16, 32):
+        a.update(step, _density, data, ga)
+    b = VirusGrid(CUBE, cfg)
+    b.load_state_dict(a.state_dict())
+    assert torch.equal(a.logodds, b.logodds)
+    gb = torch.Generator()
+    gb.set_state(ga.get_state())
+    for step in (48, 64, 300):
+        a.update(step, _density, data, ga)
+        b.update(step, _density, data, gb)
+    assert torch.equal(a.logodds, b.logodds)
+    assert a.state_dict()["decay_applied"] == b.state_dict()["decay_applied"]
+    with pytest.raises(ValueError, match="logodds"):
+        VirusGrid(CUBE, VirusGridConfig(max_resolution=8)).load_state_dict(a.state_dict())
+
+
+def test_bad_config_and_bad_rays_are_clear_errors():
+    with pytest.raises(ValueError, match="hit_probability"):
+        VirusGridConfig(hit_probability=1.0)
+    grid = VirusGrid(CUBE, VirusGridConfig(max_resolution=4))
+    with pytest.raises(ValueError, match="depth rays"):
+        grid.depth_update(torch.zeros(2, 3), torch.ones(3, 3), torch.ones(2))
+
+
+def test_benchmark_runs_and_reports_positive_times():
+    t = benchmark_update(n_rays=64, repeats=1, config=VirusGridConfig(max_resolution=32, rays_per_update=64))
+    assert t.depth_ms > 0 and t.nerf_ms > 0 and t.update_ms > 0 and t.n_depth == t.n_nerf == 32
+
+
+def test_free_space_update_only_lowers_cells_up_to_the_echo():
+    grid = VirusGrid(BAR, VirusGridConfig(max_resolution=40))
+    before = grid.logodds.clone()
+    grid.free_space_update(torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([1.5]))
+    row = (grid.logodds - before)[:, 5, 5]
+    assert torch.all(row[:13] < 0) and torch.all(row[15:] == 0)
+    assert (grid.logodds - before).max() == 0.0
+
+
+def test_grid_over_a_given_spec_matches_the_box_constructor():
+    from virus_nerf.grid.base import GridSpec
+
+    cfg = VirusGridConfig(max_resolution=16)
+    a = VirusGrid(BAR, cfg)
+    b = VirusGrid(GridSpec.from_box(BAR, 16), cfg, device="cpu")
+    assert a.spec == b.spec and b.occupied.device == torch.device("cpu")
+    assert b.occupied.shape == (16, 4, 4) and b.occupied.all()

@@ -1,0 +1,61 @@
+"""2D scan evaluation (design 6): GT scans from the LiDAR map, sensor and model scans, NND metrics.
+
+Plots (matplotlib) and the `sensors` command live in `plots` and `command` and are imported
+on demand, so importing this package stays light.
+"""
+
+from virus_nerf.evaluation.evaluate import (
+    SENSOR_NAMES,
+    EvaluationConfig,
+    EvaluationResult,
+    TestPointScans,
+    build_ground_truth,
+    evaluate,
+)
+from virus_nerf.evaluation.gt import (
+    GroundTruth,
+    Raster2D,
+    cast_rays,
+    gt_scan,
+    height_slice,
+    rasterise,
+)
+from virus_nerf.evaluation.metrics import (
+    DEFAULT_ZONES,
+    METRIC_KEYS,
+    MetricsAggregate,
+    NNDSamples,
+    SensorMetrics,
+    Zone,
+    ZoneMetrics,
+    aggregate_runs,
+    check_metrics_document,
+    format_table,
+    metrics_document,
+    nnd_samples,
+    sensor_metrics_from_json,
+    write_metrics_json,
+    zone_metrics,
+)
+from virus_nerf.evaluation.scans import (
+    FieldOfView,
+    RangeModel,
+    Scan2D,
+    Sector,
+    horizontal_directions,
+    model_scan,
+    scan_angles,
+)
+from virus_nerf.evaluation.sensor_scans import irs_scan_2d, lidar_scan_2d, uss_scan_2d
+from virus_nerf.evaluation.testpoints import TestPoint, make_test_points
+
+__all__ = [
+    "DEFAULT_ZONES", "METRIC_KEYS", "SENSOR_NAMES",
+    "EvaluationConfig", "EvaluationResult", "FieldOfView", "GroundTruth", "MetricsAggregate",
+    "NNDSamples", "RangeModel", "Raster2D", "Scan2D", "Sector", "SensorMetrics", "TestPoint",
+    "TestPointScans", "Zone", "ZoneMetrics",
+    "aggregate_runs", "build_ground_truth", "cast_rays", "check_metrics_document", "evaluate",
+    "format_table", "gt_scan", "height_slice", "horizontal_directions", "irs_scan_2d",
+    "lidar_scan_2d", "make_test_points", "metrics_document", "model_scan", "nnd_samples",
+    "rasterise", "scan_angles", "sensor_metrics_from_json", "uss_scan_2d", "write_metrics_json", "zone_metrics",
+]

@@ -1,0 +1,71 @@
+"""`virus-nerf sensors`: score the instantaneous LiDAR, USS and IRS scans alone (design 6, 7)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from virus_nerf.errors import OutputExistsError
+
+
+def plots_dir_for(out: Path) -> Path:
+    """Plot folder beside a metrics file: results/metrics.json -> results/metrics_plots/."""
+    out = Path(out)
+    return out.parent / f"{out.stem}_plots"
+
+
+def write_plots(result, folder: Path) -> list[Path]:
+    """All plots of an EvaluationResult into a new folder (refuses an existing one)."""
+    from virus_nerf.evaluation.plots import plot_metric_bars, plot_test_point
+    from virus_nerf.utils.io import new_output_dir
+
+    written: list[Path] = []
+    with new_output_dir(folder) as tmp:
+        for tps in result.points:
+            tp = tps.test_point
+            plot_test_point(tps, tmp / f"scan_frame{tp.index1:04d}.png")
+            written.append(folder / f"scan_frame{tp.index1:04d}.png")
+        plot_metric_bars(result.metrics, tmp / "metrics_bars.png", result.config.zones, inlier_m=result.config.inlier_m)
+        written.append(folder / "metrics_bars.png")
+    return written
+
+
+def sensors(
+    data: Path,
+    room: str,
+    out: Path,
+    n_rays: int = 512,
+    odometry_poses: bool = False,
+    lidar_angle_range_deg: float = 360.0,
+) -> None:
+    """Evaluate the instantaneous LiDAR, USS and IRS scans against the LiDAR-map ground truth.
+
+    Writes the metrics (design 7 schema) to OUT and the plots to a folder beside it named
+    after OUT's stem (results/metrics.json -> results/metrics_plots/); refuses to overwrite
+    either. Prints a compact table of the metrics per sensor and distance zone.
+
+    Args:
+        data: Dataset folder in the ETHZ format (holds camera_intrinsics.CSV and the room folders).
+        room: Room folder name inside DATA, e.g. office.
+        out: Path of the metrics.json to write (must not exist).
+        n_rays: Number of horizontal rays of the 360-degree ground-truth scan.
+        odometry_poses: Use the odometry poses (poses_*_sync*.csv) instead of the optimised ones.
+        lidar_angle_range_deg: Horizontal angle range of the LiDAR scan, centred on the robot heading.
+    """
+    from virus_nerf.data.ethz import load_recording
+    from virus_nerf.evaluation.evaluate import EvaluationConfig, evaluate
+
+    out = Path(out)
+    plot_dir = plots_dir_for(out)
+    for p in (out, plot_dir):
+        if p.exists():
+            raise OutputExistsError(p)
+    recording = load_recording(data, room, poses="odometry" if odometry_poses else "optimised")
+    config = EvaluationConfig(n_rays=n_rays, lidar_angle_range_deg=lidar_angle_range_deg)
+    result = evaluate(recording, None, config)
+    write_plots(result, plot_dir)
+    if out.exists():
+        raise OutputExistsError(out)
+    result.write_json(out)
+    print(f"{len(result.points)} test points of {Path(data) / room}; NND in metres, shares in [0, 1]")
+    print(result.table())
+    print(f"wrote {out} and {plot_dir}/")

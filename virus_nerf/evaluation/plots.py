@@ -1,0 +1,163 @@
+"""Plots of the evaluation (paper Fig. 3, 4/5), written as PNG atomically (matplotlib Agg).
+
+- `plot_test_point`: top-down map of one test point, one panel with every scan and one panel
+  per sensor/model with its field-of-view GT, in metres with equal aspect.
+- `plot_metric_bars`: per zone and sensor, mean NND (bars) with the median (markers), and the
+  inlier / too-close / too-far shares as stacked bars, for accuracy and coverage.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from virus_nerf.evaluation.metrics import DEFAULT_ZONES, SensorMetrics, Zone  # noqa: E402
+from virus_nerf.evaluation.scans import FieldOfView  # noqa: E402
+from virus_nerf.utils.io import atomic_path  # noqa: E402
+
+COLOURS = {"GT": "black", "LiDAR": "tab:blue", "USS": "tab:orange", "IRS": "tab:green", "NeRF": "tab:red"}
+EXTRA_COLOURS = ("tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
+
+
+def colour_of(name: str, order: Sequence[str] = ()) -> str:
+    if name in COLOURS:
+        return COLOURS[name]
+    others = [n for n in order if n not in COLOURS]
+    k = others.index(name) if name in others else 0
+    return EXTRA_COLOURS[k % len(EXTRA_COLOURS)]
+
+
+def save_png(fig: plt.Figure, path: str | Path, dpi: int = 110) -> Path:
+    """Write `fig` to `path` in one rename (never a half-written PNG) and close it."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _draw_fov(ax: plt.Axes, fov: FieldOfView, radius: float, colour: str) -> None:
+    for s in fov.sectors:
+        if s.half_angle >= np.pi:
+            continue
+        for a in (s.heading - s.half_angle, s.heading + s.half_angle):
+            end = s.apex + radius * np.array([np.cos(a), np.sin(a)])
+            ax.plot([s.apex[0], end[0]], [s.apex[1], end[1]], color=colour, lw=0.7, ls="--", alpha=0.7)
+
+
+def plot_test_point(tps, path: str | Path, title: str = "", window_m: float | None = None) -> Path:
+    """Top-down map of one test point (a `TestPointScans`): grey map slice, GT, every scan."""
+    gt = tps.ground_truth
+    names = list(tps.scans)
+    panels = ["all"] + names
+    ncol = min(len(panels), 2)
+    nrow = int(np.ceil(len(panels) / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(7.0 * ncol, 6.0 * nrow), squeeze=False)
+    origin = gt.scan.origin
+    # view window: around what was seen (GT and scans), with a margin
+    seen = [gt.scan.points] + [s.points for s in tps.scans.values()] + [origin[None, :]]
+    seen_pts = np.concatenate(seen)
+    lo = seen_pts.min(axis=0) - 0.5
+    hi = seen_pts.max(axis=0) + 0.5
+    if window_m is not None:
+        lo = np.maximum(lo, origin - window_m)
+        hi = np.minimum(hi, origin + window_m)
+    radius = float(np.max(hi - lo))
+    sl = gt.slice_xy
+    in_view = np.all((sl >= lo) & (sl <= hi), axis=1)
+    for ax, panel in zip(axes.ravel(), panels, strict=False):
+        ax.scatter(sl[in_view, 0], sl[in_view, 1], s=1, c="0.78", marker=".", linewidths=0, label="map slice")
+        if panel == "all":
+            ax.scatter(gt.scan.points[:, 0], gt.scan.points[:, 1], s=4, c=COLOURS["GT"], label=f"GT ({len(gt.scan)})")
+            for name, scan in tps.scans.items():
+                ax.scatter(scan.points[:, 0], scan.points[:, 1], s=6, c=colour_of(name, names), label=f"{name} ({len(scan)})")
+            ax.set_title("all scans")
+        else:
+            scan = tps.scans[panel]
+            fgt = tps.fov_gt(panel)
+            c = colour_of(panel, names)
+            ax.scatter(fgt.points[:, 0], fgt.points[:, 1], s=4, c=COLOURS["GT"], label=f"GT in FoV ({len(fgt)})")
+            ax.scatter(scan.points[:, 0], scan.points[:, 1], s=8, c=c, label=f"{panel} ({len(scan)})")
+            _draw_fov(ax, scan.fov, radius, c)
+            ax.set_title(panel)
+        ax.plot(*origin, marker="*", ms=12, c="red", mec="k", ls="none", label="scan origin")
+        for _, pose in tps.test_point.camera_poses().values():
+            head = pose[:2, 2] / max(np.linalg.norm(pose[:2, 2]), 1e-9) * 0.4
+            ax.annotate("", xy=pose[:2, 3] + head, xytext=pose[:2, 3], arrowprops=dict(arrowstyle="->", color="red"))
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.grid(True, lw=0.3, alpha=0.5)
+        ax.legend(loc="upper right", fontsize=7, markerscale=1.0, framealpha=0.85)
+    for ax in axes.ravel()[len(panels):]:
+        ax.axis("off")
+    tp = tps.test_point
+    fig.suptitle(title or f"test point: stack-1 frame {tp.index1}, t = {tp.time:.3f} s, camera height z = {tp.height:.3f} m")
+    fig.tight_layout()
+    return save_png(fig, path)
+
+
+def plot_metric_bars(
+    metrics: Mapping[str, SensorMetrics],
+    path: str | Path,
+    zones: Sequence[Zone] = DEFAULT_ZONES,
+    title: str = "",
+    inlier_m: float = 0.1,
+) -> Path:
+    """Fig. 3 style: mean NND per zone and sensor, and inlier / too-close / too-far shares."""
+    names = list(metrics)
+    fig, axes = plt.subplots(2, 2, figsize=(13, 8.5))
+    nz = len(zones)
+    width = 0.8 / max(len(names), 1)
+    x = np.arange(nz)
+    for row, kind in enumerate(("acc", "cov")):
+        label = "accuracy" if kind == "acc" else "coverage"
+        ax = axes[row, 0]
+        for k, name in enumerate(names):
+            zm = [metrics[name].zones.get(z.name) for z in zones]
+            means = [getattr(m, f"{kind}_mean") if m else None for m in zm]
+            meds = [getattr(m, f"{kind}_median") if m else None for m in zm]
+            xs = x - 0.4 + width * (k + 0.5)
+            ax.bar(xs, [v if v is not None else 0.0 for v in means], width * 0.9, color=colour_of(name, names), label=name)
+            ok = [i for i, v in enumerate(meds) if v is not None]
+            ax.plot(xs[ok], [meds[i] for i in ok], "k_", ms=10, mew=2, label="median" if k == 0 else None)
+            for i, v in enumerate(means):
+                if v is None:
+                    ax.text(xs[i], 0, "n/a", ha="center", va="bottom", fontsize=7, rotation=90)
+        ax.set_xticks(x, [f"{z.name}\n[{z.lo:g}, {z.hi:g}] m" for z in zones])
+        ax.set_ylabel(f"{label} NND mean [m]")
+        ax.set_title(f"{label}: mean (bars) and median (ticks)")
+        ax.legend(fontsize=8)
+        ax.grid(True, axis="y", lw=0.3)
+
+        ax = axes[row, 1]
+        parts = (("inlier", "#59a14f"), ("too_close", "#e15759"), ("too_far", "#4e79a7"))
+        for k, name in enumerate(names):
+            xs = x - 0.4 + width * (k + 0.5)
+            bottom = np.zeros(nz)
+            for part, c in parts:
+                vals = np.array([
+                    (getattr(metrics[name].zones[z.name], f"{kind}_{part}") or 0.0) if z.name in metrics[name].zones else 0.0
+                    for z in zones
+                ])
+                ax.bar(xs, vals, width * 0.9, bottom=bottom, color=c, edgecolor="white", lw=0.5,
+                       label=part.replace("_", " ") if k == 0 else None)
+                bottom += vals
+            for i in range(nz):
+                ax.text(xs[i], 1.01, name, ha="center", va="bottom", fontsize=6, rotation=90)
+        ax.set_xticks(x, [z.name for z in zones])
+        ax.set_ylim(0, 1.25)
+        ax.set_ylabel("share of points")
+        ax.set_title(f"{label}: inliers (< {inlier_m:g} m) and outliers")
+        ax.legend(fontsize=8, loc="upper right")
+    fig.suptitle(title or "NND metrics per zone")
+    fig.tight_layout()
+    return save_png(fig, path)

@@ -1,0 +1,237 @@
+"""`virus-nerf ablation`: the eight rows of the paper's Table I on simulated rooms (design 8).
+
+Each (row, scene, seed) is one training process with the same time budget; finished runs are
+not redone, interrupted ones resume. The table gives mean +- std over seeds of zone 3 NND
+accuracy/coverage means and inlier shares, the paper's figures beside them, and steps/s.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from virus_nerf.experiments.runs import RunSpec, load_metrics, run_all
+
+
+@dataclass(frozen=True)
+class AblationRow:
+    number: int
+    grid: str
+    sensors: str
+    odometry: bool = False
+
+    @property
+    def label(self) -> str:
+        grid = "Instant-NGP" if self.grid == "ngp" else "VIRUS"
+        sensors = {"camera": "CAM", "camera,uss,irs": "CAM, USS, IRS", "camera,uss": "CAM, USS",
+                   "camera,irs": "CAM, IRS", "camera,rgbd": "RGB-D"}[self.sensors]
+        return f"{grid} | {sensors}{' | odometry poses' if self.odometry else ''}"
+
+    def args(self) -> tuple[str, ...]:
+        return ("--grid", self.grid, "--sensors", self.sensors) + (("--odometry-poses",) if self.odometry else ())
+
+
+ROWS = (
+    AblationRow(1, "ngp", "camera"),
+    AblationRow(2, "ngp", "camera,uss,irs"),
+    AblationRow(3, "virus", "camera"),
+    AblationRow(4, "virus", "camera,uss"),
+    AblationRow(5, "virus", "camera,irs"),
+    AblationRow(6, "virus", "camera,rgbd"),
+    AblationRow(7, "virus", "camera,uss,irs", odometry=True),
+    AblationRow(8, "virus", "camera,uss,irs"),
+)
+
+# Table I of the paper: (acc mean, cov mean, acc inlier, cov inlier), zone 3, mean of 10 runs
+PAPER = {
+    (1, "common"): (0.712, 1.287, 0.056, 0.059), (1, "office"): (0.281, 0.497, 0.221, 0.201),
+    (2, "common"): (0.509, 0.501, 0.131, 0.220), (2, "office"): (0.164, 0.214, 0.497, 0.506),
+    (3, "common"): (0.704, 1.412, 0.052, 0.056), (3, "office"): (0.277, 0.476, 0.231, 0.215),
+    (4, "common"): (0.490, 0.568, 0.146, 0.146), (4, "office"): (0.262, 0.349, 0.212, 0.176),
+    (5, "common"): (0.625, 0.643, 0.097, 0.169), (5, "office"): (0.230, 0.374, 0.415, 0.460),
+    (6, "common"): (0.324, 0.378, 0.324, 0.389), (6, "office"): (0.154, 0.139, 0.575, 0.633),
+    (7, "common"): (0.728, 0.922, 0.113, 0.186), (7, "office"): (0.168, 0.238, 0.531, 0.554),
+    (8, "common"): (0.403, 0.448, 0.206, 0.256), (8, "office"): (0.148, 0.237, 0.528, 0.531),
+}
+KEYS = ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier")
+
+
+@dataclass(frozen=True)
+class Profile:
+    scenes: tuple[str, ...]
+    seeds: int
+    train_time: float
+    duration: float
+
+
+PROFILES = {
+    "full": Profile(("office", "common"), 3, 120.0, 60.0),
+    "quick": Profile(("office",), 1, 15.0, 12.0),
+}
+
+
+def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
+    v = [x for x in values if x is not None]
+    if not v:
+        return None, None
+    return float(np.mean(v)), float(np.std(v))
+
+
+def aggregate(out: Path, scenes: tuple[str, ...], seeds: int) -> list[dict]:
+    """One record per (row, scene): mean and std over seeds, the paper's figure, steps/s."""
+    records = []
+    for row in ROWS:
+        for scene in scenes:
+            docs = [load_metrics(out / "runs" / scene / f"row{row.number}_seed{s}") for s in range(seeds)]
+            docs = [d for d in docs if d is not None]
+            rec: dict = {"row": row.number, "label": row.label, "scene": scene, "runs": len(docs)}
+            for key in KEYS:
+                vals = [d["sensors"]["NeRF"]["zone3"][key] for d in docs]
+                rec[key], rec[key + "_std"] = _mean_std(vals)
+            rec["steps_per_s"], rec["steps_per_s_std"] = _mean_std([d["train"]["steps_per_s"] for d in docs])
+            for k, v in zip(KEYS, PAPER[(row.number, scene)], strict=True):
+                rec["paper_" + k] = v
+            records.append(rec)
+    return records
+
+
+def _fmt(m: float | None, s: float | None) -> str:
+    if m is None:
+        return "-"
+    return f"{m:.3f} ± {s:.3f}"
+
+
+def table_markdown(records: list[dict]) -> str:
+    lines = [
+        "| row | grid, sensors | scene | runs | acc mean [m] | cov mean [m] | acc inlier | cov inlier | steps/s "
+        "| paper acc / cov mean | paper acc / cov inlier |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in records:
+        lines.append(
+            f"| {r['row']} | {r['label']} | {r['scene']} | {r['runs']} | {_fmt(r['acc_mean'], r['acc_mean_std'])} | "
+            f"{_fmt(r['cov_mean'], r['cov_mean_std'])} | {_fmt(r['acc_inlier'], r['acc_inlier_std'])} | "
+            f"{_fmt(r['cov_inlier'], r['cov_inlier_std'])} | {_fmt(r['steps_per_s'], r['steps_per_s_std'])} | "
+            f"{r['paper_acc_mean']:.3f} / {r['paper_cov_mean']:.3f} | "
+            f"{r['paper_acc_inlier']:.3f} / {r['paper_cov_inlier']:.3f} |"
+        )
+    return "\n".join(lines)
+
+
+def grid_speed(records: list[dict]) -> dict[str, float | None]:
+    """Steps/s of the VIRUS vs Instant-NGP grid for the same sensors (rows 8 vs 2)."""
+    out: dict[str, float | None] = {}
+    for scene in sorted({r["scene"] for r in records}):
+        v = next((r["steps_per_s"] for r in records if r["scene"] == scene and r["row"] == 8), None)
+        n = next((r["steps_per_s"] for r in records if r["scene"] == scene and r["row"] == 2), None)
+        out[scene] = (v / n) if v and n else None
+    return out
+
+
+def plot_rows(records: list[dict], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from virus_nerf.evaluation.plots import save_png
+
+    scenes = sorted({r["scene"] for r in records})
+    fig, axes = plt.subplots(len(scenes), 2, figsize=(11, 3.2 * len(scenes)), squeeze=False)
+    for i, scene in enumerate(scenes):
+        recs = [r for r in records if r["scene"] == scene]
+        x = np.arange(len(recs))
+        for j, (key, title) in enumerate((("mean", "NND mean [m]"), ("inlier", "inlier share"))):
+            ax = axes[i, j]
+            for k, (kind, colour) in enumerate((("acc", "tab:blue"), ("cov", "tab:orange"))):
+                vals = [r[f"{kind}_{key}"] if r[f"{kind}_{key}"] is not None else math.nan for r in recs]
+                errs = [r[f"{kind}_{key}_std"] or 0.0 for r in recs]
+                ax.bar(x + (k - 0.5) * 0.38, vals, 0.38, yerr=errs, color=colour, label=kind, capsize=2)
+                paper = [r[f"paper_{kind}_{key}"] for r in recs]
+                ax.scatter(x + (k - 0.5) * 0.38, paper, color="k", marker="_", s=120, zorder=3,
+                           label="paper" if k == 0 else None)
+            ax.set_xticks(x, [str(r["row"]) for r in recs])
+            ax.set_xlabel("Table I row")
+            ax.set_title(f"{scene}: zone 3 {title}")
+            ax.grid(axis="y", alpha=0.3)
+            ax.legend(fontsize=8)
+    fig.tight_layout()
+    return save_png(fig, path)
+
+
+def ablation(
+    out: Path,
+    quick: bool = False,
+    seeds: int | None = None,
+    workers: int = 2,
+    train_time: float | None = None,
+    scenes: tuple[str, ...] | None = None,
+) -> None:
+    """Run the paper's Table I ablation on simulated rooms and aggregate it.
+
+    Writes OUT/data/<scene> (simulated once, seed 0), OUT/runs/<scene>/row<k>_seed<s>/ (one
+    training each), and OUT/ablation.{md,csv,json} plus OUT/ablation.png. Re-running the same
+    command continues where it stopped: finished runs are kept, interrupted ones resume.
+
+    Args:
+        out: Experiment folder (created, or continued if it holds an earlier ablation).
+        quick: Smoke profile: office only, 1 seed, 15 s per run.
+        seeds: Training seeds per row and scene (default 3; quick 1).
+        workers: Trainings in parallel (each gets cores / workers threads).
+        train_time: Seconds of training per run (default 120; quick 15).
+        scenes: Scenes to run (default office and common; quick office).
+    """
+    import json
+
+    from virus_nerf.sim.command import simulate
+    from virus_nerf.utils.io import write_json_atomic, write_text_atomic
+
+    prof = PROFILES["quick" if quick else "full"]
+    scenes = tuple(scenes) if scenes else prof.scenes
+    n_seeds = seeds or prof.seeds
+    t_train = train_time or prof.train_time
+    out.mkdir(parents=True, exist_ok=True)
+    for scene in scenes:
+        data = out / "data" / scene
+        if not (data / scene).is_dir():
+            print(f"simulating {scene} ({prof.duration:.0f} s drive) -> {data}")
+            simulate(scene=scene, out=data, seed=0, duration=prof.duration, resolution_scale=0.5)
+    specs = [
+        RunSpec(
+            name=f"{scene} row {row.number} seed {s}",
+            data=out / "data" / scene,
+            room=scene,
+            out=out / "runs" / scene / f"row{row.number}_seed{s}",
+            args=row.args() + ("--seed", str(s), "--max-time", str(t_train), "--image-scale", "1.0"),
+        )
+        for scene in scenes
+        for row in ROWS
+        for s in range(n_seeds)
+    ]
+    failed = run_all(specs, workers=workers)
+    records = aggregate(out, scenes, n_seeds)
+    md = table_markdown(records)
+    speed = grid_speed(records)
+    speed_md = ", ".join(f"{k}: {v:.2f}x" if v else f"{k}: -" for k, v in speed.items())
+    write_text_atomic(
+        out / "ablation.md",
+        f"# Table I ablation ({n_seeds} seed(s), {t_train:.0f} s of training per run)\n\n{md}\n\n"
+        f"Grid speed, VIRUS / Instant-NGP steps/s (row 8 vs row 2): {speed_md} (paper: 1.46x)\n",
+    )
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(records[0]))
+    writer.writeheader()
+    writer.writerows(records)
+    write_text_atomic(out / "ablation.csv", buf.getvalue())
+    write_json_atomic(out / "ablation.json", {"records": records, "grid_speed_ratio": speed,
+                                              "seeds": n_seeds, "train_time": t_train})
+    plot_rows(records, out / "ablation.png")
+    print(md)
+    print(f"grid speed VIRUS / Instant-NGP: {json.dumps(speed)}")
+    if failed:
+        raise SystemExit(f"{len(failed)} run(s) failed: " + ", ".join(s.name for s in failed))

@@ -1,0 +1,431 @@
+"""The Bayesian VIRUS occupancy grid (paper III-B, design 3.4).
+
+Cells hold clamped log-odds l = ln p/(1-p) (float32); the marcher samples where l > 0 (p > 0.5).
+Every update step (every `update_interval` training steps) the grid:
+1. moves every cell along the warm-up schedule (counted in training steps, design 9.6),
+2. runs the Depth-Update on a share of the batch's IRS rays (sensor_model.depth_log_odds,
+   every crossed cell visited, design 9.4),
+3. runs the NeRF-Update (eq. 9) on points along the rest of the rays.
+Writes use the shared cell-index formula (design 9.5): both updates name cells with
+`cell_index_scalar`, the numba twin of the marcher's `cell_index`.
+
+Warm-up: l = l_init (p_init = 0.55, so everything is marched at first) plus an offset that goes
+linearly from 0 at step 0 to l_prior - l_init at `warmup_steps` (p_prior = 0.49). The offset is
+applied to all cells as a difference at each update, so after step `warmup_steps` a cell no
+sensor or NeRF-Update ever supported sits at l_prior < 0 (empty) however many updates ran, and a
+cell with evidence keeps it (the offset is small, 0.24 in log-odds).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from virus_nerf.grid.base import (
+    DensityFn,
+    GridSpec,
+    GridUpdateBatch,
+    OccupancyGrid,
+)
+from virus_nerf.grid.sensor_model import (
+    depth_update_kernel,
+    nerf_log_odds,
+    points_to_cells,
+    spec_arrays,
+)
+from virus_nerf.scene_box import SceneBox
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+@dataclass(frozen=True)
+class VirusGridConfig:
+    """VIRUS grid parameters; every length in metres, rates per metre, densities in 1/m."""
+
+    max_resolution: int = 128  # cells along the longest box axis (GridSpec.from_box)
+    logodds_min: float = -4.0  # clamp (p ~ 0.018)
+    logodds_max: float = 4.0  # clamp (p ~ 0.982)
+    init_probability: float = 0.55  # slightly above 0.5: everything is marched at first
+    prior_probability: float = 0.49  # where unsupported cells end after the warm-up (empty)
+    warmup_steps: int = 256  # training steps (not updates) of the decay init -> prior
+    update_interval: int = 16  # training steps between grid updates (the trainer calls update)
+    rays_per_update: int = 1024  # rays per update, both kinds together (paper: ~1k)
+    depth_share: float = 0.5  # share of rays_per_update for the Depth-Update (rest: NeRF)
+    # Depth-Update (IRS, MURIEL model; sensor_model docstring)
+    std_per_m: float = 0.03  # range noise grows 3 cm per metre ...
+    std_floor: float = 0.02  # ... on top of 2 cm (pose error, zone width)
+    false_rate: float = 0.3  # lambda: false detections per metre (design 3.4)
+    hit_probability: float = 0.7  # p_hit: an occupied cell crossed fully stops the beam
+    stop_length: float = 0.02  # metres of beam inside a cell for p_det to reach 63 % of p_hit
+    max_increment: float = 2.0  # |log-odds change| per cell per measurement
+    # NeRF-Update (eq. 9)
+    zeta: float = 0.25  # slope: a density ratio of 1000 moves a cell by 1.7
+    nerf_points_per_ray: int = 32  # points drawn uniformly in [0, nerf_far] per ray
+    pos_noise_per_m: float = 0.05  # std of the point jitter per metre along the ray
+    threshold_step: float = 0.01  # sigma_T_max: density at which a step of this many metres ...
+    threshold_alpha: float = 0.01  # ... has this alpha (the Instant-NGP convention, design 3.3)
+    sigma_floor: float = 1e-6  # 1/m, keeps ln(sigma) finite
+
+    def __post_init__(self) -> None:
+        checks = {
+            "max_resolution": self.max_resolution >= 1,
+            "logodds_min/logodds_max": self.logodds_min < 0.0 < self.logodds_max,
+            "init_probability": 0.5 < self.init_probability < 1.0,
+            "prior_probability": 0.0 < self.prior_probability < 0.5,
+            "warmup_steps": self.warmup_steps >= 1,
+            "update_interval": self.update_interval >= 1,
+            "rays_per_update": self.rays_per_update >= 0,
+            "depth_share": 0.0 <= self.depth_share <= 1.0,
+            "std_per_m": self.std_per_m >= 0.0,
+            "std_floor": self.std_floor > 0.0,
+            "false_rate": self.false_rate > 0.0,
+            "hit_probability": 0.0 < self.hit_probability < 1.0,
+            "stop_length": self.stop_length > 0.0,
+            "max_increment": self.max_increment > 0.0,
+            "zeta": self.zeta > 0.0,
+            "nerf_points_per_ray": self.nerf_points_per_ray >= 1,
+            "pos_noise_per_m": self.pos_noise_per_m >= 0.0,
+            "threshold_step": self.threshold_step > 0.0,
+            "threshold_alpha": 0.0 < self.threshold_alpha < 1.0,
+            "sigma_floor": self.sigma_floor > 0.0,
+        }
+        bad = [name for name, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(f"VirusGridConfig: invalid value for {', '.join(bad)}: {self}")
+
+    @property
+    def sigma_threshold_max(self) -> float:
+        """sigma_T_max (1/m): -ln(1 - alpha) / step, 1.005 /m by default."""
+        return -math.log(1.0 - self.threshold_alpha) / self.threshold_step
+
+    @property
+    def logodds_init(self) -> float:
+        return _logit(self.init_probability)
+
+    @property
+    def logodds_prior(self) -> float:
+        return _logit(self.prior_probability)
+
+
+@dataclass(frozen=True)
+class NerfUpdateInfo:
+    """What the last NeRF-Update did (for logging): points drawn / inside the box, sigma_T (1/m),
+    cells touched."""
+
+    n_drawn: int
+    n_points: int
+    sigma_threshold: float
+    n_cells: int
+
+
+class VirusGrid(OccupancyGrid):
+    """Bayesian occupancy grid over the scene box, updated from IRS ranges and the NeRF's density."""
+
+    def __init__(
+        self,
+        box: SceneBox | GridSpec,
+        config: VirusGridConfig | None = None,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        """Cells over `box` (GridSpec.from_box with config.max_resolution), or over a given spec.
+
+        The log-odds live on the CPU (numba kernels write them); `occupied` is handed out on
+        `device`, where the ray marcher runs.
+        """
+        self.config = config or VirusGridConfig()
+        self.spec = box if isinstance(box, GridSpec) else GridSpec.from_box(box, self.config.max_resolution)
+        self.device = torch.device(device)
+        self._lo, self._size, self._res = spec_arrays(self.spec)
+        # (rx, ry, rz) float32 log-odds; flat index = (ix * ry + iy) * rz + iz (base.cell_index)
+        self._logodds = torch.full(self.spec.resolution, self.config.logodds_init, dtype=torch.float32)
+        self._decay_applied = 0.0  # warm-up offset already added to every cell
+        self._last_step = -1
+        self._n_updates = 0
+        self.last_nerf_update: NerfUpdateInfo | None = None
+        self._occupied: torch.Tensor | None = None  # cache of logodds > 0, reset on every write
+
+    # ------------------------------------------------------------------ reads
+    @property
+    def update_interval(self) -> int:
+        return self.config.update_interval
+
+    @property
+    def logodds(self) -> torch.Tensor:
+        """(rx, ry, rz) float32 log-odds (a view: do not write)."""
+        return self._logodds
+
+    @property
+    def probability(self) -> torch.Tensor:
+        """(rx, ry, rz) occupancy probability in [0, 1]."""
+        return torch.sigmoid(self._logodds)
+
+    @property
+    def occupied(self) -> torch.Tensor:
+        """(rx, ry, rz) bool, p > 0.5 <=> l > 0. Cached between writes: the marcher reads it
+        every step, the grid changes every `update_interval` steps. Do not write into it."""
+        if self._occupied is None:
+            self._occupied = torch.from_numpy(self._logodds.numpy() > 0.0).to(self.device)
+        return self._occupied
+
+    # ----------------------------------------------------------------- update
+    def update(
+        self,
+        step: int,
+        density_fn: DensityFn | None,
+        batch: GridUpdateBatch | None,
+        generator: torch.Generator,
+    ) -> None:
+        """Warm-up decay, then Depth-Update and NeRF-Update on their shares of `batch`.
+
+        Depth rays get round(depth_share * rays_per_update) (fewer if the batch has fewer); the
+        NeRF-Update gets the rest of rays_per_update, so a camera-only run (no depth rays) spends
+        the whole budget on the NeRF-Update and every sensor combination runs (design 9.10).
+        All randomness comes from `generator`.
+        """
+        if step < 0:
+            raise ValueError(f"VirusGrid.update: step must be >= 0, got {step}")
+        self._occupied = None
+        self._apply_warmup(step)
+        if batch is not None:
+            n_depth_avail = int(batch.depth_ranges.shape[0])
+            n_nerf_avail = int(batch.nerf_origins.shape[0])
+            n_depth = min(n_depth_avail, round(self.config.depth_share * self.config.rays_per_update))
+            n_nerf = min(n_nerf_avail, self.config.rays_per_update - n_depth)
+            if n_depth > 0:
+                pick = torch.randperm(n_depth_avail, generator=generator, device=generator.device)[:n_depth]
+                pick = pick.to(batch.depth_origins.device)
+                self.depth_update(
+                    batch.depth_origins[pick], batch.depth_directions[pick], batch.depth_ranges[pick]
+                )
+            if n_nerf > 0 and density_fn is not None:
+                pick = torch.randperm(n_nerf_avail, generator=generator, device=generator.device)[:n_nerf]
+                pick = pick.to(batch.nerf_origins.device)
+                self.nerf_update(
+                    density_fn,
+                    batch.nerf_origins[pick],
+                    batch.nerf_directions[pick],
+                    batch.nerf_far[pick],
+                    generator,
+                )
+        self._last_step = step
+        self._n_updates += 1
+
+    def _apply_warmup(self, step: int) -> None:
+        """Move every cell to the warm-up offset of `step` (a function of steps, not updates)."""
+        c = self.config
+        target = (c.logodds_prior - c.logodds_init) * min(step, c.warmup_steps) / c.warmup_steps
+        delta = target - self._decay_applied
+        if delta != 0.0:
+            # numpy in place (single-threaded): torch's intra-op threads cost ~30 ms here on a
+            # busy 2-core machine against ~0.5 ms for one thread
+            flat = self._logodds.view(-1).numpy()
+            np.add(flat, np.float32(delta), out=flat)
+            np.clip(flat, c.logodds_min, c.logodds_max, out=flat)
+            self._decay_applied = target
+
+    def depth_update(self, origins: torch.Tensor, directions: torch.Tensor, ranges: torch.Tensor) -> int:
+        """Depth-Update: origins (K, 3), directions (K, 3), ranges (K,) metres along the ray.
+
+        Directions are normalised here; rays with a non-finite or non-positive range are skipped.
+        Returns the number of (cell, ray) increments applied.
+        """
+        return self._ray_update(origins, directions, ranges, free_only=False)
+
+    def free_space_update(self, origins: torch.Tensor, directions: torch.Tensor, ranges: torch.Tensor) -> int:
+        """Free-space evidence only, up to the echo (optional USS use; off in the paper's method).
+
+        For a wide cone the echo bounds the free space along the axis but does not locate the
+        obstacle, so no cell gets occupied evidence.
+        """
+        return self._ray_update(origins, directions, ranges, free_only=True)
+
+    def _ray_update(self, origins, directions, ranges, free_only: bool) -> int:
+        o, d, m = _check_rays(origins, directions, ranges, "depth")
+        if o.shape[0] == 0:
+            return 0
+        c = self.config
+        self._occupied = None
+        flat = self._logodds.view(-1).numpy()  # shares memory: the kernel writes in place
+        return int(
+            depth_update_kernel(
+                o, d, m, self._lo, self._size, self._res, flat,
+                c.std_per_m, c.std_floor, c.false_rate, c.hit_probability, c.stop_length,
+                c.max_increment, c.logodds_min, c.logodds_max, free_only,
+            )
+        )
+
+    @torch.no_grad()
+    def nerf_update(
+        self,
+        density_fn: DensityFn,
+        origins: torch.Tensor,
+        directions: torch.Tensor,
+        far: torch.Tensor,
+        generator: torch.Generator,
+    ) -> NerfUpdateInfo:
+        """NeRF-Update (eq. 9) along rays: origins (M, 3), directions (M, 3) unit, far (M,) metres.
+
+        P points per ray at t ~ U(0, far), jittered by N(0, (pos_noise_per_m t)^2) per axis;
+        points outside the box are dropped, the rest evaluated by `density_fn` without gradient.
+        sigma_T = min(sigma_T_max, mean sigma of these points). Several points in one cell count
+        as one measurement: the cell gets the mean of their increments, so a cell's evidence does
+        not depend on how many rays happen to cross it (cells near the cameras would otherwise
+        get most of it).
+        """
+        c = self.config
+        o, d, f = _check_rays(origins, directions, far, "nerf")  # float64, unit directions
+        n_rays, p = o.shape[0], c.nerf_points_per_ray
+        # draws from the torch generator (reproducible), arithmetic in numpy/numba: single-threaded,
+        # immune to torch's intra-op thread wake-ups on a busy 2-core machine
+        u = torch.rand(n_rays, p, generator=generator, device=generator.device).cpu().numpy()
+        noise = torch.randn(n_rays, p, 3, generator=generator, device=generator.device).cpu().numpy()
+        t = u.astype(np.float64) * f[:, None]  # (M, P) metres
+        pts = o[:, None, :] + d[:, None, :] * t[..., None] + noise * (c.pos_noise_per_m * t)[..., None]
+        pts = np.ascontiguousarray(pts.reshape(-1, 3), dtype=np.float32)  # (M*P, 3)
+        cells = points_to_cells(pts, self._lo, self._size, self._res)  # cell_index_scalar
+        inside = cells >= 0
+        pts, cells = pts[inside], cells[inside]
+        if cells.shape[0] == 0:
+            info = NerfUpdateInfo(n_drawn=n_rays * p, n_points=0, sigma_threshold=float("nan"), n_cells=0)
+            self.last_nerf_update = info
+            return info
+        sigma = density_fn(torch.from_numpy(pts).to(origins.device)).detach().reshape(-1)
+        if sigma.shape[0] != pts.shape[0]:
+            raise ValueError(
+                f"density_fn returned {sigma.shape[0]} densities for {pts.shape[0]} points"
+            )
+        sigma = sigma.to("cpu", torch.float64).numpy()
+        sigma_t = min(c.sigma_threshold_max, float(sigma.mean()))
+        inc = nerf_log_odds(sigma, sigma_t, c.zeta, c.max_increment, c.sigma_floor)
+        # per-cell mean increment; bincount sums sequentially, so this is deterministic
+        uniq, inv = np.unique(cells, return_inverse=True)
+        sums = np.bincount(inv, weights=inc, minlength=uniq.shape[0])
+        counts = np.bincount(inv, minlength=uniq.shape[0])
+        self._occupied = None
+        flat = self._logodds.view(-1).numpy()
+        new = flat[uniq].astype(np.float64) + sums / counts
+        flat[uniq] = np.clip(new, c.logodds_min, c.logodds_max).astype(np.float32)
+        info = NerfUpdateInfo(
+            n_drawn=n_rays * p, n_points=int(pts.shape[0]), sigma_threshold=sigma_t, n_cells=int(uniq.shape[0])
+        )
+        self.last_nerf_update = info
+        return info
+
+    # ------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict[str, torch.Tensor | int | float]:
+        return {
+            "logodds": self._logodds.clone(),
+            "decay_applied": float(self._decay_applied),
+            "last_step": int(self._last_step),
+            "n_updates": int(self._n_updates),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        for key in ("logodds", "decay_applied", "last_step", "n_updates"):
+            if key not in state:
+                raise ValueError(f"VirusGrid.load_state_dict: missing field {key!r}")
+        lo = state["logodds"]
+        if tuple(lo.shape) != tuple(self.spec.resolution):
+            raise ValueError(
+                f"VirusGrid.load_state_dict: field 'logodds' has shape {tuple(lo.shape)}, "
+                f"grid resolution is {self.spec.resolution}"
+            )
+        self._logodds = lo.detach().to("cpu", torch.float32).clone()
+        self._occupied = None
+        self._decay_applied = float(state["decay_applied"])
+        self._last_step = int(state["last_step"])
+        self._n_updates = int(state["n_updates"])
+
+
+def _check_rays(origins, directions, ranges, what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(K, 3), (K, 3), (K,) tensors -> contiguous float64 numpy with unit directions."""
+    o = torch.as_tensor(origins).detach().to("cpu", torch.float64)
+    d = torch.as_tensor(directions).detach().to("cpu", torch.float64)
+    m = torch.as_tensor(ranges).detach().to("cpu", torch.float64).reshape(-1)
+    k = m.shape[0]
+    if o.shape != (k, 3) or d.shape != (k, 3):
+        raise ValueError(
+            f"{what} rays: origins {tuple(o.shape)} and directions {tuple(d.shape)} must be ({k}, 3) "
+            f"to match ranges ({k},)"
+        )
+    norm = d.norm(dim=-1, keepdim=True)
+    if k and not bool((norm > 0).all()):
+        raise ValueError(f"{what} rays: directions contain a zero vector")
+    d = d / norm.clamp_min(1e-300)
+    return o.contiguous().numpy(), d.contiguous().numpy(), m.contiguous().numpy()
+
+
+# --------------------------------------------------------------- benchmark
+@dataclass(frozen=True)
+class UpdateTiming:
+    """Milliseconds per call (median over repeats) of the grid's parts, density cost excluded-ish."""
+
+    depth_ms: float  # Depth-Update of n_depth rays
+    nerf_ms: float  # NeRF-Update of n_nerf rays with an analytic density (no network)
+    update_ms: float  # a whole update() call, warm-up decay included
+    n_depth: int
+    n_nerf: int
+    resolution: tuple[int, int, int]
+
+
+def benchmark_update(
+    n_rays: int = 1024, repeats: int = 20, seed: int = 0, config: VirusGridConfig | None = None
+) -> UpdateTiming:
+    """Time one update in a 9 x 8 x 2.6 m room at the configured resolution (128 by default).
+
+    IRS-like rays from 0.4-1.2 m height with ranges 0.3-4 m; NeRF rays with far = 6 m and a
+    cheap analytic density (walls dense, inside empty), so the number measures the grid itself.
+    """
+    cfg = config or VirusGridConfig(rays_per_update=n_rays)
+    box = SceneBox((0.0, 0.0, 0.0), (9.0, 8.0, 2.6))
+    g = torch.Generator().manual_seed(seed)
+    k = n_rays
+
+    def rays(n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        o = torch.rand(n, 3, generator=g) * torch.tensor([7.0, 6.0, 0.8]) + torch.tensor([1.0, 1.0, 0.4])
+        d = torch.randn(n, 3, generator=g)
+        d[:, 2] *= 0.3
+        return o, d / d.norm(dim=-1, keepdim=True)
+
+    do, dd = rays(k)
+    no, nd = rays(k)
+    batch = GridUpdateBatch(
+        depth_origins=do, depth_directions=dd, depth_ranges=0.3 + 3.7 * torch.rand(k, generator=g),
+        nerf_origins=no, nerf_directions=nd, nerf_far=torch.full((k,), 6.0),
+    )
+
+    def density(p: torch.Tensor) -> torch.Tensor:  # walls 0.2 m thick are dense
+        lo = torch.tensor([0.2, 0.2, 0.2])
+        hi = torch.tensor([8.8, 7.8, 2.4])
+        wall = ((p < lo) | (p > hi)).any(dim=-1)
+        return torch.where(wall, torch.tensor(500.0), torch.tensor(0.05))
+
+    grid = VirusGrid(box, cfg)
+    n_depth = min(k, round(cfg.depth_share * cfg.rays_per_update))
+    n_nerf = min(k, cfg.rays_per_update - n_depth)
+    grid.depth_update(do[:n_depth], dd[:n_depth], batch.depth_ranges[:n_depth])  # compile/warm
+    grid.update(0, density, batch, g)
+
+    def timed(fn) -> float:
+        ts = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            ts.append(time.perf_counter() - t0)
+        return 1e3 * float(np.median(ts))
+
+    depth_ms = timed(lambda: grid.depth_update(do[:n_depth], dd[:n_depth], batch.depth_ranges[:n_depth]))
+    nerf_ms = timed(lambda: grid.nerf_update(density, no[:n_nerf], nd[:n_nerf], batch.nerf_far[:n_nerf], g))
+    steps = iter(range(1, 10**9))
+    update_ms = timed(lambda: grid.update(next(steps) * cfg.update_interval, density, batch, g))
+    return UpdateTiming(depth_ms, nerf_ms, update_ms, n_depth, n_nerf, grid.spec.resolution)
+
+
+if __name__ == "__main__":  # python -m virus_nerf.grid.virus
+    print(benchmark_update())

@@ -1,0 +1,12 @@
+"""Training losses (design 3.2)."""
+
+from virus_nerf.losses.terms import (
+    LossTerms,
+    LossWeights,
+    colour_loss,
+    depth_loss,
+    total_loss,
+    uss_loss,
+)
+
+__all__ = ["LossTerms", "LossWeights", "colour_loss", "depth_loss", "total_loss", "uss_loss"]

@@ -1,0 +1,117 @@
+"""Training losses (paper eq. 3, 5, 6, 7; design 3.2), pure functions on per-ray tensors.
+
+Every depth loss is a mean over the rays where its sensor has a valid value (NaN = invalid), in
+metres squared, never over all rays, so the weights do not depend on the room size or on how
+many rays of a batch come from which sensor. With no valid ray a loss is exactly 0 with a zero
+(not NaN) gradient: invalid targets are replaced before any arithmetic, because
+`where(mask, (p - NaN)^2, 0)` would still send NaN into the backward pass.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+def _masked_mean(values: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Mean of values (R,) over valid (R,) bool; 0 (with zero gradient) when nothing is valid."""
+    total = torch.where(valid, values, torch.zeros_like(values)).sum()
+    return total / valid.sum().clamp_min(1).to(values.dtype)
+
+
+def colour_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean squared error of RGB in [0, 1]: pred (R, 3), target (R, 3), mask (R,) bool or None.
+
+    Mean over the selected rays and the 3 channels; 0 when the mask selects nothing.
+    """
+    if pred_rgb.shape != target_rgb.shape or pred_rgb.shape[-1] != 3:
+        raise ValueError(f"colour_loss: pred {tuple(pred_rgb.shape)} and target {tuple(target_rgb.shape)} must both be (R, 3)")
+    valid = torch.ones(pred_rgb.shape[0], dtype=torch.bool, device=pred_rgb.device) if mask is None else mask
+    target = torch.where(valid[:, None], target_rgb, pred_rgb.detach())
+    per_ray = ((pred_rgb - target) ** 2).mean(dim=-1)  # (R,)
+    return _masked_mean(per_ray, valid)
+
+
+def depth_loss(pred_depth: torch.Tensor, target_depth: torch.Tensor) -> torch.Tensor:
+    """Squared depth error (m^2), mean over rays with a finite target: pred (R,), target (R,) m.
+
+    Used for the IRS zones (eq. 6) and the RGB-D ablation; target NaN = no measurement.
+    """
+    _check_same(pred_depth, target_depth, "depth_loss")
+    valid = torch.isfinite(target_depth)
+    target = torch.where(valid, target_depth, pred_depth.detach())
+    return _masked_mean((pred_depth - target) ** 2, valid)
+
+
+def uss_loss(pred_depth: torch.Tensor, echo_range: torch.Tensor, eps: float = 0.03) -> torch.Tensor:
+    """One-sided USS loss (eq. 7): nothing may render closer than the echo.
+
+    pred (R,) m, echo (R,) m (NaN = no echo or ray outside the cone). Per ray
+    (D - D_uss)^2 where D < D_uss - eps, else 0; averaged over the rays with a valid echo.
+    """
+    _check_same(pred_depth, echo_range, "uss_loss")
+    valid = torch.isfinite(echo_range)
+    echo = torch.where(valid, echo_range, pred_depth.detach())
+    in_front = valid & (pred_depth.detach() < echo - eps)
+    per_ray = torch.where(in_front, (pred_depth - echo) ** 2, torch.zeros_like(pred_depth))
+    return _masked_mean(per_ray, valid)
+
+
+def _check_same(pred: torch.Tensor, target: torch.Tensor, name: str) -> None:
+    if pred.shape != target.shape or pred.dim() != 1:
+        raise ValueError(f"{name}: pred {tuple(pred.shape)} and target {tuple(target.shape)} must both be (R,)")
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Weights of L_tot (design 3.2). Depth terms are in m^2, colour in [0,1]^2 units.
+
+    Depth defaults ~ the authors' weights (IRS/USS 50, RGB-D 100 on depths normalised by roughly
+    a 10 m room) converted to metres: 50 / 100 ~ 0.5 and 100 / 100 ~ 1.0.
+    """
+
+    colour: float = 1.0
+    irs: float = 0.5
+    uss: float = 0.5
+    rgbd: float = 1.0
+
+
+@dataclass(frozen=True)
+class LossTerms:
+    """Each weighted-sum term (unweighted value, scalar tensor) and the weighted total."""
+
+    colour: torch.Tensor
+    irs: torch.Tensor
+    uss: torch.Tensor
+    rgbd: torch.Tensor
+    total: torch.Tensor
+
+    def as_floats(self) -> dict[str, float]:
+        """Plain floats for logging."""
+        return {k: float(getattr(self, k).detach()) for k in ("colour", "irs", "uss", "rgbd", "total")}
+
+
+def total_loss(
+    weights: LossWeights,
+    pred_rgb: torch.Tensor,
+    target_rgb: torch.Tensor,
+    pred_depth: torch.Tensor,
+    irs_depth: torch.Tensor | None = None,
+    uss_range: torch.Tensor | None = None,
+    rgbd_depth: torch.Tensor | None = None,
+    rgb_mask: torch.Tensor | None = None,
+    uss_eps: float = 0.03,
+) -> LossTerms:
+    """L_tot = w_c L_c + w_irs L_irs + w_uss L_uss + w_rgbd L_rgbd over one batch of R rays.
+
+    pred_rgb/target_rgb (R, 3), pred_depth (R,) m; each sensor target (R,) m with NaN on rays
+    it does not cover, or None when the sensor is not trained (its term is then 0).
+    """
+    zero = torch.zeros((), dtype=pred_depth.dtype, device=pred_depth.device)
+    lc = colour_loss(pred_rgb, target_rgb, rgb_mask)
+    li = depth_loss(pred_depth, irs_depth) if irs_depth is not None else zero
+    lu = uss_loss(pred_depth, uss_range, uss_eps) if uss_range is not None else zero
+    lr = depth_loss(pred_depth, rgbd_depth) if rgbd_depth is not None else zero
+    total = weights.colour * lc + weights.irs * li + weights.uss * lu + weights.rgbd * lr
+    return LossTerms(colour=lc, irs=li, uss=lu, rgbd=lr, total=total)

@@ -1,0 +1,342 @@
+"""The training loop (design 3.6): sample rays, render, losses, Adam, grid updates, evaluation.
+
+Reproducible: one seed drives the ray sampler (numpy Generator) and the marcher jitter and
+grid updates (torch Generator); both states go into the checkpoint, so a resumed run continues
+bit for bit on CPU. A run bounded by --max-steps alone is bit-identical for the same seed;
+a --max-time bound depends on the machine's speed, as any time budget does.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from virus_nerf.config_io import to_dict
+from virus_nerf.data.ethz import Recording
+from virus_nerf.evaluation.evaluate import EvaluationResult, build_ground_truth, evaluate
+from virus_nerf.field.field import NerfField
+from virus_nerf.grid.base import GridSpec, GridUpdateBatch, OccupancyGrid
+from virus_nerf.grid.ngp import NgpGrid
+from virus_nerf.grid.virus import VirusGrid
+from virus_nerf.losses import LossTerms, total_loss
+from virus_nerf.sampler.batch import BatchSampler, RayBatch
+from virus_nerf.sampler.frames import build_frame_store
+from virus_nerf.scene_box import SceneBox
+from virus_nerf.trainer.config import TrainConfig
+from virus_nerf.trainer.model import SceneModel, fit_scene_box
+from virus_nerf.utils.io import atomic_path
+
+LOG_FIELDS = ("step", "seconds", "loss", "colour", "irs", "uss", "rgbd", "psnr", "samples_per_ray", "occupied", "frames")
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def build_grid(config: TrainConfig, box: SceneBox, device: torch.device) -> OccupancyGrid:
+    if config.grid == "ngp":
+        cfg = config.ngp_grid
+        return NgpGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, step_size=config.march.step_size, device=device)
+    cfg = config.virus_grid
+    return VirusGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, device=device)
+
+
+def ray_box_exit(origins: torch.Tensor, directions: torch.Tensor, box: SceneBox) -> torch.Tensor:
+    """Distance (R,) along each ray to where it leaves the box (origins inside the box)."""
+    lo = origins.new_tensor(box.lo)
+    hi = origins.new_tensor(box.hi)
+    inv = 1.0 / torch.where(directions.abs() < 1e-9, torch.full_like(directions, 1e-9), directions)
+    t = torch.maximum((lo - origins) * inv, (hi - origins) * inv)
+    return t.min(dim=1).values.clamp(min=0.0)
+
+
+@dataclass
+class TrainSummary:
+    steps: int
+    seconds: float
+    samples: int  # samples actually marched and rendered, summed over steps
+
+    @property
+    def steps_per_s(self) -> float:
+        return self.steps / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def samples_per_s(self) -> float:
+        return self.samples / self.seconds if self.seconds > 0 else 0.0
+
+
+class Trainer:
+    """Owns one run folder: config.json, train_log.csv, checkpoint.pt, metrics.json, plots/."""
+
+    def __init__(self, recording: Recording, config: TrainConfig, run_dir: Path, quiet: bool | None = None):
+        self.recording = recording
+        self.config = config
+        self.run_dir = Path(run_dir)
+        self.quiet = (not sys.stderr.isatty()) if quiet is None else quiet
+        self.device = resolve_device(config.device)
+        torch.manual_seed(config.seed)
+        self.box = fit_scene_box(recording)
+        field_gen = torch.Generator().manual_seed(config.seed)
+        self.field = NerfField(self.box, config.field, generator=field_gen).to(self.device)
+        self.grid = build_grid(config, self.box, self.device)
+        self.model = SceneModel(
+            self.field, self.grid, config.march.step_size, config.march.near, config.march.max_samples,
+            config.min_opacity,
+        )
+        fused = self.device.type == "cpu" or self.device.type == "cuda"
+        self.optimizer = torch.optim.Adam(
+            self.field.parameters(), lr=config.optim.lr, eps=config.optim.eps, betas=config.optim.betas, fused=fused
+        )
+        self.store = build_frame_store(
+            recording, ("train",), config.image_scale, with_depth="rgbd" in config.sensors,
+            cache_dir=self.run_dir / "cache", progress=not self.quiet,
+        )
+        if len(self.store) == 0:
+            raise ValueError(f"{recording.room_dir}: no frames labelled 'train' in the split")
+        self.sampler = BatchSampler(self.store, config.sensors, config.shares)
+        self.rng = np.random.default_rng(config.seed)
+        self.generator = torch.Generator(device="cpu").manual_seed(config.seed + 1)
+        self.step = 0
+        self.seconds = 0.0
+        self.samples = 0
+        self.t0 = float(self.store.times.min())
+        self.duration = float(self.store.times.max() - self.t0)
+        self._gt = None
+        self.eval_history: list[dict] = []
+
+    # ------------------------------------------------------------------ limits and schedule
+    @property
+    def max_time(self) -> float | None:
+        if self.config.online:
+            return self.duration / self.config.playback_speed
+        return self.config.max_time
+
+    def _done(self) -> bool:
+        c = self.config
+        if c.max_steps is not None and self.step >= c.max_steps:
+            return True
+        return self.max_time is not None and self.seconds >= self.max_time
+
+    def _progress(self) -> float:
+        parts = []
+        if self.config.max_steps is not None:
+            parts.append(self.step / self.config.max_steps)
+        if self.max_time is not None:
+            parts.append(self.seconds / self.max_time)
+        return min(1.0, max(parts))
+
+    def available_frames(self) -> np.ndarray:
+        """Frame rows the trainer may use now; online, only frames the clock has passed."""
+        if not self.config.online:
+            return np.arange(len(self.store))
+        clock = self.t0 + self.seconds * self.config.playback_speed
+        avail = np.flatnonzero(self.store.times <= clock)
+        return avail if avail.size else np.array([int(np.argmin(self.store.times))])
+
+    # ------------------------------------------------------------------ one step
+    def train_step(self) -> LossTerms:
+        c = self.config
+        lr = c.optim.lr * c.optim.lr_decay_to ** self._progress()
+        for g in self.optimizer.param_groups:
+            g["lr"] = lr
+        batch = self.sampler.sample(self.rng, c.batch_size, self.available_frames()).to(self.device)
+        out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator)
+        terms = total_loss(out, batch, c.weights, c.sensors)
+        self.optimizer.zero_grad(set_to_none=True)
+        terms.total.backward()
+        self.optimizer.step()
+        self.step += 1
+        self.samples += stats.n_samples
+        self._last_samples_per_ray = stats.n_samples / max(1, stats.n_rays)
+        if self.step % self._update_interval() == 0:
+            self.grid.update(self.step, self.field.density, self._grid_batch(batch), self.generator)
+        return terms
+
+    def _update_interval(self) -> int:
+        cfg = self.config.ngp_grid if self.config.grid == "ngp" else self.config.virus_grid
+        return cfg.update_interval
+
+    def _grid_batch(self, batch: RayBatch) -> GridUpdateBatch:
+        """IRS rays with a range for the Depth-Update, training rays for the NeRF-Update."""
+        half = self.config.grid_update_rays // 2
+        has_irs = torch.isfinite(batch.irs_range).nonzero().squeeze(1)[:half]
+        nerf = torch.arange(min(half, len(batch)), device=batch.origins.device)
+        far = ray_box_exit(batch.origins[nerf], batch.directions[nerf], self.box)
+        return GridUpdateBatch(
+            depth_origins=batch.origins[has_irs],
+            depth_directions=batch.directions[has_irs],
+            depth_ranges=batch.irs_range[has_irs],
+            nerf_origins=batch.origins[nerf],
+            nerf_directions=batch.directions[nerf],
+            nerf_far=far,
+        )
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self, with_sensors: bool = True) -> EvaluationResult:
+        """Score the NeRF scan (and the instantaneous sensors) at the test points."""
+        cfg = self.config.evaluation
+        if self._gt is None:
+            self._gt = build_ground_truth(self.recording, cfg)
+        gts = self._gt
+        if self.config.online:
+            clock = self.t0 + self.seconds * self.config.playback_speed
+            seen = [g for g in gts if g.test_point.time <= clock + 1e-9]
+            gts = seen or gts[:1]
+        from dataclasses import replace
+
+        cfg = cfg if with_sensors else replace(cfg, sensors=())
+        self.field.eval()
+        try:
+            return evaluate(self.recording, {"NeRF": self.model}, cfg, ground_truth=gts)
+        finally:
+            self.field.train()
+
+    # ------------------------------------------------------------------ checkpoints
+    def state(self) -> dict:
+        return {
+            "field": self.field.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "grid": self.grid.state_dict(),
+            "step": self.step,
+            "seconds": self.seconds,
+            "samples": self.samples,
+            "numpy_rng": self.rng.bit_generator.state,
+            "torch_generator": self.generator.get_state(),
+            "eval_history": self.eval_history,
+            "box": self.box.to_dict(),
+            "config": to_dict(self.config),
+        }
+
+    def save_checkpoint(self) -> None:
+        with atomic_path(self.run_dir / "checkpoint.pt") as tmp:
+            torch.save(self.state(), tmp)
+
+    def load_checkpoint(self, path: Path) -> None:
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        self.field.load_state_dict(state["field"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.grid.load_state_dict(state["grid"])
+        self.step = int(state["step"])
+        self.seconds = float(state["seconds"])
+        self.samples = int(state["samples"])
+        self.rng.bit_generator.state = state["numpy_rng"]
+        self.generator.set_state(state["torch_generator"])
+        self.eval_history = list(state.get("eval_history", []))
+
+    # ------------------------------------------------------------------ the loop
+    def fit(self) -> TrainSummary:
+        """Train until max_steps or max_time; logs, evaluations and checkpoints on the way."""
+        from tqdm import tqdm
+
+        c = self.config
+        log_path = self.run_dir / "train_log.csv"
+        new_log = not log_path.exists()
+        tb = _tensorboard(self.run_dir / "tensorboard")
+        total = c.max_steps if c.max_steps is not None else None
+        bar = tqdm(total=total, initial=self.step, disable=self.quiet, unit="step", dynamic_ncols=True)
+        next_eval = (math.floor(self.seconds / c.eval_interval) + 1) * c.eval_interval if c.eval_interval > 0 else math.inf
+        next_ckpt = self.seconds + c.checkpoint_every
+        with log_path.open("a", newline="") as fh:
+            writer = csv.writer(fh)
+            if new_log:
+                writer.writerow(LOG_FIELDS)
+            while not self._done():
+                t_start = time.perf_counter()
+                terms = self.train_step()
+                self.seconds += time.perf_counter() - t_start
+                if self.step % c.log_every == 0 or self._done():
+                    row = self._log_row(terms)
+                    writer.writerow(row)
+                    fh.flush()
+                    if tb is not None:
+                        for k, v in zip(LOG_FIELDS[2:], row[2:], strict=True):
+                            tb.add_scalar(f"train/{k}", v, self.step)
+                    bar.set_postfix(loss=f"{row[2]:.4f}", psnr=f"{row[7]:.1f}", t=f"{self.seconds:.0f}s")
+                bar.update(1)
+                if self.seconds >= next_eval and not self._done():
+                    self._record_eval(self.evaluate(with_sensors=False), tb)
+                    next_eval += c.eval_interval
+                if self.seconds >= next_ckpt:
+                    self.save_checkpoint()
+                    next_ckpt = self.seconds + c.checkpoint_every
+        bar.close()
+        self.save_checkpoint()
+        if tb is not None:
+            tb.close()
+        return TrainSummary(self.step, self.seconds, self.samples)
+
+    def _log_row(self, terms: LossTerms) -> list:
+        mse = float(terms.colour)
+        return [
+            self.step,
+            round(self.seconds, 3),
+            float(terms.total),
+            mse,
+            float(terms.irs),
+            float(terms.uss),
+            float(terms.rgbd),
+            -10.0 * math.log10(max(mse, 1e-10)),
+            round(self._last_samples_per_ray, 2),
+            round(self.grid.occupancy_share(), 4),
+            len(self.available_frames()),
+        ]
+
+    def _record_eval(self, result: EvaluationResult, tb) -> None:
+        z3 = result.metrics["NeRF"].zones["zone3"]
+        entry = {"step": self.step, "seconds": round(self.seconds, 3),
+                 "acc_mean": z3.acc_mean, "cov_mean": z3.cov_mean,
+                 "acc_inlier": z3.acc_inlier, "cov_inlier": z3.cov_inlier,
+                 "n_test_points": len(result.points)}
+        self.eval_history.append(entry)
+        write_eval_history(self.run_dir / "metrics_vs_time.csv", self.eval_history)
+        if tb is not None:
+            for k in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier"):
+                if entry[k] is not None:
+                    tb.add_scalar(f"eval/zone3_{k}", entry[k], self.step)
+
+
+def write_eval_history(path: Path, history: list[dict]) -> None:
+    if not history:
+        return
+    keys = list(history[0])
+    lines = [",".join(keys)] + [",".join("" if e[k] is None else str(e[k]) for k in keys) for e in history]
+    from virus_nerf.utils.io import write_text_atomic
+
+    write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def _tensorboard(folder: Path):
+    """A TensorBoard writer if the optional `tensorboard` package is installed, else None."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except Exception:
+        return None
+    return SummaryWriter(str(folder))
+
+
+def train_summary_block(config: TrainConfig, summary: TrainSummary) -> dict:
+    """The "train" block of metrics.json (design 7)."""
+    return {
+        "steps": summary.steps,
+        "seconds": round(summary.seconds, 3),
+        "steps_per_s": round(summary.steps_per_s, 4),
+        "samples_per_s": round(summary.samples_per_s, 1),
+        "grid": config.grid,
+        "sensors": list(config.sensors),
+        "seed": config.seed,
+        "online": config.online,
+        "odometry_poses": config.odometry_poses,
+    }
+
+
+def write_run_metrics(run_dir: Path, result: EvaluationResult, config: TrainConfig, summary: TrainSummary) -> dict:
+    return result.write_json(run_dir / "metrics.json", train=train_summary_block(config, summary))

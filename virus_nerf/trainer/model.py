@@ -1,0 +1,99 @@
+"""The scene model: field + occupancy grid + marcher, rendering rays end to end.
+
+`SceneModel.ranges` makes a trained model a RangeModel for the 2D scan evaluation (design 6.3):
+depth / opacity along each ray, NaN where opacity < min_opacity (design 3.1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from virus_nerf.data.ethz import Recording
+from virus_nerf.field.field import NerfField
+from virus_nerf.grid.base import OccupancyGrid
+from virus_nerf.render.compositing import RenderOutput, composite
+from virus_nerf.render.marching import march_rays
+from virus_nerf.scene_box import SceneBox
+from virus_nerf.sensors import irs, uss
+
+
+def fit_scene_box(recording: Recording, margin: float = 0.1) -> SceneBox:
+    """Anisotropic box around the room (design 3.5, 9.2), in metres.
+
+    From the LiDAR map where there is one (robust 0.1/99.9 percentiles), otherwise from the
+    camera positions grown by the longest sensor range.
+    """
+    cams = np.concatenate([s.cam_to_world[:, :3, 3] for s in recording.stacks.values()])
+    if recording.map_path is not None:
+        pts = recording.lidar_map()
+        lo = np.percentile(pts, 0.1, axis=0)
+        hi = np.percentile(pts, 99.9, axis=0)
+        lo, hi = np.minimum(lo, cams.min(axis=0)), np.maximum(hi, cams.max(axis=0))
+        return SceneBox(tuple(lo - margin), tuple(hi + margin))
+    reach = max(irs.IRS_MAX_RANGE_M, 5.0)
+    lo = cams.min(axis=0) - [reach, reach, 1.5]
+    hi = cams.max(axis=0) + [reach, reach, 1.5]
+    _ = uss  # the USS range also stays within `reach`
+    return SceneBox(tuple(lo), tuple(hi))
+
+
+@dataclass
+class RenderStats:
+    n_rays: int
+    n_samples: int
+
+
+class SceneModel:
+    """Renders colour, depth and opacity of rays through the field, marching in occupied cells."""
+
+    def __init__(self, field: NerfField, grid: OccupancyGrid, step_size: float, near: float, max_samples: int,
+                 min_opacity: float = 0.5):
+        self.field = field
+        self.grid = grid
+        self.step_size = step_size
+        self.near = near
+        self.max_samples = max_samples
+        self.min_opacity = min_opacity
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.field.parameters()).device
+
+    def render(
+        self, origins: torch.Tensor, directions: torch.Tensor, generator: torch.Generator | None = None
+    ) -> tuple[RenderOutput, RenderStats]:
+        """origins, directions (R, 3) -> RenderOutput (rgb (R,3), depth (R,), opacity (R,))."""
+        samples = march_rays(
+            origins,
+            directions,
+            self.grid.occupied,
+            self.grid.spec,
+            near=self.near,
+            far=1e4,
+            step_size=self.step_size,
+            max_samples_per_ray=self.max_samples,
+            jitter=generator,
+        )
+        positions = samples.positions(origins, directions)  # (S, 3)
+        dirs = directions[samples.ray_indices]  # (S, 3)
+        sigma, rgb = self.field(positions, dirs)
+        out = composite(sigma, rgb, samples, n_rays=origins.shape[0], background=None)
+        return out, RenderStats(n_rays=origins.shape[0], n_samples=int(samples.ray_indices.shape[0]))
+
+    @torch.no_grad()
+    def ranges(self, origins: np.ndarray, directions: np.ndarray, chunk: int = 8192) -> np.ndarray:
+        """Scan depth (N,) metres along unit rays; NaN where the model sees nothing (design 3.1)."""
+        out = np.full(len(origins), np.nan)
+        o_all = torch.as_tensor(np.asarray(origins, dtype=np.float32), device=self.device)
+        d_all = torch.as_tensor(np.asarray(directions, dtype=np.float32), device=self.device)
+        for start in range(0, len(origins), chunk):
+            o, d = o_all[start : start + chunk], d_all[start : start + chunk]
+            r, _ = self.render(o, d, generator=None)
+            opacity = r.opacity.double().cpu().numpy()
+            depth = r.depth.double().cpu().numpy()
+            ok = opacity >= self.min_opacity
+            out[start : start + len(o)] = np.where(ok, depth / np.maximum(opacity, 1e-12), np.nan)
+        return out
