@@ -42,7 +42,7 @@ def best_of(fn, reps: int) -> float:
     return min(times)
 
 
-def bench_encoding(cfg: FieldConfig, backend: str, x: torch.Tensor, reps: int) -> dict:
+def bench_encoding(cfg: FieldConfig, backend: str, x: torch.Tensor, reps: int, warm_up: bool = True) -> dict:
     enc = HashEncoding(cfg.layout, backend, torch.Generator().manual_seed(0))
     g_out = torch.ones(x.shape[0], enc.out_dim)
 
@@ -54,7 +54,8 @@ def bench_encoding(cfg: FieldConfig, backend: str, x: torch.Tensor, reps: int) -
         enc.table.grad = None
         enc(x).backward(g_out)
 
-    fwd_bwd()  # warm-up: numba cache load, allocator
+    if warm_up:
+        fwd_bwd()  # numba cache load, allocator
     t_f, t_fb = best_of(fwd, reps), best_of(fwd_bwd, reps)
     n = x.shape[0]
     return {
@@ -83,15 +84,18 @@ def bench_field(cfg: FieldConfig, x: torch.Tensor, dirs: torch.Tensor, reps: int
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=4096 * 32, help="points per call")
-    ap.add_argument("--reps", type=int, default=5, help="repetitions (numba; torch uses 2)")
+    ap.add_argument("--reps", type=int, default=3, help="repetitions (numba; the slow torch backend runs once)")
     args = ap.parse_args()
     t_start = time.perf_counter()
     x, dirs = ray_points(args.n)
-    presets = {"log2_T=16 (cpu_default, N_max 512)": FieldConfig.cpu_default(),
-               "log2_T=19 (paper, N_max 1024)": FieldConfig.paper()}
+    presets = {
+        "log2_T=16 (cpu_default, N_max 512)": FieldConfig.cpu_default(),
+        "log2_T=19 (paper, N_max 1024)": FieldConfig.paper(),
+    }
     result: dict = {
         "n_points": args.n,
         "torch_threads": torch.get_num_threads(),
+        "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "unset"),
         "cpu": platform.processor() or platform.machine(),
         "load_avg_at_start": os.getloadavg()[0],
         "note": "wall-clock minima; shared 2-core machine, expect +-30 % noise",
@@ -101,7 +105,7 @@ def main() -> None:
     for name, cfg in presets.items():
         result["encoding"][name] = {
             "numba": bench_encoding(cfg, "numba", x, args.reps),
-            "torch": bench_encoding(cfg, "torch", x, 2),
+            "torch": bench_encoding(cfg, "torch", x, 1, warm_up=False),
         }
         result["field_numba"][name] = bench_field(cfg, x, dirs, args.reps)
     result["load_avg_at_end"] = os.getloadavg()[0]

@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from virus_nerf.field.hash_encoding import HashEncoding, HashGridLayout, hash_encode, hash_encode_torch
+from virus_nerf.field.hash_encoding import (
+    HashEncoding,
+    HashGridLayout,
+    hash_encode,
+    hash_encode_torch,
+)
 from virus_nerf.field.hash_kernels import hash_encode_numba
 
 # Small layout with 2 dense and 4 hashed levels: resolutions 4, 6, 12, 21, 36, 64; T = 2^10.

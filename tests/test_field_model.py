@@ -64,6 +64,8 @@ def test_determinism_and_seed():
         assert torch.equal(pa, pb), ka
     assert not torch.equal(a.encoding.table, c.encoding.table)
     assert not torch.equal(a.density_mlp[0].weight, c.density_mlp[0].weight)
+    d = NerfField(BOX, SMALL, generator=torch.Generator().manual_seed(5))  # generator == seed
+    assert all(torch.equal(p, q) for p, q in zip(a.parameters(), d.parameters(), strict=True))
     pts, dirs = world_points(3000), unit_dirs(3000)
     grads = []
     for _ in range(2):

@@ -66,7 +66,9 @@ def test_after_warmup_a_quarter_uniform_plus_a_quarter_among_occupied():
     rec = Recorder(region)
     grid.update(16, rec, None, torch.Generator().manual_seed(1))
     q = grid.spec.n_cells // 4
-    assert rec.n == 2 * q and grid.last_n_evaluated == 2 * q and len(rec.points) == 6  # chunks of 100
+    assert (
+        rec.n == 2 * q and grid.last_n_evaluated == 2 * q and len(rec.points) == 6
+    )  # chunks of 100
     pts = torch.cat(rec.points)
     second = cell_index(pts[q:].double(), grid.spec)
     assert bool(occ_before.reshape(-1)[second].all())  # the second quarter only in occupied cells
@@ -148,3 +150,14 @@ def test_state_round_trip_resumes_exactly():
     other = NgpGrid(BOX, NgpGridConfig(max_resolution=8))
     with pytest.raises(ValueError, match="resolution"):
         other.load_state_dict(a.state_dict())
+
+
+def test_constructor_takes_a_spec_and_the_marchers_step():
+    from virus_nerf.grid.base import GridSpec
+
+    spec = GridSpec.from_box(BOX, 8)
+    grid = NgpGrid(spec, CFG, step_size=0.03)
+    assert grid.spec is spec and grid.spec.resolution == (8, 8, 2)
+    assert grid.config.sigma_max == pytest.approx(-math.log(0.99) / 0.03)
+    with pytest.raises(ValueError, match="step_size"):
+        NgpGrid(BOX, CFG, step_size=0.0)

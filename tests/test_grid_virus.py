@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from virus_nerf.grid.base import GridUpdateBatch, cell_index
+from virus_nerf.grid.base import GridSpec, GridUpdateBatch, cell_index
 from virus_nerf.grid.sensor_model import cells_along_ray, depth_log_odds, nerf_log_odds
 from virus_nerf.grid.virus import VirusGrid, VirusGridConfig, benchmark_update
 from virus_nerf.scene_box import SceneBox
@@ -298,8 +298,6 @@ def test_free_space_update_only_lowers_cells_up_to_the_echo():
 
 
 def test_grid_over_a_given_spec_matches_the_box_constructor():
-    from virus_nerf.grid.base import GridSpec
-
     cfg = VirusGridConfig(max_resolution=16)
     a = VirusGrid(BAR, cfg)
     b = VirusGrid(GridSpec.from_box(BAR, 16), cfg, device="cpu")

@@ -184,3 +184,15 @@ def test_fuzzed_uss_tables_parse_or_fail_clearly(tmp_path, header, body):
         assert str(exc).startswith(str(p))
     else:
         assert table["time"].shape == table["meas"].shape
+
+
+def test_intrinsics_with_and_without_size(tmp_path):
+    from virus_nerf.data.ethz import read_intrinsics
+
+    p = write(tmp_path, "a.CSV", "cam_id,fx,fy,cx,cy\nCAM1,388,388,320,240\n")
+    assert (read_intrinsics(p)[1].width, read_intrinsics(p)[1].height) == (640, 480)
+    p = write(tmp_path, "b.CSV", "cam_id,fx,fy,cx,cy,width,height\nCAM3,194,194,160,120,320,240\n")
+    assert (read_intrinsics(p)[3].width, read_intrinsics(p)[3].height) == (320, 240)
+    p = write(tmp_path, "c.CSV", "cam_id,fx,fy,cx,cy,width,height\nCAM3,194,194,160,120,-320,240\n")
+    with pytest.raises(DataFormatError, match="row 2, field 'width'"):
+        read_intrinsics(p)

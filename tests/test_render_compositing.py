@@ -20,8 +20,14 @@ def test_two_samples_by_hand(backend):
     s = PackedSamples.from_counts(
         torch.tensor([2, 0]), torch.tensor([0.0, 0.5]), torch.tensor([0.5, 0.75])
     )
-    out = composite(torch.tensor([1.0, 2.0]), torch.tensor([[1.0, 0, 0], [0, 1.0, 0]]), s, 2,
-                    background=torch.tensor([0.0, 0.0, 1.0]), backend=backend)
+    out = composite(
+        torch.tensor([1.0, 2.0]),
+        torch.tensor([[1.0, 0, 0], [0, 1.0, 0]]),
+        s,
+        2,
+        background=torch.tensor([0.0, 0.0, 1.0]),
+        backend=backend,
+    )
     a1 = 1 - math.exp(-0.5)  # tau1 = 1 * 0.5
     w2 = math.exp(-0.5) * (1 - math.exp(-0.5))  # tau2 = 2 * 0.25
     np.testing.assert_allclose(out.weights, [a1, w2], rtol=1e-6)
@@ -37,8 +43,17 @@ def _slab_render(backend: str, sigma: float, a: float, thick: float, background=
     spec = GridSpec.from_box(box, 64)
     o = torch.tensor([[0.0, 0.5, 0.5], [0.0, 0.2, 0.7], [0.0, 0.9, 0.1]])
     d = torch.tensor([[1.0, 0.0, 0.0]]).expand(3, 3)
-    s = march_rays(o, d, torch.ones(spec.resolution, dtype=torch.bool), spec, 0.0, 10.0,
-                   step_size=0.001, max_samples_per_ray=10_000, backend=backend)
+    s = march_rays(
+        o,
+        d,
+        torch.ones(spec.resolution, dtype=torch.bool),
+        spec,
+        0.0,
+        10.0,
+        step_size=0.001,
+        max_samples_per_ray=10_000,
+        backend=backend,
+    )
     x = s.positions(o, d)[:, 0]
     sig = torch.where((x > a) & (x < a + thick), sigma, 0.0)
     rgb = torch.tensor([0.2, 0.5, 0.9]).expand(s.n_samples, 3)
@@ -96,8 +111,12 @@ def _loss_grads(out, sig, rgb, bg, g):
     wd = torch.rand(out.depth.shape, generator=g, dtype=out.rgb.dtype)
     wa = torch.rand(out.opacity.shape, generator=g, dtype=out.rgb.dtype)
     ww = torch.rand(out.weights.shape, generator=g, dtype=out.rgb.dtype)
-    loss = ((out.rgb - wr) ** 2).sum() + (wd * out.depth).sum() + (wa * out.opacity ** 2).sum() \
+    loss = (
+        ((out.rgb - wr) ** 2).sum()
+        + (wd * out.depth).sum()
+        + (wa * out.opacity**2).sum()
         + (ww * out.weights).sum()
+    )
     return torch.autograd.grad(loss, [sig, rgb, bg])
 
 
@@ -135,10 +154,16 @@ def test_early_termination_changes_little():
 def test_gradcheck_float64(backend, eps):
     g = torch.Generator().manual_seed(3)
     counts = torch.tensor([3, 0, 5, 1])
-    ts = torch.cat([torch.tensor([0.1, 0.3, 0.35]), torch.tensor([0.0, 0.2, 0.4, 0.6, 0.8]),
-                    torch.tensor([1.0])])
-    samples = PackedSamples.from_counts(counts, ts, ts + torch.tensor(
-        [0.2, 0.05, 0.3, 0.2, 0.2, 0.2, 0.2, 0.1, 0.4]))
+    ts = torch.cat(
+        [
+            torch.tensor([0.1, 0.3, 0.35]),
+            torch.tensor([0.0, 0.2, 0.4, 0.6, 0.8]),
+            torch.tensor([1.0]),
+        ]
+    )
+    samples = PackedSamples.from_counts(
+        counts, ts, ts + torch.tensor([0.2, 0.05, 0.3, 0.2, 0.2, 0.2, 0.2, 0.1, 0.4])
+    )
     sig = (torch.rand(9, generator=g, dtype=torch.float64) * 6).requires_grad_()
     rgb = torch.rand(9, 3, generator=g, dtype=torch.float64).requires_grad_()
     bg = torch.rand(3, generator=g, dtype=torch.float64).requires_grad_()

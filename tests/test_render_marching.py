@@ -33,8 +33,10 @@ def _room_occupancy(spec: GridSpec, seed: int = 0) -> torch.Tensor:
     occ[:2], occ[-2:], occ[:, :2], occ[:, -2:], occ[:, :, :1] = True, True, True, True, True
     g = torch.Generator().manual_seed(seed)
     for _ in range(6):
-        x, y = (int(torch.randint(2, rx - 6, (1,), generator=g)),
-                int(torch.randint(2, ry - 6, (1,), generator=g)))
+        x, y = (
+            int(torch.randint(2, rx - 6, (1,), generator=g)),
+            int(torch.randint(2, ry - 6, (1,), generator=g)),
+        )
         occ[x : x + 4, y : y + 3, : rz // 2] = True
     occ |= torch.rand(rx, ry, rz, generator=g) < 0.03
     return occ
@@ -53,8 +55,18 @@ def test_bookkeeping_bounds_occupancy_and_max_samples():
     g = torch.Generator().manual_seed(0)
     near = torch.rand(400, generator=g) * 0.5
     far = 2.0 + torch.rand(400, generator=g) * 6.0
-    s = march_rays(o, d, occ, SPEC, near, far, step_size=0.02, max_samples_per_ray=40,
-                   jitter=torch.Generator().manual_seed(3), backend="numba")
+    s = march_rays(
+        o,
+        d,
+        occ,
+        SPEC,
+        near,
+        far,
+        step_size=0.02,
+        max_samples_per_ray=40,
+        jitter=torch.Generator().manual_seed(3),
+        backend="numba",
+    )
     s.check()  # offsets consistent, ray_indices sorted, t_start < t_end
     assert s.n_rays == 400 and s.n_samples > 1000
     assert s.ray_indices.dtype == torch.int64 and s.t_starts.dtype == torch.float32
@@ -83,7 +95,9 @@ def test_single_occupied_cell_gets_all_samples_and_a_missing_ray_none():
     occ = torch.zeros(SPEC.resolution, dtype=torch.bool)
     ijk = (10, 12, 4)
     occ[ijk] = True
-    centre = SPEC.cell_centers()[(ijk[0] * SPEC.resolution[1] + ijk[1]) * SPEC.resolution[2] + ijk[2]]
+    centre = SPEC.cell_centers()[
+        (ijk[0] * SPEC.resolution[1] + ijk[1]) * SPEC.resolution[2] + ijk[2]
+    ]
     o, _ = _rays(64, seed=2, spread=0.9)
     d = centre - o
     d = d / d.norm(dim=1, keepdim=True)
@@ -91,8 +105,18 @@ def test_single_occupied_cell_gets_all_samples_and_a_missing_ray_none():
     o = torch.cat([o, miss_o[None]])
     d = torch.cat([d, torch.tensor([[1.0, 0.0, 0.0]])])
     for backend in ("numba", "torch"):
-        s = march_rays(o, d, occ, SPEC, 0.0, 100.0, step_size=0.005, max_samples_per_ray=1000,
-                       jitter=torch.Generator().manual_seed(0), backend=backend)
+        s = march_rays(
+            o,
+            d,
+            occ,
+            SPEC,
+            0.0,
+            100.0,
+            step_size=0.005,
+            max_samples_per_ray=1000,
+            jitter=torch.Generator().manual_seed(0),
+            backend=backend,
+        )
         s.check()
         cells = cell_index(s.positions(o, d).double(), SPEC)
         flat = (ijk[0] * SPEC.resolution[1] + ijk[1]) * SPEC.resolution[2] + ijk[2]
@@ -107,10 +131,22 @@ def test_all_occupied_constant_step_without_jitter_is_a_regular_grid_from_the_en
     occ = torch.ones(SPEC.resolution, dtype=torch.bool)
     o = torch.tensor([[-6.0, 0.1, 1.3], [0.0, 0.0, 1.0]])
     d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8]])
-    s = march_rays(o, d, occ, SPEC, 0.0, 100.0, step_size=0.1, max_samples_per_ray=10_000,
-                   jitter=None, backend="numba")
+    s = march_rays(
+        o,
+        d,
+        occ,
+        SPEC,
+        0.0,
+        100.0,
+        step_size=0.1,
+        max_samples_per_ray=10_000,
+        jitter=None,
+        backend="numba",
+    )
     first = s.t_starts[s.ray_offsets[:-1]]
-    np.testing.assert_allclose(first.numpy(), [1.5, 0.0], atol=1e-6)  # enters at x=-4.5 / starts in box
+    np.testing.assert_allclose(
+        first.numpy(), [1.5, 0.0], atol=1e-6
+    )  # enters at x=-4.5 / starts in box
     ray0 = s.t_starts[s.ray_indices == 0]
     np.testing.assert_allclose(np.diff(ray0.numpy()), 0.1, atol=1e-5)
     assert int(s.counts[0]) == 90  # 9 m of box in 0.1 m steps
@@ -138,8 +174,19 @@ def test_cone_steps_grow_with_distance_and_are_clamped():
     occ = torch.ones(SPEC.resolution, dtype=torch.bool)
     o = torch.tensor([[-4.4, 0.0, 1.0]])
     d = torch.tensor([[1.0, 0.0, 0.0]])
-    s = march_rays(o, d, occ, SPEC, 0.0, 100.0, step_size=0.01, max_samples_per_ray=10_000,
-                   cone_angle=0.01, max_step=0.05, backend="numba")
+    s = march_rays(
+        o,
+        d,
+        occ,
+        SPEC,
+        0.0,
+        100.0,
+        step_size=0.01,
+        max_samples_per_ray=10_000,
+        cone_angle=0.01,
+        max_step=0.05,
+        backend="numba",
+    )
     ts = s.t_starts.double().numpy()
     dt = np.diff(ts)
     expect = np.clip(ts[:-1] * 0.01, 0.01, 0.05)
@@ -161,10 +208,21 @@ def test_numba_equals_torch_exactly(cone, skip):
     g = torch.Generator().manual_seed(11)
     near = torch.rand(o.shape[0], generator=g) * 0.3
     kw = dict(step_size=0.013, max_samples_per_ray=150, cone_angle=cone)
-    a = march_rays(o, d, occ, SPEC, near, 9.0, jitter=torch.Generator().manual_seed(1),
-                   backend="numba", skip_empty=skip, **kw)
-    b = march_rays(o, d, occ, SPEC, near, 9.0, jitter=torch.Generator().manual_seed(1),
-                   backend="torch", **kw)
+    a = march_rays(
+        o,
+        d,
+        occ,
+        SPEC,
+        near,
+        9.0,
+        jitter=torch.Generator().manual_seed(1),
+        backend="numba",
+        skip_empty=skip,
+        **kw,
+    )
+    b = march_rays(
+        o, d, occ, SPEC, near, 9.0, jitter=torch.Generator().manual_seed(1), backend="torch", **kw
+    )
     assert a.n_samples > 5000
     _same(a, b)
 

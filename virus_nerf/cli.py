@@ -10,6 +10,7 @@ def _commands() -> dict:
     from virus_nerf.evaluation.command import sensors
     from virus_nerf.experiments.ablation import ablation
     from virus_nerf.experiments.demo import demo
+    from virus_nerf.experiments.export import export
     from virus_nerf.experiments.online import online
     from virus_nerf.sim.command import simulate
     from virus_nerf.trainer.command import evaluate, train
@@ -22,6 +23,7 @@ def _commands() -> dict:
         "demo": demo,
         "ablation": ablation,
         "online": online,
+        "export": export,
     }
 
 

@@ -124,33 +124,41 @@ class Recording:
 
 
 def read_intrinsics(path: Path) -> dict[int, Intrinsics]:
-    """camera_intrinsics.CSV (cam_id,fx,fy,cx,cy) -> {stack id: Intrinsics}."""
+    """camera_intrinsics.CSV (cam_id,fx,fy,cx,cy[,width,height]) -> {stack id: Intrinsics}.
+
+    The real recordings have no size columns and are 640x480; simulated ones at another
+    resolution add width,height.
+    """
     if not path.is_file():
         raise DataFormatError(path, "camera intrinsics file not found (expected cam_id,fx,fy,cx,cy)")
     with path.open(newline="") as fh:
         rows = list(csv.reader(fh))
     expected = ["cam_id", "fx", "fy", "cx", "cy"]
-    if not rows or [h.strip() for h in rows[0]] != expected:
-        raise DataFormatError(path, f"header must be {','.join(expected)}", row=1)
+    header = [h.strip() for h in rows[0]] if rows else []
+    if header not in (expected, expected + ["width", "height"]):
+        raise DataFormatError(path, f"header must be {','.join(expected)} (optionally ,width,height)", row=1)
     out: dict[int, Intrinsics] = {}
     for row_no, row in enumerate(rows[1:], start=2):
         if not row:
             continue
-        if len(row) != 5:
-            raise DataFormatError(path, f"has {len(row)} values; expected 5", row=row_no)
+        if len(row) != len(header):
+            raise DataFormatError(path, f"has {len(row)} values; expected {len(header)}", row=row_no)
         m = re.fullmatch(r"CAM(\d+)", row[0].strip())
         if not m:
             raise DataFormatError(path, f"cam_id {row[0]!r} is not CAM<number>", row=row_no, field="cam_id")
         values = []
-        for name, text in zip(expected[1:], row[1:], strict=True):
+        for name, text in zip(header[1:], row[1:], strict=True):
             try:
                 v = float(text)
             except ValueError:
                 raise DataFormatError(path, f"value {text!r} is not a number", row=row_no, field=name) from None
-            if not np.isfinite(v) or (name in ("fx", "fy") and v <= 0):
-                raise DataFormatError(path, f"value {v} must be finite (and positive for focal lengths)", row=row_no, field=name)
+            if not np.isfinite(v) or (name in ("fx", "fy", "width", "height") and v <= 0):
+                raise DataFormatError(path, f"value {v} must be finite (and positive for focal lengths and sizes)",
+                                      row=row_no, field=name)
             values.append(v)
-        out[int(m.group(1))] = Intrinsics(*values)
+        fx, fy, cx, cy = values[:4]
+        size = (int(values[4]), int(values[5])) if len(values) == 6 else (640, 480)
+        out[int(m.group(1))] = Intrinsics(fx, fy, cx, cy, width=size[0], height=size[1])
     return out
 
 

@@ -2,7 +2,12 @@
 encoding, density and colour MLPs."""
 
 from virus_nerf.field.field import FieldConfig, NerfField, trunc_exp
-from virus_nerf.field.hash_encoding import HashEncoding, HashGridLayout, hash_encode, hash_encode_torch
+from virus_nerf.field.hash_encoding import (
+    HashEncoding,
+    HashGridLayout,
+    hash_encode,
+    hash_encode_torch,
+)
 from virus_nerf.field.sh import SH_DIM, sh_encode
 
 __all__ = [

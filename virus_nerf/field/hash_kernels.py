@@ -44,6 +44,7 @@ def _cell(x0, x1, x2, r, ri, dense, mask):
         b0 = c1 * s1
         d0 = c2 * s2
         return c0, c0 + 1, b0, b0 + s1, d0, d0 + s2, f0, f1, f2
+    # int64 products (< 2^43) instead of uint32 wrap-around: equal modulo T because T divides 2^32
     b0 = c1 * _P1
     d0 = c2 * _P2
     return c0, c0 + 1, b0, b0 + _P1, d0, d0 + _P2, f0, f1, f2

@@ -14,7 +14,7 @@ Before the first update every cell is occupied, so the untrained field is marche
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -43,17 +43,29 @@ class NgpGrid(OccupancyGrid):
 
     def __init__(
         self,
-        box: SceneBox,
+        box: SceneBox | GridSpec,
         config: NgpGridConfig | None = None,
+        step_size: float | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
-        self.config = config or NgpGridConfig()
+        """Cells over `box` (GridSpec.from_box with config.max_resolution), or over a given spec.
+
+        step_size (metres), if given, replaces config.step_size: pass the ray marcher's step so
+        that sigma_max matches what is actually marched.
+        """
+        config = config or NgpGridConfig()
+        if step_size is not None:
+            config = replace(config, step_size=float(step_size))
+        self.config = config
         if not self.config.step_size > 0 or not 0 < self.config.min_alpha < 1:
             raise ValueError(
                 f"NgpGridConfig needs step_size > 0 m and 0 < min_alpha < 1, got "
                 f"{self.config.step_size} and {self.config.min_alpha}"
             )
-        self.spec = GridSpec.from_box(box, self.config.max_resolution)
+        if isinstance(box, GridSpec):
+            self.spec = box
+        else:
+            self.spec = GridSpec.from_box(box, self.config.max_resolution)
         self.device = torch.device(device)
         self.values = torch.zeros(self.spec.resolution, dtype=torch.float32, device=self.device)
         self._occupied = torch.ones(self.spec.resolution, dtype=torch.bool, device=self.device)
@@ -86,8 +98,9 @@ class NgpGrid(OccupancyGrid):
         """World points (K, 3) float32, one uniform random point inside each flat cell index."""
         _, ry, rz = self.spec.resolution
         ijk = torch.stack([cells // (ry * rz), (cells // rz) % ry, cells % rz], dim=-1)
-        u = torch.rand(cells.shape[0], 3, generator=generator, dtype=torch.float64,
-                       device=generator.device).to(self.device)
+        u = torch.rand(
+            cells.shape[0], 3, generator=generator, dtype=torch.float64, device=generator.device
+        ).to(self.device)
         lo = torch.tensor(self.spec.box.lo, dtype=torch.float64, device=self.device)
         cell = torch.from_numpy(self.spec.cell_size).to(self.device)
         return (lo + (ijk.to(torch.float64) + u) * cell).to(torch.float32)
@@ -132,7 +145,9 @@ class NgpGrid(OccupancyGrid):
     def load_state_dict(self, state: dict) -> None:
         res = tuple(int(v) for v in state["resolution"])
         if res != tuple(self.spec.resolution):
-            raise ValueError(f"grid state has resolution {res}, this grid has {self.spec.resolution}")
+            raise ValueError(
+                f"grid state has resolution {res}, this grid has {self.spec.resolution}"
+            )
         self.values = state["values"].to(self.device, torch.float32).clone()
         self._occupied = state["occupied"].to(self.device, torch.bool).clone()
         self.n_updates = int(state["n_updates"])

@@ -1,8 +1,8 @@
 """Ray marching through the occupancy grid and volume rendering of packed samples (design 2, 3.1).
 
-    samples = march_rays(origins, directions, grid.occupied, grid.spec, near, far, step_size, ...)
-    sigmas, rgbs = field(samples.positions(origins, directions), directions[samples.ray_indices])
-    out = composite(sigmas, rgbs, samples, n_rays, background)
+samples = march_rays(origins, directions, grid.occupied, grid.spec, near, far, step_size, ...)
+sigmas, rgbs = field(samples.positions(origins, directions), directions[samples.ray_indices])
+out = composite(sigmas, rgbs, samples, n_rays, background)
 """
 
 from virus_nerf.render.compositing import RenderOutput, composite, scan_depth

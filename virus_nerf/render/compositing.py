@@ -77,7 +77,12 @@ def composite(
     if background is None:
         background = torch.zeros(3, dtype=sigmas.dtype)
     rgb, depth, opacity, weights = _CompositeNumba.apply(
-        sigmas, rgbs, background, samples.t_starts, samples.t_ends, samples.ray_offsets,
+        sigmas,
+        rgbs,
+        background,
+        samples.t_starts,
+        samples.t_ends,
+        samples.ray_offsets,
         float(early_stop_eps),
     )
     return RenderOutput(rgb=rgb, depth=depth, opacity=opacity, weights=weights)
@@ -116,7 +121,9 @@ def _composite_torch(sigmas, rgbs, samples, n_rays, background, eps):
     if background is not None:
         rgb = rgb + (1 - opacity)[:, None] * background.to(torch.float64)
     dt = sigmas.dtype
-    return RenderOutput(rgb=rgb.to(dt), depth=depth.to(dt), opacity=opacity.to(dt), weights=w.to(dt))
+    return RenderOutput(
+        rgb=rgb.to(dt), depth=depth.to(dt), opacity=opacity.to(dt), weights=w.to(dt)
+    )
 
 
 # ----------------------------------------------------------------------------- numba
@@ -127,7 +134,11 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 
 class _CompositeNumba(torch.autograd.Function):
-    """Fused forward and closed-form backward (see module docstring), parallel over rays."""
+    """Fused forward and closed-form backward (see module docstring), parallel over rays.
+
+    The forward keeps w_j and T_{j+1} in float64 (16 bytes per sample) and the number of
+    contributing samples per ray, so the backward needs no transcendental functions.
+    """
 
     @staticmethod
     def forward(ctx, sigmas, rgbs, background, t_starts, t_ends, offsets, eps):
@@ -139,27 +150,55 @@ class _CompositeNumba(torch.autograd.Function):
         depth = np.zeros(n, dtype=rgb.dtype)
         opacity = np.zeros(n, dtype=rgb.dtype)
         weights = np.zeros(s, dtype=rgb.dtype)
-        _fwd_kernel(_np(sigmas), _np(rgbs), _np(t_starts), _np(t_ends), _np(offsets), bg, eps,
-                    rgb, depth, opacity, weights)
+        w64 = np.zeros(s, dtype=np.float64)
+        t_next = np.zeros(s, dtype=np.float64)
+        n_used = np.zeros(n, dtype=np.int64)
+        _fwd_kernel(
+            _np(sigmas),
+            _np(rgbs),
+            _np(t_starts),
+            _np(t_ends),
+            _np(offsets),
+            bg,
+            eps,
+            rgb,
+            depth,
+            opacity,
+            weights,
+            w64,
+            t_next,
+            n_used,
+        )
         opacity_t = torch.from_numpy(opacity)
-        ctx.save_for_backward(sigmas, rgbs, background, t_starts, t_ends, offsets, opacity_t)
-        ctx.eps = eps
+        ctx.save_for_backward(rgbs, background, t_starts, t_ends, offsets, opacity_t)
+        ctx.kept = (w64, t_next, n_used)  # numpy, not autograd inputs
         return torch.from_numpy(rgb), torch.from_numpy(depth), opacity_t, torch.from_numpy(weights)
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_opacity, g_weights):
-        sigmas, rgbs, background, t_starts, t_ends, offsets, opacity = ctx.saved_tensors
+        rgbs, background, t_starts, t_ends, offsets, opacity = ctx.saved_tensors
+        w64, t_next, n_used = ctx.kept
         n = offsets.shape[0] - 1
-        dt = sigmas.dtype
+        dt = opacity.dtype
         g_sig = g_col = g_bg = None
         if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
-            g_sig_np = np.zeros(sigmas.shape[0], dtype=_np(sigmas).dtype)
-            g_col_np = np.zeros((sigmas.shape[0], 3), dtype=g_sig_np.dtype)
+            g_sig_np = np.zeros(w64.shape[0], dtype=_np(opacity).dtype)
+            g_col_np = np.zeros((w64.shape[0], 3), dtype=g_sig_np.dtype)
             _bwd_kernel(
-                _np(sigmas), _np(rgbs), _np(t_starts), _np(t_ends), _np(offsets),
-                _np(background.to(dt).expand(n, 3)), ctx.eps,
-                _np(g_rgb.to(dt)), _np(g_depth.to(dt)), _np(g_opacity.to(dt)),
-                _np(g_weights.to(dt)), g_sig_np, g_col_np,
+                _np(rgbs),
+                _np(t_starts),
+                _np(t_ends),
+                _np(offsets),
+                _np(background.to(dt).expand(n, 3)),
+                w64,
+                t_next,
+                n_used,
+                _np(g_rgb.to(dt)),
+                _np(g_depth.to(dt)),
+                _np(g_opacity.to(dt)),
+                _np(g_weights.to(dt)),
+                g_sig_np,
+                g_col_np,
             )
             g_sig = torch.from_numpy(g_sig_np) if ctx.needs_input_grad[0] else None
             g_col = torch.from_numpy(g_col_np).to(rgbs.dtype) if ctx.needs_input_grad[1] else None
@@ -171,9 +210,34 @@ class _CompositeNumba(torch.autograd.Function):
         return g_sig, g_col, g_bg, None, None, None, None
 
 
+@numba.njit(cache=True, inline="always")
+def _alpha_keep(tau):  # pragma: no cover - compiled
+    """(alpha, 1 - alpha) = (1 - exp(-tau), exp(-tau)), both to full relative precision with one
+    transcendental call: expm1 where alpha is small, exp where exp(-tau) is small."""
+    if tau < 0.5:
+        em = math.expm1(-tau)
+        return -em, 1.0 + em
+    keep = math.exp(-tau)
+    return 1.0 - keep, keep
+
+
 @numba.njit(cache=True, parallel=True)
-def _fwd_kernel(sigmas, rgbs, ts, te, offsets, bg, eps,
-                out_rgb, out_depth, out_opacity, out_w):  # pragma: no cover - compiled
+def _fwd_kernel(
+    sigmas,
+    rgbs,
+    ts,
+    te,
+    offsets,
+    bg,
+    eps,
+    out_rgb,
+    out_depth,
+    out_opacity,
+    out_w,
+    w64,
+    t_next,
+    n_used,
+):  # pragma: no cover - compiled
     for r in prange(offsets.shape[0] - 1):
         trans = 1.0
         acc_r = 0.0
@@ -181,20 +245,25 @@ def _fwd_kernel(sigmas, rgbs, ts, te, offsets, bg, eps,
         acc_b = 0.0
         acc_d = 0.0
         acc_a = 0.0
+        used = 0
         for j in range(offsets[r], offsets[r + 1]):
             if trans < eps:
                 break  # out_w stays 0 for the rest of the ray
             t0 = np.float64(ts[j])
             t1 = np.float64(te[j])
-            tau = np.float64(sigmas[j]) * (t1 - t0)
-            w = trans * -math.expm1(-tau)
+            alpha, keep = _alpha_keep(np.float64(sigmas[j]) * (t1 - t0))
+            w = trans * alpha
             out_w[j] = w
+            w64[j] = w
             acc_r += w * rgbs[j, 0]
             acc_g += w * rgbs[j, 1]
             acc_b += w * rgbs[j, 2]
             acc_d += w * ((t0 + t1) * 0.5)
             acc_a += w
-            trans *= math.exp(-tau)
+            trans *= keep
+            t_next[j] = trans
+            used += 1
+        n_used[r] = used
         rest = 1.0 - acc_a
         out_rgb[r, 0] = acc_r + rest * bg[r, 0]
         out_rgb[r, 1] = acc_g + rest * bg[r, 1]
@@ -204,46 +273,58 @@ def _fwd_kernel(sigmas, rgbs, ts, te, offsets, bg, eps,
 
 
 @numba.njit(cache=True, parallel=True)
-def _bwd_kernel(sigmas, rgbs, ts, te, offsets, bg, eps, g_rgb, g_depth, g_opacity, g_w,
-                out_g_sigma, out_g_rgb):  # pragma: no cover - compiled
+def _bwd_kernel(
+    rgbs,
+    ts,
+    te,
+    offsets,
+    bg,
+    w64,
+    t_next,
+    n_used,
+    g_rgb,
+    g_depth,
+    g_opacity,
+    g_w,
+    out_g_sigma,
+    out_g_rgb,
+):  # pragma: no cover - compiled
     for r in prange(offsets.shape[0] - 1):
         gr = np.float64(g_rgb[r, 0])
         gg = np.float64(g_rgb[r, 1])
         gb = np.float64(g_rgb[r, 2])
         gd = np.float64(g_depth[r])
-        ga = np.float64(g_opacity[r])
-        base = ga - gr * bg[r, 0] - gg * bg[r, 1] - gb * bg[r, 2]  # e_j without its j terms
-        # Pass 1: total = sum_j e_j w_j over the contributing samples.
-        trans = 1.0
+        base = np.float64(g_opacity[r]) - gr * bg[r, 0] - gg * bg[r, 1] - gb * bg[r, 2]
+        first = offsets[r]
+        stop = first + n_used[r]  # samples after early termination get no gradient
+        # Pass 1: total = sum_j e_j w_j.
         total = 0.0
-        for j in range(offsets[r], offsets[r + 1]):
-            if trans < eps:
-                break
-            t0 = np.float64(ts[j])
-            t1 = np.float64(te[j])
-            tau = np.float64(sigmas[j]) * (t1 - t0)
-            w = trans * -math.expm1(-tau)
-            e = (g_w[j] + base + gr * rgbs[j, 0] + gg * rgbs[j, 1] + gb * rgbs[j, 2]
-                 + gd * ((t0 + t1) * 0.5))
-            total += e * w
-            trans *= math.exp(-tau)
-        # Pass 2: dL/dtau_k = e_k T_{k+1} - (total - prefix_k).
-        trans = 1.0
+        for j in range(first, stop):
+            e = (
+                g_w[j]
+                + base
+                + gr * rgbs[j, 0]
+                + gg * rgbs[j, 1]
+                + gb * rgbs[j, 2]
+                + gd * ((np.float64(ts[j]) + np.float64(te[j])) * 0.5)
+            )
+            total += e * w64[j]
+        # Pass 2: dL/dtau_k = e_k T_{k+1} - (total - prefix_k), prefix_k = sum_{j<=k} e_j w_j.
         prefix = 0.0
-        for j in range(offsets[r], offsets[r + 1]):
-            if trans < eps:
-                break  # outputs were zero-initialised
+        for j in range(first, stop):
             t0 = np.float64(ts[j])
             t1 = np.float64(te[j])
-            delta = t1 - t0
-            tau = np.float64(sigmas[j]) * delta
-            w = trans * -math.expm1(-tau)
-            t_next = trans * math.exp(-tau)
-            e = (g_w[j] + base + gr * rgbs[j, 0] + gg * rgbs[j, 1] + gb * rgbs[j, 2]
-                 + gd * ((t0 + t1) * 0.5))
+            e = (
+                g_w[j]
+                + base
+                + gr * rgbs[j, 0]
+                + gg * rgbs[j, 1]
+                + gb * rgbs[j, 2]
+                + gd * ((t0 + t1) * 0.5)
+            )
+            w = w64[j]
             prefix += e * w
-            out_g_sigma[j] = (e * t_next - (total - prefix)) * delta
+            out_g_sigma[j] = (e * t_next[j] - (total - prefix)) * (t1 - t0)
             out_g_rgb[j, 0] = w * gr
             out_g_rgb[j, 1] = w * gg
             out_g_rgb[j, 2] = w * gb
-            trans = t_next

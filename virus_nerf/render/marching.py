@@ -13,10 +13,12 @@ Step rules (both backends, identical arithmetic):
 The last interval is clipped at the exit distance t_max; intervals that collapse to zero length in
 float32 are dropped. A ray stops after `max_samples_per_ray` kept samples.
 
-The numba backend works in two passes parallel over rays (count, prefix sum, fill) and can jump
-over empty cells (`skip_empty`): from a sample in an empty cell it skips every following step whose
-midpoint is provably in the same cell (a safety margin of 1e-5 cell keeps rounding out of the
-decision), so its output is identical to the torch twin, which evaluates every step.
+The numba backend works in two passes parallel over rays (count, prefix sum, fill) and, with the
+constant step, can jump over empty cells (`skip_empty`): from a step in an empty cell it skips
+every following step whose midpoint is provably in the same cell (a safety margin of 1e-5 cell
+keeps rounding out of the decision), so its output is identical to the torch twin, which
+evaluates every step. (With cone steps the recurrence must be walked anyway, and skipping was
+measured to cost more than the lookups it saves, so it is not done there.)
 """
 
 from __future__ import annotations
@@ -44,7 +46,9 @@ def resolve_backend(backend: Backend, *tensors: torch.Tensor) -> Literal["numba"
         raise ValueError(f"backend must be 'auto', 'numba' or 'torch', got {backend!r}")
     on_cpu = all(t.device.type == "cpu" for t in tensors)
     if backend == "numba" and not on_cpu:
-        raise ValueError("the numba backend needs CPU tensors; use backend='torch' on other devices")
+        raise ValueError(
+            "the numba backend needs CPU tensors; use backend='torch' on other devices"
+        )
     if backend == "auto":
         return "numba" if on_cpu else "torch"
     return backend
@@ -101,7 +105,8 @@ def march_rays(
     occupied: (rx, ry, rz) bool over `spec`. near/far: metres, scalar or (R,). step_size: metres
     (the constant step, or the smallest step with cone_angle > 0). max_step: largest cone step,
     default the smallest cell edge (never step over a cell). jitter: draws one U[0, 1) fraction of
-    the first step per ray (None: start at the box entry). skip_empty: numba only, same output.
+    the first step per ray (None: start at the box entry). skip_empty: numba, constant step only;
+    same output either way.
     """
     r = origins.shape[0]
     if origins.shape != (r, 3) or directions.shape != (r, 3):
@@ -142,8 +147,17 @@ def march_rays(
     d64 = directions.to(torch.float64)
     if which == "numba":
         return _march_numba(
-            o64, d64, t0, t_end, occupied, spec, step_size, cone_angle, max_step,
-            max_samples_per_ray, skip_empty,
+            o64,
+            d64,
+            t0,
+            t_end,
+            occupied,
+            spec,
+            step_size,
+            cone_angle,
+            max_step,
+            max_samples_per_ray,
+            skip_empty,
         )
     return _march_torch(
         o64, d64, t0, t_end, occupied, spec, step_size, cone_angle, max_step, max_samples_per_ray
@@ -153,30 +167,46 @@ def march_rays(
 # ----------------------------------------------------------------------------- torch twin
 
 
-def _march_torch(o, d, t0, t_max, occupied, spec, step, cone, max_step, max_samples):
-    """Vectorised over rays (and, for the constant step, over steps too); float64 throughout."""
-    occ = occupied.reshape(-1)
-    if cone > 0:
-        rays, ts, te = _march_torch_cone(o, d, t0, t_max, occ, spec, step, cone, max_step, max_samples)
-    else:
-        rays, ts, te = _march_torch_const(o, d, t0, t_max, occ, spec, step, max_samples)
-    counts = torch.bincount(rays, minlength=o.shape[0])
-    return PackedSamples.from_counts(counts, ts, te)
-
-
-def _keep(o, d, ts, te, occ, spec):
-    """Bool mask: midpoint of [ts, te] in an occupied cell and a non-empty float32 interval."""
-    tm = (ts + te) * 0.5
-    pts = o + tm[..., None] * d  # (..., 3) float64
-    cid = cell_index(pts.reshape(-1, 3), spec).reshape(tm.shape)
-    return (cid >= 0) & occ[cid.clamp(min=0)] & (ts.float() < te.float())
-
-
-def _march_torch_const(o, d, t0, t_max, occ, spec, step, max_samples):
-    """All candidate steps t0 + k * step at once, in chunks of rays."""
+def _march_torch(o, d, t0, t_max, occ_grid, spec, step, cone, max_step, max_samples):
+    """Candidate steps as (rays x steps) matrices in chunks of rays; float64 throughout."""
+    occ = occ_grid.reshape(-1)
     n = o.shape[0]
-    n_steps = (torch.ceil((t_max - t0).clamp(min=0) / step).to(torch.int64) + 1).tolist()
     out_r, out_s, out_e = [], [], []
+    for start, stop, ts in _candidate_chunks(t0, t_max, step, cone, max_step):
+        tmax = t_max[start:stop, None]
+        dt = torch.clamp(ts * cone, min=step, max=max_step) if cone > 0 else step
+        te = torch.minimum(ts + dt, tmax)
+        tm = (ts + te) * 0.5
+        pts = o[start:stop, None, :] + tm[..., None] * d[start:stop, None, :]  # (Rc, K, 3)
+        cid = cell_index(pts.reshape(-1, 3), spec).reshape(tm.shape)
+        keep = (ts < tmax) & (cid >= 0) & occ[cid.clamp(min=0)] & (ts.float() < te.float())
+        keep &= torch.cumsum(keep, dim=1) <= max_samples
+        rows, cols = keep.nonzero(as_tuple=True)  # row-major: sorted by ray, then by t
+        out_r.append(rows + start)
+        out_s.append(ts[rows, cols])
+        out_e.append(te[rows, cols])
+    rays, ts, te = _cat(out_r, out_s, out_e, o.device)
+    return PackedSamples.from_counts(torch.bincount(rays, minlength=n), ts, te)
+
+
+def _candidate_chunks(t0, t_max, step, cone, max_step):
+    """Yield (start, stop, ts (Rc, K)): every step start of rays start:stop (padded past t_max)."""
+    n = t0.shape[0]
+    if cone > 0:
+        rows = max(1, _TORCH_CHUNK // 2048)
+        for start in range(0, n, rows):
+            stop = min(n, start + rows)
+            t = t0[start:stop].clone()
+            tmax = t_max[start:stop]
+            cols = []
+            while True:  # the recurrence t_{k+1} = t_k + clamp(t_k cone, step, max_step)
+                cols.append(t)
+                if not bool((t < tmax).any()):
+                    break
+                t = t + torch.clamp(t * cone, min=step, max=max_step)
+            yield start, stop, torch.stack(cols, dim=1)
+        return
+    n_steps = (torch.ceil((t_max - t0).clamp(min=0) / step).to(torch.int64) + 1).tolist()
     start = 0
     while start < n:
         k_max = 1
@@ -187,45 +217,9 @@ def _march_torch_const(o, d, t0, t_max, occ, spec, step, max_samples):
                 break
             k_max = k_new
             stop += 1
-        k = torch.arange(k_max, dtype=torch.float64, device=o.device)
-        ts = t0[start:stop, None] + k * step  # (Rc, K)
-        tmax = t_max[start:stop, None]
-        te = torch.minimum(ts + step, tmax)
-        keep = (ts < tmax) & _keep(o[start:stop, None, :], d[start:stop, None, :], ts, te, occ, spec)
-        keep &= torch.cumsum(keep, dim=1) <= max_samples
-        rows, cols = keep.nonzero(as_tuple=True)  # row-major: sorted by ray, then by t
-        out_r.append(rows + start)
-        out_s.append(ts[rows, cols])
-        out_e.append(te[rows, cols])
+        k = torch.arange(k_max, dtype=torch.float64, device=t0.device)
+        yield start, stop, t0[start:stop, None] + k * step
         start = stop
-    return _cat(out_r, out_s, out_e, o.device)
-
-
-def _march_torch_cone(o, d, t0, t_max, occ, spec, step, cone, max_step, max_samples):
-    """The cone recurrence t_{k+1} = t_k + dt_k, one step of all active rays per iteration."""
-    n = o.shape[0]
-    t = t0.clone()
-    count = torch.zeros(n, dtype=torch.int64, device=o.device)
-    active = torch.arange(n, device=o.device)
-    out_r, out_s, out_e = [], [], []
-    while True:
-        ta = t[active]
-        alive = (ta < t_max[active]) & (count[active] < max_samples)
-        active = active[alive]
-        if active.numel() == 0:
-            break
-        ts = t[active]
-        dt = torch.clamp(ts * cone, min=step, max=max_step)
-        te = torch.minimum(ts + dt, t_max[active])
-        keep = _keep(o[active], d[active], ts, te, occ, spec)
-        out_r.append(active[keep])
-        out_s.append(ts[keep])
-        out_e.append(te[keep])
-        count[active[keep]] += 1
-        t[active] = ts + dt
-    rays, ts, te = _cat(out_r, out_s, out_e, o.device)
-    order = torch.sort(rays, stable=True).indices  # iterations are in t order per ray
-    return rays[order], ts[order], te[order]
 
 
 def _cat(out_r, out_s, out_e, device):
@@ -239,120 +233,142 @@ def _cat(out_r, out_s, out_e, device):
 
 
 def _march_numba(o, d, t0, t_max, occupied, spec, step, cone, max_step, max_samples, skip):
-    o_np = o.contiguous().numpy()
-    d_np = d.contiguous().numpy()
-    t0_np = t0.contiguous().numpy()
-    tmax_np = t_max.contiguous().numpy()
-    occ = occupied.reshape(-1).contiguous().numpy().astype(np.bool_, copy=False)
-    lo = np.asarray(spec.box.lo, dtype=np.float64)
-    size = np.asarray(spec.box.size, dtype=np.float64)
-    res = np.asarray(spec.resolution, dtype=np.int64)
-    n = o_np.shape[0]
-    counts = np.zeros(n, dtype=np.int64)
-    dummy_f = np.zeros(0, dtype=np.float32)
-    dummy_i = np.zeros(0, dtype=np.int64)
-    args = (o_np, d_np, t0_np, tmax_np, occ, lo, size, res, float(step), float(cone),
-            float(max_step), int(max_samples), bool(skip))
-    _march_kernel(*args, counts, dummy_i, dummy_f, dummy_f, False)
+    n = o.shape[0]
+    geometry = (
+        o.contiguous().numpy(),
+        d.contiguous().numpy(),
+        t0.contiguous().numpy(),
+        t_max.contiguous().numpy(),
+        occupied.reshape(-1).contiguous().numpy().astype(np.bool_, copy=False),
+        np.asarray(spec.box.lo, dtype=np.float64),
+        np.asarray(spec.box.size, dtype=np.float64),
+        np.asarray(spec.resolution, dtype=np.int64),
+        float(step),
+        float(cone),
+        float(max_step),
+        bool(skip),
+    )
+    # Pass 1: count per ray, and where its first kept sample is (step index k, distance t).
+    counts = np.full(n, int(max_samples), dtype=np.int64)  # in: the cap; out: the count
+    first_k = np.zeros(n, dtype=np.int64)
+    first_t = np.zeros(n, dtype=np.float64)
+    none_i = np.zeros(0, dtype=np.int64)
+    none_f = np.zeros(0, dtype=np.float32)
+    _march_kernel(*geometry, counts, first_k, first_t, none_i, none_i, none_f, none_f, False)
     offsets = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
     s = int(offsets[-1])
     rays = np.empty(s, dtype=np.int64)
     ts = np.empty(s, dtype=np.float32)
     te = np.empty(s, dtype=np.float32)
-    _march_kernel(*args, offsets, rays, ts, te, True)
+    # Pass 2: walk again from the first kept sample until the count is reached; fill.
+    _march_kernel(*geometry, counts, first_k, first_t, offsets, rays, ts, te, True)
     return PackedSamples(
-        torch.from_numpy(rays), torch.from_numpy(ts), torch.from_numpy(te), torch.from_numpy(offsets)
+        torch.from_numpy(rays),
+        torch.from_numpy(ts),
+        torch.from_numpy(te),
+        torch.from_numpy(offsets),
     )
 
 
 @numba.njit(cache=True, inline="always")
-def _safe_until(x, y, z, tm, dx, dy, dz, lo, size, res):  # pragma: no cover - compiled
-    """Largest t such that the ray from midpoint tm up to t stays inside the current cell with a
-    margin of _SKIP_MARGIN cells on every axis; tm itself if the midpoint is already too close to
-    a face (then nothing is skipped)."""
-    t_lim = np.inf
-    for a in range(3):
-        if a == 0:
-            p = x
-            da = dx
-        elif a == 1:
-            p = y
-            da = dy
-        else:
-            p = z
-            da = dz
-        u = (p - lo[a]) / size[a] * res[a]  # the cell_index arithmetic
-        i = math.floor(u)
-        f = u - i
-        if f < _SKIP_MARGIN or f > 1.0 - _SKIP_MARGIN:
-            return tm
-        rate = da * res[a] / size[a]  # cells per metre along the ray
-        if rate > 0.0:
-            t_lim = min(t_lim, tm + (i + 1.0 - _SKIP_MARGIN - u) / rate)
-        elif rate < 0.0:
-            t_lim = min(t_lim, tm + (i + _SKIP_MARGIN - u) / rate)
-    return t_lim
-
-
-@numba.njit(cache=True, inline="always")
-def _march_one(o, d, t0, t_max, occ, lo, size, res, step, cone, max_step, max_samples, skip,
-               r, base, rays, out_s, out_e, write):  # pragma: no cover - compiled
-    """Walk one ray; return the number of kept samples (written from `base` when `write`)."""
-    ox, oy, oz = o[0], o[1], o[2]
-    dx, dy, dz = d[0], d[1], d[2]
-    n = 0
-    k = 0
-    t = t0
-    while n < max_samples:
-        if cone > 0.0:
-            ts = t
-            dt = min(max(ts * cone, step), max_step)
-        else:
-            ts = t0 + k * step
-            dt = step
-        if not ts < t_max:
-            break
-        te = min(ts + dt, t_max)
-        tm = (ts + te) * 0.5
-        x = ox + tm * dx
-        y = oy + tm * dy
-        z = oz + tm * dz
-        c = cell_index_scalar(x, y, z, lo, size, res)
-        if c >= 0 and occ[c]:
-            if np.float32(ts) < np.float32(te):
-                if write:
-                    rays[base + n] = r
-                    out_s[base + n] = ts
-                    out_e[base + n] = te
-                n += 1
-        elif skip and c >= 0:
-            t_lim = min(_safe_until(x, y, z, tm, dx, dy, dz, lo, size, res), t_max)
-            if cone > 0.0:
-                # Same recurrence, no lookups, while the next midpoint is inside the safe part.
-                tn = ts + dt
-                while tn < t_max:
-                    dtn = min(max(tn * cone, step), max_step)
-                    if (tn + min(tn + dtn, t_max)) * 0.5 > t_lim:
-                        break
-                    tn = tn + dtn
-                t = tn
-                continue
-            # Unclipped midpoints t0 + (j + 1/2) step <= t_lim are in this empty cell.
-            kk = math.floor((t_lim - t0 - 0.5 * step) / step) + 1
-            k = max(k + 1, kk)
-            continue
-        k += 1
-        t = ts + dt
-    return n
+def _axis_room(p, lo, size, res, inv_rate):  # pragma: no cover - compiled
+    """Metres the ray may go from coordinate p before its cell coordinate comes within
+    _SKIP_MARGIN of the next face on this axis; -1 if it is already that close to a face."""
+    u = (p - lo) / size * res  # the cell_index arithmetic
+    f = u - math.floor(u)
+    if f < _SKIP_MARGIN or f > 1.0 - _SKIP_MARGIN:
+        return -1.0
+    if inv_rate > 0.0:
+        return (1.0 - _SKIP_MARGIN - f) * inv_rate
+    if inv_rate < 0.0:
+        return (_SKIP_MARGIN - f) * inv_rate
+    return np.inf
 
 
 @numba.njit(cache=True, parallel=True)
-def _march_kernel(o, d, t0, t_max, occ, lo, size, res, step, cone, max_step, max_samples, skip,
-                  offsets, rays, out_s, out_e, write):  # pragma: no cover - compiled
-    """Pass 1 (write=False): offsets[r] = count of ray r. Pass 2: fill from offsets[r]."""
+def _march_kernel(
+    o,
+    d,
+    t0,
+    t_max,
+    occ,
+    lo,
+    size,
+    res,
+    step,
+    cone,
+    max_step,
+    skip,
+    counts,
+    first_k,
+    first_t,
+    offsets,
+    rays,
+    out_s,
+    out_e,
+    write,
+):  # pragma: no cover - compiled
+    """Walk every ray. Pass 1 (write=False): counts[r] = kept samples (at most counts[r] on
+    entry), first_k/first_t[r] = the step of the first one. Pass 2: start there, stop after
+    counts[r] samples, and write them from offsets[r]; the same steps, so the same samples."""
     for r in prange(o.shape[0]):
-        n = _march_one(o[r], d[r], t0[r], t_max[r], occ, lo, size, res, step, cone, max_step,
-                       max_samples, skip, r, offsets[r], rays, out_s, out_e, write)
+        ox, oy, oz = o[r, 0], o[r, 1], o[r, 2]
+        dx, dy, dz = d[r, 0], d[r, 1], d[r, 2]
+        # metres per cell along the ray on each axis (sign = direction); 0 = parallel, no limit
+        ix = size[0] / (dx * res[0]) if dx != 0.0 else 0.0
+        iy = size[1] / (dy * res[1]) if dy != 0.0 else 0.0
+        iz = size[2] / (dz * res[2]) if dz != 0.0 else 0.0
+        start = t0[r]
+        tmax = t_max[r]
+        limit = counts[r]
+        if write:
+            k = first_k[r]
+            t = first_t[r]
+            base = offsets[r]
+        else:
+            k = 0
+            t = start
+            base = 0
+        n = 0
+        while n < limit:
+            if cone > 0.0:
+                ts = t
+                dt = min(max(ts * cone, step), max_step)
+            else:
+                ts = start + k * step
+                dt = step
+            if not ts < tmax:
+                break
+            te = min(ts + dt, tmax)
+            tm = (ts + te) * 0.5
+            x = ox + tm * dx
+            y = oy + tm * dy
+            z = oz + tm * dz
+            c = cell_index_scalar(x, y, z, lo, size, res)
+            if c >= 0 and occ[c]:
+                if np.float32(ts) < np.float32(te):
+                    if write:
+                        rays[base + n] = r
+                        out_s[base + n] = ts
+                        out_e[base + n] = te
+                    elif n == 0:
+                        first_k[r] = k
+                        first_t[r] = ts
+                    n += 1
+            elif skip and cone == 0.0 and c >= 0:
+                # Every later midpoint up to t_lim lies >= _SKIP_MARGIN cells inside this cell.
+                room = min(
+                    _axis_room(x, lo[0], size[0], res[0], ix),
+                    _axis_room(y, lo[1], size[1], res[1], iy),
+                    _axis_room(z, lo[2], size[2], res[2], iz),
+                )
+                if room > 0.0:
+                    # Unclipped midpoints start + (j + 1/2) step <= t_lim are in this empty cell.
+                    t_lim = min(tm + room, tmax)
+                    k = max(k + 1, math.floor((t_lim - start) / step - 0.5) + 1)
+                    continue
+            k += 1
+            t = ts + dt
         if not write:
-            offsets[r] = n
+            counts[r] = n

@@ -194,45 +194,52 @@ def cast_kernel(orig, dirs, tmax, olo, ohi, ostart, oend, ptype, pcen, phalf, pr
 
 
 @njit(cache=True, inline="always")
-def _hash01(ix, iy, iz, seed):
-    """Integer lattice hash -> [0, 1)."""
-    h = (ix * 73856093) ^ (iy * 19349663) ^ (iz * 83492791) ^ (seed * 2654435761)
-    h = h & 0xFFFFFFFF
-    h = ((h ^ (h >> 16)) * 0x45D9F3B) & 0xFFFFFFFF
-    h = ((h ^ (h >> 16)) * 0x45D9F3B) & 0xFFFFFFFF
-    h = h ^ (h >> 16)
-    return h / 4294967296.0
+def _hash2(ix, iy, seed):
+    """2D integer lattice hash -> [0, 1) (one multiply round: cheap, good enough for texture)."""
+    h = ((ix * 73856093) ^ (iy * 19349663) ^ (seed * 83492791)) & 0xFFFFFFFF
+    h = ((h ^ (h >> 15)) * 0x2C1B3C6D) & 0xFFFFFFFF
+    h = h ^ (h >> 13)
+    return (h & 0xFFFFFF) / 16777216.0
 
 
-@njit(cache=True)
-def _value_noise(x, y, z, seed):
-    """Smooth value noise in [0, 1) on a unit lattice (trilinear, smoothstep weights)."""
+@njit(cache=True, inline="always")
+def _value_noise(x, y, seed):
+    """Smooth 2D value noise in [0, 1) on a unit lattice (bilinear, smoothstep weights)."""
     fx = math.floor(x)
     fy = math.floor(y)
-    fz = math.floor(z)
     ix = int(fx)
     iy = int(fy)
-    iz = int(fz)
     tx = x - fx
     ty = y - fy
-    tz = z - fz
     tx = tx * tx * (3 - 2 * tx)
     ty = ty * ty * (3 - 2 * ty)
-    tz = tz * tz * (3 - 2 * tz)
-    v = 0.0
-    for cz in range(2):
-        wz = tz if cz else 1 - tz
-        for cy in range(2):
-            wy = ty if cy else 1 - ty
-            for cx in range(2):
-                wx = tx if cx else 1 - tx
-                v += wx * wy * wz * _hash01(ix + cx, iy + cy, iz + cz, seed)
-    return v
+    a = _hash2(ix, iy, seed)
+    b = _hash2(ix + 1, iy, seed)
+    c = _hash2(ix, iy + 1, seed)
+    d = _hash2(ix + 1, iy + 1, seed)
+    return (a * (1 - tx) + b * tx) * (1 - ty) + (c * (1 - tx) + d * tx) * ty
+
+
+@njit(cache=True, inline="always")
+def _surface_uv(x, y, z, nx, ny, nz):
+    """2D texture coordinates of a surface point: the plane most orthogonal to the normal."""
+    ax = abs(nx)
+    ay = abs(ny)
+    az = abs(nz)
+    if az >= ax and az >= ay:
+        return x, y
+    if ax >= ay:
+        return y, z
+    return x, z
 
 
 @njit(cache=True)
-def albedo(k, hx, hy, hz, pcen, prot, mcol, mpat, mscale, mseed, out):
-    """RGB albedo in [0, 1] of primitive k at world point (hx, hy, hz); pattern in local coords."""
+def albedo(k, hx, hy, hz, nx, ny, nz, pcen, prot, mcol, mpat, mscale, mseed, out):
+    """RGB albedo in [0, 1] of primitive k at world point (hx, hy, hz) with normal n.
+
+    Patterns are computed from the hit point in the primitive's local frame (so stripes follow
+    a yawed object); a two-octave grain of value noise on every surface adds photometric detail.
+    """
     c = prot[k, 0]
     s = prot[k, 1]
     px = hx - pcen[k, 0]
@@ -240,29 +247,30 @@ def albedo(k, hx, hy, hz, pcen, prot, mcol, mpat, mscale, mseed, out):
     lz = hz - pcen[k, 2]
     lx = c * px + s * py
     ly = -s * px + c * py
+    lnx = c * nx + s * ny
+    lny = -s * nx + c * ny
     sc = mscale[k]
     seed = mseed[k]
     pat = mpat[k]
+    u, v = _surface_uv(lx, ly, lz, lnx, lny, nz)
     m = 0.0
-    if pat == 1:  # stripes along local x and z (wallpaper / fabric)
-        m = 0.5 + 0.5 * math.sin(2 * math.pi * (lx + 0.35 * lz + 0.2 * ly) / sc)
+    if pat == 1:  # stripes along the surface (wallpaper / fabric / book spines)
+        m = 0.5 + 0.5 * math.sin(2 * math.pi * (u + 0.35 * v) / sc)
         m = 1.0 if m > 0.55 else (0.0 if m < 0.45 else (m - 0.45) * 10.0)
-    elif pat == 2:  # checker (floor tiles)
-        q = math.floor(hx / sc) + math.floor(hy / sc) + math.floor(hz / sc)
+    elif pat == 2:  # checker (floor / ceiling tiles), world aligned
+        q = math.floor(hx / sc + 1e-9) + math.floor(hy / sc + 1e-9) + math.floor(hz / sc + 1e-9)
         m = 1.0 if (int(q) & 1) else 0.0
     elif pat == 3:  # blotchy noise
-        m = _value_noise(lx / sc, ly / sc, lz / sc, seed)
+        m = _value_noise(u / sc, v / sc, seed)
         m = min(1.0, max(0.0, (m - 0.3) * 2.5))
-    elif pat == 4:  # wood grain: warped stripes along local x
-        w = _value_noise(lx / sc * 0.5, ly / sc * 4.0, lz / sc * 4.0, seed)
-        m = 0.5 + 0.5 * math.sin(2 * math.pi * ((ly + lz) / sc * 3.0 + 2.0 * w))
-    # fine grain everywhere: photometric detail for the NeRF
-    g = 0.6 * _value_noise(hx * 9.0, hy * 9.0, hz * 9.0, seed + 17) + 0.4 * _value_noise(
-        hx * 31.0, hy * 31.0, hz * 31.0, seed + 29)
+    elif pat == 4:  # wood grain: warped stripes
+        w = _value_noise(u / sc * 0.5, v / sc * 4.0, seed)
+        m = 0.5 + 0.5 * math.sin(2 * math.pi * (v / sc * 3.0 + 2.0 * w))
+    g = 0.6 * _value_noise(u * 9.0, v * 9.0, seed + 17) + 0.4 * _value_noise(u * 31.0, v * 31.0, seed + 29)
     f = 0.82 + 0.36 * g
     for ch in range(3):
-        v = (mcol[k, 0, ch] * (1 - m) + mcol[k, 1, ch] * m) * f
-        out[ch] = min(1.0, max(0.0, v))
+        val = (mcol[k, 0, ch] * (1 - m) + mcol[k, 1, ch] * m) * f
+        out[ch] = min(1.0, max(0.0, val))
 
 
 @njit(cache=True, parallel=True)
@@ -277,7 +285,7 @@ def shade_kernel(pts, normals, prim, dirs, pcen, prot, mcol, mpat, mscale, mseed
             out[i, 2] = 0.0
             continue
         alb = np.empty(3)
-        albedo(k, pts[i, 0], pts[i, 1], pts[i, 2], pcen, prot, mcol, mpat, mscale, mseed, alb)
+        albedo(k, pts[i, 0], pts[i, 1], pts[i, 2], normals[i, 0], normals[i, 1], normals[i, 2], pcen, prot, mcol, mpat, mscale, mseed, alb)
         light = ambient
         for j in range(lights.shape[0]):
             d = normals[i, 0] * lights[j, 0] + normals[i, 1] * lights[j, 1] + normals[i, 2] * lights[j, 2]
@@ -404,17 +412,73 @@ def render_kernel(R, t, fx, fy, cx, cy, w, h, tile, tmax, olo, ohi, ostart, oend
                 hx = t[0] + tt * dx
                 hy = t[1] + tt * dy
                 hz = t[2] + tt * dz
-                albedo(k, hx, hy, hz, pcen, prot, mcol, mpat, mscale, mseed, alb)
+                albedo(k, hx, hy, hz, nb[0], nb[1], nb[2], pcen, prot, mcol, mpat, mscale, mseed, alb)
                 light = ambient
                 for j in range(lights.shape[0]):
                     d = nb[0] * lights[j, 0] + nb[1] * lights[j, 1] + nb[2] * lights[j, 2]
                     if d > 0:
                         light += lights[j, 3] * d
                 if noise_amp > 0:
-                    nz = (_hash01(u, v, 7, frame_seed) - 0.5) * 2 * noise_amp
+                    nz = (_hash2(u, v, frame_seed) - 0.5) * 2 * noise_amp
                 else:
                     nz = 0.0
                 for ch in range(3):
                     val = alb[ch] * light + nz
                     val = min(1.0, max(0.0, val))
                     out_rgb[v, u, ch] = np.uint8(int(val * 255.0 + 0.5))
+
+
+@njit(cache=True, inline="always")
+def _hash3u(a, b, c):
+    """Hash of three integers -> uniform in (0, 1) (never 0, safe for log)."""
+    h = ((a * 73856093) ^ (b * 19349663) ^ (c * 83492791)) & 0xFFFFFFFF
+    h = ((h ^ (h >> 16)) * 0x45D9F3B) & 0xFFFFFFFF
+    h = ((h ^ (h >> 16)) * 0x45D9F3B) & 0xFFFFFFFF
+    h = h ^ (h >> 16)
+    return ((h & 0xFFFFFF) + 0.5) / 16777216.0
+
+
+@njit(cache=True, parallel=True)
+def depth_kernel(z, cos_inc, coarse, blob, hole_level, sigma0, k, zmin, zmax, min_cos, edge_jump, edge_drop,
+                 seed, out):
+    """RGB-D measurement model per pixel (see sensors.DepthModel): z (H, W) exact z-depth m
+    (inf = none) -> out (H, W) uint16 mm, 0 = invalid. Per-pixel randomness comes from a
+    counter-based hash of (pixel, seed), so results do not depend on the thread count."""
+    h, w = z.shape
+    for v in prange(h):
+        for u in range(w):
+            zz = z[v, u]
+            bad = not (zz >= zmin and zz <= zmax) or cos_inc[v, u] < min_cos
+            # blob holes: bilinear upsampling of a coarse uniform field
+            fy = v / blob
+            fx = u / blob
+            y0 = int(fy)
+            x0 = int(fx)
+            ty = fy - y0
+            tx = fx - x0
+            up = ((coarse[y0, x0] * (1 - tx) + coarse[y0, x0 + 1] * tx) * (1 - ty)
+                  + (coarse[y0 + 1, x0] * (1 - tx) + coarse[y0 + 1, x0 + 1] * tx) * ty)
+            if up < hole_level:
+                bad = True
+            if not bad:
+                # depth discontinuity to a 4-neighbour
+                lim = edge_jump * max(zz, 0.1)
+                jump = False
+                if u > 0 and not abs(z[v, u - 1] - zz) <= lim:
+                    jump = True
+                if u < w - 1 and not abs(z[v, u + 1] - zz) <= lim:
+                    jump = True
+                if v > 0 and not abs(z[v - 1, u] - zz) <= lim:
+                    jump = True
+                if v < h - 1 and not abs(z[v + 1, u] - zz) <= lim:
+                    jump = True
+                if jump and _hash3u(u, v, seed * 3 + 1) < edge_drop:
+                    bad = True
+            if bad:
+                out[v, u] = 0
+                continue
+            r1 = _hash3u(u, v, seed * 3)
+            r2 = _hash3u(v, u, seed * 3 + 2)
+            g = math.sqrt(-2.0 * math.log(r1)) * math.cos(2 * math.pi * r2)
+            mm = round((zz + (sigma0 + k * zz * zz) * g) * 1000.0)
+            out[v, u] = np.uint16(min(65534.0, max(1.0, mm)))

@@ -69,7 +69,9 @@ class DrivePath:
         self.s = np.concatenate([[0.0], np.cumsum(seg)])  # (M,) arc length m
         self.length = float(self.s[-1])
         tang = np.gradient(pts, self.s, axis=0)
-        self.heading = np.unwrap(np.arctan2(tang[:, 1], tang[:, 0]))  # (M,) rad
+        heading = np.unwrap(np.arctan2(tang[:, 1], tang[:, 0]))
+        heading[0], heading[-1] = 0.0, 2 * np.pi  # exact +x at the start (one-sided differences)
+        self.heading = heading  # (M,) rad
         self.curvature = np.gradient(self.heading, self.s)  # (M,) 1/m
 
     def sample(self, step: float = 0.05) -> np.ndarray:

@@ -17,8 +17,16 @@ from virus_nerf.utils.io import atomic_path, write_text_atomic
 
 
 def write_intrinsics(path: Path, intrinsics: dict[int, Intrinsics]) -> None:
-    lines = ["cam_id,fx,fy,cx,cy"]
-    lines += [f"CAM{s},{i.fx:.7f},{i.fy:.7f},{i.cx:.7f},{i.cy:.7f}" for s, i in sorted(intrinsics.items())]
+    """The real format (cam_id,fx,fy,cx,cy: 640x480 implied); other sizes add width,height."""
+    if all((i.width, i.height) == (640, 480) for i in intrinsics.values()):
+        lines = ["cam_id,fx,fy,cx,cy"]
+        lines += [f"CAM{s},{i.fx:.7f},{i.fy:.7f},{i.cx:.7f},{i.cy:.7f}" for s, i in sorted(intrinsics.items())]
+    else:
+        lines = ["cam_id,fx,fy,cx,cy,width,height"]
+        lines += [
+            f"CAM{s},{i.fx:.7f},{i.fy:.7f},{i.cx:.7f},{i.cy:.7f},{i.width},{i.height}"
+            for s, i in sorted(intrinsics.items())
+        ]
     write_text_atomic(path, "\n".join(lines) + "\n")
 
 

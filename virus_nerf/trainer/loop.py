@@ -96,22 +96,41 @@ class Trainer:
         self.optimizer = torch.optim.Adam(
             self.field.parameters(), lr=config.optim.lr, eps=config.optim.eps, betas=config.optim.betas, fused=fused
         )
-        self.store = build_frame_store(
-            recording, ("train",), config.image_scale, with_depth="rgbd" in config.sensors,
-            cache_dir=self.run_dir / "cache", progress=not self.quiet,
-        )
-        if len(self.store) == 0:
-            raise ValueError(f"{recording.room_dir}: no frames labelled 'train' in the split")
-        self.sampler = BatchSampler(self.store, config.sensors, config.shares)
+        self._sampler: BatchSampler | None = None
         self.rng = np.random.default_rng(config.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(config.seed + 1)
         self.step = 0
         self.seconds = 0.0
         self.samples = 0
-        self.t0 = float(self.store.times.min())
-        self.duration = float(self.store.times.max() - self.t0)
         self._gt = None
         self.eval_history: list[dict] = []
+
+    @property
+    def sampler(self) -> BatchSampler:
+        """Training frames decoded on first use (evaluating a checkpoint needs none)."""
+        if self._sampler is None:
+            store = build_frame_store(
+                self.recording, ("train",), self.config.image_scale, with_depth="rgbd" in self.config.sensors,
+                cache_dir=self.run_dir / "cache", progress=not self.quiet,
+            )
+            if len(store) == 0:
+                raise ValueError(f"{self.recording.room_dir}: no frames labelled 'train' in the split")
+            self._sampler = BatchSampler(store, self.config.sensors, self.config.shares)
+        return self._sampler
+
+    @property
+    def store(self):
+        return self.sampler.store
+
+    @property
+    def t0(self) -> float:
+        """Recording time of the first training frame (the online clock starts here)."""
+        return float(min(s.times[s.split == "train"].min() for s in self.recording.stacks.values()))
+
+    @property
+    def duration(self) -> float:
+        end = max(s.times[s.split == "train"].max() for s in self.recording.stacks.values())
+        return float(end) - self.t0
 
     # ------------------------------------------------------------------ limits and schedule
     @property
@@ -150,7 +169,16 @@ class Trainer:
             g["lr"] = lr
         batch = self.sampler.sample(self.rng, c.batch_size, self.available_frames()).to(self.device)
         out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator)
-        terms = total_loss(out, batch, c.weights, c.sensors)
+        sensors = c.sensors
+        terms = total_loss(
+            c.weights,
+            pred_rgb=out.rgb,
+            target_rgb=batch.rgb,
+            pred_depth=out.depth,
+            irs_depth=batch.irs_range if "irs" in sensors else None,
+            uss_range=batch.uss_range if "uss" in sensors else None,
+            rgbd_depth=batch.rgbd_range if "rgbd" in sensors else None,
+        )
         self.optimizer.zero_grad(set_to_none=True)
         terms.total.backward()
         self.optimizer.step()
