@@ -27,8 +27,23 @@ def _commands() -> dict:
     }
 
 
+def _keep_large_allocations() -> None:
+    """Stop glibc returning large tensors to the OS after every step (design 10: ~1.4x faster)."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        m_trim_threshold, m_mmap_threshold = -1, -3
+        libc.mallopt(m_mmap_threshold, 1 << 30)
+        libc.mallopt(m_trim_threshold, (1 << 31) - 1)
+    except (OSError, AttributeError):  # not glibc (macOS, musl): nothing to tune
+        pass
+
+
 def main(argv: list[str] | None = None) -> None:
     import tyro
+
+    _keep_large_allocations()
 
     from virus_nerf.errors import DataFormatError, OutputExistsError
 

@@ -58,8 +58,10 @@ class GridSpec:
 def cell_index(points: torch.Tensor, spec: GridSpec) -> torch.Tensor:
     """World points (N, 3) -> flat cell index (N,) int64, -1 outside the box.
 
-    Flat index = (ix * ry + iy) * rz + iz with i = floor((p - lo) / size * res).
+    Flat index = (ix * ry + iy) * rz + iz with i = floor((p - lo) / size * res), computed in
+    float64 like the numba twin, so both agree on points exactly on cell borders.
     """
+    points = points.to(torch.float64)
     lo = points.new_tensor(spec.box.lo)
     size = points.new_tensor(spec.box.size.tolist())
     res = torch.tensor(spec.resolution, device=points.device)

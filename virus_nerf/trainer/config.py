@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from dataclasses import field as dc_field
 from typing import Literal
 
 from virus_nerf.evaluation.evaluate import EvaluationConfig
@@ -48,14 +49,14 @@ class TrainConfig:
     checkpoint_every: float = 60.0  # seconds of training between checkpoints
     min_opacity: float = 0.5  # scan rays with lower opacity give no point (design 3.1)
     grid_update_rays: int = 1024  # rays per VIRUS grid update (design 3.4: ~1k)
-    field: FieldConfig = field(default_factory=FieldConfig.cpu_default)
-    march: MarchConfig = field(default_factory=MarchConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    shares: BatchShares = field(default_factory=BatchShares)
-    weights: LossWeights = field(default_factory=LossWeights)
-    ngp_grid: NgpGridConfig = field(default_factory=NgpGridConfig)
-    virus_grid: VirusGridConfig = field(default_factory=VirusGridConfig)
-    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+    field: FieldConfig = dc_field(default_factory=FieldConfig.cpu_default)
+    march: MarchConfig = dc_field(default_factory=MarchConfig)
+    optim: OptimConfig = dc_field(default_factory=OptimConfig)
+    shares: BatchShares = dc_field(default_factory=BatchShares)
+    weights: LossWeights = dc_field(default_factory=LossWeights)
+    ngp_grid: NgpGridConfig = dc_field(default_factory=NgpGridConfig)
+    virus_grid: VirusGridConfig = dc_field(default_factory=VirusGridConfig)
+    evaluation: EvaluationConfig = dc_field(default_factory=EvaluationConfig)
 
     def __post_init__(self) -> None:
         if isinstance(self.sensors, str):

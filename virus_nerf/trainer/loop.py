@@ -303,15 +303,16 @@ class Trainer:
         return TrainSummary(self.step, self.seconds, self.samples)
 
     def _log_row(self, terms: LossTerms) -> list:
-        mse = float(terms.colour)
+        t = terms.as_floats()
+        mse = t["colour"]
         return [
             self.step,
             round(self.seconds, 3),
-            float(terms.total),
+            t["total"],
             mse,
-            float(terms.irs),
-            float(terms.uss),
-            float(terms.rgbd),
+            t["irs"],
+            t["uss"],
+            t["rgbd"],
             -10.0 * math.log10(max(mse, 1e-10)),
             round(self._last_samples_per_ray, 2),
             round(self.grid.occupancy_share(), 4),

@@ -14,7 +14,7 @@ import torch
 from virus_nerf.data.ethz import Recording
 from virus_nerf.field.field import NerfField
 from virus_nerf.grid.base import OccupancyGrid
-from virus_nerf.render.compositing import RenderOutput, composite
+from virus_nerf.render.compositing import RenderOutput, composite, scan_depth
 from virus_nerf.render.marching import march_rays
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.sensors import irs, uss
@@ -92,8 +92,5 @@ class SceneModel:
         for start in range(0, len(origins), chunk):
             o, d = o_all[start : start + chunk], d_all[start : start + chunk]
             r, _ = self.render(o, d, generator=None)
-            opacity = r.opacity.double().cpu().numpy()
-            depth = r.depth.double().cpu().numpy()
-            ok = opacity >= self.min_opacity
-            out[start : start + len(o)] = np.where(ok, depth / np.maximum(opacity, 1e-12), np.nan)
+            out[start : start + len(o)] = scan_depth(r, self.min_opacity).double().cpu().numpy()
         return out
