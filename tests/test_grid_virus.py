@@ -62,7 +62,7 @@ def test_depth_update_profile_along_one_ray():
         a, b = 0.1 * i, min(0.1 * (i + 1), m + 3 * sigma)
         assert row[i].item() == pytest.approx(_reference_increment(a, b, m, cfg), abs=1e-5)
     assert torch.all(row[:17] < 0), "free before the range"
-    assert row[0].item() == pytest.approx(math.log(1 - 0.7 * (1 - math.exp(-5))), abs=1e-5)
+    assert row[0].item() == pytest.approx(math.log(1 - cfg.hit_probability * (1 - math.exp(-5))), abs=1e-5)
     assert row[19].item() > 0 and row[20].item() > 0, "occupied on both sides of m = 2.0 m"
     assert torch.all(row[23:] == 0), "untouched beyond m + 3 sigma"
     assert int(torch.argmax(row)) in (19, 20)

@@ -135,3 +135,39 @@ def test_scene_model_is_a_range_model(tiny_office, tmp_path):
     r = trainer.model.ranges(origins, dirs)
     assert r.shape == (16,)
     assert np.all(np.isnan(r) | (r > 0))
+
+
+def test_command_line_train_evaluate_export(tiny_office, tmp_path, capsys):
+    from virus_nerf.cli import main
+    from virus_nerf.config_io import to_dict
+
+    cfg_path = tmp_path / "small.json"
+    cfg_path.write_text(json.dumps(to_dict(small_config(max_steps=5))))
+    run = tmp_path / "run"
+    main(["train", "--data", str(tiny_office), "--room", "office", "--out", str(run), "--config", str(cfg_path),
+          "--grid", "ngp", "--sensors", "camera,irs", "--quiet"])
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["grid"] == "ngp" and saved["sensors"] == ["camera", "irs"] and saved["max_steps"] == 5
+    main(["evaluate", "--run", str(run)])
+    doc = json.loads((run / "evaluation" / "metrics.json").read_text())
+    assert doc["train"]["steps"] == 5 and "NeRF" in doc["sensors"]
+    assert (run / "evaluation" / "metrics_plots" / "metrics_bars.png").is_file()
+    main(["export", "--run", str(run), "--out", str(tmp_path / "map"), "--max-poses", "4"])
+    yaml = (tmp_path / "map" / "map.yaml").read_text()
+    assert "image: map.pgm" in yaml and (tmp_path / "map" / "map.pgm").read_bytes().startswith(b"P5")
+    with pytest.raises(SystemExit) as exc:  # an existing run folder is refused with a clear message
+        main(["train", "--data", str(tiny_office), "--room", "office", "--out", str(run), "--max-steps", "1"])
+    assert exc.value.code == 2
+    assert "already exists" in capsys.readouterr().err
+
+
+def test_config_round_trips_through_json_and_rejects_unknown_keys():
+    from virus_nerf.config_io import from_dict, to_dict
+
+    cfg = small_config(grid="ngp", sensors=("camera", "rgbd"))
+    again = from_dict(TrainConfig, json.loads(json.dumps(to_dict(cfg))))
+    assert again == cfg
+    with pytest.raises(ValueError, match=r"config.march: unknown key\(s\) \['stepsize'\]"):
+        from_dict(TrainConfig, {"march": {"stepsize": 0.1}})
+    with pytest.raises(ValueError, match="sensors"):
+        TrainConfig(sensors=("camera", "lidar"))

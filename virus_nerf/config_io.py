@@ -40,6 +40,9 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
     if dataclasses.is_dataclass(tp):
         return from_dict(tp, value, where)
     if origin is tuple:
+        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        if len(args) == 1 and dataclasses.is_dataclass(args[0]):
+            return tuple(from_dict(args[0], v, f"{where}[{k}]") for k, v in enumerate(value))
         return tuple(value)
     if origin in (typing.Union, types.UnionType):
         for arg in typing.get_args(tp):

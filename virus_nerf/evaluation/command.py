@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from virus_nerf.errors import OutputExistsError
 
 
@@ -13,14 +15,20 @@ def plots_dir_for(out: Path) -> Path:
     return out.parent / f"{out.stem}_plots"
 
 
-def write_plots(result, folder: Path) -> list[Path]:
-    """All plots of an EvaluationResult into a new folder (refuses an existing one)."""
+def write_plots(result, folder: Path, max_maps: int | None = None) -> list[Path]:
+    """Plots of an EvaluationResult into a new folder (refuses an existing one).
+
+    One scan map per test point (at most `max_maps`, evenly spread) and the metric bars.
+    """
     from virus_nerf.evaluation.plots import plot_metric_bars, plot_test_point
     from virus_nerf.utils.io import new_output_dir
 
     written: list[Path] = []
     with new_output_dir(folder) as tmp:
-        for tps in result.points:
+        points = result.points
+        if max_maps is not None and len(points) > max_maps:
+            points = [points[i] for i in np.linspace(0, len(points) - 1, max_maps).astype(int)]
+        for tps in points:
             tp = tps.test_point
             plot_test_point(tps, tmp / f"scan_frame{tp.index1:04d}.png")
             written.append(folder / f"scan_frame{tp.index1:04d}.png")

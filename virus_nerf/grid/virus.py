@@ -61,12 +61,12 @@ class VirusGridConfig:
     std_per_m: float = 0.03  # range noise grows 3 cm per metre ...
     std_floor: float = 0.02  # ... on top of 2 cm (pose error, zone width)
     false_rate: float = 0.3  # lambda: false detections per metre (design 3.4)
-    hit_probability: float = 0.7  # p_hit: an occupied cell crossed fully stops the beam
+    hit_probability: float = 0.4  # p_hit: an occupied cell crossed fully stops the beam (0.7 punched holes: a zone-median range is not every pixel ray's range)
     stop_length: float = 0.02  # metres of beam inside a cell for p_det to reach 63 % of p_hit
     max_increment: float = 2.0  # |log-odds change| per cell per measurement
     # NeRF-Update (eq. 9)
     zeta: float = 0.25  # slope: a density ratio of 1000 moves a cell by 1.7
-    nerf_points_per_ray: int = 32  # points drawn uniformly in [0, nerf_far] per ray
+    nerf_points_per_ray: int = 64  # points drawn uniformly in [0, nerf_far] per ray
     pos_noise_per_m: float = 0.05  # std of the point jitter per metre along the ray
     threshold_step: float = 0.01  # sigma_T_max: density at which a step of this many metres ...
     threshold_alpha: float = 0.01  # ... has this alpha (the Instant-NGP convention, design 3.3)

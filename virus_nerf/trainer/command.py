@@ -85,6 +85,7 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         trainer.recording = load_recording(data, room, poses="optimised")
         trainer._gt = None
     result = trainer.evaluate(with_sensors=True)
+    trainer._record_eval(result, None)  # the final point of the metric-vs-time curve
     doc = write_run_metrics(out, result, cfg, TrainSummary(summary.steps, summary.seconds, summary.samples))
     write_run_plots(out, result, trainer.eval_history)
     print(result.table())
@@ -163,21 +164,22 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None) -> N
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.errors import OutputExistsError
     from virus_nerf.trainer.config import TrainConfig
-    from virus_nerf.trainer.loop import Trainer, TrainSummary, write_run_metrics
-    from virus_nerf.trainer.report import write_run_plots
+    from virus_nerf.evaluation.command import plots_dir_for, write_plots
+    from virus_nerf.trainer.loop import Trainer, TrainSummary, train_summary_block
 
     cfg = load_json_config(TrainConfig, run / "config.json")
     if n_rays is not None:
         cfg = dataclasses.replace(cfg, evaluation=dataclasses.replace(cfg.evaluation, n_rays=n_rays))
     info = json.loads((run / "run.json").read_text())
     out = out or run / "evaluation" / "metrics.json"
-    if out.exists():
-        raise OutputExistsError(out)
+    if out.exists() or plots_dir_for(out).exists():
+        raise OutputExistsError(out if out.exists() else plots_dir_for(out))
     recording = load_recording(info["data"], info["room"], poses="optimised")
     trainer = Trainer(recording, cfg, run, quiet=True)
     trainer.load_checkpoint(run / "checkpoint.pt")
     result = trainer.evaluate(with_sensors=True)
-    write_run_metrics(out.parent, result, cfg, TrainSummary(trainer.step, trainer.seconds, trainer.samples)) \
-        if out.name == "metrics.json" else result.write_json(out)
-    write_run_plots(out.parent, result, trainer.eval_history)
+    summary = TrainSummary(trainer.step, trainer.seconds, trainer.samples)
+    result.write_json(out, train=train_summary_block(cfg, summary))
+    write_plots(result, plots_dir_for(out), max_maps=8)
     print(result.table())
+    print(f"wrote {out} and {plots_dir_for(out)}/")

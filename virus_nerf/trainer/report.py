@@ -31,12 +31,12 @@ def plot_metric_vs_time(curves: dict[str, Sequence[dict]], path: Path, key: str 
     return save_png(fig, path)
 
 
-def write_run_plots(run_dir: Path, result, eval_history: list[dict]) -> list[Path]:
-    """RUN/plots/: a map per test point, metric bars, and the metric-vs-time curve."""
+def write_run_plots(run_dir: Path, result, eval_history: list[dict], max_maps: int = 8) -> list[Path]:
+    """RUN/plots/: scan maps at up to `max_maps` test points, metric bars, metric vs time."""
     from virus_nerf.evaluation.command import write_plots
 
     folder = Path(run_dir) / "plots"
-    written = write_plots(result, folder)
+    written = write_plots(result, folder, max_maps=max_maps)
     curve = plot_metric_vs_time({"NeRF": eval_history}, folder / "metric_vs_time.png")
     if curve is not None:
         written.append(curve)

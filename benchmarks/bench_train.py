@@ -1,0 +1,93 @@
+"""Training-step throughput on a simulated office: steps/s and samples/s (design 10, issue 5/6).
+
+For each (field profile, batch size, grid) the trainer first runs past the grid warm-up
+(untimed), then times `--steps` steps. Both grids run in the same process on the same data,
+so their steps/s compare directly. Prints one JSON document.
+
+    .venv/bin/python benchmarks/bench_train.py [--steps 20] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import virus_nerf  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
+from virus_nerf.cli import _keep_large_allocations
+
+
+def measure(recording, field_name: str, batch: int, grid: str, steps: int, warm: int) -> dict:
+    import torch
+
+    from virus_nerf.field.field import FieldConfig
+    from virus_nerf.grid.ngp import NgpGridConfig
+    from virus_nerf.grid.virus import VirusGridConfig
+    from virus_nerf.trainer.config import TrainConfig
+    from virus_nerf.trainer.loop import Trainer
+
+    field = FieldConfig.paper() if field_name == "paper" else FieldConfig.cpu_default()
+    cfg = dataclasses.replace(
+        TrainConfig(), grid=grid, batch_size=batch, max_steps=10**9, max_time=None, image_scale=1.0, field=field,
+        # the warm-up is shortened so the timed steps see each grid in its steady state
+        virus_grid=VirusGridConfig(warmup_steps=warm // 2), ngp_grid=NgpGridConfig(warmup_steps=warm // 2),
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = Trainer(recording, cfg, Path(tmp), quiet=True)
+        _ = trainer.sampler  # decode frames before timing
+        for _ in range(warm):
+            trainer.train_step()
+        s0, n0 = trainer.step, trainer.samples
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            trainer.train_step()
+        dt = time.perf_counter() - t0
+        n = trainer.samples - n0
+        return {
+            "steps_per_s": round((trainer.step - s0) / dt, 3),
+            "samples_per_s": round(n / dt),
+            "samples_per_ray": round(n / (steps * batch), 1),
+            "occupied_share": round(trainer.grid.occupancy_share(), 4),
+            "torch_threads": torch.get_num_threads(),
+        }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=20, help="timed steps per configuration")
+    ap.add_argument("--warm", type=int, default=48, help="untimed steps first (grid warm-up is warm/2)")
+    ap.add_argument("--quick", action="store_true", help="CPU-default field and 1024 rays only")
+    ap.add_argument("--data", type=Path, default=None, help="an ETHZ recording (default: simulate an office)")
+    args = ap.parse_args()
+    _keep_large_allocations()
+    from virus_nerf.data.ethz import load_recording
+    from virus_nerf.sim.command import simulate
+
+    with tempfile.TemporaryDirectory() as tmp:
+        data = args.data
+        if data is None:
+            data = Path(tmp) / "office"
+            simulate(scene="office", out=data, seed=0, duration=20.0, resolution_scale=0.5)
+        recording = load_recording(data, "office")
+        fields = ("cpu_default",) if args.quick else ("cpu_default", "paper")
+        batches = (1024,) if args.quick else (1024, 4096)
+        results = {}
+        for field in fields:
+            for batch in batches:
+                key = f"{field}/batch{batch}"
+                results[key] = {g: measure(recording, field, batch, g, args.steps, args.warm) for g in ("virus", "ngp")}
+                v, n = results[key]["virus"]["steps_per_s"], results[key]["ngp"]["steps_per_s"]
+                results[key]["virus_over_ngp"] = round(v / n, 3) if n else None
+                print(key, json.dumps(results[key]), file=sys.stderr, flush=True)
+    print(json.dumps({"benchmark": "train_step", "machine": platform.machine(), "cpus": os.cpu_count(),
+                      "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "results": results}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,87 @@
+"""Experiment plumbing with known answers: map export, ablation aggregation, online bands, demo."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from virus_nerf.experiments import ablation as abl
+from virus_nerf.experiments.export import FREE, OCCUPIED, UNKNOWN, scan_occupancy, write_map_server
+from virus_nerf.experiments.online import band
+
+
+def test_scan_occupancy_marks_path_free_and_end_occupied(tmp_path):
+    # four rays from (0.5, 0.5) along +-x, +-y, each ending 1 m away; map 3 x 3 m at 0.1 m
+    origins = np.full((4, 2), 0.5) + 1.0
+    dirs = np.array([[1.0, 0], [-1, 0], [0, 1], [0, -1]])
+    m = scan_occupancy(origins, dirs, np.ones(4), np.zeros(2), np.full(2, 3.0), 0.1)
+    img = np.flipud(m.image).T  # back to [ix, iy]
+    assert img.shape == (30, 30)
+    assert img[25, 15] == OCCUPIED and img[5, 15] == OCCUPIED and img[15, 25] == OCCUPIED and img[15, 5] == OCCUPIED
+    assert img[20, 15] == FREE and img[15, 10] == FREE
+    assert img[0, 0] == UNKNOWN and img[28, 28] == UNKNOWN
+    assert np.count_nonzero(img == OCCUPIED) == 4
+    pgm, yaml = write_map_server(m, tmp_path)
+    assert pgm.read_bytes().startswith(b"P5\n30 30\n255\n") and len(pgm.read_bytes()) == 13 + 900
+    assert "origin: [0.0000, 0.0000, 0.0]" in yaml.read_text() and "resolution: 0.1" in yaml.read_text()
+
+
+def test_missed_rays_mark_nothing():
+    m = scan_occupancy(np.zeros((2, 2)) + 1, np.array([[1.0, 0], [0, 1]]), np.array([np.nan, -1.0]),
+                       np.zeros(2), np.full(2, 2.0), 0.1)
+    assert np.all(m.image == UNKNOWN)
+
+
+def fake_metrics(acc: float, cov: float, steps_per_s: float) -> dict:
+    zone = {"acc_mean": acc, "cov_mean": cov, "acc_inlier": 0.5, "cov_inlier": 0.25}
+    return {"sensors": {"NeRF": {"zone3": zone}}, "train": {"steps_per_s": steps_per_s}}
+
+
+def test_ablation_aggregates_mean_and_std(tmp_path):
+    for row, (accs, sps) in {2: ([0.2, 0.4], 2.0), 8: ([0.1, 0.3], 3.0)}.items():
+        for seed, acc in enumerate(accs):
+            run = tmp_path / "runs" / "office" / f"row{row}_seed{seed}"
+            run.mkdir(parents=True)
+            (run / "metrics.json").write_text(json.dumps(fake_metrics(acc, 2 * acc, sps)))
+    records = abl.aggregate(tmp_path, ("office",), seeds=2)
+    assert len(records) == 8
+    r8 = next(r for r in records if r["row"] == 8)
+    assert r8["runs"] == 2 and r8["acc_mean"] == pytest.approx(0.2) and r8["acc_mean_std"] == pytest.approx(0.1)
+    assert r8["cov_mean"] == pytest.approx(0.4) and r8["paper_acc_mean"] == 0.148
+    r1 = next(r for r in records if r["row"] == 1)
+    assert r1["runs"] == 0 and r1["acc_mean"] is None
+    assert abl.grid_speed(records) == {"office": pytest.approx(1.5)}
+    md = abl.table_markdown(records)
+    assert "0.200 ± 0.100" in md and md.count("\n") == 9
+    abl.plot_rows(records, tmp_path / "ablation.png")
+    assert (tmp_path / "ablation.png").stat().st_size > 1000
+
+
+def test_online_band_interpolates_and_spreads():
+    grid = np.array([0.0, 5.0, 10.0, 20.0])
+    h1 = [{"seconds": 0.0, "acc_mean": 1.0}, {"seconds": 10.0, "acc_mean": 0.0}]
+    h2 = [{"seconds": 0.0, "acc_mean": 3.0}, {"seconds": 10.0, "acc_mean": 2.0}]
+    mean, std = band([h1, h2], "acc_mean", grid)
+    np.testing.assert_allclose(mean[:3], [2.0, 1.5, 1.0])
+    np.testing.assert_allclose(std[:3], [1.0, 1.0, 1.0])
+    assert np.isnan(mean[3])
+
+
+def test_demo_end_to_end(tmp_path: Path):
+    from virus_nerf.experiments.demo import demo
+
+    out = tmp_path / "demo"
+    demo(out=out, seed=1, duration=3.0, train_time=4.0, quiet=True)
+    report = (out / "report.md").read_text()
+    assert "| NeRF | zone3" in report and "| LiDAR | zone3" in report
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["train"]["grid"] == "virus" and doc["train"]["sensors"] == ["camera", "uss", "irs"]
+    for image in ("metrics_bars.png",):
+        assert (out / "run" / "plots" / image).is_file()
+    from virus_nerf.errors import OutputExistsError
+
+    with pytest.raises(OutputExistsError):
+        demo(out=out, duration=3.0, train_time=4.0, quiet=True)
