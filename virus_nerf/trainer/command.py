@@ -163,8 +163,8 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None) -> N
     from virus_nerf.config_io import load_json_config
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.errors import OutputExistsError
-    from virus_nerf.trainer.config import TrainConfig
     from virus_nerf.evaluation.command import plots_dir_for, write_plots
+    from virus_nerf.trainer.config import TrainConfig
     from virus_nerf.trainer.loop import Trainer, TrainSummary, train_summary_block
 
     cfg = load_json_config(TrainConfig, run / "config.json")
