@@ -70,7 +70,7 @@ class Profile:
 
 
 PROFILES = {
-    "full": Profile(("office", "common"), 3, 120.0, 60.0),
+    "full": Profile(("office", "common"), 3, 75.0, 60.0),
     "quick": Profile(("office",), 1, 15.0, 12.0),
 }
 

@@ -53,7 +53,7 @@ class VirusGridConfig:
     logodds_max: float = 4.0  # clamp (p ~ 0.982)
     init_probability: float = 0.55  # slightly above 0.5: everything is marched at first
     prior_probability: float = 0.49  # where unsupported cells end after the warm-up (empty)
-    warmup_steps: int = 256  # training steps (not updates) of the decay init -> prior
+    warmup_steps: int = 128  # training steps (not updates) of the decay init -> prior (~30 s on 2 CPU cores)
     update_interval: int = 16  # training steps between grid updates (the trainer calls update)
     rays_per_update: int = 1024  # rays per update, both kinds together (paper: ~1k)
     depth_share: float = 0.5  # share of rays_per_update for the Depth-Update (rest: NeRF)
