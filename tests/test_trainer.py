@@ -171,3 +171,12 @@ def test_config_round_trips_through_json_and_rejects_unknown_keys():
         from_dict(TrainConfig, {"march": {"stepsize": 0.1}})
     with pytest.raises(ValueError, match="sensors"):
         TrainConfig(sensors=("camera", "lidar"))
+
+
+def test_trains_and_evaluates_on_the_real_sample(sample_dir, tmp_path):
+    """One second of a standing robot: the map will be poor, but the real path must run."""
+    doc = run_training(sample_dir, "office", tmp_path / "real", small_config(max_steps=5, image_scale=0.25),
+                       quiet=True)
+    assert doc["train"]["steps"] == 5
+    assert doc["sensors"]["LiDAR"]["zone3"]["n_pred"] > 1000
+    assert doc["sensors"]["NeRF"]["zone3"]["n_gt"] > 0

@@ -30,7 +30,7 @@ class AblationRow:
         grid = "Instant-NGP" if self.grid == "ngp" else "VIRUS"
         sensors = {"camera": "CAM", "camera,uss,irs": "CAM, USS, IRS", "camera,uss": "CAM, USS",
                    "camera,irs": "CAM, IRS", "camera,rgbd": "RGB-D"}[self.sensors]
-        return f"{grid} | {sensors}{' | odometry poses' if self.odometry else ''}"
+        return f"{grid}: {sensors}{', odometry poses' if self.odometry else ''}"
 
     def args(self) -> tuple[str, ...]:
         return ("--grid", self.grid, "--sensors", self.sensors) + (("--odometry-poses",) if self.odometry else ())
