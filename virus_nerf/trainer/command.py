@@ -85,7 +85,7 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         trainer.recording = load_recording(data, room, poses="optimised")
         trainer._gt = None
     result = trainer.evaluate(with_sensors=True)
-    trainer._record_eval(result, None)  # the final point of the metric-vs-time curve
+    trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
     doc = write_run_metrics(out, result, cfg, TrainSummary(summary.steps, summary.seconds, summary.samples))
     write_run_plots(out, result, trainer.eval_history)
     print(result.table())

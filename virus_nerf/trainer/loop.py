@@ -291,7 +291,7 @@ class Trainer:
                     bar.set_postfix(loss=f"{row[2]:.4f}", psnr=f"{row[7]:.1f}", t=f"{self.seconds:.0f}s")
                 bar.update(1)
                 if self.seconds >= next_eval and not self._done():
-                    self._record_eval(self.evaluate(with_sensors=False), tb)
+                    self.record_eval(self.evaluate(with_sensors=False), tb)
                     next_eval += c.eval_interval
                 if self.seconds >= next_ckpt:
                     self.save_checkpoint()
@@ -319,7 +319,7 @@ class Trainer:
             len(self.available_frames()),
         ]
 
-    def _record_eval(self, result: EvaluationResult, tb) -> None:
+    def record_eval(self, result: EvaluationResult, tb) -> None:
         z3 = result.metrics["NeRF"].zones["zone3"]
         entry = {"step": self.step, "seconds": round(self.seconds, 3),
                  "acc_mean": z3.acc_mean, "cov_mean": z3.cov_mean,

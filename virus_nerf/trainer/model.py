@@ -17,7 +17,9 @@ from virus_nerf.grid.base import OccupancyGrid
 from virus_nerf.render.compositing import RenderOutput, composite, scan_depth
 from virus_nerf.render.marching import march_rays
 from virus_nerf.scene_box import SceneBox
-from virus_nerf.sensors import irs, uss
+from virus_nerf.sensors import irs
+
+USS_MAX_RANGE_M = 5.0  # the URM37's useful range; bounds the box when there is no map
 
 
 def fit_scene_box(recording: Recording, margin: float = 0.1) -> SceneBox:
@@ -33,10 +35,9 @@ def fit_scene_box(recording: Recording, margin: float = 0.1) -> SceneBox:
         hi = np.percentile(pts, 99.9, axis=0)
         lo, hi = np.minimum(lo, cams.min(axis=0)), np.maximum(hi, cams.max(axis=0))
         return SceneBox(tuple(lo - margin), tuple(hi + margin))
-    reach = max(irs.IRS_MAX_RANGE_M, 5.0)
+    reach = max(irs.IRS_MAX_RANGE_M, USS_MAX_RANGE_M)
     lo = cams.min(axis=0) - [reach, reach, 1.5]
     hi = cams.max(axis=0) + [reach, reach, 1.5]
-    _ = uss  # the USS range also stays within `reach`
     return SceneBox(tuple(lo), tuple(hi))
 
 
