@@ -26,6 +26,7 @@ from virus_nerf.grid.base import GridSpec, GridUpdateBatch, OccupancyGrid
 from virus_nerf.grid.ngp import NgpGrid
 from virus_nerf.grid.virus import VirusGrid
 from virus_nerf.losses import LossTerms, total_loss
+from virus_nerf.render.marching import ray_box_interval
 from virus_nerf.sampler.batch import BatchSampler, RayBatch
 from virus_nerf.sampler.frames import build_frame_store
 from virus_nerf.scene_box import SceneBox
@@ -48,15 +49,6 @@ def build_grid(config: TrainConfig, box: SceneBox, device: torch.device) -> Occu
         return NgpGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, step_size=config.march.step_size, device=device)
     cfg = config.virus_grid
     return VirusGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, device=device)
-
-
-def ray_box_exit(origins: torch.Tensor, directions: torch.Tensor, box: SceneBox) -> torch.Tensor:
-    """Distance (R,) along each ray to where it leaves the box (origins inside the box)."""
-    lo = origins.new_tensor(box.lo)
-    hi = origins.new_tensor(box.hi)
-    inv = 1.0 / torch.where(directions.abs() < 1e-9, torch.full_like(directions, 1e-9), directions)
-    t = torch.maximum((lo - origins) * inv, (hi - origins) * inv)
-    return t.min(dim=1).values.clamp(min=0.0)
 
 
 @dataclass
@@ -198,7 +190,8 @@ class Trainer:
         half = self.config.grid_update_rays // 2
         has_irs = torch.isfinite(batch.irs_range).nonzero().squeeze(1)[:half]
         nerf = torch.arange(min(half, len(batch)), device=batch.origins.device)
-        far = ray_box_exit(batch.origins[nerf], batch.directions[nerf], self.box)
+        _, t_exit = ray_box_interval(batch.origins[nerf], batch.directions[nerf], self.grid.spec, 0.0, math.inf)
+        far = t_exit.clamp(min=0.0).to(batch.origins.dtype)  # (M,) distance to the box exit
         return GridUpdateBatch(
             depth_origins=batch.origins[has_irs],
             depth_directions=batch.directions[has_irs],
