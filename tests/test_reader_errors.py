@@ -196,3 +196,62 @@ def test_intrinsics_with_and_without_size(tmp_path):
     p = write(tmp_path, "c.CSV", "cam_id,fx,fy,cx,cy,width,height\nCAM3,194,194,160,120,-320,240\n")
     with pytest.raises(DataFormatError, match="row 2, field 'width'"):
         read_intrinsics(p)
+
+
+# ------------------------------------------------------------------------------ silent garbage
+def test_non_unit_quaternion_is_refused_with_row_and_field(tmp_path):
+    from virus_nerf.data.ethz import QUATERNION_NORM_TOLERANCE
+
+    assert QUATERNION_NORM_TOLERANCE == 1e-3
+    p = write(tmp_path, "poses.csv", POSE_HEADER + "1,0,0,0,0,0,0,1\n2,0,0,0,1,2,3,4\n")
+    with pytest.raises(DataFormatError, match=r"poses.csv, row 3, field 'qx/qy/qz/qw': quaternion \(1, 2, 3, 4\) "
+                                              r"has norm 5.47723; expected a unit quaternion \(\| \|q\| - 1 \| <= 0.001\)"):
+        read_poses(p)
+
+
+@pytest.mark.parametrize("w, ok", [(1.0009, True), (0.9991, True), (1.0011, False), (0.9989, False)])
+def test_quaternion_tolerance_edges(tmp_path, w, ok):
+    p = write(tmp_path, "poses.csv", POSE_HEADER + f"1,0,0,0,0,0,0,{w}\n")
+    if ok:
+        _, poses = read_poses(p)
+        np.testing.assert_allclose(poses[0, :3, :3], np.eye(3), atol=1e-12)  # normalised
+    else:
+        with pytest.raises(DataFormatError, match="row 2, field 'qx/qy/qz/qw'"):
+            read_poses(p)
+
+
+def test_real_sample_quaternions_are_within_tolerance(sample_dir):
+    from virus_nerf.data.ethz import QUATERNION_NORM_TOLERANCE
+
+    for path in sorted((sample_dir / "office" / "poses").glob("*.csv")):
+        table = read_numeric_csv(path, ("qx", "qy", "qz", "qw"))
+        q = np.stack([table[c] for c in ("qx", "qy", "qz", "qw")], axis=1)
+        assert np.abs(np.linalg.norm(q, axis=1) - 1).max() < QUATERNION_NORM_TOLERANCE / 1000, path
+
+
+def test_float_depth_in_metres_is_refused(tmp_path):
+    from virus_nerf.data.ethz import read_depth
+    from virus_nerf.sensors.camera import Intrinsics
+
+    intr = Intrinsics(10.0, 10.0, 2.0, 1.5, width=4, height=3)
+    p = tmp_path / "img0.npy"
+    np.save(p, np.full((3, 4), 2.5, dtype=np.float32))
+    with pytest.raises(DataFormatError, match=r"img0.npy: depth map is float32 \(values up to 2.5 look like metres\); "
+                                              r"expected uint16 millimetres"):
+        read_depth(p, intr)
+    np.save(p, np.full((3, 4), 2500, dtype=np.int32))  # other integer types: fine if they fit
+    np.testing.assert_allclose(read_depth(p, intr), 2.5)
+    np.save(p, np.full((3, 4), 70000, dtype=np.int32))
+    with pytest.raises(DataFormatError, match=r"img0.npy: depth map \(int32\) has values 70000..70000"):
+        read_depth(p, intr)
+    np.save(p, np.array([[1, 2], [3, 4]], dtype=np.uint16))
+    with pytest.raises(DataFormatError, match=r"depth map has shape \(2, 2\); expected \(3, 4\)"):
+        read_depth(p, intr)
+
+
+def test_float_depth_file_in_a_recording_is_refused_on_loading(sample_copy):
+    depth = sample_copy / "office" / "measurements" / "CAM3_aligned_depth_to_color_image_raw" / "img1.npy"
+    metres = np.load(depth).astype(np.float32) / 1000.0
+    np.save(depth, metres)
+    with pytest.raises(DataFormatError, match=r"CAM3_aligned_depth_to_color_image_raw/img1.npy: depth map is float32"):
+        load_recording(sample_copy, "office")
