@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -15,7 +16,13 @@ from virus_nerf.errors import OutputExistsError
 
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside `path`; on success rename it onto `path` in one step."""
+    """Yield a temporary path beside `path`; on success rename it onto `path` in one step.
+
+    The temporary file is flushed to disk (fsync) before the rename and the folder after it, so
+    a power cut leaves either the old file or the complete new one. On any error inside the
+    block (or in the rename) the temporary file is removed: no orphaned `.<name>.*.tmp` is left
+    behind. (Only a kill during the write can leave one; `remove_stale_temps` clears those.)
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -23,11 +30,59 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        _fsync_file(tmp_path)
         os.chmod(tmp_path, 0o644)  # mkstemp makes 0600; results are ordinary files
         os.replace(tmp_path, path)
+        _fsync_dir(path.parent)
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        try:
+            tmp_path.unlink(missing_ok=True)
+        except OSError:  # pragma: no cover - the folder vanished or became read-only
+            pass
+
+
+def _fsync_file(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename in `folder` durable (a no-op where folders cannot be opened, e.g. Windows)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def remove_stale_temps(path: str | Path) -> list[Path]:
+    """Delete temporaries `atomic_path(path)` left when its process was killed mid-write.
+
+    Only files named `.<name>.<random>.tmp` beside `path` are touched; returns what was removed.
+    Call it only where this process owns the folder (e.g. resuming a run).
+    """
+    path = Path(path)
+    removed = []
+    if path.parent.is_dir():
+        for p in path.parent.glob(f".{path.name}.*.tmp"):
+            if p.is_file():
+                p.unlink(missing_ok=True)
+                removed.append(p)
+    return removed
+
+
+def copy_file_atomic(src: str | Path, dst: str | Path) -> None:
+    """Copy `src` to `dst` in one rename: `dst` is never seen half-written."""
+    with atomic_path(dst) as tmp:
+        shutil.copyfile(src, tmp)
 
 
 def write_text_atomic(path: str | Path, text: str) -> None:
@@ -50,18 +105,32 @@ def create_new_dir(path: str | Path) -> Path:
 
 
 @contextmanager
-def new_output_dir(path: str | Path) -> Iterator[Path]:
+def new_output_dir(path: str | Path, *, replace: bool = False) -> Iterator[Path]:
     """Build an output folder under a temporary name and rename it into place when complete.
 
-    A crash leaves a `.<name>.partial-*` folder beside it, never a half-written `path`.
+    An error inside the block removes the temporary folder; a kill leaves a
+    `.<name>.partial-*` folder beside it, never a half-written `path`. With `replace=True` an
+    existing `path` is swapped for the new folder once the new one is complete (used only where
+    the caller owns `path`, e.g. the plots of a run being resumed); otherwise it is refused.
     """
     path = Path(path)
-    if path.exists():
+    if path.exists() and not replace:
         raise OutputExistsError(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-", dir=path.parent))
-    yield tmp
-    os.chmod(tmp, 0o755)  # mkdtemp makes 0700
-    if path.exists():
-        raise OutputExistsError(path)
-    os.replace(tmp, path)
+    try:
+        yield tmp
+        os.chmod(tmp, 0o755)  # mkdtemp makes 0700
+        if path.exists():
+            if not replace:
+                raise OutputExistsError(path)
+            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
+            os.replace(path, old / path.name)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+        _fsync_dir(path.parent)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
