@@ -1,13 +1,25 @@
-"""Nested dataclass configs <-> plain JSON dicts, with errors that name the bad key."""
+"""Nested dataclass configs <-> plain JSON dicts, with errors that name the file and the bad key.
+
+Types are checked, not coerced: a `bool` field takes only a JSON bool (`"online": "false"` is
+an error, not True), an `int` field takes an integer (or a float with no fractional part, e.g.
+2048.0), a `float` field takes any finite number, a `str` field only a string, a tuple field a
+JSON list whose elements are checked one by one (fixed-length tuples also by length), a Literal
+field one of its values, and an `X | None` field null or an X. Unknown keys are an error. Every
+error is a `ConfigError` (a ValueError) whose one-line message names the file and the key.
+"""
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
+import math
 import types
 import typing
 from pathlib import Path
 from typing import Any, TypeVar
+
+from virus_nerf.errors import ConfigError, one_line
 
 T = TypeVar("T")
 
@@ -20,46 +32,169 @@ def to_dict(obj: Any) -> Any:
     return obj
 
 
-def from_dict(cls: type[T], data: dict[str, Any], where: str = "config") -> T:
-    """Build dataclass `cls` from `data`; unknown keys are an error, missing keys keep defaults."""
+def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", *, file: str | Path | None = None) -> T:
+    """Build dataclass `cls` from `data`; unknown keys are an error, missing keys keep defaults.
+
+    `file` names the JSON file the dict came from (it goes into every error message); without
+    it the messages start with `where` (default "config", e.g. "config.march: unknown key(s)").
+    """
+    if file is None and where != "config":
+        file = where  # older callers passed the file name as `where`
+    return _build(cls, data, _Ctx(file), "")
+
+
+@dataclasses.dataclass(frozen=True)
+class _Ctx:
+    file: str | Path | None
+
+    def error(self, key: str, problem: str) -> ConfigError:
+        return ConfigError(problem, file=self.file, key=key)
+
+
+def _join(key: str, name: str) -> str:
+    return f"{key}.{name}" if key else name
+
+
+def _describe(value: Any) -> str:
+    """A short description of a JSON value for error messages: its JSON type and its text."""
+    kind = {bool: "bool", int: "int", float: "float", str: "string", list: "list", dict: "object",
+            type(None): "null"}.get(type(value), type(value).__name__)
+    text = json.dumps(value) if isinstance(value, bool | int | float | str | type(None)) else None
+    if text is None:
+        try:
+            text = json.dumps(value)
+        except (TypeError, ValueError):
+            text = repr(value)
+    return f"{kind} {one_line(text, 60)}"
+
+
+def _build(cls: type[T], data: Any, ctx: _Ctx, key: str) -> T:
     if not isinstance(data, dict):
-        raise ValueError(f"{where}: expected an object, got {type(data).__name__}")
+        raise ctx.error(key, f"expected a JSON object with the keys of {cls.__name__}, got {_describe(data)}")
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
-    unknown = set(data) - names
+    fields = [f for f in dataclasses.fields(cls) if f.init]  # type: ignore[arg-type]
+    names = [f.name for f in fields]
+    unknown = sorted(set(data) - set(names), key=str)
     if unknown:
-        raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; known: {sorted(names)}")
-    kwargs = {}
-    for key, value in data.items():
-        kwargs[key] = _convert(hints[key], value, f"{where}.{key}")
-    return cls(**kwargs)
+        hint = ""
+        close = difflib.get_close_matches(str(unknown[0]), names, n=1)
+        if close:
+            hint = f" (did you mean '{close[0]}'?)"
+        raise ctx.error(key, f"unknown key(s) {unknown}{hint}; known: {sorted(names)}")
+    kwargs = {name: _convert(hints[name], data[name], ctx, _join(key, name)) for name in names if name in data}
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except (ValueError, TypeError) as exc:  # the dataclass's own range checks (__post_init__)
+        raise ctx.error(key, one_line(exc)) from None
 
 
-def _convert(tp: Any, value: Any, where: str) -> Any:
+def _expected(tp: Any) -> str:
+    """What a type accepts, in JSON words, for error messages."""
     origin = typing.get_origin(tp)
+    if tp is bool:
+        return "a JSON bool (true or false)"
+    if tp is int:
+        return "an integer"
+    if tp is float:
+        return "a number"
+    if tp is str:
+        return "a string"
+    if tp is type(None):
+        return "null"
+    if tp is Any:
+        return "any value"
     if dataclasses.is_dataclass(tp):
-        return from_dict(tp, value, where)
-    if origin is tuple:
-        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
-        if len(args) == 1 and dataclasses.is_dataclass(args[0]):
-            return tuple(from_dict(args[0], v, f"{where}[{k}]") for k, v in enumerate(value))
-        return tuple(value)
+        return f"an object ({tp.__name__})"
+    if origin is typing.Literal:
+        return "one of " + ", ".join(json.dumps(a) for a in typing.get_args(tp))
+    if origin in (tuple, list):
+        args = typing.get_args(tp)
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            return f"a list of {len(args)} values"
+        return "a list"
     if origin in (typing.Union, types.UnionType):
-        for arg in typing.get_args(tp):
-            if dataclasses.is_dataclass(arg) and isinstance(value, dict):
-                return from_dict(arg, value, where)
-        return tuple(value) if isinstance(value, list) else value
-    if tp is float and isinstance(value, int):
-        return float(value)
+        return " or ".join(_expected(a) for a in typing.get_args(tp))
+    return getattr(tp, "__name__", str(tp))
+
+
+def _convert(tp: Any, value: Any, ctx: _Ctx, key: str) -> Any:
+    origin = typing.get_origin(tp)
+    if tp is Any:
+        return value
+    if dataclasses.is_dataclass(tp):
+        return _build(tp, value, ctx, key)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None:
+            if type(None) in args:
+                return None
+            raise ctx.error(key, f"expected {_expected(tp)}, got null")
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _convert(arg, value, ctx, key)
+            except ConfigError:
+                continue
+        raise ctx.error(key, f"expected {_expected(tp)}, got {_describe(value)}")
+    if origin is typing.Literal:
+        allowed = typing.get_args(tp)
+        for a in allowed:
+            if type(a) is type(value) and a == value:
+                return value
+        raise ctx.error(key, f"expected {_expected(tp)}, got {_describe(value)}")
+    if origin in (tuple, list):
+        if not isinstance(value, list | tuple):
+            raise ctx.error(key, f"expected {_expected(tp)}, got {_describe(value)}")
+        args = typing.get_args(tp)
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(value) != len(args):
+                raise ctx.error(key, f"expected a list of {len(args)} values, got {len(value)}")
+            items = [_convert(a, v, ctx, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value, strict=True))]
+        else:
+            elem = args[0] if args else Any
+            items = [_convert(elem, v, ctx, f"{key}[{i}]") for i, v in enumerate(value)]
+        return tuple(items) if origin is tuple else items
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ctx.error(key, f"expected {_expected(tp)}, got {_describe(value)}")
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and math.isfinite(value) and value.is_integer():
+            return int(value)
+        raise ctx.error(key, f"expected an integer, got {_describe(value)}")
+    if tp is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            if not math.isfinite(value):
+                raise ctx.error(key, f"expected a finite number, got {value}")
+            return float(value)
+        raise ctx.error(key, f"expected a number, got {_describe(value)}")
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        raise ctx.error(key, f"expected a string, got {_describe(value)}")
     return value
 
 
 def load_json_config(cls: type[T], path: str | Path) -> T:
+    """Read a JSON config file into dataclass `cls`; every problem is a one-line ConfigError."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        text = path.read_text()
     except FileNotFoundError:
-        raise ValueError(f"{path}: config file not found") from None
+        raise ConfigError("config file not found", file=path) from None
+    except IsADirectoryError:
+        raise ConfigError("is a folder; expected a JSON config file", file=path) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read the config file: {one_line(exc)}", file=path) from None
+    try:
+        data = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON: {exc}") from exc
-    return from_dict(cls, data, where=str(path))
+        raise ConfigError(f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", file=path) from None
+    except RecursionError:
+        raise ConfigError("not valid JSON: nested too deeply", file=path) from None
+    return from_dict(cls, data, file=path)

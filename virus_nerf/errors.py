@@ -41,3 +41,58 @@ class OutputExistsError(FileExistsError):
             f"{path}: output {kind} already exists; choose a new --out (nothing was overwritten)"
         )
         self.path = Path(path)
+
+
+class UsageError(ValueError):
+    """A mistake on the command line or in a config file, found before any work is done.
+
+    The message is one line: the argument, file, key or field that is wrong, the value given
+    and what was expected (e.g. "--batch-size 0: expected a positive integer").
+    """
+
+
+class ConfigError(UsageError):
+    """A bad key or value in a JSON config (a `--config` file or a run's config.json).
+
+    `key` is the dotted path inside the document ("march.step_size", "optim.betas[1]");
+    the message names the file (or "config" when the dict did not come from a file) and key.
+    """
+
+    def __init__(self, problem: str, *, file: str | Path | None = None, key: str = "") -> None:
+        self.file = None if file is None else Path(file)
+        self.key = key
+        self.problem = problem
+        if file is None:
+            where = "config" + (f".{key}" if key else "")
+        else:
+            where = f"{file}" + (f", key '{key}'" if key else "")
+        super().__init__(f"{where}: {problem}")
+
+
+def one_line(text: object, limit: int = 400) -> str:
+    """`text` as a single line (newlines and runs of spaces collapsed), cut at `limit` characters."""
+    s = " ".join(str(text).split())
+    return s if len(s) <= limit else s[: limit - 3] + "..."
+
+
+def require_int(name: str, value: object, lo: int, hi: int | None = None) -> None:
+    """`value` of argument `name` must be an integer in [lo, hi]; else a one-line UsageError."""
+    ok = isinstance(value, int) and not isinstance(value, bool) and value >= lo and (hi is None or value <= hi)
+    if not ok:
+        expected = f"an integer >= {lo}" if hi is None else f"an integer in [{lo}, {hi}]"
+        raise UsageError(f"{name} {value}: expected {expected}")
+
+
+def require_number(name: str, value: object, lo: float, hi: float | None = None, *, lo_open: bool = True) -> None:
+    """`value` of argument `name` must be a finite number above lo (or at least lo) and <= hi."""
+    import math
+
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and (value > lo if lo_open else value >= lo) and (hi is None or value <= hi)  # type: ignore[operator]
+    if not ok:
+        kind = "a finite number" if isinstance(value, float) and not math.isfinite(value) else "a number"
+        if hi is None:
+            expected = f"{kind} {'>' if lo_open else '>='} {lo:g}"
+        else:
+            expected = f"{kind} in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
+        raise UsageError(f"{name} {value}: expected {expected}")

@@ -59,15 +59,79 @@ class TrainConfig:
     evaluation: EvaluationConfig = dc_field(default_factory=EvaluationConfig)
 
     def __post_init__(self) -> None:
+        """Types and ranges of every top-level knob (and the nested ones that would crash the
+        loop); a bad value is a ValueError naming the field, the value and what was expected."""
+        import math
+        import numbers
+
+        def _get(obj, dotted: str):
+            for part in dotted.split("."):
+                obj = getattr(obj, part)
+            return obj
+
+        def bad(name: str, value, expected: str) -> ValueError:
+            return ValueError(f"{name} {value!r}: expected {expected}")
+
+        def integer(name: str, lo: int, hi: int | None = None, optional: bool = False) -> None:
+            v = _get(self, name)
+            if v is None and optional:
+                return
+            ok = isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= lo and (hi is None or v <= hi)
+            if not ok:
+                rng = f"an integer >= {lo}" if hi is None else f"an integer in [{lo}, {hi}]"
+                raise bad(name, v, rng + (" or None" if optional else ""))
+
+        def number(name: str, lo: float, hi: float | None = None, *, lo_open: bool = True,
+                   optional: bool = False) -> None:
+            v = _get(self, name)
+            if v is None and optional:
+                return
+            ok = isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+            ok = ok and (v > lo if lo_open else v >= lo) and (hi is None or v <= hi)
+            if not ok:
+                rng = f"{'>' if lo_open else '>='} {lo:g}" if hi is None else \
+                    f"in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
+                raise bad(name, v, f"a finite number {rng}" + (" or None" if optional else ""))
+
+        def flag(name: str) -> None:
+            if not isinstance(_get(self, name), bool):
+                raise bad(name, _get(self, name), "a bool (true or false)")
+
         if isinstance(self.sensors, str):
             self.sensors = tuple(s.strip() for s in self.sensors.split(",") if s.strip())
         allowed = {"camera", "uss", "irs", "rgbd"}
-        bad = set(self.sensors) - allowed
-        if bad or not self.sensors:
+        if not isinstance(self.sensors, tuple | list) or not all(isinstance(s, str) for s in self.sensors):
+            raise bad("sensors", self.sensors, f"a non-empty subset of {sorted(allowed)}")
+        self.sensors = tuple(self.sensors)
+        bad_sensors = set(self.sensors) - allowed
+        if bad_sensors or not self.sensors:
             raise ValueError(f"sensors {self.sensors}: expected a non-empty subset of {sorted(allowed)}")
         if self.grid not in ("virus", "ngp"):
             raise ValueError(f"grid {self.grid!r}: expected 'virus' or 'ngp'")
+        integer("max_steps", 1, optional=True)
+        number("max_time", 0.0, optional=True)
         if self.max_steps is None and self.max_time is None:
-            raise ValueError("set max_steps or max_time (or both)")
-        if self.batch_size <= 0 or (self.max_steps or 1) <= 0 or (self.max_time or 1) <= 0:
-            raise ValueError("batch_size, max_steps and max_time must be positive")
+            raise ValueError("max_steps and max_time are both None: set max_steps or max_time (or both)")
+        integer("batch_size", 1)
+        integer("seed", 0, 2**32 - 1)
+        flag("online")
+        flag("odometry_poses")
+        number("playback_speed", 0.0)
+        number("image_scale", 0.0, 1.0)
+        if not isinstance(self.device, str) or not (self.device in ("auto", "cpu", "cuda")
+                                                    or self.device.startswith("cuda:")):
+            raise bad("device", self.device, "'auto', 'cpu', 'cuda' or 'cuda:<index>'")
+        number("eval_interval", 0.0, lo_open=False)
+        integer("log_every", 1)
+        number("checkpoint_every", 0.0)
+        number("min_opacity", 0.0, 1.0, lo_open=False)
+        integer("grid_update_rays", 2)
+        number("march.step_size", 0.0)
+        number("march.near", 0.0, lo_open=False)
+        integer("march.max_samples", 1)
+        number("optim.lr", 0.0)
+        number("optim.eps", 0.0)
+        number("optim.lr_decay_to", 0.0)
+        integer("virus_grid.update_interval", 1)
+        integer("ngp_grid.update_interval", 1)
+        integer("evaluation.n_rays", 1)
