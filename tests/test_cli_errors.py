@@ -1,16 +1,140 @@
-"""Every user mistake in a config file is a one-line error naming the file and the key and
-what was expected; types are checked, not coerced."""
+"""Every user mistake on the command line or in a config file: exit code 2, one line on stderr
+(`virus-nerf: error: ...`) naming the argument, file or key and what was expected, no
+traceback, and no output written. All rejected before any recording is read or training starts."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
+from virus_nerf.cli import main, tyro_error_line
 from virus_nerf.config_io import from_dict, load_json_config, to_dict
 from virus_nerf.errors import ConfigError, UsageError
 from virus_nerf.trainer.config import TrainConfig
+
+PREFIX = "virus-nerf: error: "
+
+
+def run_cli(argv: list[str]) -> tuple[int, str, str]:
+    """main(argv) in this process -> (exit code, stdout, stderr)."""
+    out, err = io.StringIO(), io.StringIO()
+    code = 0
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            main(argv)
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+    return code, out.getvalue(), err.getvalue()
+
+
+def assert_one_line_error(code: int, err: str, *fragments: str) -> str:
+    assert code == 2, err
+    lines = err.strip("\n").split("\n")
+    assert len(lines) == 1, err
+    assert lines[0].startswith(PREFIX), err
+    assert "Traceback" not in err
+    for f in fragments:
+        assert f in lines[0], (f, lines[0])
+    return lines[0]
+
+
+# ------------------------------------------------------------------------------ argument ranges
+def train_args(tmp_path: Path, *extra: str) -> list[str]:
+    return ["train", "--data", str(tmp_path / "no-data"), "--room", "office", "--out", str(tmp_path / "run"), *extra]
+
+
+@pytest.mark.parametrize(
+    "extra, fragment",
+    [
+        (("--batch-size", "0"), "--batch-size 0: expected an integer >= 1"),
+        (("--max-time", "-5"), "--max-time -5.0: expected a number > 0"),
+        (("--max-time", "0"), "--max-time 0.0: expected a number > 0"),
+        (("--max-time", "nan"), "--max-time nan: expected a finite number > 0"),
+        (("--max-steps", "0"), "--max-steps 0: expected an integer >= 1"),
+        (("--seed", "-1"), "--seed -1: expected an integer in [0, 4294967295]"),
+        (("--image-scale", "0"), "--image-scale 0.0: expected a number in (0, 1]"),
+        (("--image-scale", "2"), "--image-scale 2.0: expected a number in (0, 1]"),
+        (("--playback-speed", "0"), "--playback-speed 0.0: expected a number > 0"),
+        (("--eval-interval", "-1"), "--eval-interval -1.0: expected a number >= 0"),
+        (("--sensors", "camera,lidar"), "--sensors 'camera,lidar': unknown sensor 'lidar'; expected a comma-separated"),
+        (("--sensors", ","), "--sensors ',': an empty sensor name"),
+        (("--batch-size", "abc"), "--batch-size 'abc': expected an integer"),
+        (("--max-time", "fast"), "--max-time 'fast': expected a number"),
+        (("--grid", "voxel"), "invalid choice 'voxel' for argument '--grid'"),
+        (("--bogus", "1"), "Unrecognized options: --bogus"),
+    ],
+)
+def test_train_argument_errors(tmp_path, extra, fragment):
+    code, _, err = run_cli(train_args(tmp_path, *extra))
+    assert_one_line_error(code, err, fragment)
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, fragments",
+    [
+        (["export", "--run", "{tmp}/run", "--out", "{tmp}/map", "--resolution", "0"], ["--resolution 0.0: expected a number > 0"]),
+        (["export", "--run", "{tmp}/run", "--out", "{tmp}/map", "--n-rays", "0"], ["--n-rays 0: expected an integer in [1,"]),
+        (["export", "--run", "{tmp}/run", "--out", "{tmp}/map"], ["--run {tmp}/run: no such run folder"]),
+        (["evaluate", "--run", "{tmp}/run", "--n-rays", "0"], ["--n-rays 0: expected an integer in [1,"]),
+        (["evaluate", "--run", "{tmp}/run"], ["--run {tmp}/run: no such run folder"]),
+        (["simulate", "--scene", "office", "--out", "{tmp}/sim", "--duration", "-1"], ["--duration -1.0: expected a number in (0, 3600]"]),
+        (["simulate", "--scene", "office", "--out", "{tmp}/sim", "--seed", "-3"], ["--seed -3: expected an integer in [0,"]),
+        (["simulate", "--scene", "kitchen", "--out", "{tmp}/sim"], ["invalid choice 'kitchen' for argument '--scene'"]),
+        (["sensors", "--data", "{tmp}/d", "--room", "office", "--out", "{tmp}/m.json", "--n-rays", "0"], ["--n-rays 0"]),
+        (["train", "--out", "{tmp}/run"], ["--data is required"]),
+        (["train", "--out", "{tmp}/run", "--resume"], ["--resume {tmp}/run: no such run folder"]),
+        (["train", "--data", "{tmp}", "--room", "../x", "--out", "{tmp}/run"], ["--room '../x': expected the name of a room"]),
+        (["train", "--data", "{tmp}/nope", "--room", "office", "--out", "{tmp}/run"], ["{tmp}/nope/office: room folder not found"]),
+        (["trian"], ["Unrecognized options: trian", "Available subcommands"]),
+        ([], ["missing command"]),
+        (["train", "--data", "x"], ["virus-nerf train: missing required argument(s) --out PATH"]),
+    ],
+)
+def test_command_errors(tmp_path, argv, fragments):
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    code, _, err = run_cli(argv)
+    assert_one_line_error(code, err, *[f.format(tmp=tmp_path) for f in fragments])
+    assert sorted(tmp_path.iterdir()) == []  # nothing was written
+
+
+def test_existing_output_refused_before_any_work(tmp_path):
+    (tmp_path / "map").mkdir()
+    code, _, err = run_cli(["export", "--run", str(tmp_path / "no-run"), "--out", str(tmp_path / "map")])
+    assert_one_line_error(code, err, f"{tmp_path / 'map'}: output folder already exists")
+
+
+def test_real_process_prints_one_line_and_exits_2(tmp_path):
+    """The console entry point itself: exit status 2 and a single stderr line (no tyro box)."""
+    for extra in (("--batch-size", "0"), ("--batch-size", "x")):
+        proc = subprocess.run([sys.executable, "-m", "virus_nerf.cli", *train_args(tmp_path, *extra)],
+                              capture_output=True, text=True, timeout=120)
+        assert_one_line_error(proc.returncode, proc.stderr, "--batch-size")
+        assert proc.stdout == ""
+
+
+def test_help_still_works():
+    code, out, err = run_cli(["train", "--help"])
+    assert code == 0 and "--max-steps" in out and err == ""
+
+
+def test_tyro_box_becomes_one_line():
+    box = ("\u256d\u2500 Value error \u2500\u2500\u256e\n"
+           "\u2502 Error parsing --batch-size: no type matching {None}|INT could be  \u2502\n"
+           "\u2502 instantiated from ['abc'].  \u2502\n"
+           "\u2502 \u2500\u2500\u2500\u2500\u2500\u2500 \u2502\n"
+           "\u2502 For full helptext, see virus-nerf --help \u2502\n"
+           "\u2570\u2500\u2500\u256f\n")
+    assert tyro_error_line(box) == "--batch-size 'abc': expected an integer (see virus-nerf --help)"
+    assert tyro_error_line("something unexpected\non two lines") == "something unexpected on two lines"
 
 
 # ------------------------------------------------------------------------------ config files
@@ -56,11 +180,14 @@ def test_config_file_errors_name_file_and_key(tmp_path, doc, fragment):
         load_json_config(TrainConfig, path)
     assert str(exc.value).startswith(str(path)) and fragment in str(exc.value)
     assert isinstance(exc.value, ValueError) and "\n" not in str(exc.value)
+    code, _, err = run_cli(train_args(tmp_path, "--config", str(path)))
+    assert_one_line_error(code, err, str(path), fragment)
+    assert not (tmp_path / "run").exists()
 
 
 def test_missing_config_file(tmp_path):
-    with pytest.raises(ConfigError, match="nope.json: config file not found"):
-        load_json_config(TrainConfig, tmp_path / "nope.json")
+    code, _, err = run_cli(train_args(tmp_path, "--config", str(tmp_path / "nope.json")))
+    assert_one_line_error(code, err, f"{tmp_path / 'nope.json'}: config file not found")
 
 
 def test_config_types_that_are_accepted():
@@ -83,5 +210,68 @@ def test_train_config_checks_types_and_ranges_itself():
             TrainConfig(**bad)
 
 
+# ------------------------------------------------------------------------------ fuzzing
+FLAG_NAMES = ["--max-time", "--max-steps", "--batch-size", "--seed", "--playback-speed", "--image-scale",
+              "--eval-interval", "--sensors", "--grid", "--config"]
+values = st.one_of(
+    st.integers(-(10**12), 10**12).map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.sampled_from(["", "0", "-0", "1e400", "camera,lidar", "virus", ",", "true", "None", "--", "x y"]),
+    st.text(alphabet="0123456789.-+eEinfa,x ", max_size=8),
+)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(command=st.sampled_from(["train", "export", "evaluate", "simulate"]),
+       flags=st.lists(st.tuples(st.sampled_from(FLAG_NAMES + ["--resolution", "--n-rays", "--duration", "--bogus"]),
+                                values), max_size=4))
+def test_fuzzed_arguments_exit_2_with_one_line(tmp_path, command, flags):
+    """Any mix of flags and values: a one-line error and exit 2, never a traceback, never output."""
+    existing = tmp_path / "existing"
+    existing.mkdir(exist_ok=True)
+    base = {
+        "train": ["--data", str(tmp_path / "no-data"), "--room", "office", "--out", str(tmp_path / "run")],
+        "export": ["--run", str(tmp_path / "no-run"), "--out", str(tmp_path / "map")],
+        "evaluate": ["--run", str(tmp_path / "no-run")],
+        "simulate": ["--scene", "office", "--out", str(existing)],
+    }[command]
+    argv = [command, *base, *[x for flag, value in flags for x in (flag, value)]]
+    code, _, err = run_cli(argv)
+    assert_one_line_error(code, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["existing"]
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers(-(10**6), 10**6) | st.floats(allow_nan=False, allow_infinity=False)
+    | st.text(max_size=6),
+    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3),
+    max_leaves=6,
+)
+CONFIG_KEYS = list(to_dict(TrainConfig()).keys())
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(doc=st.dictionaries(st.sampled_from(CONFIG_KEYS + ["bogus"]), json_values, min_size=1, max_size=3))
+def test_fuzzed_config_files_exit_2_with_one_line(tmp_path, doc):
+    """Random values for real keys: a bad one is named (file and key); a good file reaches the
+    (missing) recording, also a one-line error; nothing is trained and nothing written."""
+    path = tmp_path / "cfg.json"
+    path.write_text(json.dumps(doc))
+    code, _, err = run_cli(train_args(tmp_path, "--config", str(path)))
+    line = assert_one_line_error(code, err)
+    assert str(path) in line or "room folder not found" in line
+    assert not (tmp_path / "run").exists()
+
+
 def test_usage_error_is_a_value_error():
     assert issubclass(UsageError, ValueError) and issubclass(ConfigError, UsageError)
+
+
+def test_cuda_device_without_a_gpu_is_refused(tmp_path):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA GPU is present")
+    path = write_config(tmp_path, {"device": "cuda"})
+    code, _, err = run_cli(train_args(tmp_path, "--config", str(path)))
+    assert_one_line_error(code, err, "device 'cuda': no CUDA GPU is available here; use 'auto' or 'cpu'")

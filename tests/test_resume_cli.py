@@ -4,9 +4,269 @@ split is refused before training, and the atomic-write helpers leave no temporar
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import hashlib
+import io
+import json
 import os
+import shutil
+from pathlib import Path
 
 import pytest
+
+from virus_nerf.cli import main
+from virus_nerf.config_io import to_dict
+from virus_nerf.grid.ngp import NgpGridConfig
+from virus_nerf.grid.virus import VirusGridConfig
+from virus_nerf.trainer.config import MarchConfig, TrainConfig
+
+PREFIX = "virus-nerf: error: "
+
+
+@pytest.fixture(scope="module")
+def tiny_office(tmp_path_factory) -> Path:
+    from virus_nerf.sim.command import simulate
+
+    out = tmp_path_factory.mktemp("sim") / "office_data"
+    simulate(scene="office", out=out, seed=3, duration=3.0, resolution_scale=0.25)
+    return out
+
+
+def small_config(**changes) -> TrainConfig:
+    base = TrainConfig(
+        max_steps=5, max_time=None, batch_size=128, image_scale=1.0, log_every=2,
+        march=MarchConfig(step_size=0.06, max_samples=32),
+        virus_grid=VirusGridConfig(warmup_steps=16, update_interval=4, rays_per_update=64),
+        ngp_grid=NgpGridConfig(warmup_steps=16, update_interval=4, max_resolution=32),
+    )
+    base.evaluation = dataclasses.replace(base.evaluation, n_rays=64)
+    return dataclasses.replace(base, **changes)
+
+
+def run_cli(argv: list[str]) -> tuple[int, str]:
+    """main(argv) in this process -> (exit code, stderr)."""
+    err = io.StringIO()
+    code = 0
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            main([str(a) for a in argv])
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+    return code, err.getvalue()
+
+
+def one_line_error(code: int, err: str, *fragments: str) -> str:
+    assert code == 2, err
+    lines = err.strip("\n").split("\n")
+    assert len(lines) == 1 and lines[0].startswith(PREFIX), err
+    for f in fragments:
+        assert f in lines[0], (f, lines[0])
+    return lines[0]
+
+
+def snapshot(folder: Path) -> dict[str, tuple[str, int]]:
+    """Every file under `folder` -> (sha256, mtime_ns): equal snapshots = nothing touched."""
+    return {
+        str(p.relative_to(folder)): (hashlib.sha256(p.read_bytes()).hexdigest(), p.stat().st_mtime_ns)
+        for p in sorted(folder.rglob("*")) if p.is_file()
+    }
+
+
+@pytest.fixture(scope="module")
+def finished_run(tiny_office, tmp_path_factory) -> Path:
+    """A 5-step run trained through the CLI (config file + flags), kept pristine for copying."""
+    root = tmp_path_factory.mktemp("finished")
+    cfg = root / "small.json"
+    cfg.write_text(json.dumps(to_dict(small_config())))
+    code, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", root / "run", "--config", cfg,
+                         "--quiet"])
+    assert code == 0, err
+    return root / "run"
+
+
+@pytest.fixture()
+def run_copy(finished_run, tmp_path) -> Path:
+    dst = tmp_path / "run"
+    shutil.copytree(finished_run, dst)
+    return dst
+
+
+# ------------------------------------------------------------------------------ item 1: resume
+def test_resume_of_a_finished_run_is_refused_and_touches_nothing(run_copy, tiny_office):
+    before = snapshot(run_copy)
+    assert {"checkpoint.pt", "metrics.json", "metrics_vs_time.csv", "plots/metrics_bars.png"} <= set(before)
+    for extra in ([], ["--data", tiny_office, "--room", "office"]):
+        code, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet", *extra])
+        one_line_error(code, err, f"--resume {run_copy}: the run is finished (step 5", "budget max_steps 5",
+                       "nothing to resume")
+        assert snapshot(run_copy) == before
+
+
+def test_resume_after_a_crash_before_the_metrics_only_evaluates(run_copy):
+    """Budget reached, metrics.json never written (killed during the final evaluation, plots
+    already there): resume evaluates without training and replaces the plots whole."""
+    (run_copy / "metrics.json").unlink()
+    (run_copy / "plots" / "metrics_bars.png").unlink()  # a stale, incomplete plots folder
+    ckpt = snapshot(run_copy)["checkpoint.pt"]
+    log = (run_copy / "train_log.csv").read_bytes()
+    code, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet"])
+    assert code == 0, err
+    doc = json.loads((run_copy / "metrics.json").read_text())
+    assert doc["train"]["steps"] == 5
+    assert snapshot(run_copy)["checkpoint.pt"] == ckpt  # no training step, not even a rewrite
+    assert (run_copy / "train_log.csv").read_bytes() == log
+    assert (run_copy / "plots" / "metrics_bars.png").is_file()
+    assert not [p.name for p in run_copy.iterdir() if p.name.startswith(".")]  # no temporaries left
+    code, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet"])  # and now it is finished
+    one_line_error(code, err, "the run is finished")
+
+
+def test_resume_with_a_larger_budget_trains_on_and_replaces_the_results(run_copy):
+    stale = run_copy / ".checkpoint.pt.abc123.tmp"  # left by a process killed while saving
+    stale.write_bytes(b"half a checkpoint")
+    code, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--quiet"])
+    assert code == 0, err
+    assert json.loads((run_copy / "metrics.json").read_text())["train"]["steps"] == 7
+    assert json.loads((run_copy / "config.json").read_text())["max_steps"] == 7
+    assert (run_copy / "plots" / "metrics_bars.png").is_file()
+    assert not stale.exists()
+    assert not [p.name for p in run_copy.iterdir() if p.name.startswith(".")]
+
+
+def test_resume_with_another_grid_is_refused(run_copy):
+    before = snapshot(run_copy)
+    (run_copy / "metrics.json").unlink()  # an unfinished run: only the grid is wrong
+    before.pop("metrics.json")
+    code, err = run_cli(["train", "--out", run_copy, "--resume", "--grid", "ngp"])
+    one_line_error(code, err, "grid 'ngp':", "trained with grid 'virus'", "a run keeps its grid")
+    assert snapshot(run_copy) == before
+
+
+def test_resume_with_other_data_is_refused(run_copy, tmp_path):
+    code, err = run_cli(["train", "--out", run_copy, "--resume", "--data", tmp_path, "--room", "office"])
+    one_line_error(code, err, f"--data {tmp_path}: the run in {run_copy} was trained on")
+
+
+# ------------------------------------------------------------------------------ item 7: run folders
+@pytest.mark.parametrize("command", ["resume", "evaluate", "export"])
+@pytest.mark.parametrize(
+    "damage, fragment",
+    [
+        ("no-checkpoint", "checkpoint.pt: missing: the run has no checkpoint"),
+        ("garbage-checkpoint", "checkpoint.pt: not a readable checkpoint ("),
+        ("truncated-checkpoint", "checkpoint.pt: not a readable checkpoint ("),
+        ("foreign-checkpoint", "checkpoint.pt: not a complete virus-nerf checkpoint: lacks ['field'"),
+        ("no-run-json", "run.json: missing; "),
+        ("bad-run-json", "run.json, field 'data': expected a non-empty string"),
+        ("bad-config", "config.json, key 'batch_size': expected an integer, got string"),
+    ],
+)
+def test_damaged_run_folders_are_named(run_copy, tmp_path, command, damage, fragment):
+    import torch
+
+    ckpt = run_copy / "checkpoint.pt"
+    if damage == "no-checkpoint":
+        ckpt.unlink()
+    elif damage == "garbage-checkpoint":
+        ckpt.write_bytes(b"\x00garbage" * 100)
+    elif damage == "truncated-checkpoint":
+        ckpt.write_bytes(ckpt.read_bytes()[:5000])
+    elif damage == "foreign-checkpoint":
+        torch.save({"weights": torch.zeros(3)}, ckpt)
+    elif damage == "no-run-json":
+        (run_copy / "run.json").unlink()
+    elif damage == "bad-run-json":
+        (run_copy / "run.json").write_text('{"data": 3, "room": "office"}')
+    elif damage == "bad-config":
+        cfg = json.loads((run_copy / "config.json").read_text())
+        cfg["batch_size"] = "128"
+        (run_copy / "config.json").write_text(json.dumps(cfg))
+    (run_copy / "metrics.json").unlink()  # so a resume would otherwise go ahead
+    before = snapshot(run_copy)
+    argv = {
+        "resume": ["train", "--out", run_copy, "--resume"],
+        "evaluate": ["evaluate", "--run", run_copy],
+        "export": ["export", "--run", run_copy, "--out", tmp_path / "map"],
+    }[command]
+    code, err = run_cli(argv)
+    one_line_error(code, err, fragment)
+    assert snapshot(run_copy) == before
+    assert not (tmp_path / "map").exists()
+
+
+def test_evaluate_and_export_still_work(run_copy, tmp_path):
+    code, err = run_cli(["evaluate", "--run", run_copy, "--n-rays", "32"])
+    assert code == 0, err
+    assert json.loads((run_copy / "evaluation" / "metrics.json").read_text())["train"]["steps"] == 5
+    assert (run_copy / "evaluation" / "metrics_plots" / "metrics_bars.png").is_file()
+    code, err = run_cli(["evaluate", "--run", run_copy])
+    one_line_error(code, err, "evaluation/metrics.json: output file already exists")
+    code, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "map", "--max-poses", "2", "--n-rays", "16"])
+    assert code == 0, err
+    assert (tmp_path / "map" / "map.pgm").read_bytes().startswith(b"P5")
+    code, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "map2", "--resolution", "1e-6"])
+    one_line_error(code, err, "--resolution 1e-06: the", "expected at most 100 M px")
+    assert not (tmp_path / "map2").exists()
+
+
+# ------------------------------------------------------------------------------ item 7: bad splits
+def recording_copy(tiny_office: Path, tmp_path: Path, relabel: dict[str, str]) -> Path:
+    data = tmp_path / "data"
+    shutil.copytree(tiny_office, data)
+    split = data / "office" / "split" / "split.csv"
+    lines = split.read_text().splitlines()
+    out = [lines[0]] + [",".join(relabel.get(c, c) for c in ln.split(",")) for ln in lines[1:]]
+    split.write_text("\n".join(out) + "\n")
+    return data
+
+
+@pytest.mark.parametrize(
+    "relabel, fragment",
+    [
+        ({"train": "val"}, "split.csv: no rows labelled 'train'; training needs at least one"),
+        ({"test": "train"}, "split.csv, field 'CAM1': no CAM1 rows labelled 'test'"),
+    ],
+)
+def test_split_without_train_or_test_rows_is_refused_before_training(tiny_office, tmp_path, relabel, fragment):
+    data = recording_copy(tiny_office, tmp_path, relabel)
+    code, err = run_cli(["train", "--data", data, "--room", "office", "--out", tmp_path / "run", "--max-steps", "2"])
+    one_line_error(code, err, fragment)
+    assert not (tmp_path / "run").exists()
+
+
+# ------------------------------------------------------------------------------ item 8: half-made runs
+def test_a_training_that_fails_at_the_start_leaves_no_run_folder(tiny_office, tmp_path):
+    """A training image that is readable in its header but corrupt inside fails while the frames
+    are decoded, after the run folder was made: the folder goes again, the error is one line."""
+    data = recording_copy(tiny_office, tmp_path, {})
+    img = data / "office" / "measurements" / "CAM1_color_image_raw" / "img0.png"
+    img.write_bytes(img.read_bytes()[:60])  # IHDR intact (size check passes), pixel data cut
+    code, err = run_cli(["train", "--data", data, "--room", "office", "--out", tmp_path / "run", "--max-steps", "2",
+                         "--quiet"])
+    one_line_error(code, err, "img0.png: not a readable image")
+    assert not (tmp_path / "run").exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["data"]  # no partial or temporary folder either
+
+
+def test_plots_are_written_before_metrics(tiny_office, tmp_path, monkeypatch):
+    """metrics.json marks a finished run, so it comes last: a failure while plotting leaves no
+    metrics.json (and a resumable run), never metrics without plots."""
+    import virus_nerf.trainer.report as report
+    from virus_nerf.trainer.command import run_training
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("plotting failed")
+
+    monkeypatch.setattr(report, "write_run_plots", broken)
+    with pytest.raises(RuntimeError, match="plotting failed"):
+        run_training(tiny_office, "office", tmp_path / "run", small_config(max_steps=2), quiet=True)
+    assert (tmp_path / "run" / "checkpoint.pt").is_file()
+    assert not (tmp_path / "run" / "metrics.json").exists()
+    monkeypatch.undo()
+    code, err = run_cli(["train", "--out", tmp_path / "run", "--resume", "--quiet"])
+    assert code == 0, err
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["train"]["steps"] == 2
 
 
 # ------------------------------------------------------------------------------ item 8: atomic writes

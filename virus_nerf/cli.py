@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import io
+import re
 import sys
+from typing import NoReturn
+
+from virus_nerf.errors import one_line
 
 
 def _commands() -> dict:
@@ -40,19 +47,123 @@ def _keep_large_allocations() -> None:
         pass
 
 
-def main(argv: list[str] | None = None) -> None:
+def _deferred(commands: dict) -> dict:
+    """The same commands, but calling one only returns what to run (parsing and running apart)."""
+
+    def defer(fn):
+        @functools.wraps(fn)
+        def parsed(*args, **kwargs):
+            return functools.partial(fn, *args, **kwargs)
+
+        return parsed
+
+    return {name: defer(fn) for name, fn in commands.items()}
+
+
+_METAVAR_WORDS = {"INT": "an integer", "FLOAT": "a number", "STR": "a string", "PATH": "a path"}
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+_BOX = "\u256d\u256e\u2570\u256f\u2502"  # rounded corners and the vertical bar
+
+
+def tyro_error_line(text: str) -> str:
+    """tyro's boxed parse-error report as one line naming the argument and what was expected."""
+    lines = [_ANSI.sub("", ln) for ln in text.splitlines()]
+    title, sections, current = "", [], []
+    for ln in lines:
+        raw = ln.strip()
+        if raw.startswith("\u256d"):  # top border: "╭─ Title ───╮"
+            title = raw.strip(_BOX + "\u2500 ")
+            continue
+        if raw.startswith("\u2570"):
+            continue
+        body = raw.strip(_BOX).strip()
+        if len(body) >= 3 and set(body) <= {"\u2500", "-"}:  # a rule between sections
+            sections.append(current)
+            current = []
+        elif body:
+            current.append(body)
+    sections.append(current)
+    if not title and len(sections) > 1 and len(sections[0]) == 1:  # ASCII form: title, rule, body
+        title = sections.pop(0)[0]
+    helpref = ""
+    keep = []
+    for sec in sections:
+        joined = " ".join(sec)
+        if joined.startswith("For full helptext"):
+            ref = re.sub(r"^(run:?|see)\s+", "", joined.split(",", 1)[-1].strip())
+            helpref = ref if ref.endswith("--help") else ""
+            continue
+        if sec:
+            keep.append(sec)
+    if not keep:
+        return one_line(text) or "invalid command line"
+    first = " ".join(keep[0])
+    m = re.match(r"Error parsing (\S+): no type matching (.+?) could be instantiated from \[(.*?)\]\.?", first)
+    m2 = re.match(r"Error parsing (\S+): (?:could not convert string to (float)|invalid literal for (int)\(\) "
+                  r"with base 10): (.*)", first)
+    if m:
+        flag, types_, value = m.groups()
+        expected = [t for t in types_.split("|") if t != "{None}"]
+        msg = f"{flag} {value}: expected " + " or ".join(_METAVAR_WORDS.get(t, t) for t in expected or [types_])
+    elif m2:
+        flag, is_float, _, value = m2.groups()
+        msg = f"{flag} {value}: expected {'a number' if is_float else 'an integer'}"
+    elif first.startswith("Error parsing "):
+        msg = first.removeprefix("Error parsing ").split(" Got errors:")[0]
+    elif title == "Required options":
+        missing = [ln for sec in keep for ln in sec if ln.startswith("-")]
+        who = keep[0][0].removeprefix("Missing from ").rstrip(":")
+        msg = f"{who}: missing required argument(s) {', '.join(missing)}"
+    elif title == "Missing subcommand":
+        msg = "missing command: " + first[0].lower() + first[1:]
+    else:
+        msg = "; ".join(" ".join(sec) for sec in keep)
+    if helpref:
+        msg += f" (see {helpref})"
+    return one_line(msg)
+
+
+def _parse(argv: list[str]):
+    """Parse the command line; a mistake ends here with one line on stderr and exit code 2."""
     import tyro
 
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(captured):
+            return tyro.extras.subcommand_cli_from_dict(_deferred(_commands()), prog="virus-nerf", args=argv)
+    except SystemExit as exc:
+        if exc.code in (0, None):  # --help (printed to stdout)
+            sys.stderr.write(captured.getvalue())
+            raise
+        _fail(tyro_error_line(captured.getvalue()))
+
+
+def _fail(message: str) -> NoReturn:
+    print(f"virus-nerf: error: {one_line(message, limit=1000)}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Run one subcommand. Every user mistake (bad argument, bad config, bad input file,
+    existing output, missing run) exits 2 with one line `virus-nerf: error: ...`; tracebacks
+    are left for bugs."""
     _keep_large_allocations()
 
-    from virus_nerf.errors import DataFormatError, OutputExistsError
+    from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError
 
-    argv = sys.argv[1:] if argv is None else argv
+    argv = sys.argv[1:] if argv is None else list(argv)
+    run = _parse(argv)
     try:
-        tyro.extras.subcommand_cli_from_dict(_commands(), prog="virus-nerf", args=argv)
-    except (DataFormatError, OutputExistsError) as exc:
-        print(f"virus-nerf: error: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
+        run()
+    except (UsageError, DataFormatError, OutputExistsError) as exc:
+        _fail(str(exc))
+    except OSError as exc:
+        if exc.filename is None:
+            raise
+        # a path the user named cannot be read or written (permissions, a file where a folder
+        # belongs, ...): the system's reason and the path, not a traceback
+        where = f"{exc.filename}" + (f" -> {exc.filename2}" if exc.filename2 else "")
+        _fail(f"{where}: {exc.strerror or exc}")
 
 
 if __name__ == "__main__":

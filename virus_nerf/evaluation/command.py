@@ -15,26 +15,35 @@ def plots_dir_for(out: Path) -> Path:
     return out.parent / f"{out.stem}_plots"
 
 
-def write_plots(result, folder: Path, max_maps: int | None = None) -> list[Path]:
-    """Plots of an EvaluationResult into a new folder (refuses an existing one).
+def write_plots(result, folder: Path, max_maps: int | None = None, replace: bool = False) -> list[Path]:
+    """Plots of an EvaluationResult into a new folder (refuses an existing one unless `replace`).
 
-    One scan map per test point (at most `max_maps`, evenly spread) and the metric bars.
+    One scan map per test point (at most `max_maps`, evenly spread) and the metric bars. The
+    folder is built under a temporary name and renamed when complete.
     """
-    from virus_nerf.evaluation.plots import plot_metric_bars, plot_test_point
     from virus_nerf.utils.io import new_output_dir
 
-    written: list[Path] = []
-    with new_output_dir(folder) as tmp:
-        points = result.points
-        if max_maps is not None and len(points) > max_maps:
-            points = [points[i] for i in np.linspace(0, len(points) - 1, max_maps).astype(int)]
-        for tps in points:
-            tp = tps.test_point
-            plot_test_point(tps, tmp / f"scan_frame{tp.index1:04d}.png")
-            written.append(folder / f"scan_frame{tp.index1:04d}.png")
-        plot_metric_bars(result.metrics, tmp / "metrics_bars.png", result.config.zones, inlier_m=result.config.inlier_m)
-        written.append(folder / "metrics_bars.png")
-    return written
+    with new_output_dir(folder, replace=replace) as tmp:
+        names = write_plot_files(result, tmp, max_maps=max_maps)
+    return [Path(folder) / n for n in names]
+
+
+def write_plot_files(result, folder: Path, max_maps: int | None = None) -> list[str]:
+    """The scan maps and the metric bars into an existing folder; returns the file names."""
+    from virus_nerf.evaluation.plots import plot_metric_bars, plot_test_point
+
+    names: list[str] = []
+    points = result.points
+    if max_maps is not None and len(points) > max_maps:
+        points = [points[i] for i in np.linspace(0, len(points) - 1, max_maps).astype(int)]
+    for tps in points:
+        name = f"scan_frame{tps.test_point.index1:04d}.png"
+        plot_test_point(tps, Path(folder) / name)
+        names.append(name)
+    plot_metric_bars(result.metrics, Path(folder) / "metrics_bars.png", result.config.zones,
+                     inlier_m=result.config.inlier_m)
+    names.append("metrics_bars.png")
+    return names
 
 
 def sensors(
@@ -60,8 +69,11 @@ def sensors(
         lidar_angle_range_deg: Horizontal angle range of the LiDAR scan, centred on the robot heading.
     """
     from virus_nerf.data.ethz import load_recording
+    from virus_nerf.errors import require_int, require_number
     from virus_nerf.evaluation.evaluate import EvaluationConfig, evaluate
 
+    require_int("--n-rays", n_rays, 1, 1_000_000)
+    require_number("--lidar-angle-range-deg", lidar_angle_range_deg, 0.0, 360.0)
     out = Path(out)
     plot_dir = plots_dir_for(out)
     for p in (out, plot_dir):

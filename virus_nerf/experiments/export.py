@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205
+MAX_PIXELS = 100_000_000  # a finer --resolution is refused (memory) before anything is computed
 
 
 @dataclass
@@ -74,25 +75,30 @@ def export(run: Path, out: Path, resolution: float = 0.05, n_rays: int = 720, ma
 
     Args:
         run: A run folder written by `virus-nerf train`.
-        out: New folder for map.pgm, map.yaml and map.png.
-        resolution: Metres per map pixel.
+        out: New folder for map.pgm, map.yaml and map.png (checked before anything is computed).
+        resolution: Metres per map pixel (> 0).
         n_rays: Rays per 360 deg scan.
         max_poses: At most this many camera positions (evenly spread over the recording).
     """
-    import json
-
-    from virus_nerf.config_io import load_json_config
-    from virus_nerf.data.ethz import load_recording
+    from virus_nerf.errors import OutputExistsError, UsageError, require_int, require_number
     from virus_nerf.evaluation.scans import horizontal_directions
-    from virus_nerf.trainer.config import TrainConfig
-    from virus_nerf.trainer.loop import Trainer
+    from virus_nerf.trainer.command import load_trained, open_run
     from virus_nerf.utils.io import new_output_dir
 
-    cfg = load_json_config(TrainConfig, run / "config.json")
-    info = json.loads((run / "run.json").read_text())
-    recording = load_recording(info["data"], info["room"], poses="odometry" if cfg.odometry_poses else "optimised")
-    trainer = Trainer(recording, cfg, run, quiet=True)
-    trainer.load_checkpoint(run / "checkpoint.pt")
+    require_number("--resolution", resolution, 0.0)
+    require_int("--n-rays", n_rays, 1, 1_000_000)
+    require_int("--max-poses", max_poses, 1)
+    out = Path(out)
+    if out.exists():
+        raise OutputExistsError(out)  # before any work
+    cfg, _ = open_run(run, "--run")
+    trainer, cfg, _ = load_trained(run, "--run", poses="odometry" if cfg.odometry_poses else "optimised")
+    recording = trainer.recording
+    lo, hi = np.asarray(trainer.box.lo[:2]), np.asarray(trainer.box.hi[:2])
+    nx, ny = np.ceil((hi - lo) / resolution).astype(int)
+    if int(nx) * int(ny) > MAX_PIXELS:
+        raise UsageError(f"--resolution {resolution}: the {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} m scene would be "
+                         f"a {nx}x{ny} px map; expected at most {MAX_PIXELS // 1_000_000} M px (a coarser resolution)")
     positions = np.concatenate([s.cam_to_world[:, :3, 3] for s in recording.stacks.values()])
     positions = positions[np.linspace(0, len(positions) - 1, min(max_poses, len(positions))).astype(int)]
     dirs = horizontal_directions(n_rays)
@@ -102,9 +108,8 @@ def export(run: Path, out: Path, resolution: float = 0.05, n_rays: int = 720, ma
         ranges_all.append(trainer.model.ranges(origins, dirs))
         origins_all.append(origins[:, :2])
         dirs_all.append(dirs[:, :2])
-    box = trainer.box
     m = scan_occupancy(np.concatenate(origins_all), np.concatenate(dirs_all), np.concatenate(ranges_all),
-                       np.asarray(box.lo[:2]), np.asarray(box.hi[:2]), resolution)
+                       lo, hi, resolution)
     with new_output_dir(out) as tmp:
         write_map_server(m, tmp)
         from PIL import Image

@@ -70,9 +70,18 @@ def simulate(
         scene: room preset, 'office' (~72 m^2) or 'common' (common area, ~216 m^2).
         out: output folder (must not exist).
         seed: random seed of the furniture placement and all sensor noise.
-        duration: length of the drive in seconds.
-        resolution_scale: camera image scale (1.0 = 640x480; intrinsics are scaled to match).
+        duration: length of the drive in seconds, in (0, 3600].
+        resolution_scale: camera image scale in (0, 1] (1.0 = 640x480; intrinsics are scaled to match).
     """
+    from virus_nerf.errors import OutputExistsError, UsageError, require_int, require_number
+
+    require_int("--seed", seed, 0, 2**32 - 1)
+    require_number("--duration", duration, 0.0, 3600.0)
+    require_number("--resolution-scale", resolution_scale, 0.0, 1.0)
+    if scene not in ("office", "common"):
+        raise UsageError(f"--scene {scene!r}: expected 'office' or 'common'")
+    if Path(out).exists():
+        raise OutputExistsError(out)
     simulate_dataset(scene, Path(out), seed=seed, duration=duration, resolution_scale=resolution_scale)
 
 

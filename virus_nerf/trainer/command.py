@@ -1,13 +1,26 @@
-"""`virus-nerf train` and `virus-nerf evaluate` (design 7)."""
+"""`virus-nerf train` and `virus-nerf evaluate` (design 7).
+
+Everything a user can get wrong is checked before any work is done and before any file is
+written: the flags, the config file, the recording (split with 'train' rows and with 'test'
+rows of stack 1, a LiDAR map), the run folder. A new run folder appears complete (config.json
+and run.json) and is removed again if the training fails before its first checkpoint, so a
+failed start never leaves a half-made folder behind.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 from typing import Literal
 
+from virus_nerf.errors import DataFormatError, UsageError, one_line, require_int, require_number
 from virus_nerf.utils.io import write_json_atomic
+
+SENSORS = ("camera", "uss", "irs", "rgbd")
+# Checkpoint entries the trainer reads back (Trainer.load_checkpoint).
+CHECKPOINT_KEYS = ("field", "optimizer", "grid", "step", "seconds", "samples", "numpy_rng", "torch_generator")
 
 
 @dataclasses.dataclass
@@ -16,6 +29,41 @@ class RunInfo:
 
     data: str
     room: str
+
+
+def _check_train_flags(
+    sensors: str | None,
+    max_time: float | None,
+    max_steps: int | None,
+    batch_size: int | None,
+    seed: int | None,
+    playback_speed: float | None,
+    image_scale: float | None,
+    eval_interval: float | None,
+) -> tuple[str, ...] | None:
+    """Ranges of the `train` flags, each error naming its flag; returns the parsed --sensors."""
+    if max_time is not None:
+        require_number("--max-time", max_time, 0.0)
+    if max_steps is not None:
+        require_int("--max-steps", max_steps, 1)
+    if batch_size is not None:
+        require_int("--batch-size", batch_size, 1)
+    if seed is not None:
+        require_int("--seed", seed, 0, 2**32 - 1)
+    if playback_speed is not None:
+        require_number("--playback-speed", playback_speed, 0.0)
+    if image_scale is not None:
+        require_number("--image-scale", image_scale, 0.0, 1.0)
+    if eval_interval is not None:
+        require_number("--eval-interval", eval_interval, 0.0, lo_open=False)
+    if sensors is None:
+        return None
+    names = tuple(s.strip() for s in sensors.split(","))
+    unknown = [s for s in names if s not in SENSORS]
+    if unknown or not any(names):
+        what = f"unknown sensor {unknown[0]!r}" if unknown and unknown[0] else "an empty sensor name"
+        raise UsageError(f"--sensors {sensors!r}: {what}; expected a comma-separated subset of {','.join(SENSORS)}")
+    return tuple(dict.fromkeys(names))
 
 
 def _resolve_config(
@@ -31,14 +79,21 @@ def _resolve_config(
     playback_speed: float | None,
     image_scale: float | None,
     eval_interval: float | None,
+    base=None,
 ):
+    """The run's TrainConfig: `base` (or the --config file, or the defaults) with the flags on top."""
     from virus_nerf.config_io import load_json_config
     from virus_nerf.trainer.config import TrainConfig
 
-    cfg = load_json_config(TrainConfig, config) if config is not None else TrainConfig()
+    sensor_names = _check_train_flags(sensors, max_time, max_steps, batch_size, seed, playback_speed, image_scale,
+                                      eval_interval)
+    if config is not None:
+        cfg = load_json_config(TrainConfig, config)
+    else:
+        cfg = base if base is not None else TrainConfig()
     overrides = {
         "grid": grid,
-        "sensors": tuple(s.strip() for s in sensors.split(",")) if sensors else None,
+        "sensors": sensor_names,
         "max_steps": max_steps,
         "batch_size": batch_size,
         "seed": seed,
@@ -49,45 +104,205 @@ def _resolve_config(
     changes = {k: v for k, v in overrides.items() if v is not None}
     if max_time is not None:
         changes["max_time"] = max_time
-    elif max_steps is not None and config is None:
+    elif max_steps is not None and config is None and base is None:
         changes["max_time"] = None  # --max-steps alone: a step-bounded, bit-reproducible run
     if online:
         changes["online"] = True
     if odometry_poses:
         changes["odometry_poses"] = True
-    return dataclasses.replace(cfg, **changes)
+    try:
+        return dataclasses.replace(cfg, **changes)
+    except ValueError as exc:  # a flag that clashes with the config file (flags are checked above)
+        raise UsageError(f"{config or 'flags'}: {one_line(exc)}") from None
 
 
+# ---------------------------------------------------------------------------- checks on inputs
+def _split_file(recording) -> str:
+    path = recording.room_dir / "split" / "split.csv"
+    return str(path) if path.is_file() else f"{path} (absent: the default split made in memory)"
+
+
+def check_recording_for_training(recording, cfg, eval_recording=None) -> None:
+    """Refuse, before any training, a recording the run could not train on or be scored on."""
+    from virus_nerf.evaluation.testpoints import MAIN_STACK, make_test_points
+
+    if not any((s.split == "train").any() for s in recording.stacks.values()):
+        raise DataFormatError(_split_file(recording), "no rows labelled 'train'; training needs at least one")
+    ev = eval_recording or recording
+    if not make_test_points(ev):
+        raise DataFormatError(
+            _split_file(ev),
+            f"no CAM{MAIN_STACK} rows labelled 'test'; the evaluation scores the test frames of stack {MAIN_STACK}",
+            field=f"CAM{MAIN_STACK}",
+        )
+    ev.lidar_map()  # ground truth comes from the LiDAR map: a missing or bad map fails now, not after training
+    for sid, stack in recording.stacks.items():
+        small = stack.intrinsics.scaled(cfg.image_scale)
+        if small.width < 1 or small.height < 1:
+            raise UsageError(
+                f"image_scale {cfg.image_scale}: CAM{sid} images ({stack.intrinsics.width}x{stack.intrinsics.height})"
+                f" would be {small.width}x{small.height} px; expected a scale giving at least 1x1 px"
+            )
+
+
+def check_device(cfg) -> None:
+    """A config asking for CUDA where there is none is refused up front (not a torch traceback)."""
+    if not cfg.device.startswith("cuda"):
+        return
+    import torch
+
+    if not torch.cuda.is_available():
+        raise UsageError(f"device {cfg.device!r}: no CUDA GPU is available here; use 'auto' or 'cpu'")
+    index = cfg.device.partition(":")[2]
+    if index and (not index.isdigit() or int(index) >= torch.cuda.device_count()):
+        raise UsageError(f"device {cfg.device!r}: expected cuda:<index> with index < {torch.cuda.device_count()}")
+
+
+def open_run(run: Path, flag: str):
+    """A finished or interrupted run folder -> (TrainConfig, RunInfo); every problem named."""
+    from virus_nerf.config_io import load_json_config
+    from virus_nerf.trainer.config import TrainConfig
+
+    run = Path(run)
+    if not run.exists():
+        raise UsageError(f"{flag} {run}: no such run folder; expected a folder written by `virus-nerf train`")
+    if not run.is_dir():
+        raise UsageError(f"{flag} {run}: is a file; expected a run folder written by `virus-nerf train`")
+    for name in ("config.json", "run.json"):
+        if not (run / name).is_file():
+            raise DataFormatError(run / name, f"missing; {flag} expects a run folder written by `virus-nerf train`")
+    cfg = load_json_config(TrainConfig, run / "config.json")
+    path = run / "run.json"
+    try:
+        info = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataFormatError(path, f"not valid JSON: {one_line(exc)}") from None
+    if not isinstance(info, dict):
+        raise DataFormatError(path, 'expected a JSON object {"data": ..., "room": ...}')
+    for key in ("data", "room"):
+        if not isinstance(info.get(key), str) or not info[key]:
+            raise DataFormatError(path, "expected a non-empty string (where the run's recording is)", field=key)
+    return cfg, RunInfo(data=info["data"], room=info["room"])
+
+
+def read_checkpoint_header(path: Path, cfg) -> dict:
+    """Read checkpoint.pt on the CPU and check it fits `cfg`; returns its step/seconds/config.
+
+    A missing, truncated or foreign file is a DataFormatError naming it; a checkpoint of another
+    grid or field than `cfg` asks for (e.g. `--resume --grid ngp` on a VIRUS run) a UsageError.
+    """
+    import torch
+
+    from virus_nerf.config_io import to_dict
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, "missing: the run has no checkpoint (it stopped before its first one); "
+                                    "start a new run")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # truncated zip, pickle garbage, not a torch file: torch raises many types
+        raise DataFormatError(path, f"not a readable checkpoint ({type(exc).__name__}: {one_line(exc, 160)})") from None
+    if not isinstance(state, dict):
+        raise DataFormatError(path, f"not a virus-nerf checkpoint (holds a {type(state).__name__}, expected a dict)")
+    missing = [k for k in CHECKPOINT_KEYS if k not in state]
+    if missing:
+        raise DataFormatError(path, f"not a complete virus-nerf checkpoint: lacks {missing}")
+    saved = state.get("config")
+    if isinstance(saved, dict):
+        now = to_dict(cfg)
+        if saved.get("grid") != now["grid"]:
+            raise UsageError(f"grid {now['grid']!r}: {path} holds a run trained with grid {saved.get('grid')!r}; "
+                             "a run keeps its grid (omit --grid, or start a new run)")
+        grid_key = f"{now['grid']}_grid"
+        for key in ("field", grid_key):
+            old, new = saved.get(key), now.get(key)
+            if key == grid_key and isinstance(old, dict) and isinstance(new, dict):
+                old, new = old.get("max_resolution"), new.get("max_resolution")
+                key = f"{grid_key}.max_resolution"
+            if old is not None and old != new:
+                raise UsageError(f"{key}: {path} was trained with {key} {one_line(old, 120)}, the config asks for "
+                                 f"{one_line(new, 120)}; a run keeps its network and grid shape")
+    return {"step": int(state["step"]), "seconds": float(state["seconds"]), "config": saved}
+
+
+def load_trained(run: Path, flag: str, *, poses: str | None = None, quiet: bool = True):
+    """(Trainer with the run's checkpoint loaded, TrainConfig, RunInfo) for `evaluate` and `export`."""
+    from virus_nerf.data.ethz import load_recording
+    from virus_nerf.trainer.loop import Trainer
+
+    cfg, info = open_run(run, flag)
+    check_device(cfg)
+    read_checkpoint_header(Path(run) / "checkpoint.pt", cfg)
+    recording = load_recording(info.data, info.room, poses=poses or "optimised")
+    trainer = Trainer(recording, cfg, run, quiet=quiet)
+    trainer.load_checkpoint(Path(run) / "checkpoint.pt")
+    return trainer, cfg, info
+
+
+# ---------------------------------------------------------------------------- training
 def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = None, resume: bool = False) -> dict:
-    """Train, evaluate and write everything into the run folder; returns the metrics document."""
+    """Train, evaluate and write everything into the run folder; returns the metrics document.
+
+    New run: OUT must not exist; the recording is checked first, then OUT appears with
+    config.json and run.json in one rename, and if the training fails before its first
+    checkpoint OUT is removed again. Resume: OUT holds a checkpoint; a run that already
+    reached its budget and has its metrics.json is refused before any file is touched; one
+    that reached its budget but stopped before its metrics only gets evaluated. The final
+    results are written plots/ first, metrics.json last (metrics.json marks a finished run).
+    """
     from virus_nerf.config_io import to_dict
     from virus_nerf.data.ethz import load_recording
+    from virus_nerf.errors import OutputExistsError
     from virus_nerf.trainer.loop import Trainer, TrainSummary, write_run_metrics
     from virus_nerf.trainer.report import write_run_plots
-    from virus_nerf.utils.io import create_new_dir
+    from virus_nerf.utils.io import new_output_dir, remove_stale_temps
     from virus_nerf.utils.seeding import seed_everything
 
+    out = Path(out)
+    if not resume and out.exists():
+        raise OutputExistsError(out)
+    check_device(cfg)
     seed_everything(cfg.seed)
     recording = load_recording(data, room, poses="odometry" if cfg.odometry_poses else "optimised")
+    eval_recording = load_recording(data, room, poses="optimised") if cfg.odometry_poses else recording
+    check_recording_for_training(recording, cfg, eval_recording)
+
     if resume:
-        if not (out / "checkpoint.pt").is_file():
-            raise FileNotFoundError(f"{out}: no checkpoint.pt to resume from")
-    else:
-        create_new_dir(out)
-        write_json_atomic(out / "config.json", to_dict(cfg))
-        write_json_atomic(out / "run.json", dataclasses.asdict(RunInfo(data=str(Path(data).resolve()), room=room)))
-    trainer = Trainer(recording, cfg, out, quiet=quiet)
-    if resume:
+        header = read_checkpoint_header(out / "checkpoint.pt", cfg)
+        trainer = Trainer(recording, cfg, out, quiet=quiet)
         trainer.load_checkpoint(out / "checkpoint.pt")
-    summary = trainer.fit()
+        finished = trainer._done()
+        if finished and (out / "metrics.json").is_file():
+            raise UsageError(
+                f"--resume {out}: the run is finished (step {header['step']}, {header['seconds']:.1f} s of training "
+                f"reached the budget {_budget(cfg)}) and has its metrics.json; nothing to resume "
+                "(give a larger --max-steps or --max-time to train on)"
+            )
+        for name in ("checkpoint.pt", "metrics.json", "metrics_vs_time.csv", "config.json"):
+            remove_stale_temps(out / name)  # left by a process killed while writing
+        if to_dict(cfg) != _saved_config(out):
+            write_json_atomic(out / "config.json", to_dict(cfg))  # the budget given for this resume
+        summary = TrainSummary(trainer.step, trainer.seconds, trainer.samples) if finished else trainer.fit()
+    else:
+        with new_output_dir(out) as tmp:  # OUT appears with both files or not at all
+            write_json_atomic(tmp / "config.json", to_dict(cfg))
+            write_json_atomic(tmp / "run.json", dataclasses.asdict(RunInfo(data=str(Path(data).resolve()), room=room)))
+        try:
+            trainer = Trainer(recording, cfg, out, quiet=quiet)
+            summary = trainer.fit()
+        except BaseException:
+            if not (out / "checkpoint.pt").is_file():
+                shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
+            raise
     if cfg.odometry_poses:
         # the map and test points are judged in the true (optimised) frame
-        trainer.recording = load_recording(data, room, poses="optimised")
+        trainer.recording = eval_recording
         trainer._gt = None
     result = trainer.evaluate(with_sensors=True)
     trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
+    write_run_plots(out, result, trainer.eval_history, replace=resume)
     doc = write_run_metrics(out, result, cfg, TrainSummary(summary.steps, summary.seconds, summary.samples))
-    write_run_plots(out, result, trainer.eval_history)
     print(result.table())
     print(
         f"trained {summary.steps} steps in {summary.seconds:.1f} s "
@@ -97,10 +312,28 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     return doc
 
 
+def _budget(cfg) -> str:
+    parts = []
+    if cfg.max_steps is not None:
+        parts.append(f"max_steps {cfg.max_steps}")
+    if cfg.online:
+        parts.append(f"online, playback_speed {cfg.playback_speed:g}")
+    elif cfg.max_time is not None:
+        parts.append(f"max_time {cfg.max_time:g} s")
+    return ", ".join(parts)
+
+
+def _saved_config(out: Path):
+    try:
+        return json.loads((out / "config.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
 def train(
-    data: Path,
-    room: str,
     out: Path,
+    data: Path | None = None,
+    room: str | None = None,
     grid: Literal["virus", "ngp"] | None = None,
     sensors: str | None = None,
     max_time: float | None = None,
@@ -119,12 +352,16 @@ def train(
     """Train a VIRUS-NeRF (or Instant-NGP) on a recording, then evaluate its 2D scans.
 
     Writes OUT/ (refused if it exists, unless --resume): config.json, run.json, train_log.csv,
-    checkpoint.pt, metrics.json (design 7), metrics_vs_time.csv and plots/.
+    checkpoint.pt, metrics.json (design 7), metrics_vs_time.csv and plots/. Everything is
+    checked before OUT is made; a training that fails before its first checkpoint removes OUT.
+    --resume continues an interrupted run from its checkpoint (its data and room come from
+    OUT/run.json); a finished run (budget reached, metrics.json written) is refused untouched,
+    unless a larger --max-steps/--max-time is given, whose results then replace the old ones.
 
     Args:
-        data: Dataset folder in the ETHZ format (holds camera_intrinsics.CSV and ROOM/).
-        room: Room folder name inside DATA (e.g. office).
-        out: New run folder.
+        out: New run folder (with --resume: the run to continue).
+        data: Dataset folder in the ETHZ format (holds camera_intrinsics.CSV and ROOM/); required unless --resume.
+        room: Room folder name inside DATA (e.g. office); required unless --resume.
         grid: Occupancy grid for ray marching: virus (Bayesian, default) or ngp (Instant-NGP).
         sensors: Comma-separated sensors to train on: camera,uss,irs,rgbd (default camera,uss,irs).
         max_time: Seconds of training (evaluation excluded); default 120 unless --max-steps is given.
@@ -134,19 +371,30 @@ def train(
         online: Replay the recording by its timestamps (frames appear as the clock passes them).
         odometry_poses: Train on the odometry poses instead of the optimised ones.
         playback_speed: Online mode: recording seconds per training second.
-        image_scale: Training image resolution relative to the recording (default 0.5).
+        image_scale: Training image resolution relative to the recording, in (0, 1] (default 0.5).
         eval_interval: Seconds of training between NeRF-scan evaluations (0: only at the end).
         config: JSON config file (a run's config.json works); flags given here override it.
         resume: Continue the run in OUT from its checkpoint.
         quiet: No progress bar.
     """
+    out = Path(out)
+    if room is not None and (not room.strip() or "/" in room or "\\" in room or room in (".", "..")):
+        raise UsageError(f"--room {room!r}: expected the name of a room folder inside --data (e.g. office)")
     if resume:
-        cfg_path = config or out / "config.json"
-        info = json.loads((out / "run.json").read_text())
-        cfg = _resolve_config(cfg_path, grid, sensors, max_time, max_steps, batch_size, seed, online,
-                              odometry_poses, playback_speed, image_scale, eval_interval)
-        run_training(Path(info["data"]), info["room"], out, cfg, quiet=quiet or None, resume=True)
+        saved_cfg, info = open_run(out, "--resume")
+        if data is not None and Path(data).resolve() != Path(info.data).resolve():
+            raise UsageError(f"--data {data}: the run in {out} was trained on {info.data} (see its run.json); "
+                             "omit --data and --room with --resume")
+        if room is not None and room != info.room:
+            raise UsageError(f"--room {room}: the run in {out} was trained on room {info.room!r}; "
+                             "omit --data and --room with --resume")
+        cfg = _resolve_config(config, grid, sensors, max_time, max_steps, batch_size, seed, online,
+                              odometry_poses, playback_speed, image_scale, eval_interval, base=saved_cfg)
+        run_training(Path(info.data), info.room, out, cfg, quiet=quiet or None, resume=True)
         return
+    if data is None or room is None:
+        raise UsageError(f"{'--data' if data is None else '--room'} is required: give --data DIR --room NAME "
+                         "(or --resume to continue the run in --out)")
     cfg = _resolve_config(config, grid, sensors, max_time, max_steps, batch_size, seed, online, odometry_poses,
                           playback_speed, image_scale, eval_interval)
     run_training(data, room, out, cfg, quiet=True if quiet else None)
@@ -160,26 +408,22 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None) -> N
         out: metrics.json to write (default RUN/evaluation/metrics.json; never overwritten).
         n_rays: Rays per 360 deg scan (default: the run's setting, 512).
     """
-    from virus_nerf.config_io import load_json_config
-    from virus_nerf.data.ethz import load_recording
     from virus_nerf.errors import OutputExistsError
     from virus_nerf.evaluation.command import plots_dir_for, write_plots
-    from virus_nerf.trainer.config import TrainConfig
-    from virus_nerf.trainer.loop import Trainer, TrainSummary, train_summary_block
+    from virus_nerf.trainer.loop import TrainSummary, train_summary_block
 
-    cfg = load_json_config(TrainConfig, run / "config.json")
     if n_rays is not None:
-        cfg = dataclasses.replace(cfg, evaluation=dataclasses.replace(cfg.evaluation, n_rays=n_rays))
-    info = json.loads((run / "run.json").read_text())
-    out = out or run / "evaluation" / "metrics.json"
+        require_int("--n-rays", n_rays, 1, 1_000_000)
+    out = Path(out) if out is not None else Path(run) / "evaluation" / "metrics.json"
     if out.exists() or plots_dir_for(out).exists():
         raise OutputExistsError(out if out.exists() else plots_dir_for(out))
-    recording = load_recording(info["data"], info["room"], poses="optimised")
-    trainer = Trainer(recording, cfg, run, quiet=True)
-    trainer.load_checkpoint(run / "checkpoint.pt")
+    trainer, cfg, _ = load_trained(run, "--run")
+    if n_rays is not None:
+        cfg = dataclasses.replace(cfg, evaluation=dataclasses.replace(cfg.evaluation, n_rays=n_rays))
+        trainer.config = cfg
     result = trainer.evaluate(with_sensors=True)
     summary = TrainSummary(trainer.step, trainer.seconds, trainer.samples)
-    result.write_json(out, train=train_summary_block(cfg, summary))
     write_plots(result, plots_dir_for(out), max_maps=8)
+    result.write_json(out, train=train_summary_block(cfg, summary))
     print(result.table())
     print(f"wrote {out} and {plots_dir_for(out)}/")

@@ -31,13 +31,21 @@ def plot_metric_vs_time(curves: dict[str, Sequence[dict]], path: Path, key: str 
     return save_png(fig, path)
 
 
-def write_run_plots(run_dir: Path, result, eval_history: list[dict], max_maps: int = 8) -> list[Path]:
-    """RUN/plots/: scan maps at up to `max_maps` test points, metric bars, metric vs time."""
-    from virus_nerf.evaluation.command import write_plots
+def write_run_plots(run_dir: Path, result, eval_history: list[dict], max_maps: int = 8,
+                    replace: bool = False) -> list[Path]:
+    """RUN/plots/: scan maps at up to `max_maps` test points, metric bars, metric vs time.
+
+    Built in a temporary folder and renamed into place when every plot is written, so
+    RUN/plots/ is never half made. An existing RUN/plots/ is refused unless `replace` (a
+    resumed run replaces its own plots only once the new ones are complete).
+    """
+    from virus_nerf.evaluation.command import write_plot_files
+    from virus_nerf.utils.io import new_output_dir
 
     folder = Path(run_dir) / "plots"
-    written = write_plots(result, folder, max_maps=max_maps)
-    curve = plot_metric_vs_time({"NeRF": eval_history}, folder / "metric_vs_time.png")
-    if curve is not None:
-        written.append(curve)
-    return written
+    with new_output_dir(folder, replace=replace) as tmp:
+        names = write_plot_files(result, tmp, max_maps=max_maps)
+        curve = plot_metric_vs_time({"NeRF": eval_history}, tmp / "metric_vs_time.png")
+        if curve is not None:
+            names.append(curve.name)
+    return [folder / n for n in names]
