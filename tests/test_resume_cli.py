@@ -317,3 +317,55 @@ def test_new_output_dir_removes_its_partial_folder_on_error(tmp_path):
         (tmp / "new.txt").write_text("new")
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
     assert [p.name for p in (tmp_path / "out").iterdir()] == ["new.txt"]
+
+
+# ------------------------------------------------------------------------------ item 11: experiments
+def test_demo_copies_metrics_atomically(tmp_path, monkeypatch):
+    """The copy of run/metrics.json goes through a temporary file: a copy that fails half-way
+    leaves no OUT/metrics.json (the demo's marker of a complete result)."""
+    import virus_nerf.sim.command as sim_command
+    import virus_nerf.trainer.command as train_command
+    from virus_nerf.experiments.demo import demo
+
+    doc = {"zones": {"zone1": [0, 1], "zone2": [0, 2], "zone3": [0, 100]}, "sensors": {},
+           "train": {"seconds": 1.0, "steps": 2, "steps_per_s": 2.0, "samples_per_s": 1e6}}
+
+    def fake_simulate(**kwargs):
+        Path(kwargs["out"]).mkdir()
+
+    def fake_training(data, room, out, cfg, quiet=None):
+        (out / "plots").mkdir(parents=True)
+        (out / "metrics.json").write_text(json.dumps(doc) * 50)
+        return doc
+
+    def half_copy(src, dst, *args, **kwargs):
+        Path(dst).write_text(Path(src).read_text()[:10])
+        raise OSError(28, "No space left on device", str(dst))
+
+    monkeypatch.setattr(sim_command, "simulate", fake_simulate)
+    monkeypatch.setattr(train_command, "run_training", fake_training)
+    monkeypatch.setattr(shutil, "copyfile", half_copy)
+    with pytest.raises(OSError, match="No space left"):
+        demo(out=tmp_path / "demo", quiet=True)
+    assert sorted(p.name for p in (tmp_path / "demo").iterdir()) == ["data", "run"]
+
+
+@pytest.mark.parametrize("experiment, summary", [("ablation", "ablation.md"), ("ablation", "ablation.png"),
+                                                 ("online", "online.json"), ("online", "online.md")])
+def test_experiments_refuse_to_overwrite_their_summaries(tmp_path, monkeypatch, experiment, summary):
+    """A finished experiment folder is refused before anything runs; the summary stays as it was."""
+    import virus_nerf.sim.command as sim_command
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("work started although the summary exists")
+
+    monkeypatch.setattr(sim_command, "simulate", no_work)
+    monkeypatch.setattr("virus_nerf.experiments.runs.run_all", no_work)
+    monkeypatch.setattr(f"virus_nerf.experiments.{experiment}.run_all", no_work)
+    out = tmp_path / "exp"
+    out.mkdir()
+    (out / summary).write_text("the earlier result")
+    before = snapshot(out)
+    code, err = run_cli([experiment, "--out", out, "--quick"])
+    one_line_error(code, err, f"{out / summary}: output file already exists")
+    assert snapshot(out) == before

@@ -177,9 +177,13 @@ def ablation(
     Writes OUT/data/<scene> (simulated once, seed 0), OUT/runs/<scene>/row<k>_seed<s>/ (one
     training each), and OUT/ablation.{md,csv,json} plus OUT/ablation.png. Re-running the same
     command continues where it stopped: finished runs are kept, interrupted ones resume.
+    The summaries are never overwritten: if OUT already holds any of ablation.{md,csv,json,png}
+    (a finished ablation) the command is refused before anything runs; to aggregate OUT's runs
+    again (e.g. with more seeds), move those files away first, and the finished runs are reused.
+    Each summary file is written atomically.
 
     Args:
-        out: Experiment folder (created, or continued if it holds an earlier ablation).
+        out: Experiment folder (created, or continued if it holds an unfinished ablation).
         quick: Smoke profile: office only, 1 seed, 15 s per run.
         seeds: Training seeds per row and scene (default 3; quick 1).
         workers: Trainings in parallel (each gets cores / workers threads).
@@ -188,11 +192,23 @@ def ablation(
     """
     import json
 
+    from virus_nerf.errors import UsageError, require_int, require_number
+    from virus_nerf.experiments.online import refuse_existing
     from virus_nerf.sim.command import simulate
     from virus_nerf.utils.io import write_json_atomic, write_text_atomic
 
+    if seeds is not None:
+        require_int("--seeds", seeds, 1, 1000)
+    require_int("--workers", workers, 1, 64)
+    if train_time is not None:
+        require_number("--train-time", train_time, 0.0)
+    for scene in scenes or ():
+        if scene not in ("office", "common"):
+            raise UsageError(f"--scenes {scene!r}: expected 'office' and/or 'common'")
+    summaries = [out / f"ablation.{ext}" for ext in ("md", "csv", "json", "png")]
+    refuse_existing(summaries)
     prof = PROFILES["quick" if quick else "full"]
-    scenes = tuple(scenes) if scenes else prof.scenes
+    scenes = tuple(dict.fromkeys(scenes)) if scenes else prof.scenes
     n_seeds = seeds or prof.seeds
     t_train = train_time or prof.train_time
     out.mkdir(parents=True, exist_ok=True)
@@ -215,6 +231,7 @@ def ablation(
     ]
     failed = run_all(specs, workers=workers)
     records = aggregate(out, scenes, n_seeds)
+    refuse_existing(summaries)  # again: another process may have finished the same folder meanwhile
     md = table_markdown(records)
     speed = grid_speed(records)
     speed_md = ", ".join(f"{k}: {v:.2f}x" if v else f"{k}: -" for k, v in speed.items())

@@ -7,7 +7,6 @@ time budget, evaluate it beside the instantaneous LiDAR, USS and IRS scans, writ
 from __future__ import annotations
 
 import dataclasses
-import shutil
 import time
 from pathlib import Path
 
@@ -24,16 +23,23 @@ def demo(
     Args:
         out: New folder for everything (refused if it exists).
         seed: Seed of the simulated room, the drive and the training.
-        duration: Seconds of simulated robot drive.
-        train_time: Seconds of training (the CPU budget; evaluation excluded).
+        duration: Seconds of simulated robot drive, in (0, 3600].
+        train_time: Seconds of training (the CPU budget; evaluation excluded), > 0.
         quiet: No progress bars.
     """
+    from virus_nerf.errors import OutputExistsError, require_int, require_number
     from virus_nerf.experiments.report import metrics_markdown
     from virus_nerf.sim.command import simulate
     from virus_nerf.trainer.command import run_training
     from virus_nerf.trainer.config import TrainConfig
-    from virus_nerf.utils.io import create_new_dir, write_text_atomic
+    from virus_nerf.utils.io import copy_file_atomic, create_new_dir, write_text_atomic
 
+    require_int("--seed", seed, 0, 2**32 - 1)
+    require_number("--duration", duration, 0.0, 3600.0)
+    require_number("--train-time", train_time, 0.0)
+    out = Path(out)
+    if out.exists():
+        raise OutputExistsError(out)
     t_start = time.perf_counter()
     create_new_dir(out)
     data = out / "data"
@@ -46,7 +52,7 @@ def demo(
     print(f"[2/3] training VIRUS-NeRF (camera, USS, IRS; VIRUS grid) for {train_time:.0f} s")
     doc = run_training(data, "office", out / "run", cfg, quiet=True if quiet else None)
     print("[3/3] writing the report")
-    shutil.copyfile(out / "run" / "metrics.json", out / "metrics.json")
+    copy_file_atomic(out / "run" / "metrics.json", out / "metrics.json")
     train = doc["train"]
     plots = sorted(p.name for p in (out / "run" / "plots").glob("*.png"))
     maps = [p for p in plots if p.startswith("scan_")]

@@ -16,6 +16,15 @@ import numpy as np
 from virus_nerf.experiments.runs import RunSpec, run_all
 
 
+def refuse_existing(paths: list[Path]) -> None:
+    """OutputExistsError for the first of `paths` that exists (summary files are never overwritten)."""
+    from virus_nerf.errors import OutputExistsError
+
+    for p in paths:
+        if p.exists():
+            raise OutputExistsError(p)
+
+
 def read_history(run: Path) -> list[dict]:
     path = run / "metrics_vs_time.csv"
     if not path.is_file():
@@ -53,8 +62,14 @@ def online(
 ) -> None:
     """Offline vs online training on a simulated office; writes OUT/online.{png,json,md}.
 
+    OUT may be new or hold an unfinished experiment: finished runs in OUT/runs are kept and
+    interrupted ones resume. A finished experiment (any of OUT/online.{json,md,png} present)
+    is refused before anything runs: the summaries are never overwritten; choose a new --out
+    (or move the summary files away to aggregate OUT's runs again). The summaries are written
+    atomically.
+
     Args:
-        out: Experiment folder (created, or continued).
+        out: Experiment folder (created, or continued; refused if it holds summaries).
         quick: Smoke profile: 1 seed, a 10 s drive.
         seeds: Training seeds (default 3; quick 1).
         duration: Seconds of simulated drive (default 40; quick 10).
@@ -68,10 +83,21 @@ def online(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from virus_nerf.errors import require_int, require_number
     from virus_nerf.evaluation.plots import save_png
     from virus_nerf.sim.command import simulate
     from virus_nerf.utils.io import write_json_atomic, write_text_atomic
 
+    if seeds is not None:
+        require_int("--seeds", seeds, 1, 1000)
+    if duration is not None:
+        require_number("--duration", duration, 0.0, 3600.0)
+    require_number("--playback-speed", playback_speed, 0.0)
+    if eval_interval is not None:
+        require_number("--eval-interval", eval_interval, 0.0)
+    require_int("--workers", workers, 1, 64)
+    summaries = [out / "online.json", out / "online.md", out / "online.png"]
+    refuse_existing(summaries)
     n_seeds = seeds or (1 if quick else 3)
     duration = duration or (10.0 if quick else 40.0)
     t_train = duration / playback_speed
@@ -104,6 +130,7 @@ def online(
     ax.set_title(f"offline vs online (playback x{playback_speed:g}), mean ± std over {n_seeds} seed(s)")
     ax.grid(alpha=0.3)
     ax.legend()
+    refuse_existing(summaries)  # again: another process may have finished the same folder meanwhile
     save_png(fig, out / "online.png")
     write_json_atomic(out / "online.json", {"summary": summary, "train_time": t_train, "seeds": n_seeds,
                                             "playback_speed": playback_speed})
