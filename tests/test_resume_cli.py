@@ -143,6 +143,18 @@ def test_resume_with_another_grid_is_refused(run_copy):
     assert snapshot(run_copy) == before
 
 
+def test_resume_with_another_network_shape_is_refused(run_copy, tmp_path):
+    cfg = json.loads((run_copy / "config.json").read_text())
+    cfg["field"]["log2_table_size"] += 1
+    (tmp_path / "bigger.json").write_text(json.dumps(cfg))
+    (run_copy / "metrics.json").unlink()
+    before = snapshot(run_copy)
+    code, err = run_cli(["train", "--out", run_copy, "--resume", "--config", tmp_path / "bigger.json"])
+    one_line_error(code, err, "field.log2_table_size 17:", "was trained with field.log2_table_size 16",
+                   "a run keeps its network and grid shape")
+    assert snapshot(run_copy) == before
+
+
 def test_resume_with_other_data_is_refused(run_copy, tmp_path):
     code, err = run_cli(["train", "--out", run_copy, "--resume", "--data", tmp_path, "--room", "office"])
     one_line_error(code, err, f"--data {tmp_path}: the run in {run_copy} was trained on")

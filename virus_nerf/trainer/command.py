@@ -214,15 +214,19 @@ def read_checkpoint_header(path: Path, cfg) -> dict:
         if saved.get("grid") != now["grid"]:
             raise UsageError(f"grid {now['grid']!r}: {path} holds a run trained with grid {saved.get('grid')!r}; "
                              "a run keeps its grid (omit --grid, or start a new run)")
+        def section(doc: dict, name: str) -> dict:
+            return doc[name] if isinstance(doc.get(name), dict) else {}
+
         grid_key = f"{now['grid']}_grid"
-        for key in ("field", grid_key):
-            old, new = saved.get(key), now.get(key)
-            if key == grid_key and isinstance(old, dict) and isinstance(new, dict):
-                old, new = old.get("max_resolution"), new.get("max_resolution")
-                key = f"{grid_key}.max_resolution"
-            if old is not None and old != new:
-                raise UsageError(f"{key}: {path} was trained with {key} {one_line(old, 120)}, the config asks for "
-                                 f"{one_line(new, 120)}; a run keeps its network and grid shape")
+        # the shapes of the network and the grid; the backend and other knobs may change on resume
+        shape_keys = [("field", k) for k in section(saved, "field") if k not in ("backend", "density_clamp")]
+        shape_keys.append((grid_key, "max_resolution"))
+        for sec, name in shape_keys:  # keys both versions know (a newer version may add some)
+            old, new = section(saved, sec).get(name), section(now, sec).get(name)
+            if old is not None and new is not None and old != new:
+                key = f"{sec}.{name}"
+                raise UsageError(f"{key} {one_line(new, 60)}: {path} was trained with {key} {one_line(old, 60)}; "
+                                 "a run keeps its network and grid shape")
     return {"step": int(state["step"]), "seconds": float(state["seconds"]), "config": saved}
 
 
