@@ -222,6 +222,18 @@ def test_evaluate_and_export_still_work(run_copy, tmp_path):
     assert not (tmp_path / "map2").exists()
 
 
+def test_export_makes_its_output_folder_before_computing(run_copy, tmp_path, monkeypatch):
+    import virus_nerf.trainer.command as train_command
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the model was loaded although the output folder cannot be made")
+
+    monkeypatch.setattr(train_command, "load_trained", no_work)
+    (tmp_path / "afile").write_text("a file where a folder should be")
+    code, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "afile" / "map"])
+    one_line_error(code, err, f"{tmp_path / 'afile' / 'map'}: cannot create this folder (a parent is not a folder)")
+
+
 # ------------------------------------------------------------------------------ item 7: bad splits
 def recording_copy(tiny_office: Path, tmp_path: Path, relabel: dict[str, str]) -> Path:
     data = tmp_path / "data"

@@ -80,8 +80,7 @@ def export(run: Path, out: Path, resolution: float = 0.05, n_rays: int = 720, ma
         n_rays: Rays per 360 deg scan.
         max_poses: At most this many camera positions (evenly spread over the recording).
     """
-    from virus_nerf.errors import OutputExistsError, UsageError, require_int, require_number
-    from virus_nerf.evaluation.scans import horizontal_directions
+    from virus_nerf.errors import OutputExistsError, require_int, require_number
     from virus_nerf.trainer.command import load_trained, open_run
     from virus_nerf.utils.io import new_output_dir
 
@@ -92,7 +91,21 @@ def export(run: Path, out: Path, resolution: float = 0.05, n_rays: int = 720, ma
     if out.exists():
         raise OutputExistsError(out)  # before any work
     cfg, _ = open_run(run, "--run")
-    trainer, cfg, _ = load_trained(run, "--run", poses="odometry" if cfg.odometry_poses else "optimised")
+    with new_output_dir(out) as tmp:  # made (and checked writable) before anything is computed
+        trainer, cfg, _ = load_trained(run, "--run", poses="odometry" if cfg.odometry_poses else "optimised")
+        m = _render_map(trainer, resolution, n_rays, max_poses)
+        write_map_server(m, tmp)
+        from PIL import Image
+
+        Image.fromarray(m.image).save(tmp / "map.png")
+    print(f"wrote {out}/map.pgm + map.yaml ({m.image.shape[1]}x{m.image.shape[0]} px at {resolution} m)")
+
+
+def _render_map(trainer, resolution: float, n_rays: int, max_poses: int) -> OccupancyMap2D:
+    """360 deg model scans from up to `max_poses` camera positions -> occupancy raster."""
+    from virus_nerf.errors import UsageError
+    from virus_nerf.evaluation.scans import horizontal_directions
+
     recording = trainer.recording
     lo, hi = np.asarray(trainer.box.lo[:2]), np.asarray(trainer.box.hi[:2])
     nx, ny = np.ceil((hi - lo) / resolution).astype(int)
@@ -108,11 +121,5 @@ def export(run: Path, out: Path, resolution: float = 0.05, n_rays: int = 720, ma
         ranges_all.append(trainer.model.ranges(origins, dirs))
         origins_all.append(origins[:, :2])
         dirs_all.append(dirs[:, :2])
-    m = scan_occupancy(np.concatenate(origins_all), np.concatenate(dirs_all), np.concatenate(ranges_all),
-                       lo, hi, resolution)
-    with new_output_dir(out) as tmp:
-        write_map_server(m, tmp)
-        from PIL import Image
-
-        Image.fromarray(m.image).save(tmp / "map.png")
-    print(f"wrote {out}/map.pgm + map.yaml ({m.image.shape[1]}x{m.image.shape[0]} px at {resolution} m)")
+    return scan_occupancy(np.concatenate(origins_all), np.concatenate(dirs_all), np.concatenate(ranges_all),
+                          lo, hi, resolution)

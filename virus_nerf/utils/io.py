@@ -116,8 +116,12 @@ def new_output_dir(path: str | Path, *, replace: bool = False) -> Iterator[Path]
     path = Path(path)
     if path.exists() and not replace:
         raise OutputExistsError(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-", dir=path.parent))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-", dir=path.parent))
+    except OSError as exc:  # name the folder asked for, not a parent or the temporary name
+        reason = "a parent is not a folder" if isinstance(exc, FileExistsError | NotADirectoryError) else exc.strerror
+        raise type(exc)(exc.errno, f"cannot create this folder ({reason})", str(path)) from None
     try:
         yield tmp
         os.chmod(tmp, 0o755)  # mkdtemp makes 0700
