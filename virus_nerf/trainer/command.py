@@ -62,7 +62,7 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     """Train, evaluate and write everything into the run folder; returns the metrics document."""
     from virus_nerf.config_io import to_dict
     from virus_nerf.data.ethz import load_recording
-    from virus_nerf.trainer.loop import Trainer, TrainSummary, write_run_metrics
+    from virus_nerf.trainer.loop import Trainer, write_run_metrics
     from virus_nerf.trainer.report import write_run_plots
     from virus_nerf.utils.io import create_new_dir
     from virus_nerf.utils.seeding import seed_everything
@@ -86,7 +86,7 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         trainer._gt = None
     result = trainer.evaluate(with_sensors=True)
     trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
-    doc = write_run_metrics(out, result, cfg, TrainSummary(summary.steps, summary.seconds, summary.samples))
+    doc = write_run_metrics(out, result, cfg, summary)
     write_run_plots(out, result, trainer.eval_history)
     print(result.table())
     print(
