@@ -303,3 +303,60 @@ def test_grid_over_a_given_spec_matches_the_box_constructor():
     b = VirusGrid(GridSpec.from_box(BAR, 16), cfg, device="cpu")
     assert a.spec == b.spec and b.occupied.device == torch.device("cpu")
     assert b.occupied.shape == (16, 4, 4) and b.occupied.all()
+
+
+# ------------------------------------------------- start-up prior, NaN guard, forward source
+def test_initialise_from_sensor_rays_is_one_depth_update_per_ray():
+    from virus_nerf.grid.base import SensorRays
+
+    cfg = VirusGridConfig(max_resolution=40)
+    rays = SensorRays(torch.tensor([[0.0, 0.55, 0.55], [0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]] * 2),
+                      torch.tensor([2.05, float("nan")]))
+    grid = VirusGrid(BAR, cfg)
+    assert grid.initialise(rays.valid()) > 0
+    ref = VirusGrid(BAR, cfg)
+    ref.depth_update(rays.origins[:1], rays.directions[:1], rays.ranges[:1])
+    assert torch.equal(grid.logodds, ref.logodds)
+    # the hand-computed profile: free in front (one pass ln(1 - p_det)), occupied at the return
+    assert grid.logodds[5, 5, 5] == pytest.approx(L_INIT + _reference_increment(0.5, 0.6, 2.05, cfg), abs=1e-6)
+    assert grid.logodds[20, 5, 5] > L_INIT > grid.logodds[10, 5, 5]
+    # free-space rays lower cells up to their range and raise none
+    free = VirusGrid(BAR, cfg)
+    free.initialise(None, SensorRays(rays.origins[:1], rays.directions[:1], torch.tensor([1.0])))
+    assert (free.logodds <= L_INIT + 1e-6).all() and free.logodds[5, 5, 5] < L_INIT
+    # the paper's plain warm-up ignores the prior
+    plain = VirusGrid(BAR, VirusGridConfig(max_resolution=40, init="none"))
+    assert plain.initialise(rays.valid()) == 0
+    assert torch.all(plain.logodds == torch.tensor(L_INIT, dtype=torch.float32))
+
+
+def test_nan_densities_never_reach_a_cell():
+    cfg = VirusGridConfig(max_resolution=10, pos_noise_per_m=0.0)
+    rays = (torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([1.0]))
+    grid = VirusGrid(CUBE, cfg)
+    # NaN in the first half of the ray, 10 /m behind: only the dense half moves, by eq. 9 exactly
+    grid.nerf_update(lambda p: torch.where(p[:, 0] < 0.5, float("nan"), 10.0), *rays, torch.Generator().manual_seed(1))
+    assert torch.isfinite(grid.logodds).all()
+    assert torch.all(grid.logodds[:5] == torch.tensor(L_INIT, dtype=torch.float32))
+    sigma_t = -math.log(0.99) / 0.01  # min(sigma_T_max, mean of the finite densities = 10)
+    moved = grid.logodds[5:, 5, 5]
+    assert torch.allclose(moved, torch.tensor(L_INIT + 0.25 * math.log(10.0 / sigma_t), dtype=torch.float32))
+    # all NaN: nothing changes at all
+    before = grid.logodds.clone()
+    grid.nerf_update(lambda p: torch.full((p.shape[0],), float("nan")), *rays, torch.Generator().manual_seed(2))
+    assert torch.equal(grid.logodds, before)
+
+
+def test_forward_samples_update_the_cells_they_lie_in():
+    cfg = VirusGridConfig(max_resolution=10, nerf_update_source="forward")
+    grid = VirusGrid(CUBE, cfg)
+    pts = torch.tensor([[0.15, 0.15, 0.15], [0.16, 0.12, 0.18], [0.85, 0.85, 0.85], [2.0, 0.5, 0.5]])
+    sigma = torch.tensor([100.0, 1.0, 0.001, 50.0])  # the last point is outside the box
+    batch = GridUpdateBatch(torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0), torch.zeros(1, 3),
+                            torch.tensor([[1.0, 0.0, 0.0]]), torch.ones(1), forward_points=pts, forward_sigma=sigma)
+    grid.update(0, None, batch, torch.Generator().manual_seed(0))
+    sigma_t = min(-math.log(0.99) / 0.01, (100.0 + 1.0 + 0.001) / 3)
+    inc = [max(-2.0, min(2.0, 0.25 * math.log(s / sigma_t))) for s in (100.0, 1.0, 0.001)]
+    assert grid.logodds[1, 1, 1].item() == pytest.approx(L_INIT + (inc[0] + inc[1]) / 2, abs=1e-6)
+    assert grid.logodds[8, 8, 8].item() == pytest.approx(L_INIT + inc[2], abs=1e-6)
+    assert (grid.logodds != torch.tensor(L_INIT, dtype=torch.float32)).sum() == 2

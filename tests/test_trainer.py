@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -180,3 +181,92 @@ def test_trains_and_evaluates_on_the_real_sample(sample_dir, tmp_path):
     assert doc["train"]["steps"] == 5
     assert doc["sensors"]["LiDAR"]["zone3"]["n_pred"] > 1000
     assert doc["sensors"]["NeRF"]["zone3"]["n_gt"] > 0
+
+
+def test_resume_after_a_crash_cuts_the_log_back_to_the_checkpoint(tiny_office, tmp_path):
+    rec = load_recording(tiny_office, "office")
+    run = tmp_path / "run"
+    run.mkdir()
+    Trainer(rec, small_config(max_steps=6, log_every=1), run, quiet=True).fit()  # checkpoint at step 6
+    with (run / "train_log.csv").open("a") as fh:  # rows a killed process wrote after the checkpoint
+        fh.write("7,1.0,0.1,0.1,0,0,0,10,20,0.5,4\n8,1.1,0.1,0.1,0,0,0,10,20,0.5,4\n")
+    resumed = Trainer(rec, small_config(max_steps=10, log_every=1), run, quiet=True)
+    resumed.load_checkpoint(run / "checkpoint.pt")
+    resumed.fit()
+    steps = [int(line.split(",")[0]) for line in (run / "train_log.csv").read_text().splitlines()[1:]]
+    assert steps == list(range(1, 11))
+    assert (run / "train_log.csv").read_text().count("\n7,1.0,") == 0
+
+
+def test_torch_backends_train_like_the_numba_kernels(tiny_office, tmp_path):
+    """The path a GPU takes (PyTorch marching, compositing and hash encoding) runs the trainer and
+    matches the fused numba kernels step for step within float rounding."""
+    from virus_nerf.field.field import FieldConfig
+
+    rec = load_recording(tiny_office, "office")
+    runs = {}
+    for backend in ("numba", "torch"):
+        cfg = small_config(max_steps=5, march=MarchConfig(step_size=0.06, max_samples=64, backend=backend),
+                           field=dataclasses.replace(FieldConfig.cpu_default(), backend=backend))
+        trainer = Trainer(rec, cfg, tmp_path / backend, quiet=True)
+        losses = [trainer.train_step().as_floats()["total"] for _ in range(5)]
+        runs[backend] = (losses, params(trainer), trainer.samples)
+    (ln, pn, sn), (lt, pt, st) = runs["numba"], runs["torch"]
+    assert sn == st, "both marchers place the same samples"
+    np.testing.assert_allclose(lt, ln, rtol=1e-4)
+    for a, b in zip(pn, pt, strict=True):
+        torch.testing.assert_close(b, a, rtol=1e-3, atol=1e-5)
+
+
+def test_density_only_depth_rays_skip_the_colour_network(tiny_office, tmp_path):
+    rec = load_recording(tiny_office, "office")
+    trainer = Trainer(rec, small_config(density_only_depth_rays=True), tmp_path, quiet=True)
+    pts = torch.tensor([[1.0, 1.0, 1.0], [1.5, 1.0, 1.2], [2.0, 2.0, 0.5]]) + torch.tensor(trainer.box.lo)
+    dirs = torch.tensor([[1.0, 0.0, 0.0]] * 3)
+    sigma_all, rgb_all = trainer.field(pts, dirs)
+    sigma, rgb = trainer.field(pts, dirs, torch.tensor([True, False, True]))
+    assert torch.equal(sigma, sigma_all)
+    assert torch.equal(rgb[[0, 2]], rgb_all[[0, 2]]) and torch.all(rgb[1] == 0)
+    terms = trainer.train_step()
+    assert math.isfinite(terms.total.item())
+
+
+def test_online_scores_nothing_before_the_first_test_point(tiny_office, tmp_path):
+    rec = load_recording(tiny_office, "office")
+    trainer = Trainer(rec, small_config(online=True, max_steps=None, max_time=5.0), tmp_path, quiet=True)
+    trainer.seconds = 0.0
+    first = min(tp.time for tp in (g.test_point for g in __import__(
+        "virus_nerf.evaluation.evaluate", fromlist=["build_ground_truth"]).build_ground_truth(rec)))
+    if first > trainer.t0:
+        assert trainer.evaluate(with_sensors=False) is None
+    trainer.seconds = trainer.duration
+    assert trainer.evaluate(with_sensors=False) is not None
+
+
+def test_grid_prior_uses_only_the_frames_available_at_the_start(tiny_office, tmp_path):
+    from virus_nerf.sampler.sensor_rays import irs_zone_rays
+
+    rec = load_recording(tiny_office, "office")
+    online = Trainer(rec, small_config(online=True, max_steps=None, max_time=5.0), tmp_path / "a", quiet=True)
+    online.prepare()
+    offline = Trainer(rec, small_config(), tmp_path / "b", quiet=True)
+    offline.prepare()
+    first = online.available_frames()
+    assert len(first) < len(online.store)
+    ref = build_virus_grid_like(offline)
+    ref.initialise(irs_zone_rays(online.store, first, ref.config.init_zone_samples).valid())
+    assert torch.equal(online.grid.logodds, ref.logodds)
+    assert not torch.equal(offline.grid.logodds, ref.logodds), "offline uses every training frame"
+
+
+def build_virus_grid_like(trainer: Trainer):
+    from virus_nerf.grid.virus import VirusGrid
+
+    return VirusGrid(trainer.grid.spec, trainer.grid.config)
+
+
+def test_metrics_record_start_up_and_wall_clock(tiny_office, tmp_path):
+    doc = run_training(tiny_office, "office", tmp_path / "run", small_config(max_steps=4), quiet=True)
+    t = doc["train"]
+    assert 0 < t["startup_s"] < t["wall_s"]
+    assert t["seconds"] <= t["wall_s"] - t["startup_s"] + 1e-3, "the training clock excludes start-up"

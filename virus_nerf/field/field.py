@@ -167,26 +167,41 @@ class NerfField(nn.Module):
             return sigma
         return sigma.index_copy(0, idx, self._sigma(self._geo(x[idx])))
 
-    def forward(self, points: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """World points (N, 3) m, unit view directions (N, 3) -> sigma (N,) 1/m, rgb (N, 3) in (0, 1)."""
+    def forward(
+        self, points: torch.Tensor, dirs: torch.Tensor, rgb_mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """World points (N, 3) m, unit view directions (N, 3) -> sigma (N,) 1/m, rgb (N, 3) in (0, 1).
+
+        rgb_mask (N,) bool, optional: the colour MLP runs only where it is True (rgb 0 elsewhere,
+        no gradient), for density-only training of depth-supervised rays.
+        """
         if dirs.shape != points.shape:
             raise ValueError(f"dirs shape {tuple(dirs.shape)} must equal points shape {tuple(points.shape)}")
         x, inside = self.normalise(points)
-        if bool(inside.all()):
+        if rgb_mask is None and bool(inside.all()):
             return self._sigma_rgb(x, dirs)
+        keep = inside if rgb_mask is None else inside & rgb_mask
         idx = inside.nonzero().squeeze(1)  # (M,)
         sigma = x.new_zeros(x.shape[0])
         rgb = x.new_zeros(x.shape[0], 3)
         if idx.numel() == 0:
             return sigma, rgb
-        s, c = self._sigma_rgb(x[idx], dirs[idx])
-        return sigma.index_copy(0, idx, s), rgb.index_copy(0, idx, c)
+        h = self._geo(x[idx])  # (M, G)
+        sigma = sigma.index_copy(0, idx, self._sigma(h))
+        if rgb_mask is None:
+            return sigma, rgb.index_copy(0, idx, self._rgb(h, dirs[idx]))
+        sub = keep[idx].nonzero().squeeze(1)  # rows of h that need colour
+        if sub.numel():
+            rgb = rgb.index_copy(0, idx[sub], self._rgb(h[sub], dirs[idx[sub]]))
+        return sigma, rgb
+
+    def _rgb(self, h: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        d = sh_encode(dirs.to(torch.float32))  # (M, 16)
+        return torch.sigmoid(self.color_mlp(torch.cat([d, h], dim=-1)))  # (M, 3)
 
     def _sigma_rgb(self, x: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         h = self._geo(x)  # (M, G)
-        d = sh_encode(dirs.to(torch.float32))  # (M, 16)
-        rgb = torch.sigmoid(self.color_mlp(torch.cat([d, h], dim=-1)))  # (M, 3)
-        return self._sigma(h), rgb
+        return self._sigma(h), self._rgb(h, dirs)
 
     def encoding_parameters(self) -> list[nn.Parameter]:
         """The hash table (for a separate optimiser group: no weight decay there)."""

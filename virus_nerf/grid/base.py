@@ -90,6 +90,23 @@ DensityFn = Callable[[torch.Tensor], torch.Tensor]  # world points (N, 3) -> sig
 
 
 @dataclass
+class SensorRays:
+    """Rays of a range sensor in the world frame (metres): one reading per ray."""
+
+    origins: torch.Tensor  # (K, 3)
+    directions: torch.Tensor  # (K, 3) unit
+    ranges: torch.Tensor  # (K,) metres along the ray; NaN = no reading
+
+    def __len__(self) -> int:
+        return int(self.ranges.shape[0])
+
+    def valid(self) -> SensorRays:
+        """Only the rays with a finite, positive range."""
+        keep = torch.isfinite(self.ranges) & (self.ranges > 0)
+        return SensorRays(self.origins[keep], self.directions[keep], self.ranges[keep])
+
+
+@dataclass
 class GridUpdateBatch:
     """Sensor and training rays a grid may use in one update (world frame, metres).
 
@@ -104,6 +121,9 @@ class GridUpdateBatch:
     nerf_origins: torch.Tensor  # (M, 3)
     nerf_directions: torch.Tensor  # (M, 3) unit
     nerf_far: torch.Tensor  # (M,) metres: how far along each ray points may be drawn
+    # densities the training forward pass already computed (optional NeRF-Update source):
+    forward_points: torch.Tensor | None = None  # (S, 3) sample positions
+    forward_sigma: torch.Tensor | None = None  # (S,) 1/m, detached
 
 
 class OccupancyGrid(ABC):

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
@@ -30,6 +31,7 @@ from virus_nerf.grid.base import (
     GridSpec,
     GridUpdateBatch,
     OccupancyGrid,
+    SensorRays,
 )
 from virus_nerf.grid.sensor_model import (
     depth_update_kernel,
@@ -57,6 +59,15 @@ class VirusGridConfig:
     update_interval: int = 16  # training steps between grid updates (the trainer calls update)
     rays_per_update: int = 1024  # rays per update, both kinds together (paper: ~1k)
     depth_share: float = 0.5  # share of rays_per_update for the Depth-Update (rest: NeRF)
+    # Start-up: before step 0, a Depth-Update over every training IRS frame ("sensors"), so free
+    # space and surfaces the IRS saw are known from the start; "none" = the paper's plain warm-up.
+    init: Literal["sensors", "none"] = "sensors"
+    init_zone_samples: int = 3  # rays per IRS zone and axis in that pass (3 -> 9 rays per zone)
+    init_uss_free: bool = False  # also free-space evidence in front of every USS echo (its cone)
+    # NeRF-Update densities: "resample" draws nerf_points_per_ray points along rays of the batch
+    # and evaluates the density MLP; "forward" reuses the training forward pass's samples (no
+    # extra network pass; only cells the marcher sampled get evidence).
+    nerf_update_source: Literal["resample", "forward"] = "resample"
     # Depth-Update (IRS, MURIEL model; sensor_model docstring)
     std_per_m: float = 0.03  # range noise grows 3 cm per metre ...
     std_floor: float = 0.02  # ... on top of 2 cm (pose error, zone width)
@@ -82,6 +93,9 @@ class VirusGridConfig:
             "update_interval": self.update_interval >= 1,
             "rays_per_update": self.rays_per_update >= 0,
             "depth_share": 0.0 <= self.depth_share <= 1.0,
+            "init": self.init in ("sensors", "none"),
+            "init_zone_samples": self.init_zone_samples >= 1,
+            "nerf_update_source": self.nerf_update_source in ("resample", "forward"),
             "std_per_m": self.std_per_m >= 0.0,
             "std_floor": self.std_floor > 0.0,
             "false_rate": self.false_rate > 0.0,
@@ -203,7 +217,10 @@ class VirusGrid(OccupancyGrid):
                 self.depth_update(
                     batch.depth_origins[pick], batch.depth_directions[pick], batch.depth_ranges[pick]
                 )
-            if n_nerf > 0 and density_fn is not None:
+            forward = self.config.nerf_update_source == "forward" and batch.forward_sigma is not None
+            if forward and n_nerf > 0:
+                self.nerf_update_from_samples(batch.forward_points, batch.forward_sigma)
+            elif n_nerf > 0 and density_fn is not None:
                 pick = torch.randperm(n_nerf_avail, generator=generator, device=generator.device)[:n_nerf]
                 pick = pick.to(batch.nerf_origins.device)
                 self.nerf_update(
@@ -228,6 +245,23 @@ class VirusGrid(OccupancyGrid):
             np.add(flat, np.float32(delta), out=flat)
             np.clip(flat, c.logodds_min, c.logodds_max, out=flat)
             self._decay_applied = target
+
+    def initialise(self, depth: SensorRays | None, free: SensorRays | None = None) -> int:
+        """Prior knowledge before the first training step (config.init == "sensors").
+
+        A Depth-Update along every `depth` ray (the training IRS zones: free space up to each
+        return, occupied at it) and, if given, free-space evidence up to every `free` range (USS
+        echoes over their cone). Cells no sensor saw keep p_init and go through the warm-up as
+        before. Returns the number of (cell, ray) increments applied.
+        """
+        if self.config.init == "none":
+            return 0
+        n = 0
+        if depth is not None and len(depth):
+            n += self.depth_update(depth.origins, depth.directions, depth.ranges)
+        if free is not None and len(free):
+            n += self.free_space_update(free.origins, free.directions, free.ranges)
+        return n
 
     def depth_update(self, origins: torch.Tensor, directions: torch.Tensor, ranges: torch.Tensor) -> int:
         """Depth-Update: origins (K, 3), directions (K, 3), ranges (K,) metres along the ray.
@@ -292,15 +326,36 @@ class VirusGrid(OccupancyGrid):
         inside = cells >= 0
         pts, cells = pts[inside], cells[inside]
         if cells.shape[0] == 0:
-            info = NerfUpdateInfo(n_drawn=n_rays * p, n_points=0, sigma_threshold=float("nan"), n_cells=0)
-            self.last_nerf_update = info
-            return info
+            return self._apply_nerf_evidence(cells, np.zeros(0), n_rays * p)
         sigma = density_fn(torch.from_numpy(pts).to(origins.device)).detach().reshape(-1)
         if sigma.shape[0] != pts.shape[0]:
             raise ValueError(
                 f"density_fn returned {sigma.shape[0]} densities for {pts.shape[0]} points"
             )
-        sigma = sigma.to("cpu", torch.float64).numpy()
+        return self._apply_nerf_evidence(cells, sigma.to("cpu", torch.float64).numpy(), n_rays * p)
+
+    @torch.no_grad()
+    def nerf_update_from_samples(self, points: torch.Tensor, sigma: torch.Tensor) -> NerfUpdateInfo:
+        """NeRF-Update (eq. 9) from densities already computed: points (S, 3) m, sigma (S,) 1/m."""
+        pts = np.ascontiguousarray(points.detach().to("cpu", torch.float32).numpy())
+        cells = points_to_cells(pts, self._lo, self._size, self._res)
+        sig = sigma.detach().to("cpu", torch.float64).numpy().reshape(-1)
+        inside = cells >= 0
+        return self._apply_nerf_evidence(cells[inside], sig[inside], int(pts.shape[0]))
+
+    def _apply_nerf_evidence(self, cells: np.ndarray, sigma: np.ndarray, n_drawn: int) -> NerfUpdateInfo:
+        """Per-cell mean of the eq. 9 increments of densities `sigma` (N,) at points in `cells` (N,).
+
+        Non-finite densities (a diverged network) are dropped, so they cannot poison a cell:
+        numpy's maximum/clip and Python's min pass NaN through silently.
+        """
+        c = self.config
+        finite = np.isfinite(sigma)
+        cells, sigma = cells[finite], sigma[finite]
+        if cells.shape[0] == 0:
+            info = NerfUpdateInfo(n_drawn=n_drawn, n_points=0, sigma_threshold=float("nan"), n_cells=0)
+            self.last_nerf_update = info
+            return info
         sigma_t = min(c.sigma_threshold_max, float(sigma.mean()))
         inc = nerf_log_odds(sigma, sigma_t, c.zeta, c.max_increment, c.sigma_floor)
         # per-cell mean increment; bincount sums sequentially, so this is deterministic
@@ -312,7 +367,7 @@ class VirusGrid(OccupancyGrid):
         new = flat[uniq].astype(np.float64) + sums / counts
         flat[uniq] = np.clip(new, c.logodds_min, c.logodds_max).astype(np.float32)
         info = NerfUpdateInfo(
-            n_drawn=n_rays * p, n_points=int(pts.shape[0]), sigma_threshold=sigma_t, n_cells=int(uniq.shape[0])
+            n_drawn=n_drawn, n_points=int(cells.shape[0]), sigma_threshold=sigma_t, n_cells=int(uniq.shape[0])
         )
         self.last_nerf_update = info
         return info

@@ -287,6 +287,7 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
             remove_stale_temps(out / name)  # left by a process killed while writing
         if to_dict(cfg) != _saved_config(out):
             write_json_atomic(out / "config.json", to_dict(cfg))  # the budget given for this resume
+        # budget reached before the metrics were written: evaluate only (no step, no file rewritten)
         summary = TrainSummary(trainer.step, trainer.seconds, trainer.samples) if finished else trainer.fit()
     else:
         with new_output_dir(out) as tmp:  # OUT appears with both files or not at all
@@ -305,8 +306,8 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         trainer._gt = None
     result = trainer.evaluate(with_sensors=True)
     trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
-    write_run_plots(out, result, trainer.eval_history, replace=resume)
-    doc = write_run_metrics(out, result, cfg, TrainSummary(summary.steps, summary.seconds, summary.samples))
+    write_run_plots(out, result, trainer.eval_history, replace=resume)  # plots first: metrics.json marks the end
+    doc = write_run_metrics(out, result, cfg, summary)
     print(result.table())
     print(
         f"trained {summary.steps} steps in {summary.seconds:.1f} s "

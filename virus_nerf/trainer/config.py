@@ -21,6 +21,11 @@ class MarchConfig:
     step_size: float = 0.03  # constant step; 1 cm - 5 cm suits rooms
     near: float = 0.05  # start of every ray, in front of the lens
     max_samples: int = 256  # per ray, after occupancy skipping
+    backend: str = "auto"  # marching and compositing: auto (numba on CPU, torch on CUDA) | numba | torch
+
+    def __post_init__(self) -> None:
+        if self.backend not in ("auto", "numba", "torch"):
+            raise ValueError(f"march.backend {self.backend!r}: expected 'auto', 'numba' or 'torch'")
 
 
 @dataclass
@@ -48,7 +53,8 @@ class TrainConfig:
     log_every: int = 25  # steps between log lines
     checkpoint_every: float = 60.0  # seconds of training between checkpoints
     min_opacity: float = 0.5  # scan rays with lower opacity give no point (design 3.1)
-    grid_update_rays: int = 1024  # rays per VIRUS grid update (design 3.4: ~1k)
+    # depth-supervised (IRS, RGB-D) rays train the density alone: no colour MLP, no colour loss
+    density_only_depth_rays: bool = False
     field: FieldConfig = dc_field(default_factory=FieldConfig.cpu_default)
     march: MarchConfig = dc_field(default_factory=MarchConfig)
     optim: OptimConfig = dc_field(default_factory=OptimConfig)
@@ -125,7 +131,7 @@ class TrainConfig:
         integer("log_every", 1)
         number("checkpoint_every", 0.0)
         number("min_opacity", 0.0, 1.0, lo_open=False)
-        integer("grid_update_rays", 2)
+        flag("density_only_depth_rays")
         number("march.step_size", 0.0)
         number("march.near", 0.0, lo_open=False)
         integer("march.max_samples", 1)

@@ -29,9 +29,11 @@ from virus_nerf.losses import LossTerms, total_loss
 from virus_nerf.render.marching import ray_box_interval
 from virus_nerf.sampler.batch import BatchSampler, RayBatch
 from virus_nerf.sampler.frames import build_frame_store
+from virus_nerf.sampler.sensor_rays import irs_zone_rays, uss_cone_rays
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.model import SceneModel, fit_scene_box
+from virus_nerf.utils.clock import since_process_start
 from virus_nerf.utils.io import atomic_path
 
 LOG_FIELDS = ("step", "seconds", "loss", "colour", "irs", "uss", "rgbd", "psnr", "samples_per_ray", "occupied", "frames")
@@ -54,8 +56,10 @@ def build_grid(config: TrainConfig, box: SceneBox, device: torch.device) -> Occu
 @dataclass
 class TrainSummary:
     steps: int
-    seconds: float
+    seconds: float  # training clock: steps and grid updates (start-up and evaluations excluded)
     samples: int  # samples actually marched and rendered, summed over steps
+    startup_s: float | None = None  # process start to the first training step (this process)
+    wall_s: float | None = None  # process start to the end of training (this process)
 
     @property
     def steps_per_s(self) -> float:
@@ -82,7 +86,7 @@ class Trainer:
         self.grid = build_grid(config, self.box, self.device)
         self.model = SceneModel(
             self.field, self.grid, config.march.step_size, config.march.near, config.march.max_samples,
-            config.min_opacity,
+            config.min_opacity, config.march.backend,
         )
         fused = self.device.type == "cpu" or self.device.type == "cuda"
         self.optimizer = torch.optim.Adam(
@@ -96,6 +100,9 @@ class Trainer:
         self.samples = 0
         self._gt = None
         self.eval_history: list[dict] = []
+        self._prepared = False
+        self.startup_s: float | None = None  # process start -> first step (set by prepare)
+        self.grid_init_s = 0.0
 
     @property
     def sampler(self) -> BatchSampler:
@@ -113,6 +120,36 @@ class Trainer:
     @property
     def store(self):
         return self.sampler.store
+
+    def prepare(self) -> None:
+        """One-off start-up before the first step: decode frames, give the grid its prior.
+
+        Runs outside the training clock (a cold start must not eat a --max-time budget). The
+        VIRUS grid's sensor prior uses the frames available at this moment only (online: the
+        first one), and only on a fresh run: a resumed grid comes from its checkpoint.
+        """
+        if self._prepared:
+            return
+        _ = self.sampler
+        if self.step == 0 and isinstance(self.grid, VirusGrid) and self.grid.config.init == "sensors":
+            t0 = time.perf_counter()
+            frames = self.available_frames()
+            gcfg = self.grid.config
+            depth = irs_zone_rays(self.store, frames, gcfg.init_zone_samples).valid() if "irs" in self.config.sensors else None
+            free = uss_cone_rays(self.store, frames).valid() if gcfg.init_uss_free and "uss" in self.config.sensors else None
+            self.grid.initialise(depth, free)
+            self.grid_init_s = time.perf_counter() - t0
+        self._warm_kernels()
+        self._prepared = True
+        self.startup_s = since_process_start()
+
+    def _warm_kernels(self) -> None:
+        """Load (or compile) the marching, field and compositing kernels on a few rays, so the
+        first timed step is an ordinary one. Draws no random numbers and leaves no gradient."""
+        rays = self.sampler._rays(np.zeros(8, dtype=np.int64), np.arange(8, dtype=np.int64)).to(self.device)
+        out, _ = self.model.render(rays.origins, rays.directions, generator=None)
+        (out.rgb.sum() + out.depth.sum()).backward()
+        self.optimizer.zero_grad(set_to_none=True)
 
     @property
     def t0(self) -> float:
@@ -155,13 +192,22 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> LossTerms:
+        self.prepare()
         c = self.config
         lr = c.optim.lr * c.optim.lr_decay_to ** self._progress()
         for g in self.optimizer.param_groups:
             g["lr"] = lr
         batch = self.sampler.sample(self.rng, c.batch_size, self.available_frames()).to(self.device)
-        out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator)
         sensors = c.sensors
+        rgb_rays = None
+        if c.density_only_depth_rays:
+            has_depth = torch.zeros(len(batch), dtype=torch.bool, device=self.device)
+            if "irs" in sensors:
+                has_depth |= torch.isfinite(batch.irs_range)
+            if "rgbd" in sensors:
+                has_depth |= torch.isfinite(batch.rgbd_range)
+            rgb_rays = ~has_depth
+        out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator, rgb_rays=rgb_rays)
         terms = total_loss(
             c.weights,
             pred_rgb=out.rgb,
@@ -170,6 +216,7 @@ class Trainer:
             irs_depth=batch.irs_range if "irs" in sensors else None,
             uss_range=batch.uss_range if "uss" in sensors else None,
             rgbd_depth=batch.rgbd_range if "rgbd" in sensors else None,
+            rgb_mask=rgb_rays,
         )
         self.optimizer.zero_grad(set_to_none=True)
         terms.total.backward()
@@ -178,40 +225,49 @@ class Trainer:
         self.samples += stats.n_samples
         self._last_samples_per_ray = stats.n_samples / max(1, stats.n_rays)
         if self.step % self._update_interval() == 0:
-            self.grid.update(self.step, self.field.density, self._grid_batch(batch), self.generator)
+            self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator)
         return terms
 
     def _update_interval(self) -> int:
         cfg = self.config.ngp_grid if self.config.grid == "ngp" else self.config.virus_grid
         return cfg.update_interval
 
-    def _grid_batch(self, batch: RayBatch) -> GridUpdateBatch:
-        """IRS rays with a range for the Depth-Update, training rays for the NeRF-Update."""
-        half = self.config.grid_update_rays // 2
-        has_irs = torch.isfinite(batch.irs_range).nonzero().squeeze(1)[:half]
-        nerf = torch.arange(min(half, len(batch)), device=batch.origins.device)
-        _, t_exit = ray_box_interval(batch.origins[nerf], batch.directions[nerf], self.grid.spec, 0.0, math.inf)
-        far = t_exit.clamp(min=0.0).to(batch.origins.dtype)  # (M,) distance to the box exit
+    def _grid_batch(self, batch: RayBatch, stats) -> GridUpdateBatch:
+        """Candidates for one grid update; the grid draws its own share of each at random.
+
+        Depth-Update: every ray with an IRS range. NeRF-Update: every ray of the batch (the whole
+        image, not only the sensor footprints), each to the box exit; plus the forward pass's
+        samples and densities for a grid that reuses them.
+        """
+        has_irs = torch.isfinite(batch.irs_range).nonzero().squeeze(1)
+        _, t_exit = ray_box_interval(batch.origins, batch.directions, self.grid.spec, 0.0, math.inf)
+        far = t_exit.clamp(min=0.0).to(batch.origins.dtype)  # (B,) distance to the box exit
         return GridUpdateBatch(
             depth_origins=batch.origins[has_irs],
             depth_directions=batch.directions[has_irs],
             depth_ranges=batch.irs_range[has_irs],
-            nerf_origins=batch.origins[nerf],
-            nerf_directions=batch.directions[nerf],
+            nerf_origins=batch.origins,
+            nerf_directions=batch.directions,
             nerf_far=far,
+            forward_points=stats.positions,
+            forward_sigma=stats.sigma,
         )
 
     # ------------------------------------------------------------------ evaluation
-    def evaluate(self, with_sensors: bool = True) -> EvaluationResult:
-        """Score the NeRF scan (and the instantaneous sensors) at the test points."""
+    def evaluate(self, with_sensors: bool = True) -> EvaluationResult | None:
+        """Score the NeRF scan (and the instantaneous sensors) at the test points.
+
+        Online, only test points the clock has reached count; None before the first one.
+        """
         cfg = self.config.evaluation
         if self._gt is None:
             self._gt = build_ground_truth(self.recording, cfg)
         gts = self._gt
         if self.config.online:
             clock = self.t0 + self.seconds * self.config.playback_speed
-            seen = [g for g in gts if g.test_point.time <= clock + 1e-9]
-            gts = seen or gts[:1]
+            gts = [g for g in gts if g.test_point.time <= clock + 1e-9]
+            if not gts:
+                return None
         from dataclasses import replace
 
         cfg = cfg if with_sensors else replace(cfg, sensors=())
@@ -242,7 +298,9 @@ class Trainer:
             torch.save(self.state(), tmp)
 
     def load_checkpoint(self, path: Path) -> None:
-        state = torch.load(path, map_location=self.device, weights_only=False)
+        # CPU first: the RNG states must stay CPU byte tensors (Generator.set_state refuses
+        # others); load_state_dict copies the tensors onto the field's and optimiser's device
+        state = torch.load(path, map_location="cpu", weights_only=False)
         self.field.load_state_dict(state["field"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.grid.load_state_dict(state["grid"])
@@ -259,8 +317,11 @@ class Trainer:
         from tqdm import tqdm
 
         c = self.config
+        self.prepare()
         log_path = self.run_dir / "train_log.csv"
         new_log = not log_path.exists()
+        if not new_log:
+            truncate_log(log_path, self.step)  # rows after the checkpoint were trained again
         tb = _tensorboard(self.run_dir / "tensorboard")
         total = c.max_steps if c.max_steps is not None else None
         bar = tqdm(total=total, initial=self.step, disable=self.quiet, unit="step", dynamic_ncols=True)
@@ -284,16 +345,19 @@ class Trainer:
                     bar.set_postfix(loss=f"{row[2]:.4f}", psnr=f"{row[7]:.1f}", t=f"{self.seconds:.0f}s")
                 bar.update(1)
                 if self.seconds >= next_eval and not self._done():
-                    self.record_eval(self.evaluate(with_sensors=False), tb)
+                    result = self.evaluate(with_sensors=False)
+                    if result is not None:
+                        self.record_eval(result, tb)
                     next_eval += c.eval_interval
                 if self.seconds >= next_ckpt:
                     self.save_checkpoint()
                     next_ckpt = self.seconds + c.checkpoint_every
         bar.close()
+        wall_s = since_process_start()
         self.save_checkpoint()
         if tb is not None:
             tb.close()
-        return TrainSummary(self.step, self.seconds, self.samples)
+        return TrainSummary(self.step, self.seconds, self.samples, self.startup_s, wall_s)
 
     def _log_row(self, terms: LossTerms) -> list:
         t = terms.as_floats()
@@ -326,6 +390,16 @@ class Trainer:
                     tb.add_scalar(f"eval/zone3_{k}", entry[k], self.step)
 
 
+def truncate_log(path: Path, step: int) -> None:
+    """Drop the rows of train_log.csv after `step` (a crash after the last checkpoint left them)."""
+    lines = path.read_text().splitlines(keepends=True)
+    keep = lines[:1] + [ln for ln in lines[1:] if ln.strip() and int(ln.split(",", 1)[0]) <= step]
+    if len(keep) != len(lines):
+        from virus_nerf.utils.io import write_text_atomic
+
+        write_text_atomic(path, "".join(keep))
+
+
 def write_eval_history(path: Path, history: list[dict]) -> None:
     if not history:
         return
@@ -352,6 +426,8 @@ def train_summary_block(config: TrainConfig, summary: TrainSummary) -> dict:
         "seconds": round(summary.seconds, 3),
         "steps_per_s": round(summary.steps_per_s, 4),
         "samples_per_s": round(summary.samples_per_s, 1),
+        "startup_s": None if summary.startup_s is None else round(summary.startup_s, 3),
+        "wall_s": None if summary.wall_s is None else round(summary.wall_s, 3),
         "grid": config.grid,
         "sensors": list(config.sensors),
         "seed": config.seed,

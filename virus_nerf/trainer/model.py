@@ -45,28 +45,39 @@ def fit_scene_box(recording: Recording, margin: float = 0.1) -> SceneBox:
 class RenderStats:
     n_rays: int
     n_samples: int
+    positions: torch.Tensor | None = None  # (S, 3) sample points (for a forward-pass NeRF-Update)
+    sigma: torch.Tensor | None = None  # (S,) 1/m at those points, detached
 
 
 class SceneModel:
     """Renders colour, depth and opacity of rays through the field, marching in occupied cells."""
 
     def __init__(self, field: NerfField, grid: OccupancyGrid, step_size: float, near: float, max_samples: int,
-                 min_opacity: float = 0.5):
+                 min_opacity: float = 0.5, backend: str = "auto"):
         self.field = field
         self.grid = grid
         self.step_size = step_size
         self.near = near
         self.max_samples = max_samples
         self.min_opacity = min_opacity
+        self.backend = backend  # marching and compositing kernels (render.marching.resolve_backend)
 
     @property
     def device(self) -> torch.device:
         return next(self.field.parameters()).device
 
     def render(
-        self, origins: torch.Tensor, directions: torch.Tensor, generator: torch.Generator | None = None
+        self,
+        origins: torch.Tensor,
+        directions: torch.Tensor,
+        generator: torch.Generator | None = None,
+        rgb_rays: torch.Tensor | None = None,
     ) -> tuple[RenderOutput, RenderStats]:
-        """origins, directions (R, 3) -> RenderOutput (rgb (R,3), depth (R,), opacity (R,))."""
+        """origins, directions (R, 3) -> RenderOutput (rgb (R,3), depth (R,), opacity (R,)).
+
+        rgb_rays (R,) bool, optional: rays whose colour is needed; the others are rendered for
+        depth only (their rgb is 0 and carries no gradient).
+        """
         samples = march_rays(
             origins,
             directions,
@@ -77,12 +88,18 @@ class SceneModel:
             step_size=self.step_size,
             max_samples_per_ray=self.max_samples,
             jitter=generator,
+            backend=self.backend,
         )
         positions = samples.positions(origins, directions)  # (S, 3)
         dirs = directions[samples.ray_indices]  # (S, 3)
-        sigma, rgb = self.field(positions, dirs)
-        out = composite(sigma, rgb, samples, n_rays=origins.shape[0], background=None)
-        return out, RenderStats(n_rays=origins.shape[0], n_samples=int(samples.ray_indices.shape[0]))
+        rgb_mask = None if rgb_rays is None else rgb_rays[samples.ray_indices]  # (S,)
+        sigma, rgb = self.field(positions, dirs, rgb_mask)
+        out = composite(sigma, rgb, samples, n_rays=origins.shape[0], background=None, backend=self.backend)
+        stats = RenderStats(
+            n_rays=origins.shape[0], n_samples=int(samples.ray_indices.shape[0]),
+            positions=positions.detach(), sigma=sigma.detach(),
+        )
+        return out, stats
 
     @torch.no_grad()
     def ranges(self, origins: np.ndarray, directions: np.ndarray, chunk: int = 8192) -> np.ndarray:

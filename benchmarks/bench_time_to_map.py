@@ -1,0 +1,213 @@
+"""Time to map: zone-3 accuracy and coverage against wall-clock seconds from the command's start.
+
+For each scene (simulated office and common area, seeds no test uses) and each configuration
+variant, one fresh Python process trains exactly as `virus-nerf train` does (imports, reading,
+frame decoding, numba loading and the grid's start-up pass all count) and scores the NeRF's 2D
+scans against the map-based ground truth (design 6; "map" protocol) when the wall clock passes
+each checkpoint. Evaluation time is excluded from the clock (the run pauses while it is scored).
+
+Modes:
+- curve (default): one run per (scene, variant) with a wall budget of the last checkpoint, scored
+  at every checkpoint (the learning-rate schedule spans the whole budget);
+- --separate: one run per checkpoint with that wall budget, i.e. what `train` gives a user who
+  asks for that much time (slower: the budgets add up).
+
+Writes one JSON document (and a PNG plot with --plot):
+
+    .venv/bin/python benchmarks/bench_time_to_map.py --out benchmarks/results/time_to_map.json \
+        --plot benchmarks/results/time_to_map.png
+    .venv/bin/python benchmarks/bench_time_to_map.py --scenes office --checkpoints 15,30,60 \
+        --variant 'paper-warmup={"virus_grid": {"init": "none"}}'
+
+A variant is NAME=JSON: a partial TrainConfig (as in config.json) applied over the defaults.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_DATA = HERE / ".data"
+SCENES = {"office": 41, "common": 41}  # scene -> simulation seed (no test uses 41)
+DRIVE_S = 60.0  # seconds of simulated drive, as in the ablation
+TARGETS = {"office": (60.0, 0.18, 0.25), "common": (180.0, 0.50, 0.60)}  # wall s, acc, cov (issue 10)
+
+
+def _merge(base: dict, patch: dict) -> dict:
+    out = dict(base)
+    for k, v in patch.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def child(args: argparse.Namespace) -> None:
+    """One training process: prints one JSON line with the curve."""
+    import dataclasses
+    import time
+
+    import virus_nerf  # noqa: F401
+    from virus_nerf.cli import _keep_large_allocations
+    from virus_nerf.utils.clock import since_process_start  # first: the clock reads /proc
+
+    _keep_large_allocations()
+    from virus_nerf.config_io import from_dict, to_dict
+    from virus_nerf.data.ethz import load_recording
+    from virus_nerf.trainer.config import TrainConfig
+    from virus_nerf.trainer.loop import Trainer
+
+    checkpoints = [float(c) for c in args.checkpoints.split(",")]
+    cfg = from_dict(TrainConfig, _merge(to_dict(TrainConfig()), json.loads(args.config)), "variant")
+    cfg = dataclasses.replace(cfg, seed=args.train_seed, max_steps=None, max_time=checkpoints[-1])
+    recording = load_recording(args.data, args.room)
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = Trainer(recording, cfg, Path(tmp), quiet=True)
+        trainer.prepare()
+        startup = since_process_start()
+        # the training budget is what is left of the wall budget after start-up
+        trainer.config = dataclasses.replace(cfg, max_time=max(1e-3, checkpoints[-1] - startup))
+        eval_s = 0.0
+        points = []
+        last_steps, last_samples = 0, 0
+        for cp in checkpoints:
+            while since_process_start() - eval_s < cp:
+                t0 = time.perf_counter()
+                trainer.train_step()
+                trainer.seconds += time.perf_counter() - t0
+            wall = since_process_start() - eval_s
+            t0 = time.perf_counter()
+            result = trainer.evaluate(with_sensors=False)
+            eval_s += time.perf_counter() - t0
+            z3 = result.metrics["NeRF"].zones["zone3"]
+            d_steps, d_samples = trainer.step - last_steps, trainer.samples - last_samples
+            points.append({
+                "checkpoint_s": cp, "wall_s": round(wall, 2), "steps": trainer.step,
+                "train_s": round(trainer.seconds, 2),
+                "steps_per_s": round(trainer.step / trainer.seconds, 3) if trainer.seconds else None,
+                "samples_per_s": round(trainer.samples / trainer.seconds) if trainer.seconds else None,
+                "samples_per_ray": round(d_samples / max(1, d_steps * cfg.batch_size), 1),
+                "occupied_share": round(trainer.grid.occupancy_share(), 4),
+                "acc_mean": z3.acc_mean, "cov_mean": z3.cov_mean,
+                "acc_inlier": z3.acc_inlier, "cov_inlier": z3.cov_inlier,
+            })
+            last_steps, last_samples = trainer.step, trainer.samples
+    print(json.dumps({"startup_s": round(startup, 2), "grid_init_s": round(trainer.grid_init_s, 2),
+                      "eval_s": round(eval_s, 1), "points": points}))
+
+
+def ensure_data(root: Path, scene: str) -> Path:
+    data = root / f"{scene}{SCENES[scene]}"
+    if not data.exists():
+        from virus_nerf.sim.command import simulate
+
+        print(f"simulating {scene} (seed {SCENES[scene]}) -> {data}", file=sys.stderr)
+        simulate(scene=scene, out=data, seed=SCENES[scene], duration=DRIVE_S, resolution_scale=0.5)
+    return data
+
+
+def run_child(data: Path, scene: str, config: str, checkpoints: list[float], train_seed: int) -> dict:
+    cmd = [sys.executable, __file__, "--child", "--data", str(data), "--room", scene, "--config", config,
+           "--checkpoints", ",".join(str(c) for c in checkpoints), "--train-seed", str(train_seed)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"benchmark run failed ({scene}, {config}):\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def plot(doc: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(doc["scenes"])
+    fig, axes = plt.subplots(len(scenes), 2, figsize=(10, 3.3 * len(scenes)), squeeze=False)
+    for i, scene in enumerate(scenes):
+        for j, key in enumerate(("acc_mean", "cov_mean")):
+            ax = axes[i, j]
+            for name, run in doc["scenes"][scene].items():
+                pts = [p for p in run["points"] if p[key] is not None]
+                ax.plot([p["wall_s"] for p in pts], [p[key] for p in pts], marker="o", ms=3, label=name)
+            t, acc, cov = TARGETS[scene]
+            ax.scatter([t], [acc if key == "acc_mean" else cov], marker="*", s=120, color="k", zorder=3,
+                       label="target")
+            ax.set_xlabel("wall clock from the command's start [s]")
+            ax.set_ylabel(f"zone 3 {key.replace('_', ' ')} [m]")
+            ax.set_title(f"{scene}: {key.split('_')[0]}uracy" if key == "acc_mean" else f"{scene}: coverage")
+            ax.set_ylim(bottom=0)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", default="office,common")
+    ap.add_argument("--checkpoints", default="15,30,60,120,180", help="wall-clock seconds, ascending")
+    ap.add_argument("--variant", action="append", default=[], help="NAME=JSON partial config (repeatable)")
+    ap.add_argument("--no-default", action="store_true", help="do not run the default configuration")
+    ap.add_argument("--separate", action="store_true", help="one run per checkpoint (a user's --max-time)")
+    ap.add_argument("--train-seed", type=int, default=0)
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="where the simulated rooms are kept")
+    ap.add_argument("--out", type=Path, help="JSON document (default: print)")
+    ap.add_argument("--plot", type=Path)
+    # internal: one training process
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--room", help=argparse.SUPPRESS)
+    ap.add_argument("--config", default="{}", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        child(args)
+        return
+    variants = {} if args.no_default else {"default": "{}"}
+    for v in args.variant:
+        name, _, patch = v.partition("=")
+        json.loads(patch)  # fail early on a typo
+        variants[name] = patch
+    checkpoints = sorted(float(c) for c in args.checkpoints.split(","))
+    doc: dict = {
+        "benchmark": "time_to_map",
+        "ground_truth": "map (LiDAR map slice, solid 3 cm voxels; design 6)",
+        "zone": "zone3 (0-100 m)",
+        "mode": "separate" if args.separate else "curve",
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "train_seed": args.train_seed,
+        "scenes": {},
+    }
+    for scene in args.scenes.split(","):
+        data = ensure_data(args.data, scene)
+        doc["scenes"][scene] = {}
+        for name, patch in variants.items():
+            print(f"{scene} / {name} ...", file=sys.stderr, flush=True)
+            if args.separate:
+                runs = [run_child(data, scene, patch, [cp], args.train_seed) for cp in checkpoints]
+                res = {"startup_s": [r["startup_s"] for r in runs], "points": [r["points"][0] for r in runs]}
+            else:
+                res = run_child(data, scene, patch, checkpoints, args.train_seed)
+            res["config"] = json.loads(patch)
+            res["simulation_seed"] = SCENES[scene]
+            doc["scenes"][scene][name] = res
+            last = res["points"][-1]
+            print(f"  startup {res['startup_s']} s; at {last['wall_s']} s: acc {last['acc_mean']:.3f} "
+                  f"cov {last['cov_mean']:.3f} m, {last['steps']} steps, {last['steps_per_s']} steps/s",
+                  file=sys.stderr, flush=True)
+    text = json.dumps(doc, indent=2)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+    else:
+        print(text)
+    if args.plot:
+        plot(doc, args.plot)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,49 @@
+"""Whole-frame sensor rays of the training frames: every IRS zone and the USS cone as world rays.
+
+The batch sampler draws camera pixels; the grid's start-up pass (VirusGrid.initialise) wants
+every reading of the recording once instead, each IRS zone covered by a few rays so that its
+footprint reaches every cell it spans.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from virus_nerf.grid.base import SensorRays
+from virus_nerf.sampler.frames import FrameStore
+from virus_nerf.sensors import irs, uss
+
+
+def _world_rays(store: FrameStore, frames: np.ndarray, dirs_cam: np.ndarray, ranges: np.ndarray) -> SensorRays:
+    """frames (F,), camera-frame unit directions (K, 3), ranges (F, K) m -> F*K world rays."""
+    pose = store.cam_to_world[frames]  # (F, 4, 4)
+    dirs = np.einsum("fij,kj->fki", pose[:, :3, :3], dirs_cam)  # (F, K, 3)
+    origins = np.broadcast_to(pose[:, None, :3, 3], dirs.shape)
+    return SensorRays(
+        origins=torch.from_numpy(np.ascontiguousarray(origins.reshape(-1, 3), dtype=np.float32)),
+        directions=torch.from_numpy(np.ascontiguousarray(dirs.reshape(-1, 3), dtype=np.float32)),
+        ranges=torch.from_numpy(np.ascontiguousarray(ranges.reshape(-1), dtype=np.float32)),
+    )
+
+
+def irs_zone_rays(store: FrameStore, frames: np.ndarray | None = None, samples_per_axis: int = 3) -> SensorRays:
+    """samples_per_axis^2 rays per IRS zone of each frame, range = distance along the ray (m).
+
+    The zone's z-depth becomes z / d_z along each sub-ray; invalid zones give NaN ranges (use
+    `SensorRays.valid()` to drop them).
+    """
+    frames = np.arange(len(store)) if frames is None else np.asarray(frames)
+    s2 = samples_per_axis * samples_per_axis
+    dirs_cam = irs.zone_directions(samples_per_axis).reshape(-1, 3)  # (64 s^2, 3), zone-major
+    z = store.irs_range[frames].reshape(len(frames), irs.IRS_ZONES * irs.IRS_ZONES)  # (F, 64)
+    ranges = np.repeat(z, s2, axis=1) / dirs_cam[None, :, 2]  # (F, 64 s^2)
+    return _world_rays(store, frames, dirs_cam, ranges)
+
+
+def uss_cone_rays(store: FrameStore, frames: np.ndarray | None = None, n_h: int = 12, n_v: int = 8) -> SensorRays:
+    """Rays on an angular grid inside each frame's USS cone, range = the echo (radial, m; NaN = none)."""
+    frames = np.arange(len(store)) if frames is None else np.asarray(frames)
+    dirs_cam = uss.cone_directions(n_h, n_v)  # (K, 3)
+    ranges = np.repeat(store.uss_range[frames][:, None], len(dirs_cam), axis=1)  # (F, K)
+    return _world_rays(store, frames, dirs_cam, ranges)
