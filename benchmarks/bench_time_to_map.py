@@ -95,6 +95,7 @@ def child(args: argparse.Namespace) -> None:
                 "occupied_share": round(trainer.grid.occupancy_share(), 4),
                 "acc_mean": z3.acc_mean, "cov_mean": z3.cov_mean,
                 "acc_inlier": z3.acc_inlier, "cov_inlier": z3.cov_inlier,
+                "acc_too_close": z3.acc_too_close, "acc_too_far": z3.acc_too_far,
             })
             last_steps, last_samples = trainer.step, trainer.samples
     print(json.dumps({"startup_s": round(startup, 2), "grid_init_s": round(trainer.grid_init_s, 2),

@@ -360,3 +360,11 @@ def test_forward_samples_update_the_cells_they_lie_in():
     assert grid.logodds[1, 1, 1].item() == pytest.approx(L_INIT + (inc[0] + inc[1]) / 2, abs=1e-6)
     assert grid.logodds[8, 8, 8].item() == pytest.approx(L_INIT + inc[2], abs=1e-6)
     assert (grid.logodds != torch.tensor(L_INIT, dtype=torch.float32)).sum() == 2
+
+
+def test_fixed_threshold_does_not_follow_a_thin_mean():
+    rays = (torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([1.0]))
+    for mode, expected in (("mean", L_INIT), ("fixed", L_INIT + 0.25 * math.log(0.5 / (-math.log(0.99) / 0.01)))):
+        grid = VirusGrid(CUBE, VirusGridConfig(max_resolution=10, pos_noise_per_m=0.0, threshold_mode=mode))
+        grid.nerf_update(lambda p: torch.full((p.shape[0],), 0.5), *rays, torch.Generator().manual_seed(0))
+        assert torch.allclose(grid.logodds[:, 5, 5], torch.tensor(expected, dtype=torch.float32)), mode

@@ -104,3 +104,30 @@ def test_total_loss_weights_each_term_and_skips_absent_sensors():
     camera_only = total_loss(w, pred_rgb, target_rgb, pred_depth)
     assert camera_only.total.item() == pytest.approx(0.5)
     assert camera_only.irs.item() == camera_only.uss.item() == camera_only.rgbd.item() == 0.0
+
+
+def test_distortion_loss_hand_computed_and_gradient_matches_the_double_sum():
+    from virus_nerf.losses import distortion_loss
+
+    # ray 0: two samples [1, 2] and [4, 5] with weights 0.5, 0.25; ray 1: none; ray 2: one [2, 2.5]
+    t0 = torch.tensor([1.0, 4.0, 2.0])
+    t1 = torch.tensor([2.0, 5.0, 2.5])
+    offsets = torch.tensor([0, 2, 2, 3])
+    w = torch.tensor([0.5, 0.25, 0.8], dtype=torch.float64, requires_grad=True)
+    loss = distortion_loss(w, t0, t1, offsets)
+    ray0 = 2 * 0.5 * 0.25 * 3.0 + (0.25 * 1.0 + 0.0625 * 1.0) / 3
+    ray2 = 0.64 * 0.5 / 3
+    assert loss.item() == pytest.approx((ray0 + ray2) / 3)
+    loss.backward()
+    # reference: the O(n^2) definition, written out
+    w2 = w.detach().clone().requires_grad_(True)
+    m = (t0 + t1).double() / 2
+    d = (t1 - t0).double()
+    ref = 0
+    for lo, hi in ((0, 2), (2, 2), (2, 3)):
+        for i in range(lo, hi):
+            for j in range(lo, hi):
+                ref = ref + w2[i] * w2[j] * (m[i] - m[j]).abs()
+            ref = ref + w2[i] ** 2 * d[i] / 3
+    (ref / 3).backward()
+    torch.testing.assert_close(w.grad, w2.grad)

@@ -82,6 +82,10 @@ class VirusGridConfig:
     threshold_step: float = 0.01  # sigma_T_max: density at which a step of this many metres ...
     threshold_alpha: float = 0.01  # ... has this alpha (the Instant-NGP convention, design 3.3)
     sigma_floor: float = 1e-6  # 1/m, keeps ln(sigma) finite
+    # sigma_T: "mean" = min(sigma_T_max, mean density of the update's points) (paper eq. 9);
+    # "fixed" = sigma_T_max. Where most of the space is empty the mean falls far below
+    # sigma_T_max and any cell denser than average is kept occupied (haze becomes occupied).
+    threshold_mode: Literal["mean", "fixed"] = "mean"
 
     def __post_init__(self) -> None:
         checks = {
@@ -108,6 +112,7 @@ class VirusGridConfig:
             "threshold_step": self.threshold_step > 0.0,
             "threshold_alpha": 0.0 < self.threshold_alpha < 1.0,
             "sigma_floor": self.sigma_floor > 0.0,
+            "threshold_mode": self.threshold_mode in ("mean", "fixed"),
         }
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
@@ -307,7 +312,7 @@ class VirusGrid(OccupancyGrid):
 
         P points per ray at t ~ U(0, far), jittered by N(0, (pos_noise_per_m t)^2) per axis;
         points outside the box are dropped, the rest evaluated by `density_fn` without gradient.
-        sigma_T = min(sigma_T_max, mean sigma of these points). Several points in one cell count
+        sigma_T = min(sigma_T_max, mean sigma of these points) (threshold_mode "fixed": sigma_T_max). Several points in one cell count
         as one measurement: the cell gets the mean of their increments, so a cell's evidence does
         not depend on how many rays happen to cross it (cells near the cameras would otherwise
         get most of it).
@@ -356,7 +361,9 @@ class VirusGrid(OccupancyGrid):
             info = NerfUpdateInfo(n_drawn=n_drawn, n_points=0, sigma_threshold=float("nan"), n_cells=0)
             self.last_nerf_update = info
             return info
-        sigma_t = min(c.sigma_threshold_max, float(sigma.mean()))
+        sigma_t = c.sigma_threshold_max
+        if c.threshold_mode == "mean":
+            sigma_t = min(sigma_t, float(sigma.mean()))
         inc = nerf_log_odds(sigma, sigma_t, c.zeta, c.max_increment, c.sigma_floor)
         # per-cell mean increment; bincount sums sequentially, so this is deterministic
         uniq, inv = np.unique(cells, return_inverse=True)

@@ -5,8 +5,9 @@ from virus_nerf.losses.terms import (
     LossWeights,
     colour_loss,
     depth_loss,
+    distortion_loss,
     total_loss,
     uss_loss,
 )
 
-__all__ = ["LossTerms", "LossWeights", "colour_loss", "depth_loss", "total_loss", "uss_loss"]
+__all__ = ["LossTerms", "LossWeights", "colour_loss", "depth_loss", "distortion_loss", "total_loss", "uss_loss"]

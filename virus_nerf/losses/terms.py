@@ -58,6 +58,36 @@ def uss_loss(pred_depth: torch.Tensor, echo_range: torch.Tensor, eps: float = 0.
     return _masked_mean(per_ray, valid)
 
 
+def distortion_loss(weights: torch.Tensor, t_starts: torch.Tensor, t_ends: torch.Tensor,
+                    ray_offsets: torch.Tensor) -> torch.Tensor:
+    """Mean over rays of the interval distortion of mip-NeRF 360 (Barron et al. 2022), in metres.
+
+    Per ray: sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 d_i, with m the interval midpoints and
+    d their lengths. Small when a ray's weight sits in one short stretch (one surface), large
+    when it is spread along the ray (floaters in front of a wall). Packed samples sorted by ray
+    and distance: weights, t_starts, t_ends (S,), ray_offsets (R + 1,). The double sum is
+    2 sum_i w_i (m_i W_i - M_i) with W_i, M_i the sums of w and w m over the ray's samples
+    before i (exclusive prefix sums, taken globally and rebased at each ray's first sample).
+    """
+    n_rays = ray_offsets.shape[0] - 1
+    if weights.numel() == 0:
+        return weights.sum() * 0.0
+    w = weights.to(torch.float64)
+    m = ((t_starts + t_ends) * 0.5).to(torch.float64)
+    d = (t_ends - t_starts).to(torch.float64)
+    counts = ray_offsets[1:] - ray_offsets[:-1]  # (R,)
+    ray = torch.repeat_interleave(torch.arange(n_rays, device=w.device), counts)  # (S,)
+    start = ray_offsets[:-1][ray]  # (S,) first sample of each sample's ray
+
+    def exclusive_in_ray(x: torch.Tensor) -> torch.Tensor:
+        c = torch.cumsum(x, 0) - x  # global exclusive prefix sum
+        return c - c[start]
+
+    inter = 2.0 * (w * (m * exclusive_in_ray(w) - exclusive_in_ray(w * m))).sum()
+    intra = (w * w * d).sum() / 3.0
+    return ((inter + intra) / max(1, n_rays)).to(weights.dtype)
+
+
 def _check_same(pred: torch.Tensor, target: torch.Tensor, name: str) -> None:
     if pred.shape != target.shape or pred.dim() != 1:
         raise ValueError(f"{name}: pred {tuple(pred.shape)} and target {tuple(target.shape)} must both be (R,)")
@@ -75,6 +105,7 @@ class LossWeights:
     irs: float = 0.5
     uss: float = 0.5
     rgbd: float = 1.0
+    distortion: float = 0.0  # interval distortion (m) on every ray; 0 = off (the paper has none)
 
 
 @dataclass(frozen=True)
@@ -86,6 +117,7 @@ class LossTerms:
     uss: torch.Tensor
     rgbd: torch.Tensor
     total: torch.Tensor
+    distortion: torch.Tensor | None = None  # unweighted, when the term is on
 
     def as_floats(self) -> dict[str, float]:
         """Plain floats for logging."""

@@ -304,7 +304,7 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         # the map and test points are judged in the true (optimised) frame
         trainer.recording = eval_recording
         trainer._gt = None
-    result = trainer.evaluate(with_sensors=True)
+    result = _final_evaluation(trainer, out)
     trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
     write_run_plots(out, result, trainer.eval_history, replace=resume)  # plots first: metrics.json marks the end
     doc = write_run_metrics(out, result, cfg, summary)
@@ -426,9 +426,23 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None) -> N
     if n_rays is not None:
         cfg = dataclasses.replace(cfg, evaluation=dataclasses.replace(cfg.evaluation, n_rays=n_rays))
         trainer.config = cfg
-    result = trainer.evaluate(with_sensors=True)
+    result = _final_evaluation(trainer, run)
     summary = TrainSummary(trainer.step, trainer.seconds, trainer.samples)
     write_plots(result, plots_dir_for(out), max_maps=8)
     result.write_json(out, train=train_summary_block(cfg, summary))
     print(result.table())
     print(f"wrote {out} and {plots_dir_for(out)}/")
+
+
+def _final_evaluation(trainer, run: Path):
+    """The run's evaluation with the instantaneous sensors; online, only test points the drive
+    has reached count, and a run stopped before the first one has nothing to score."""
+    from virus_nerf.errors import UsageError
+
+    result = trainer.evaluate(with_sensors=True)
+    if result is None:
+        raise UsageError(
+            f"{run}: the online run stopped at step {trainer.step} before the drive reached its first "
+            "test point; there is nothing to score (train longer)"
+        )
+    return result

@@ -9,6 +9,7 @@ a --max-time bound depends on the machine's speed, as any time budget does.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import sys
 import time
@@ -25,7 +26,7 @@ from virus_nerf.field.field import NerfField
 from virus_nerf.grid.base import GridSpec, GridUpdateBatch, OccupancyGrid
 from virus_nerf.grid.ngp import NgpGrid
 from virus_nerf.grid.virus import VirusGrid
-from virus_nerf.losses import LossTerms, total_loss
+from virus_nerf.losses import LossTerms, distortion_loss, total_loss
 from virus_nerf.render.marching import ray_box_interval
 from virus_nerf.sampler.batch import BatchSampler, RayBatch
 from virus_nerf.sampler.frames import build_frame_store
@@ -218,6 +219,10 @@ class Trainer:
             rgbd_depth=batch.rgbd_range if "rgbd" in sensors else None,
             rgb_mask=rgb_rays,
         )
+        if c.weights.distortion > 0:
+            smp = stats.samples
+            ld = distortion_loss(out.weights, smp.t_starts, smp.t_ends, smp.ray_offsets)
+            terms = dataclasses.replace(terms, total=terms.total + c.weights.distortion * ld, distortion=ld)
         self.optimizer.zero_grad(set_to_none=True)
         terms.total.backward()
         self.optimizer.step()

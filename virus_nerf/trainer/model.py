@@ -16,6 +16,7 @@ from virus_nerf.field.field import NerfField
 from virus_nerf.grid.base import OccupancyGrid
 from virus_nerf.render.compositing import RenderOutput, composite, scan_depth
 from virus_nerf.render.marching import march_rays
+from virus_nerf.render.samples import PackedSamples
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.sensors import irs
 
@@ -47,6 +48,7 @@ class RenderStats:
     n_samples: int
     positions: torch.Tensor | None = None  # (S, 3) sample points (for a forward-pass NeRF-Update)
     sigma: torch.Tensor | None = None  # (S,) 1/m at those points, detached
+    samples: PackedSamples | None = None  # the marched intervals (for losses on the weights)
 
 
 class SceneModel:
@@ -97,7 +99,7 @@ class SceneModel:
         out = composite(sigma, rgb, samples, n_rays=origins.shape[0], background=None, backend=self.backend)
         stats = RenderStats(
             n_rays=origins.shape[0], n_samples=int(samples.ray_indices.shape[0]),
-            positions=positions.detach(), sigma=sigma.detach(),
+            positions=positions.detach(), sigma=sigma.detach(), samples=samples,
         )
         return out, stats
 
