@@ -30,3 +30,17 @@ def uss_bench_dir() -> Path:
     if not USS_BENCH.is_dir():
         pytest.skip(f"USS bench data not found at {USS_BENCH}")
     return USS_BENCH
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _frame_cache_in_tmp(tmp_path_factory):
+    """Decoded-frame cache of the test session in a temporary folder, not the user's ~/.cache."""
+    import os
+
+    old = os.environ.get("VIRUS_NERF_CACHE_DIR")
+    os.environ["VIRUS_NERF_CACHE_DIR"] = str(tmp_path_factory.mktemp("frame_cache"))
+    yield
+    if old is None:
+        os.environ.pop("VIRUS_NERF_CACHE_DIR", None)
+    else:
+        os.environ["VIRUS_NERF_CACHE_DIR"] = old

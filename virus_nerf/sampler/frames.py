@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.data.ethz import Recording
+from virus_nerf.sampler import frame_cache
 from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics, pixel_directions
 
@@ -94,27 +95,12 @@ def _resize_depth_mm(depth_m: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return mm.astype(np.uint16)
 
 
-def build_frame_store(
-    recording: Recording,
-    labels: tuple[str, ...] = ("train",),
-    image_scale: float = 0.5,
-    with_depth: bool = False,
-    cache_dir: Path | None = None,
-    mmap_above_bytes: int = 1 << 30,
-    progress: bool = False,
-) -> FrameStore:
-    """Decode the frames with the given split labels of every stack, at `image_scale`."""
-    entries = [
-        (s, int(i)) for s, stack in sorted(recording.stacks.items()) for i in np.flatnonzero(np.isin(stack.split, labels))
-    ]
-    intrinsics = {s: st.intrinsics.scaled(image_scale) for s, st in recording.stacks.items()}
-    sizes = {(i.width, i.height) for i in intrinsics.values()}
-    if len(sizes) != 1:
-        raise ValueError(f"all stacks must share one image size, got {sizes}")
-    width, height = sizes.pop()
+def _decode(recording: Recording, entries: list[tuple[int, int]], size: tuple[int, int], with_depth: bool,
+            cache_dir: Path | None, mmap_above_bytes: int, progress: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """Decode and resize every (stack, row) entry: images (F, H, W, 3) uint8, depths (F, H, W) uint16."""
+    width, height = size
     n = len(entries)
-    nbytes = n * height * width * 3
-    if cache_dir is not None and nbytes > mmap_above_bytes:
+    if cache_dir is not None and n * height * width * 3 > mmap_above_bytes:
         cache_dir.mkdir(parents=True, exist_ok=True)
         images = np.lib.format.open_memmap(cache_dir / "images.npy", mode="w+", dtype=np.uint8, shape=(n, height, width, 3))
     else:
@@ -131,6 +117,45 @@ def build_frame_store(
         images[f] = _resize_rgb(stack.image(i), (width, height))
         if depths is not None:
             depths[f] = _resize_depth_mm(stack.depth(i), (width, height))
+    return images, depths
+
+
+def build_frame_store(
+    recording: Recording,
+    labels: tuple[str, ...] = ("train",),
+    image_scale: float = 0.5,
+    with_depth: bool = False,
+    cache_dir: Path | None = None,
+    mmap_above_bytes: int = 1 << 30,
+    progress: bool = False,
+    use_cache: bool = True,
+) -> FrameStore:
+    """Decode the frames with the given split labels of every stack, at `image_scale`.
+
+    With `use_cache`, decoded frames are read from / written to the user cache across runs
+    (sampler.frame_cache); otherwise, above `mmap_above_bytes` they are memory-mapped from
+    `cache_dir`.
+    """
+    entries = [
+        (s, int(i)) for s, stack in sorted(recording.stacks.items()) for i in np.flatnonzero(np.isin(stack.split, labels))
+    ]
+    intrinsics = {s: st.intrinsics.scaled(image_scale) for s, st in recording.stacks.items()}
+    sizes = {(i.width, i.height) for i in intrinsics.values()}
+    if len(sizes) != 1:
+        raise ValueError(f"all stacks must share one image size, got {sizes}")
+    width, height = sizes.pop()
+    n = len(entries)
+    files = [recording.stacks[s].image_paths[i] for s, i in entries]
+    if with_depth:
+        files += [recording.stacks[s].depth_paths[i] for s, i in entries]
+    key = frame_cache.frames_key(files, (width, height), with_depth) if use_cache and n else None
+    cached = frame_cache.load_frames(key) if key is not None else None
+    if cached is not None and cached[0].shape == (n, height, width, 3):
+        images, depths = cached
+    else:
+        images, depths = _decode(recording, entries, (width, height), with_depth, cache_dir, mmap_above_bytes, progress)
+        if key is not None:
+            frame_cache.store_frames(key, images, depths)
     stack_ids = np.array([s for s, _ in entries], dtype=np.int64)
     rows = np.array([i for _, i in entries], dtype=np.int64)
     return FrameStore(
