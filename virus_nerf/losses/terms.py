@@ -105,7 +105,9 @@ class LossWeights:
     irs: float = 0.5
     uss: float = 0.5
     rgbd: float = 1.0
-    distortion: float = 0.0  # interval distortion (m) on every ray; 0 = off (the paper has none)
+    # interval distortion (m) on every ray against haze along rays; the paper has none. Alone at
+    # 0.01 it made the common area worse (README, time to map), so it is off by default.
+    distortion: float = 0.0
 
 
 @dataclass(frozen=True)
