@@ -68,7 +68,10 @@ def child(args: argparse.Namespace) -> None:
     recording = load_recording(args.data, args.room)
     with tempfile.TemporaryDirectory() as tmp:
         trainer = Trainer(recording, cfg, Path(tmp), quiet=True)
-        trainer.prepare()
+        if hasattr(trainer, "prepare"):
+            trainer.prepare()
+        else:  # a trainer from before start-up left the training clock (for before/after runs)
+            _ = trainer.sampler
         startup = since_process_start()
         # the training budget is what is left of the wall budget after start-up
         trainer.config = dataclasses.replace(cfg, max_time=max(1e-3, checkpoints[-1] - startup))
@@ -98,7 +101,7 @@ def child(args: argparse.Namespace) -> None:
                 "acc_too_close": z3.acc_too_close, "acc_too_far": z3.acc_too_far,
             })
             last_steps, last_samples = trainer.step, trainer.samples
-    print(json.dumps({"startup_s": round(startup, 2), "grid_init_s": round(trainer.grid_init_s, 2),
+    print(json.dumps({"startup_s": round(startup, 2), "grid_init_s": round(getattr(trainer, "grid_init_s", 0.0), 2),
                       "eval_s": round(eval_s, 1), "points": points}))
 
 

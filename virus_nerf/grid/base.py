@@ -126,10 +126,37 @@ class GridUpdateBatch:
     forward_sigma: torch.Tensor | None = None  # (S,) 1/m, detached
 
 
+@dataclass(frozen=True)
+class SensorPriorRequest:
+    """What a grid wants before the first step: every training IRS zone as `zone_samples`^2
+    rays, and the USS cones as free-space rays when `uss_free`."""
+
+    zone_samples: int
+    uss_free: bool
+
+
 class OccupancyGrid(ABC):
-    """A grid of cells over the scene box; `occupied` is what the ray marcher reads."""
+    """A grid of cells over the scene box; `occupied` is what the ray marcher reads.
+
+    The grid owns its update: how often (`update_interval`, training steps), how many rays and
+    which kinds (its config), and whether it wants a sensor prior before step 0."""
 
     spec: GridSpec
+    config: object  # the grid's own config dataclass
+
+    @property
+    def update_interval(self) -> int:
+        """Training steps between two calls of `update`."""
+        return int(self.config.update_interval)
+
+    @property
+    def prior_request(self) -> SensorPriorRequest | None:
+        """Sensor rays wanted by `initialise` before the first step; None = no prior."""
+        return None
+
+    def initialise(self, depth: SensorRays | None, free: SensorRays | None = None) -> int:
+        """Prior evidence before the first step (see `prior_request`); returns cell increments."""
+        return 0
 
     @property
     @abstractmethod

@@ -132,12 +132,13 @@ class Trainer:
         if self._prepared:
             return
         _ = self.sampler
-        if self.step == 0 and isinstance(self.grid, VirusGrid) and self.grid.config.init == "sensors":
+        want = self.grid.prior_request
+        if self.step == 0 and want is not None:
             t0 = time.perf_counter()
             frames = self.available_frames()
-            gcfg = self.grid.config
-            depth = irs_zone_rays(self.store, frames, gcfg.init_zone_samples).valid() if "irs" in self.config.sensors else None
-            free = uss_cone_rays(self.store, frames).valid() if gcfg.init_uss_free and "uss" in self.config.sensors else None
+            sensors = self.config.sensors
+            depth = irs_zone_rays(self.store, frames, want.zone_samples).valid() if "irs" in sensors else None
+            free = uss_cone_rays(self.store, frames).valid() if want.uss_free and "uss" in sensors else None
             self.grid.initialise(depth, free)
             self.grid_init_s = time.perf_counter() - t0
         self._warm_kernels()
@@ -229,13 +230,9 @@ class Trainer:
         self.step += 1
         self.samples += stats.n_samples
         self._last_samples_per_ray = stats.n_samples / max(1, stats.n_rays)
-        if self.step % self._update_interval() == 0:
+        if self.step % self.grid.update_interval == 0:
             self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator)
         return terms
-
-    def _update_interval(self) -> int:
-        cfg = self.config.ngp_grid if self.config.grid == "ngp" else self.config.virus_grid
-        return cfg.update_interval
 
     def _grid_batch(self, batch: RayBatch, stats) -> GridUpdateBatch:
         """Candidates for one grid update; the grid draws its own share of each at random.
