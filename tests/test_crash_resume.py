@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from test_trainer import small_config
+
 from virus_nerf.config_io import to_dict
 
 
