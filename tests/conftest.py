@@ -26,6 +26,16 @@ def sample_recording(sample_dir):
 
 
 @pytest.fixture(scope="session")
+def tiny_office(tmp_path_factory) -> Path:
+    """A 3 s simulated office drive at quarter resolution, shared read-only by the trainer tests."""
+    from virus_nerf.sim.command import simulate
+
+    out = tmp_path_factory.mktemp("sim") / "office_data"
+    simulate(scene="office", out=out, seed=3, duration=3.0, resolution_scale=0.25)
+    return out
+
+
+@pytest.fixture(scope="session")
 def uss_bench_dir() -> Path:
     if not USS_BENCH.is_dir():
         pytest.skip(f"USS bench data not found at {USS_BENCH}")

@@ -18,15 +18,6 @@ from test_trainer import small_config
 from virus_nerf.config_io import to_dict
 
 
-@pytest.fixture(scope="module")
-def tiny_office(tmp_path_factory) -> Path:
-    from virus_nerf.sim.command import simulate
-
-    out = tmp_path_factory.mktemp("sim") / "office_data"
-    simulate(scene="office", out=out, seed=3, duration=3.0, resolution_scale=0.25)
-    return out
-
-
 def _train(args: list[str], env: dict) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "virus_nerf.cli", "train", *args], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)

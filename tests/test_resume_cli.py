@@ -24,15 +24,6 @@ from virus_nerf.trainer.config import MarchConfig, TrainConfig
 PREFIX = "virus-nerf: error: "
 
 
-@pytest.fixture(scope="module")
-def tiny_office(tmp_path_factory) -> Path:
-    from virus_nerf.sim.command import simulate
-
-    out = tmp_path_factory.mktemp("sim") / "office_data"
-    simulate(scene="office", out=out, seed=3, duration=3.0, resolution_scale=0.25)
-    return out
-
-
 def small_config(**changes) -> TrainConfig:
     base = TrainConfig(
         max_steps=5, max_time=None, batch_size=128, image_scale=1.0, log_every=2,

@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,15 +20,6 @@ from virus_nerf.trainer.loop import Trainer
 
 METRIC_KEYS = {"acc_mean", "acc_median", "acc_inlier", "acc_too_close", "acc_too_far", "cov_mean", "cov_median",
                "cov_inlier", "cov_too_close", "cov_too_far", "n_pred", "n_gt"}
-
-
-@pytest.fixture(scope="module")
-def tiny_office(tmp_path_factory) -> Path:
-    from virus_nerf.sim.command import simulate
-
-    out = tmp_path_factory.mktemp("sim") / "office_data"
-    simulate(scene="office", out=out, seed=3, duration=3.0, resolution_scale=0.25)
-    return out
 
 
 def small_config(**changes) -> TrainConfig:
