@@ -260,3 +260,17 @@ def test_metrics_record_start_up_and_wall_clock(tiny_office, tmp_path):
     t = doc["train"]
     assert 0 < t["startup_s"] < t["wall_s"]
     assert t["seconds"] <= t["wall_s"] - t["startup_s"] + 1e-3, "the training clock excludes start-up"
+
+
+def test_checkpoint_of_another_scene_box_is_refused(tiny_office, tmp_path):
+    rec = load_recording(tiny_office, "office")
+    a = Trainer(rec, small_config(max_steps=2), tmp_path, quiet=True)
+    a.train_step()
+    a.save_checkpoint()
+    state = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    state["box"]["hi"][0] += 0.5
+    torch.save(state, tmp_path / "moved.pt")
+    b = Trainer(rec, small_config(max_steps=2), tmp_path, quiet=True)
+    b.load_checkpoint(tmp_path / "checkpoint.pt")  # the same box loads
+    with pytest.raises(ValueError, match="scene box .* does not match"):
+        b.load_checkpoint(tmp_path / "moved.pt")

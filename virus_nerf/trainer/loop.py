@@ -303,6 +303,18 @@ class Trainer:
         # CPU first: the RNG states must stay CPU byte tensors (Generator.set_state refuses
         # others); load_state_dict copies the tensors onto the field's and optimiser's device
         state = torch.load(path, map_location="cpu", weights_only=False)
+        if "box" in state:
+            saved = SceneBox.from_dict(state["box"])
+            if not np.allclose(saved.lo, self.box.lo, atol=1e-6) or not np.allclose(saved.hi, self.box.hi, atol=1e-6):
+                from virus_nerf.errors import DataFormatError
+
+                raise DataFormatError(
+                    path,
+                    f"scene box lo={saved.lo} hi={saved.hi} does not match the recording's "
+                    f"lo={self.box.lo} hi={self.box.hi}; the network would be read in another frame "
+                    "(was the recording or its map changed?)",
+                    field="box",
+                )
         self.field.load_state_dict(state["field"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.grid.load_state_dict(state["grid"])
