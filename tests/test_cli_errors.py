@@ -189,6 +189,43 @@ def test_config_file_errors_name_file_and_key(tmp_path, doc, fragment):
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize(
+    "doc, fragment",
+    [
+        ({"grid": "ngp", "ngp_grid": {"max_resolution": 0}}, "ngp_grid.max_resolution 0: expected an integer >= 1"),
+        ({"ngp_grid": {"min_alpha": 0}}, "ngp_grid.min_alpha 0.0: expected a finite number in (0, 1]"),
+        ({"ngp_grid": {"min_alpha": 1}}, "ngp_grid.min_alpha 1.0: expected a finite number in (0, 1)"),
+        ({"ngp_grid": {"decay": -1}}, "ngp_grid.decay -1.0: expected a finite number in (0, 1]"),
+        ({"ngp_grid": {"chunk_size": 0}}, "ngp_grid.chunk_size 0: expected an integer >= 1"),
+        ({"shares": {"irs": 2.0}}, "shares.irs 2.0: expected a finite number in [0, 1]"),
+        ({"shares": {"uss": -0.5}}, "shares.uss -0.5: expected a finite number in [0, 1]"),
+        ({"shares": {"irs": 0.7, "uss": 0.7}}, "shares.irs 0.7 + shares.uss 0.7: expected a sum <= 1"),
+        ({"weights": {"colour": -1}}, "weights.colour -1.0: expected a finite number >= 0"),
+        ({"evaluation": {"zones": []}}, "evaluation.zones []: expected distinct zone names including 'zone3'"),
+        ({"evaluation": {"zones": [{"name": "zone3", "lo": 5, "hi": 1}]}}, "evaluation.zones[0] '[5.0, 1.0]': expected 0 <= lo < hi"),
+        ({"evaluation": {"raster_res_m": 0}}, "evaluation.raster_res_m 0.0: expected a finite number > 0"),
+        ({"evaluation": {"height_band_m": -1}}, "evaluation.height_band_m -1.0: expected a finite number > 0"),
+        ({"evaluation": {"uss_arc_step_deg": 0}}, "evaluation.uss_arc_step_deg 0.0: expected a finite number > 0"),
+        ({"evaluation": {"inlier_m": -1}}, "evaluation.inlier_m -1.0: expected a finite number > 0"),
+        ({"evaluation": {"lidar_angle_range_deg": 0}}, "evaluation.lidar_angle_range_deg 0.0: expected a finite number in (0, 360]"),
+        ({"evaluation": {"sensors": ["radar"]}}, "evaluation.sensors ['radar']: expected a subset of ['LiDAR', 'USS', 'IRS']"),
+        ({"field": {"density_hidden": [0]}}, "field.density_hidden[0] 0: expected an integer >= 1"),
+        ({"field": {"color_hidden": [64, -3]}}, "field.color_hidden[1] -3: expected an integer >= 1"),
+        ({"field": {"density_clamp": -1}}, "field.density_clamp -1.0: expected a finite number > 0"),
+        ({"optim": {"betas": [1.5, 0.9]}}, "optim.betas[0] 1.5: expected a number in [0, 1)"),
+    ],
+)
+def test_nested_config_values_are_checked_before_any_work(tmp_path, doc, fragment):
+    """Values of the nested sections (grids, shares, weights, evaluation, field, optimiser) that
+    would crash the run after the data were read (ZeroDivisionError, KeyError 'zone3', a torch
+    shape error) or train on silently: a one-line error naming the file and the field, before
+    the (here missing) recording is even looked at."""
+    path = write_config(tmp_path, doc)
+    code, _, err = run_cli(train_args(tmp_path, "--config", str(path)))
+    assert_one_line_error(code, err, str(path), fragment)
+    assert not (tmp_path / "run").exists()
+
+
 def test_missing_config_file(tmp_path):
     code, _, err = run_cli(train_args(tmp_path, "--config", str(tmp_path / "nope.json")))
     assert_one_line_error(code, err, f"{tmp_path / 'nope.json'}: config file not found")
@@ -196,10 +233,10 @@ def test_missing_config_file(tmp_path):
 
 def test_config_types_that_are_accepted():
     cfg = from_dict(TrainConfig, {"batch_size": 2048.0, "max_time": 10, "online": False,
-                                  "optim": {"betas": [1, 0.5]}, "sensors": ["camera", "irs"]})
+                                  "optim": {"betas": [0, 0.5]}, "sensors": ["camera", "irs"]})
     assert cfg.batch_size == 2048 and type(cfg.batch_size) is int
     assert cfg.max_time == 10.0 and type(cfg.max_time) is float
-    assert cfg.optim.betas == (1.0, 0.5) and cfg.sensors == ("camera", "irs")
+    assert cfg.optim.betas == (0.0, 0.5) and type(cfg.optim.betas[0]) is float and cfg.sensors == ("camera", "irs")
     assert from_dict(TrainConfig, json.loads(json.dumps(to_dict(cfg)))) == cfg
     with pytest.raises(ConfigError, match=r"^config\.march: unknown key\(s\) \['stepsize'\]"):
         from_dict(TrainConfig, {"march": {"stepsize": 0.1}})

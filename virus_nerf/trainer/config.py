@@ -141,3 +141,45 @@ class TrainConfig:
         integer("virus_grid.update_interval", 1)
         integer("ngp_grid.update_interval", 1)
         integer("evaluation.n_rays", 1)
+        # the nested sections whose own classes take any number: a bad value would end in a
+        # traceback (ZeroDivisionError, KeyError 'zone3', a torch shape error) after the data
+        # were read, or train on silently (a zero-width layer, a negative share or weight)
+        for name in ("density_hidden", "color_hidden"):
+            for i, width in enumerate(getattr(self.field, name)):
+                if not (isinstance(width, numbers.Integral) and width >= 1):
+                    raise bad(f"field.{name}[{i}]", width, "an integer >= 1 (layer width)")
+        number("field.density_clamp", 0.0)
+        integer("ngp_grid.max_resolution", 1)
+        integer("ngp_grid.warmup_steps", 0)
+        integer("ngp_grid.chunk_size", 1)
+        number("ngp_grid.decay", 0.0, 1.0)
+        number("ngp_grid.step_size", 0.0)
+        number("ngp_grid.min_alpha", 0.0, 1.0)
+        if not self.ngp_grid.min_alpha < 1.0:
+            raise bad("ngp_grid.min_alpha", self.ngp_grid.min_alpha, "a finite number in (0, 1)")
+        for i, beta in enumerate(self.optim.betas):
+            if not (isinstance(beta, numbers.Real) and not isinstance(beta, bool) and 0.0 <= beta < 1.0):
+                raise bad(f"optim.betas[{i}]", beta, "a number in [0, 1)")
+        number("shares.irs", 0.0, 1.0, lo_open=False)
+        number("shares.uss", 0.0, 1.0, lo_open=False)
+        if self.shares.irs + self.shares.uss > 1.0:
+            raise ValueError(f"shares.irs {self.shares.irs!r} + shares.uss {self.shares.uss!r}: expected a sum "
+                             "<= 1 (the rest of the batch are random pixels)")
+        for name in ("colour", "irs", "uss", "rgbd", "distortion"):
+            number(f"weights.{name}", 0.0, lo_open=False)
+        for name in ("height_band_m", "raster_res_m", "uss_arc_step_deg", "inlier_m"):
+            number(f"evaluation.{name}", 0.0)
+        number("evaluation.map_voxel_m", 0.0, lo_open=False)
+        number("evaluation.lidar_angle_range_deg", 0.0, 360.0)
+        ev = self.evaluation
+        known = ("LiDAR", "USS", "IRS")
+        if not all(isinstance(s, str) and s in known for s in ev.sensors):
+            raise bad("evaluation.sensors", list(ev.sensors), f"a subset of {list(known)}")
+        names = [getattr(z, "name", None) for z in ev.zones]
+        if "zone3" not in names or len(set(names)) != len(names):
+            raise bad("evaluation.zones", names, "distinct zone names including 'zone3' (the whole-room zone "
+                                                 "the training curve and the ablation report)")
+        for i, z in enumerate(ev.zones):
+            ok = all(isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) for v in (z.lo, z.hi))
+            if not (ok and 0.0 <= z.lo < z.hi):
+                raise bad(f"evaluation.zones[{i}]", f"[{z.lo}, {z.hi}]", "0 <= lo < hi metres")
