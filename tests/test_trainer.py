@@ -227,8 +227,8 @@ def test_online_scores_nothing_before_the_first_test_point(tiny_office, tmp_path
     trainer.seconds = 0.0
     first = min(tp.time for tp in (g.test_point for g in __import__(
         "virus_nerf.evaluation.evaluate", fromlist=["build_ground_truth"]).build_ground_truth(rec)))
-    if first > trainer.t0:
-        assert trainer.evaluate(with_sensors=False) is None
+    assert first > trainer.t0, "the tiny office must start before its first test point for this test to mean anything"
+    assert trainer.evaluate(with_sensors=False) is None
     trainer.seconds = trainer.duration
     assert trainer.evaluate(with_sensors=False) is not None
 
@@ -274,3 +274,43 @@ def test_checkpoint_of_another_scene_box_is_refused(tiny_office, tmp_path):
     b.load_checkpoint(tmp_path / "checkpoint.pt")  # the same box loads
     with pytest.raises(ValueError, match="scene box .* does not match"):
         b.load_checkpoint(tmp_path / "moved.pt")
+
+
+def test_checkpoints_load_on_the_cpu_whatever_the_trainer_device(tiny_office, tmp_path):
+    """Issue 13, item 3: a checkpoint read with map_location=<the trainer's device> put the saved
+    CPU generator state on the GPU, and Generator.set_state refused it (--resume, evaluate and
+    export crashed on CUDA). Here a trainer that believes it runs on CUDA loads a checkpoint:
+    reading it on the CPU works without a GPU; reading it onto the device fails without one."""
+    from virus_nerf.trainer.command import read_checkpoint_header
+
+    rec = load_recording(tiny_office, "office")
+    a = Trainer(rec, small_config(max_steps=2), tmp_path, quiet=True)
+    a.train_step()
+    a.save_checkpoint()
+    b = Trainer(rec, small_config(max_steps=2), tmp_path, quiet=True)
+    b.device = torch.device("cuda")  # what a GPU trainer holds; nothing is moved here
+    b.load_checkpoint(tmp_path / "checkpoint.pt")
+    assert b.step == 1
+    assert torch.equal(b.generator.get_state(), a.generator.get_state())
+    assert read_checkpoint_header(tmp_path / "checkpoint.pt", small_config(max_steps=2))["step"] == 1
+
+
+def test_start_up_is_not_on_the_training_clock(tiny_office, tmp_path, monkeypatch):
+    """Issue 13, item 10: frame decoding (and kernel compilation) used to land in the first timed
+    step. A decoding that takes 2 s must not appear in the trainer's seconds."""
+    import time
+
+    import virus_nerf.trainer.loop as loop
+
+    real = loop.build_frame_store
+
+    def slow_decoding(*args, **kwargs):
+        time.sleep(2.0)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(loop, "build_frame_store", slow_decoding)
+    rec = load_recording(tiny_office, "office")
+    trainer = Trainer(rec, small_config(max_steps=2), tmp_path, quiet=True)
+    summary = trainer.fit()
+    assert summary.steps == 2
+    assert summary.seconds < 2.0, summary
