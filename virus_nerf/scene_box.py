@@ -17,6 +17,9 @@ class SceneBox:
     hi: tuple[float, float, float]
 
     def __post_init__(self) -> None:
+        # plain floats: numpy scalars would print as np.float64(...) in messages and configs
+        object.__setattr__(self, "lo", tuple(float(v) for v in self.lo))
+        object.__setattr__(self, "hi", tuple(float(v) for v in self.hi))
         if not all(hi > lo for lo, hi in zip(self.lo, self.hi, strict=True)):
             raise ValueError(f"scene box needs hi > lo on every axis, got lo={self.lo} hi={self.hi}")
 
