@@ -368,3 +368,16 @@ def test_fixed_threshold_does_not_follow_a_thin_mean():
         grid = VirusGrid(CUBE, VirusGridConfig(max_resolution=10, pos_noise_per_m=0.0, threshold_mode=mode))
         grid.nerf_update(lambda p: torch.full((p.shape[0],), 0.5), *rays, torch.Generator().manual_seed(0))
         assert torch.allclose(grid.logodds[:, 5, 5], torch.tensor(expected, dtype=torch.float32)), mode
+
+
+def test_nan_forward_densities_never_reach_a_cell():
+    """Issue 13, item 4, on the default path (NeRF-Update from the forward pass's densities): a
+    NaN density is dropped, it neither poisons its cell nor drags the mean threshold."""
+    grid = VirusGrid(CUBE, VirusGridConfig(max_resolution=10, nerf_update_source="forward"))
+    pts = torch.tensor([[0.15, 0.15, 0.15], [0.16, 0.12, 0.18], [0.85, 0.85, 0.85]])
+    info = grid.nerf_update_from_samples(pts, torch.tensor([float("nan"), 100.0, float("nan")]))
+    assert torch.isfinite(grid.logodds).all()
+    assert info.n_points == 1
+    sigma_t = min(-math.log(0.99) / 0.01, 100.0)
+    assert grid.logodds[1, 1, 1].item() == pytest.approx(L_INIT + 0.25 * math.log(100.0 / sigma_t), abs=1e-6)
+    assert grid.logodds[8, 8, 8].item() == pytest.approx(L_INIT)  # only NaN there: untouched
