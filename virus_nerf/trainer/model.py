@@ -28,6 +28,11 @@ def fit_scene_box(recording: Recording, margin: float = 0.1) -> SceneBox:
 
     From the LiDAR map where there is one (robust 0.1/99.9 percentiles), otherwise from the
     camera positions grown by the longest sensor range.
+
+    Online runs use the same box, fitted before training from the whole map and drive: the
+    room's extent is taken as known in advance (as from a floor plan). It is the field's and
+    the grids' coordinate frame and bounds the marching; no density, colour or occupancy comes
+    from it. A box grown from what the drive has seen would move the hash grid's frame mid-run.
     """
     cams = np.concatenate([s.cam_to_world[:, :3, 3] for s in recording.stacks.values()])
     if recording.map_path is not None:
