@@ -10,7 +10,10 @@ Modes:
 - curve (default): one run per (scene, variant) with a wall budget of the last checkpoint, scored
   at every checkpoint (the learning-rate schedule spans the whole budget);
 - --separate: one run per checkpoint with that wall budget, i.e. what `train` gives a user who
-  asks for that much time (slower: the budgets add up).
+  asks for that much time (slower: the budgets add up);
+- --steps: checkpoints are training steps, not seconds (quality per step, independent of the
+  machine's load: a lever that does not change the speed can be compared on a busy machine; the
+  learning-rate schedule then spans the last checkpoint's steps).
 
 Writes one JSON document (and a PNG plot with --plot):
 
@@ -64,7 +67,11 @@ def child(args: argparse.Namespace) -> None:
 
     checkpoints = [float(c) for c in args.checkpoints.split(",")]
     cfg = from_dict(TrainConfig, _merge(to_dict(TrainConfig()), json.loads(args.config)), "variant")
-    cfg = dataclasses.replace(cfg, seed=args.train_seed, max_steps=None, max_time=checkpoints[-1])
+    by_steps = args.steps
+    if by_steps:
+        cfg = dataclasses.replace(cfg, seed=args.train_seed, max_steps=int(checkpoints[-1]), max_time=None)
+    else:
+        cfg = dataclasses.replace(cfg, seed=args.train_seed, max_steps=None, max_time=checkpoints[-1])
     recording = load_recording(args.data, args.room)
     with tempfile.TemporaryDirectory() as tmp:
         trainer = Trainer(recording, cfg, Path(tmp), quiet=True)
@@ -73,13 +80,13 @@ def child(args: argparse.Namespace) -> None:
         else:  # a trainer from before start-up left the training clock (for before/after runs)
             _ = trainer.sampler
         startup = since_process_start()
-        # the training budget is what is left of the wall budget after start-up
-        trainer.config = dataclasses.replace(cfg, max_time=max(1e-3, checkpoints[-1] - startup))
+        if not by_steps:  # the training budget is what is left of the wall budget after start-up
+            trainer.config = dataclasses.replace(cfg, max_time=max(1e-3, checkpoints[-1] - startup))
         eval_s = 0.0
         points = []
         last_steps, last_samples = 0, 0
         for cp in checkpoints:
-            while since_process_start() - eval_s < cp:
+            while (trainer.step < cp) if by_steps else (since_process_start() - eval_s < cp):
                 t0 = time.perf_counter()
                 trainer.train_step()
                 trainer.seconds += time.perf_counter() - t0
@@ -115,9 +122,11 @@ def ensure_data(root: Path, scene: str) -> Path:
     return data
 
 
-def run_child(data: Path, scene: str, config: str, checkpoints: list[float], train_seed: int) -> dict:
+def run_child(data: Path, scene: str, config: str, checkpoints: list[float], train_seed: int,
+              steps: bool = False) -> dict:
     cmd = [sys.executable, __file__, "--child", "--data", str(data), "--room", scene, "--config", config,
            "--checkpoints", ",".join(str(c) for c in checkpoints), "--train-seed", str(train_seed)]
+    cmd += ["--steps"] if steps else []
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"benchmark run failed ({scene}, {config}):\n{proc.stderr[-3000:]}")
@@ -159,6 +168,7 @@ def main() -> None:
     ap.add_argument("--variant", action="append", default=[], help="NAME=JSON partial config (repeatable)")
     ap.add_argument("--no-default", action="store_true", help="do not run the default configuration")
     ap.add_argument("--separate", action="store_true", help="one run per checkpoint (a user's --max-time)")
+    ap.add_argument("--steps", action="store_true", help="checkpoints are training steps, not wall seconds")
     ap.add_argument("--train-seed", type=int, default=0)
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="where the simulated rooms are kept")
     ap.add_argument("--out", type=Path, help="JSON document (default: print)")
@@ -181,7 +191,7 @@ def main() -> None:
         "benchmark": "time_to_map",
         "ground_truth": "map (LiDAR map slice, solid 3 cm voxels; design 6)",
         "zone": "zone3 (0-100 m)",
-        "mode": "separate" if args.separate else "curve",
+        "mode": ("separate" if args.separate else "curve") + (" (steps)" if args.steps else ""),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
         "train_seed": args.train_seed,
         "scenes": {},
@@ -192,10 +202,10 @@ def main() -> None:
         for name, patch in variants.items():
             print(f"{scene} / {name} ...", file=sys.stderr, flush=True)
             if args.separate:
-                runs = [run_child(data, scene, patch, [cp], args.train_seed) for cp in checkpoints]
+                runs = [run_child(data, scene, patch, [cp], args.train_seed, args.steps) for cp in checkpoints]
                 res = {"startup_s": [r["startup_s"] for r in runs], "points": [r["points"][0] for r in runs]}
             else:
-                res = run_child(data, scene, patch, checkpoints, args.train_seed)
+                res = run_child(data, scene, patch, checkpoints, args.train_seed, args.steps)
             res["config"] = json.loads(patch)
             res["simulation_seed"] = SCENES[scene]
             doc["scenes"][scene][name] = res
