@@ -8,7 +8,6 @@ a --max-time bound depends on the machine's speed, as any time budget does.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import math
 import sys
@@ -34,10 +33,9 @@ from virus_nerf.sampler.sensor_rays import irs_zone_rays, uss_cone_rays
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.model import SceneModel, fit_scene_box
+from virus_nerf.trainer.train_log import Every, LogRow, TrainLog, psnr_db
 from virus_nerf.utils.clock import since_process_start
 from virus_nerf.utils.io import atomic_path
-
-LOG_FIELDS = ("step", "seconds", "loss", "colour", "irs", "uss", "rgbd", "psnr", "samples_per_ray", "occupied", "frames")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -328,69 +326,58 @@ class Trainer:
     # ------------------------------------------------------------------ the loop
     def fit(self) -> TrainSummary:
         """Train until max_steps or max_time; logs, evaluations and checkpoints on the way."""
-        from tqdm import tqdm
-
         c = self.config
         self.prepare()
-        log_path = self.run_dir / "train_log.csv"
-        new_log = not log_path.exists()
-        if not new_log:
-            truncate_log(log_path, self.step)  # rows after the checkpoint were trained again
-        tb = _tensorboard(self.run_dir / "tensorboard")
-        total = c.max_steps if c.max_steps is not None else None
-        bar = tqdm(total=total, initial=self.step, disable=self.quiet, unit="step", dynamic_ncols=True)
-        next_eval = (math.floor(self.seconds / c.eval_interval) + 1) * c.eval_interval if c.eval_interval > 0 else math.inf
-        next_ckpt = self.seconds + c.checkpoint_every
-        with log_path.open("a", newline="") as fh:
-            writer = csv.writer(fh)
-            if new_log:
-                writer.writerow(LOG_FIELDS)
+        log = TrainLog(self.run_dir, self.step, c.max_steps, self.quiet)
+        evaluations = Every.aligned(c.eval_interval, self.seconds)
+        checkpoints = Every.after(c.checkpoint_every, self.seconds)
+        try:
             while not self._done():
-                t_start = time.perf_counter()
-                terms = self.train_step()
-                self.seconds += time.perf_counter() - t_start
+                terms = self._timed_step()
                 if self.step % c.log_every == 0 or self._done():
-                    row = self._log_row(terms)
-                    writer.writerow(row)
-                    fh.flush()
-                    if tb is not None:
-                        for k, v in zip(LOG_FIELDS[2:], row[2:], strict=True):
-                            tb.add_scalar(f"train/{k}", v, self.step)
-                    bar.set_postfix(loss=f"{row[2]:.4f}", psnr=f"{row[7]:.1f}", t=f"{self.seconds:.0f}s")
-                bar.update(1)
-                if self.seconds >= next_eval and not self._done():
-                    result = self.evaluate(with_sensors=False)
-                    if result is not None:
-                        self.record_eval(result, tb)
-                    next_eval += c.eval_interval
-                if self.seconds >= next_ckpt:
+                    log.write(self._log_row(terms))
+                log.advance()
+                if evaluations.due(self.seconds) and not self._done():
+                    self._evaluate_during_training(log)
+                    evaluations.next_at += evaluations.period
+                if checkpoints.due(self.seconds):
                     self.save_checkpoint()
-                    next_ckpt = self.seconds + c.checkpoint_every
-        bar.close()
-        wall_s = since_process_start()
-        self.save_checkpoint()
-        if tb is not None:
-            tb.close()
+                    checkpoints = Every.after(c.checkpoint_every, self.seconds)
+            wall_s = since_process_start()
+            self.save_checkpoint()
+        finally:
+            log.close()
         return TrainSummary(self.step, self.seconds, self.samples, self.startup_s, wall_s)
 
-    def _log_row(self, terms: LossTerms) -> list:
-        t = terms.as_floats()
-        mse = t["colour"]
-        return [
-            self.step,
-            round(self.seconds, 3),
-            t["total"],
-            mse,
-            t["irs"],
-            t["uss"],
-            t["rgbd"],
-            -10.0 * math.log10(max(mse, 1e-10)),
-            round(self._last_samples_per_ray, 2),
-            round(self.grid.occupancy_share(), 4),
-            len(self.available_frames()),
-        ]
+    def _timed_step(self) -> LossTerms:
+        """One training step on the training clock."""
+        t_start = time.perf_counter()
+        terms = self.train_step()
+        self.seconds += time.perf_counter() - t_start
+        return terms
 
-    def record_eval(self, result: EvaluationResult, tb) -> None:
+    def _evaluate_during_training(self, log: TrainLog) -> None:
+        result = self.evaluate(with_sensors=False)
+        if result is not None:
+            self.record_eval(result, log)
+
+    def _log_row(self, terms: LossTerms) -> LogRow:
+        t = terms.as_floats()
+        return LogRow(
+            step=self.step,
+            seconds=round(self.seconds, 3),
+            loss=t["total"],
+            colour=t["colour"],
+            irs=t["irs"],
+            uss=t["uss"],
+            rgbd=t["rgbd"],
+            psnr=psnr_db(t["colour"]),
+            samples_per_ray=round(self._last_samples_per_ray, 2),
+            occupied=round(self.grid.occupancy_share(), 4),
+            frames=len(self.available_frames()),
+        )
+
+    def record_eval(self, result: EvaluationResult, log: TrainLog | None = None) -> None:
         z3 = result.metrics["NeRF"].zones["zone3"]
         entry = {"step": self.step, "seconds": round(self.seconds, 3),
                  "acc_mean": z3.acc_mean, "cov_mean": z3.cov_mean,
@@ -398,20 +385,9 @@ class Trainer:
                  "n_test_points": len(result.points)}
         self.eval_history.append(entry)
         write_eval_history(self.run_dir / "metrics_vs_time.csv", self.eval_history)
-        if tb is not None:
+        if log is not None:
             for k in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier"):
-                if entry[k] is not None:
-                    tb.add_scalar(f"eval/zone3_{k}", entry[k], self.step)
-
-
-def truncate_log(path: Path, step: int) -> None:
-    """Drop the rows of train_log.csv after `step` (a crash after the last checkpoint left them)."""
-    lines = path.read_text().splitlines(keepends=True)
-    keep = lines[:1] + [ln for ln in lines[1:] if ln.strip() and int(ln.split(",", 1)[0]) <= step]
-    if len(keep) != len(lines):
-        from virus_nerf.utils.io import write_text_atomic
-
-        write_text_atomic(path, "".join(keep))
+                log.scalar(f"eval/zone3_{k}", entry[k], self.step)
 
 
 def write_eval_history(path: Path, history: list[dict]) -> None:
@@ -422,15 +398,6 @@ def write_eval_history(path: Path, history: list[dict]) -> None:
     from virus_nerf.utils.io import write_text_atomic
 
     write_text_atomic(path, "\n".join(lines) + "\n")
-
-
-def _tensorboard(folder: Path):
-    """A TensorBoard writer if the optional `tensorboard` package is installed, else None."""
-    try:
-        from torch.utils.tensorboard import SummaryWriter
-    except Exception:
-        return None
-    return SummaryWriter(str(folder))
 
 
 def train_summary_block(config: TrainConfig, summary: TrainSummary) -> dict:
