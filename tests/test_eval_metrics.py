@@ -124,8 +124,10 @@ def test_empty_inputs_give_none_not_nan_and_valid_json(tmp_path):
         m = metrics_of(pred, g)
         for zm in m.zones.values():
             d = zm.to_json()
-            assert all(d[k] is None for k in METRIC_KEYS if not k.startswith("n_"))
+            assert all(d[k] is None for k in METRIC_KEYS if not k.startswith("n_") and k != "gt_unseen")
             assert d["n_pred"] == 0 and d["n_gt"] == 0
+            # a sensor silent where GT is in view: every GT point is unseen; no GT: no share
+            assert d["gt_unseen"] == (1.0 if len(pred) == 0 and len(g) else None)
     # one zone empty, another not
     m = metrics_of(np.array([[3.0, 0.0]]), np.array([[3.0, 0.0]]))
     assert m.zones["zone1"].acc_mean is None and m.zones["zone3"].acc_mean == 0.0
@@ -162,7 +164,7 @@ def test_metrics_document_schema_and_table():
              "grid": "virus", "sensors": ["camera", "uss", "irs"], "seed": 0}
     doc = metrics_document({"NeRF": m, "LiDAR": m}, DEFAULT_ZONES, train)
     assert doc["zones"] == {"zone1": [0, 1], "zone2": [0, 2], "zone3": [0, 100]}
-    assert list(doc) == ["zones", "sensors", "train"] and doc["train"] == train
+    assert list(doc) == ["gt", "zones", "sensors", "train"] and doc["train"] == train and doc["gt"] == "map"
     assert list(doc["sensors"]["NeRF"]) == ["zone1", "zone2", "zone3"]
     assert tuple(doc["sensors"]["NeRF"]["zone3"]) == METRIC_KEYS
     assert doc["sensors"]["NeRF"]["zone3"]["n_gt"] == 3 and doc["sensors"]["NeRF"]["zone1"]["n_gt"] == 1

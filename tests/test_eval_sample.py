@@ -140,7 +140,7 @@ def test_sensors_command_writes_schema_and_refuses_existing(sample_dir, tmp_path
     sensors(sample_dir, "office", out)
     assert time.perf_counter() - t0 < 20
     doc = json.loads(out.read_text())
-    assert list(doc) == ["zones", "sensors"]
+    assert list(doc) == ["gt", "zones", "sensors"] and doc["gt"] == "map"
     assert doc["zones"] == {"zone1": [0, 1], "zone2": [0, 2], "zone3": [0, 100]}
     assert list(doc["sensors"]) == ["LiDAR", "USS", "IRS"]
     for per_zone in doc["sensors"].values():

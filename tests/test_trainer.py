@@ -19,7 +19,7 @@ from virus_nerf.trainer.config import MarchConfig, TrainConfig
 from virus_nerf.trainer.loop import Trainer
 
 METRIC_KEYS = {"acc_mean", "acc_median", "acc_inlier", "acc_too_close", "acc_too_far", "cov_mean", "cov_median",
-               "cov_inlier", "cov_too_close", "cov_too_far", "n_pred", "n_gt"}
+               "cov_inlier", "cov_too_close", "cov_too_far", "gt_unseen", "n_pred", "n_gt"}
 
 
 def small_config(**changes) -> TrainConfig:
@@ -96,6 +96,7 @@ def test_run_folder_contents_schema_and_no_overwrite(tiny_office, tmp_path):
     assert (out / "plots" / "metrics_bars.png").is_file()
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["zones"] == {"zone1": [0, 1], "zone2": [0, 2], "zone3": [0, 100]}
+    assert doc["gt"] == "map" and "by_gt" not in doc
     for sensor in doc["sensors"].values():
         for zone in ("zone1", "zone2", "zone3"):
             assert set(sensor[zone]) == METRIC_KEYS
@@ -105,6 +106,26 @@ def test_run_folder_contents_schema_and_no_overwrite(tiny_office, tmp_path):
     assert log[0].startswith("step,seconds,loss") and len(log) == 1 + 8 // 5 + 1
     with pytest.raises(OutputExistsError):
         run_training(tiny_office, "office", out, small_config(max_steps=8), quiet=True)
+
+
+def test_train_and_evaluate_under_several_ground_truths(tiny_office, tmp_path):
+    """--gt exact,map: the run's metrics.json is exact's with map in by_gt; `evaluate --gt paper`
+    re-scores the checkpoint under another protocol into a new file."""
+    import dataclasses
+
+    from virus_nerf.trainer.command import evaluate as evaluate_command
+
+    cfg = small_config(max_steps=4)
+    cfg = dataclasses.replace(cfg, evaluation=dataclasses.replace(cfg.evaluation, gt=("exact", "map")))
+    out = tmp_path / "run"
+    doc = run_training(tiny_office, "office", out, cfg, quiet=True)
+    assert doc["gt"] == "exact" and list(doc["by_gt"]) == ["exact", "map"]
+    assert json.loads((out / "config.json").read_text())["evaluation"]["gt"] == ["exact", "map"]
+    assert (out / "plots" / "metrics_bars_gt-map.png").is_file()
+    evaluate_command(out, out=tmp_path / "paper.json", gt="paper")
+    again = json.loads((tmp_path / "paper.json").read_text())
+    assert again["gt"] == "paper" and "by_gt" not in again
+    assert again["sensors"]["NeRF"]["zone3"]["n_gt"] != doc["sensors"]["NeRF"]["zone3"]["n_gt"]
 
 
 def test_online_mode_reveals_frames_with_the_clock(tiny_office, tmp_path):

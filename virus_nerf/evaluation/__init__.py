@@ -8,16 +8,25 @@ from virus_nerf.evaluation.evaluate import (
     SENSOR_NAMES,
     EvaluationConfig,
     EvaluationResult,
+    PointGroundTruth,
     TestPointScans,
     build_ground_truth,
     evaluate,
+    parse_gt_flag,
 )
 from virus_nerf.evaluation.gt import (
+    GT_PROTOCOLS,
+    PAPER_ROOMS,
     GroundTruth,
     Raster2D,
+    SquareExtent,
     cast_rays,
+    exact_gt_scan,
     gt_scan,
     height_slice,
+    paper_cast,
+    paper_gt_scan,
+    paper_raster,
     rasterise,
 )
 from virus_nerf.evaluation.metrics import (
@@ -31,9 +40,11 @@ from virus_nerf.evaluation.metrics import (
     aggregate_runs,
     check_metrics_document,
     format_table,
+    gt_protocols_of,
     metrics_document,
     nnd_samples,
     sensor_metrics_from_json,
+    sensors_block,
     write_metrics_json,
     zone_metrics,
 )
@@ -50,12 +61,13 @@ from virus_nerf.evaluation.sensor_scans import irs_scan_2d, lidar_scan_2d, uss_s
 from virus_nerf.evaluation.testpoints import TestPoint, make_test_points
 
 __all__ = [
-    "DEFAULT_ZONES", "METRIC_KEYS", "SENSOR_NAMES",
+    "DEFAULT_ZONES", "GT_PROTOCOLS", "METRIC_KEYS", "PAPER_ROOMS", "SENSOR_NAMES",
     "EvaluationConfig", "EvaluationResult", "FieldOfView", "GroundTruth", "MetricsAggregate",
-    "NNDSamples", "RangeModel", "Raster2D", "Scan2D", "Sector", "SensorMetrics", "TestPoint",
-    "TestPointScans", "Zone", "ZoneMetrics",
+    "NNDSamples", "PointGroundTruth", "RangeModel", "Raster2D", "Scan2D", "Sector", "SensorMetrics",
+    "SquareExtent", "TestPoint", "TestPointScans", "Zone", "ZoneMetrics",
     "aggregate_runs", "build_ground_truth", "cast_rays", "check_metrics_document", "evaluate",
-    "format_table", "gt_scan", "height_slice", "horizontal_directions", "irs_scan_2d",
-    "lidar_scan_2d", "make_test_points", "metrics_document", "model_scan", "nnd_samples",
-    "rasterise", "scan_angles", "sensor_metrics_from_json", "uss_scan_2d", "write_metrics_json", "zone_metrics",
+    "exact_gt_scan", "format_table", "gt_protocols_of", "gt_scan", "height_slice", "horizontal_directions",
+    "irs_scan_2d", "lidar_scan_2d", "make_test_points", "metrics_document", "model_scan", "nnd_samples",
+    "paper_cast", "paper_gt_scan", "paper_raster", "parse_gt_flag", "rasterise", "scan_angles",
+    "sensor_metrics_from_json", "sensors_block", "uss_scan_2d", "write_metrics_json", "zone_metrics",
 ]

@@ -29,7 +29,11 @@ def write_plots(result, folder: Path, max_maps: int | None = None, replace: bool
 
 
 def write_plot_files(result, folder: Path, max_maps: int | None = None) -> list[str]:
-    """The scan maps and the metric bars into an existing folder; returns the file names."""
+    """The scan maps and the metric bars into an existing folder; returns the file names.
+
+    The scan maps show the primary protocol's GT (the others' GT overlaid in the "all" panel);
+    metrics_bars.png is the primary protocol's, metrics_bars_gt-<protocol>.png each further one.
+    """
     from virus_nerf.evaluation.plots import plot_metric_bars, plot_test_point
 
     names: list[str] = []
@@ -40,9 +44,12 @@ def write_plot_files(result, folder: Path, max_maps: int | None = None) -> list[
         name = f"scan_frame{tps.test_point.index1:04d}.png"
         plot_test_point(tps, Path(folder) / name)
         names.append(name)
-    plot_metric_bars(result.metrics, Path(folder) / "metrics_bars.png", result.config.zones,
-                     inlier_m=result.config.inlier_m)
-    names.append("metrics_bars.png")
+    by_gt = result.by_gt or {result.gt: result.metrics}
+    for k, (protocol, metrics) in enumerate(by_gt.items()):
+        name = "metrics_bars.png" if k == 0 else f"metrics_bars_gt-{protocol}.png"
+        plot_metric_bars(metrics, Path(folder) / name, result.config.zones, inlier_m=result.config.inlier_m,
+                         gt=protocol)
+        names.append(name)
     return names
 
 
@@ -53,12 +60,13 @@ def sensors(
     n_rays: int = 512,
     odometry_poses: bool = False,
     lidar_angle_range_deg: float = 360.0,
+    gt: str = "map",
 ) -> None:
-    """Evaluate the instantaneous LiDAR, USS and IRS scans against the LiDAR-map ground truth.
+    """Evaluate the instantaneous LiDAR, USS and IRS scans against the ground truth.
 
     Writes the metrics (design 7 schema) to OUT and the plots to a folder beside it named
     after OUT's stem (results/metrics.json -> results/metrics_plots/); refuses to overwrite
-    either. Prints a compact table of the metrics per sensor and distance zone.
+    either. Prints a compact table of the metrics per sensor and distance zone, per protocol.
 
     Args:
         data: Dataset folder in the ETHZ format (holds camera_intrinsics.CSV and the room folders).
@@ -66,21 +74,32 @@ def sensors(
         out: Path of the metrics.json to write (must not exist).
         n_rays: Number of horizontal rays of the 360-degree ground-truth scan.
         odometry_poses: Use the odometry poses (poses_*_sync*.csv) instead of the optimised ones.
-        lidar_angle_range_deg: Horizontal angle range of the LiDAR scan, centred on the robot heading.
+        lidar_angle_range_deg: Horizontal angle range of the LiDAR scan, centred on the robot heading
+            (under --gt paper the authors' range of the room is used instead).
+        gt: Ground truth, one or more of map (LiDAR map slice as solid 3 cm voxels), exact (the
+            simulator's exact scene; simulated recordings only), paper (the authors' raster
+            protocol), comma-separated; the first is the document's own, the others go to by_gt.
     """
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.errors import require_int, require_number
-    from virus_nerf.evaluation.evaluate import EvaluationConfig, evaluate
+    from virus_nerf.evaluation.evaluate import (
+        EvaluationConfig,
+        check_ground_truth_inputs,
+        evaluate,
+        parse_gt_flag,
+    )
 
     require_int("--n-rays", n_rays, 1, 1_000_000)
     require_number("--lidar-angle-range-deg", lidar_angle_range_deg, 0.0, 360.0)
+    protocols = parse_gt_flag(gt)
     out = Path(out)
     plot_dir = plots_dir_for(out)
     for p in (out, plot_dir):
         if p.exists():
             raise OutputExistsError(p)
     recording = load_recording(data, room, poses="odometry" if odometry_poses else "optimised")
-    config = EvaluationConfig(n_rays=n_rays, lidar_angle_range_deg=lidar_angle_range_deg)
+    check_ground_truth_inputs(recording, protocols)
+    config = EvaluationConfig(n_rays=n_rays, lidar_angle_range_deg=lidar_angle_range_deg, gt=protocols)
     result = evaluate(recording, None, config)
     write_plots(result, plot_dir)
     if out.exists():

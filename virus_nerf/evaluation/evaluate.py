@@ -3,6 +3,12 @@
 Reusable by the trainer: build the ground truth once (`build_ground_truth`) and pass it to
 `evaluate` at every evaluation interval together with the model(s); sensor scans can be left
 out (`sensors=()`) when only a model is scored.
+
+Ground truth under several protocols (design 6.7, `EvaluationConfig.gt`): every scan is made
+once per test point and scored against each protocol's GT; the first protocol is the primary
+one (`EvaluationResult.metrics`, the plots' scan maps, the trainer's metric-vs-time curve), the
+others are in `EvaluationResult.by_gt`. Under `paper` the LiDAR is scored over the authors'
+horizontal range of the room (`gt.PAPER_ROOMS`) instead of `lidar_angle_range_deg`.
 """
 
 from __future__ import annotations
@@ -10,10 +16,23 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
+
+import numpy as np
 
 from virus_nerf.data.ethz import Recording
-from virus_nerf.evaluation.gt import GroundTruth, gt_scan
+from virus_nerf.errors import DataFormatError
+from virus_nerf.evaluation.gt import (
+    GT_DESCRIPTIONS,
+    GT_PROTOCOLS,
+    GroundTruth,
+    exact_gt_scan,
+    gt_scan,
+    height_slice,
+    paper_extent,
+    paper_gt_scan,
+    paper_lidar_deg,
+)
 from virus_nerf.evaluation.metrics import (
     DEFAULT_ZONES,
     INLIER_M,
@@ -31,6 +50,29 @@ from virus_nerf.evaluation.sensor_scans import irs_scan_2d, lidar_scan_2d, uss_s
 from virus_nerf.evaluation.testpoints import TestPoint, make_test_points
 
 SENSOR_NAMES = ("LiDAR", "USS", "IRS")
+GtProtocol = Literal["map", "exact", "paper"]
+SCENE_FILE = "scene.json"  # the simulator's exact scene, in the room folder
+
+
+def check_gt_protocols(protocols: object, name: str = "evaluation.gt") -> tuple[str, ...]:
+    """A non-empty tuple of distinct known protocols, or a ValueError naming `name`."""
+    ok = isinstance(protocols, tuple | list) and len(protocols) > 0 and all(p in GT_PROTOCOLS for p in protocols)
+    if not ok or len(set(protocols)) != len(protocols):  # type: ignore[arg-type]
+        raise ValueError(f"{name} {protocols!r}: expected distinct protocols out of {', '.join(GT_PROTOCOLS)}")
+    return tuple(protocols)  # type: ignore[arg-type]
+
+
+def parse_gt_flag(text: str, flag: str = "--gt") -> tuple[str, ...]:
+    """`--gt map,exact` -> ("map", "exact"); a one-line UsageError naming the flag otherwise."""
+    from virus_nerf.errors import UsageError
+
+    names = tuple(s.strip() for s in str(text).split(","))
+    unknown = [s for s in names if s not in GT_PROTOCOLS]
+    if unknown or len(set(names)) != len(names):
+        what = f"unknown protocol {unknown[0]!r}" if unknown else "a protocol named twice"
+        raise UsageError(f"{flag} {text!r}: {what}; expected one or more of {','.join(GT_PROTOCOLS)}, "
+                         "comma-separated (e.g. map,exact)")
+    return names
 
 
 @dataclass(frozen=True)
@@ -46,16 +88,52 @@ class EvaluationConfig:
     inlier_m: float = INLIER_M
     zones: tuple[Zone, ...] = DEFAULT_ZONES
     sensors: tuple[str, ...] = SENSOR_NAMES  # which instantaneous sensors to score
+    gt: tuple[GtProtocol, ...] = ("map",)  # ground-truth protocols (design 6.7); the first is the primary
+
+    def __post_init__(self) -> None:
+        check_gt_protocols(self.gt)
+
+
+@dataclass
+class PointGroundTruth:
+    """The ground truth of one test point under every protocol asked (the first is the primary).
+
+    `scan`, `ranges` and `slice_xy` are the primary protocol's.
+    """
+
+    test_point: TestPoint
+    by_protocol: dict[str, GroundTruth]
+
+    @property
+    def primary(self) -> GroundTruth:
+        return next(iter(self.by_protocol.values()))
+
+    @property
+    def scan(self) -> Scan2D:
+        return self.primary.scan
+
+    @property
+    def ranges(self) -> np.ndarray:
+        return self.primary.ranges
+
+    @property
+    def slice_xy(self) -> np.ndarray:
+        return self.primary.slice_xy
+
+    @staticmethod
+    def of(gt: PointGroundTruth | GroundTruth) -> PointGroundTruth:
+        return gt if isinstance(gt, PointGroundTruth) else PointGroundTruth(gt.test_point, {gt.protocol: gt})
 
 
 @dataclass
 class TestPointScans:
-    """Everything scanned at one test point."""
+    """Everything scanned at one test point (the scans and GT of the primary protocol)."""
 
     __test__ = False  # not a pytest test class
 
     ground_truth: GroundTruth
     scans: dict[str, Scan2D]  # sensor/model name -> scan
+    all_gt: dict[str, GroundTruth] = field(default_factory=dict)  # every protocol's GT (plots)
 
     @property
     def test_point(self) -> TestPoint:
@@ -63,44 +141,101 @@ class TestPointScans:
 
     def fov_gt(self, name: str) -> Scan2D:
         """The GT restricted to scan `name`'s field of view (design 6.5)."""
-        scan = self.scans[name]
-        gt = self.ground_truth.scan
-        keep = scan.fov.contains(gt.points)
-        return Scan2D(f"GT[{name}]", gt.points[keep], gt.origin, scan.fov)
+        return fov_gt(self.ground_truth, self.scans[name])
+
+
+def fov_gt(gt: GroundTruth, scan: Scan2D) -> Scan2D:
+    """The GT points inside `scan`'s field of view (design 6.5)."""
+    keep = scan.fov.contains(gt.scan.points)
+    return Scan2D(f"GT[{scan.name}]", gt.scan.points[keep], gt.scan.origin, scan.fov)
 
 
 @dataclass
 class EvaluationResult:
     config: EvaluationConfig
     points: list[TestPointScans]
-    metrics: dict[str, SensorMetrics]  # name -> per-zone metrics, pooled over test points
+    metrics: dict[str, SensorMetrics]  # name -> per-zone metrics, pooled over test points (protocol `gt`)
     samples: dict[str, NNDSamples] = field(repr=False, default_factory=dict)
+    gt: str = "map"  # the protocol of `metrics`
+    by_gt: dict[str, dict[str, SensorMetrics]] = field(default_factory=dict)  # every protocol -> metrics
 
     def document(self, train: Mapping[str, Any] | None = None) -> dict[str, Any]:
-        return metrics_document(self.metrics, self.config.zones, train)
+        return metrics_document(self.metrics, self.config.zones, train, gt=self.gt, by_gt=self.by_gt or None)
 
     def write_json(self, path: str | Path, train: Mapping[str, Any] | None = None) -> dict[str, Any]:
-        return write_metrics_json(path, self.metrics, self.config.zones, train)
+        return write_metrics_json(path, self.metrics, self.config.zones, train, gt=self.gt,
+                                  by_gt=self.by_gt or None)
 
     def table(self) -> str:
-        return format_table(self.metrics, self.config.zones)
+        """The metrics table of every protocol, each under a line naming its ground truth."""
+        by_gt = self.by_gt or {self.gt: self.metrics}
+        return "\n".join(f"ground truth: {p} ({GT_DESCRIPTIONS[p]})\n" + format_table(m, self.config.zones)
+                         for p, m in by_gt.items())
+
+
+def scene_path(recording: Recording) -> Path:
+    return recording.room_dir / SCENE_FILE
+
+
+def load_exact_scene(recording: Recording):
+    """The simulator's exact scene of a recording; a DataFormatError naming the file if it has none."""
+    from virus_nerf.sim.scene import Scene
+
+    path = scene_path(recording)
+    if not path.is_file():
+        raise DataFormatError(path, "not found: ground truth 'exact' (--gt exact) casts into the simulator's exact "
+                                    "scene, which only simulated recordings have; expected --gt map or paper here")
+    return Scene.load(path)
+
+
+def check_ground_truth_inputs(recording: Recording, protocols: Sequence[str]) -> None:
+    """Fail now, not after training, when a protocol lacks its input (the map, scene.json)."""
+    if any(p in ("map", "paper") for p in protocols):
+        recording.lidar_map()
+    if "exact" in protocols:
+        load_exact_scene(recording)
+
+
+def protocol_ground_truth(
+    recording: Recording, protocol: str, config: EvaluationConfig, test_points: Sequence[TestPoint]
+) -> list[GroundTruth]:
+    """GT scans of `test_points` under one protocol (design 6.7)."""
+    if protocol == "map":
+        cloud = recording.lidar_map()
+        return [gt_scan(cloud, tp, config.n_rays, config.height_band_m, config.raster_res_m, config.map_voxel_m)
+                for tp in test_points]
+    if protocol == "exact":
+        scene = load_exact_scene(recording)
+        cloud = recording.lidar_map() if recording.map_path is not None else None
+        return [exact_gt_scan(scene, tp, config.n_rays,
+                              None if cloud is None else height_slice(cloud, tp.height, config.height_band_m))
+                for tp in test_points]
+    if protocol == "paper":
+        cloud = recording.lidar_map()
+        if not test_points:
+            return []
+        extent = paper_extent(recording.room, cloud, real_recording=not scene_path(recording).is_file())
+        height = float(np.mean([tp.height for tp in test_points]))
+        lidar_deg = paper_lidar_deg(recording.room)
+        return [paper_gt_scan(cloud, tp, extent, height, config.n_rays, config.height_band_m, lidar_deg)
+                for tp in test_points]
+    raise ValueError(f"unknown ground-truth protocol {protocol!r}; expected one of {GT_PROTOCOLS}")
 
 
 def build_ground_truth(
     recording: Recording, config: EvaluationConfig = EvaluationConfig(), test_points: Sequence[TestPoint] | None = None
-) -> list[GroundTruth]:
-    """GT scans of every test point (reads the LiDAR map; raises DataFormatError without one)."""
+) -> list[PointGroundTruth]:
+    """GT scans of every test point under every protocol of `config.gt` (raises DataFormatError
+    without the LiDAR map for map/paper, without scene.json for exact)."""
     tps = list(test_points) if test_points is not None else make_test_points(recording)
-    cloud = recording.lidar_map()
-    return [
-        gt_scan(cloud, tp, config.n_rays, config.height_band_m, config.raster_res_m, config.map_voxel_m)
-        for tp in tps
-    ]
+    per = {p: protocol_ground_truth(recording, p, config, tps) for p in config.gt}
+    return [PointGroundTruth(tp, {p: per[p][k] for p in config.gt}) for k, tp in enumerate(tps)]
 
 
-def sensor_scan(recording: Recording, tp: TestPoint, name: str, config: EvaluationConfig) -> Scan2D:
+def sensor_scan(recording: Recording, tp: TestPoint, name: str, config: EvaluationConfig,
+                lidar_deg: tuple[float, float] | None = None) -> Scan2D:
     if name == "LiDAR":
-        return lidar_scan_2d(recording, tp, config.height_band_m, config.lidar_angle_range_deg)
+        return lidar_scan_2d(recording, tp, config.height_band_m, config.lidar_angle_range_deg, angles_deg=lidar_deg)
     if name == "USS":
         return uss_scan_2d(recording, tp, config.uss_arc_step_deg)
     if name == "IRS":
@@ -112,24 +247,40 @@ def evaluate(
     recording: Recording,
     models: Mapping[str, RangeModel] | None = None,
     config: EvaluationConfig = EvaluationConfig(),
-    ground_truth: Sequence[GroundTruth] | None = None,
+    ground_truth: Sequence[PointGroundTruth | GroundTruth] | None = None,
 ) -> EvaluationResult:
-    """Scan every test point with the configured sensors and the given models; score them."""
-    gts = list(ground_truth) if ground_truth is not None else build_ground_truth(recording, config)
+    """Scan every test point with the configured sensors and the given models; score them
+    against the ground truth of every protocol (given, or built for `config.gt`)."""
+    if ground_truth is not None:
+        gts = [PointGroundTruth.of(g) for g in ground_truth]
+    else:
+        gts = build_ground_truth(recording, config)
+    protocols = list(gts[0].by_protocol) if gts else list(config.gt)
     names = list(config.sensors) + list(models or {})
     if len(set(names)) != len(names):
         raise ValueError(f"model names must differ from sensor names: {names}")
     per_point: list[TestPointScans] = []
-    samples: dict[str, list[NNDSamples]] = {n: [] for n in names}
-    for gt in gts:
-        tp = gt.test_point
+    samples: dict[str, dict[str, list[NNDSamples]]] = {p: {n: [] for n in names} for p in protocols}
+    for pg in gts:
+        tp = pg.test_point
+        if list(pg.by_protocol) != protocols:
+            raise ValueError(f"every test point needs the same protocols {protocols}, got {list(pg.by_protocol)}")
         scans = {s: sensor_scan(recording, tp, s, config) for s in config.sensors}
         for name, model in (models or {}).items():
             scans[name] = model_scan(model, tp, config.n_rays, name=name)
-        tps = TestPointScans(ground_truth=gt, scans=scans)
-        for name, scan in scans.items():
-            samples[name].append(nnd_samples(scan.points, tps.fov_gt(name).points, tp.origin_xy))
-        per_point.append(tps)
-    pooled = {n: NNDSamples.concat(v) for n, v in samples.items()}
-    metrics = {n: zone_metrics(s, config.zones, config.inlier_m) for n, s in pooled.items()}
-    return EvaluationResult(config=config, points=per_point, metrics=metrics, samples=pooled)
+        primary_scans = scans
+        for k, (p, gt) in enumerate(pg.by_protocol.items()):
+            own = scans
+            if gt.lidar_deg is not None and "LiDAR" in scans:
+                own = {**scans, "LiDAR": sensor_scan(recording, tp, "LiDAR", config, lidar_deg=gt.lidar_deg)}
+            for name, scan in own.items():
+                samples[p][name].append(nnd_samples(scan.points, fov_gt(gt, scan).points, tp.origin_xy))
+            if k == 0:
+                primary_scans = own
+        per_point.append(TestPointScans(ground_truth=pg.primary, scans=primary_scans, all_gt=dict(pg.by_protocol)))
+    pooled = {p: {n: NNDSamples.concat(v) for n, v in per.items()} for p, per in samples.items()}
+    by_gt = {p: {n: zone_metrics(s, config.zones, config.inlier_m) for n, s in per.items()}
+             for p, per in pooled.items()}
+    first = protocols[0]
+    return EvaluationResult(config=config, points=per_point, metrics=by_gt[first], samples=pooled[first],
+                            gt=first, by_gt=by_gt)

@@ -1,10 +1,19 @@
-"""Ground-truth 2D scans from the LiDAR map (design 6.2).
+"""Ground-truth 2D scans (design 6.2, 6.7), under three protocols.
 
-The map is a cloud of 3 cm voxel centres. Points within +-band of the camera height are drawn
-into a 2D occupancy raster (<= 2 cm cells), each point as its voxel's square footprint so that
-a wall of voxel centres 3 cm apart has no gaps rays could leak through. Horizontal rays from
-the scan origin are traversed cell by cell (Amanatides-Woo DDA, vectorised over rays): the
-first occupied cell gives the hit, at the exact distance where the ray enters that cell.
+- `map` (default): the LiDAR map is a cloud of 3 cm voxel centres. Points within +-band of the
+  camera height are drawn into a 2D occupancy raster (<= 2 cm cells), each point as its voxel's
+  square footprint ("solid 3 cm voxels") so that a wall of voxel centres 3 cm apart has no gaps
+  rays could leak through. Horizontal rays from the scan origin are traversed cell by cell
+  (Amanatides-Woo DDA, vectorised over rays): the first occupied cell gives the hit, at the exact
+  distance where the ray enters that cell.
+- `exact` (simulated recordings): the same rays cast into the simulator's exact scene
+  (`scene.json`) at camera height; no map, no raster.
+- `paper`: the authors' raster: map points within +-band of the mean camera height of all test
+  points, each one pixel of a 512 x 512 raster over the scene's square extent (pixel =
+  extent / 511, pixel centres on the grid nodes, points outside clamped to the border), every
+  ray sampled at 725 equidistant radii from 0 to the extent, the first sample in an occupied
+  pixel giving the distance to that pixel's centre; the LiDAR is scored over its configured
+  horizontal range per room (`PAPER_ROOMS`).
 """
 
 from __future__ import annotations
@@ -13,8 +22,40 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from virus_nerf.evaluation.metrics import GT_PROTOCOLS  # noqa: F401  (the names live beside the schema)
 from virus_nerf.evaluation.scans import FieldOfView, Scan2D, horizontal_directions, scan_angles
 from virus_nerf.evaluation.testpoints import TestPoint
+
+GT_DESCRIPTIONS = {
+    "map": "LiDAR map slice as solid 3 cm voxels, 2 cm raster",
+    "exact": "exact simulated scene at camera height",
+    "paper": "authors' protocol: one pixel per map point, 512 x 512 raster, 725 samples per ray",
+}
+PAPER_RASTER_PX = 512  # pixels per side of the authors' slice raster
+PAPER_RAY_SAMPLES = 725  # ceil(sqrt(2) * 512) equidistant radii per ray, 0 .. extent
+PAPER_SCALE_MARGIN = 1.05  # the authors' scene cube: largest box side times this margin
+
+
+@dataclass(frozen=True)
+class PaperRoom:
+    """The authors' configuration of one of their real rooms (metres, degrees).
+
+    lidar_deg: horizontal LiDAR range scored, relative to the LiDAR heading (their
+    `angle_min_max`); box_xy: (x_lo, y_lo, x_hi, y_hi) of their hand-set scene box, whose largest
+    side times 1.05 is the raster's extent (office: 9 m -> 9.45 m, 1.85 cm pixels; None: use
+    the map's bounding box).
+    """
+
+    lidar_deg: tuple[float, float]
+    box_xy: tuple[float, float, float, float] | None = None
+
+
+PAPER_ROOMS: dict[str, PaperRoom] = {
+    "office": PaperRoom((-120.0, 120.0), (-2.0, -1.0, 6.0, 8.0)),
+    "commonroom": PaperRoom((-140.0, 60.0), (-3.0, -3.0, 15.0, 9.0)),
+    "common": PaperRoom((-140.0, 60.0)),  # the simulator's name for the common room
+}
+FULL_CIRCLE_DEG = (-180.0, 180.0)
 
 
 @dataclass
@@ -135,7 +176,11 @@ class GroundTruth:
     test_point: TestPoint
     scan: Scan2D  # name "GT", full 360 deg
     ranges: np.ndarray  # (n_rays,) m, NaN = no hit, ray k at angle scan_angles(n_rays)[k]
-    slice_xy: np.ndarray  # (K, 2) map points within the height band
+    slice_xy: np.ndarray  # (K, 2) map points within the height band (for plots; may be empty)
+    protocol: str = "map"  # which protocol made it (GT_PROTOCOLS)
+    # LiDAR horizontal range scored under this protocol, degrees relative to the LiDAR heading;
+    # None: the evaluation's own setting (EvaluationConfig.lidar_angle_range_deg)
+    lidar_deg: tuple[float, float] | None = None
 
 
 def gt_scan(
@@ -154,12 +199,124 @@ def gt_scan(
     raster = rasterise(slice_xy, res=res, footprint=footprint, include=origin)
     dirs = horizontal_directions(n_rays)  # (N, 3)
     r = cast_rays(raster, origin, dirs[:, :2])
-    ok = np.isfinite(r)
+    return _ground_truth(test_point, r, slice_xy, "map")
+
+
+def _ground_truth(test_point: TestPoint, ranges: np.ndarray, slice_xy: np.ndarray, protocol: str,
+                  lidar_deg: tuple[float, float] | None = None) -> GroundTruth:
+    """GroundTruth of ranges (n_rays,) along horizontal_directions(n_rays) from the scan origin."""
+    origin = test_point.origin_xy
+    r = np.asarray(ranges, dtype=np.float64).reshape(-1)
+    dirs = horizontal_directions(len(r))
+    ok = np.isfinite(r) & (r > 0)
+    r = np.where(ok, r, np.nan)
     scan = Scan2D(
         name="GT",
         points=origin[None, :] + dirs[ok, :2] * r[ok, None],
         origin=origin,
         fov=FieldOfView.full(origin),
-        extra={"angle": scan_angles(n_rays)[ok]},
+        extra={"angle": scan_angles(len(r))[ok]},
     )
-    return GroundTruth(test_point=test_point, scan=scan, ranges=r, slice_xy=slice_xy)
+    return GroundTruth(test_point=test_point, scan=scan, ranges=r, slice_xy=np.asarray(slice_xy, dtype=np.float64),
+                       protocol=protocol, lidar_deg=lidar_deg)
+
+
+# ---------------------------------------------------------------------------------- exact
+def exact_gt_scan(scene, test_point: TestPoint, n_rays: int = 512, slice_xy: np.ndarray | None = None) -> GroundTruth:
+    """`n_rays` horizontal rays from the test point's camera-1 position (at camera height) cast
+    into an exact scene (anything with `ranges(origins, directions)`, e.g. sim.scene.Scene)."""
+    dirs = horizontal_directions(n_rays)
+    origins = np.broadcast_to(test_point.origin, dirs.shape).copy()
+    r = np.asarray(scene.ranges(origins, dirs), dtype=np.float64).reshape(-1)
+    return _ground_truth(test_point, r, np.zeros((0, 2)) if slice_xy is None else slice_xy, "exact")
+
+
+# ---------------------------------------------------------------------------------- paper
+@dataclass(frozen=True)
+class SquareExtent:
+    """The square the paper raster covers: centre (x, y) and side, metres."""
+
+    centre: tuple[float, float]
+    side: float
+
+    @property
+    def pixel(self) -> float:
+        """Pixel pitch (m): side / (pixels - 1), the pixel centres lying on the grid nodes."""
+        return self.side / (PAPER_RASTER_PX - 1)
+
+    @property
+    def corner(self) -> np.ndarray:
+        """(2,) centre of pixel (0, 0), the square's lower-left corner."""
+        return np.asarray(self.centre, dtype=np.float64) - self.side / 2
+
+    @staticmethod
+    def of_box(lo_xy, hi_xy, margin: float = PAPER_SCALE_MARGIN) -> SquareExtent:
+        """The authors' cube: centred on the box, side = its largest side times `margin`."""
+        lo, hi = np.asarray(lo_xy, dtype=np.float64), np.asarray(hi_xy, dtype=np.float64)
+        c = (lo + hi) / 2
+        return SquareExtent((float(c[0]), float(c[1])), float((hi - lo).max() * margin))
+
+
+def paper_extent(room: str, map_points: np.ndarray, real_recording: bool) -> SquareExtent:
+    """The raster's square: the authors' box of their room for a real recording of it, else the
+    bounding box of the map's x, y (both grown by their 5 % margin)."""
+    cfg = PAPER_ROOMS.get(room)
+    if real_recording and cfg is not None and cfg.box_xy is not None:
+        x0, y0, x1, y1 = cfg.box_xy
+        return SquareExtent.of_box((x0, y0), (x1, y1))
+    xy = np.asarray(map_points, dtype=np.float64).reshape(-1, 3)[:, :2] if len(map_points) else np.zeros((1, 2))
+    return SquareExtent.of_box(xy.min(axis=0), xy.max(axis=0))
+
+
+def paper_lidar_deg(room: str) -> tuple[float, float]:
+    """The LiDAR's horizontal range in the authors' configuration; the full circle when unknown."""
+    cfg = PAPER_ROOMS.get(room)
+    return cfg.lidar_deg if cfg is not None else FULL_CIRCLE_DEG
+
+
+def paper_pixel_of(xy: np.ndarray, extent: SquareExtent) -> np.ndarray:
+    """(K, 2) points -> (K, 2) pixel indices: nearest pixel centre, clamped to the raster."""
+    q = (np.asarray(xy, dtype=np.float64) - extent.corner) / extent.pixel
+    return np.clip(np.floor(q + 0.5), 0, PAPER_RASTER_PX - 1).astype(np.int64)
+
+
+def paper_raster(slice_xy: np.ndarray, extent: SquareExtent) -> np.ndarray:
+    """(512, 512) bool raster, pixel (i, j) centred at corner + (i, j) * pixel; one pixel per point."""
+    occ = np.zeros((PAPER_RASTER_PX, PAPER_RASTER_PX), dtype=bool)
+    idx = paper_pixel_of(np.asarray(slice_xy, dtype=np.float64).reshape(-1, 2), extent)
+    occ[idx[:, 0], idx[:, 1]] = True
+    return occ
+
+
+def paper_cast(occupied: np.ndarray, extent: SquareExtent, origin: np.ndarray, directions: np.ndarray,
+               n_samples: int = PAPER_RAY_SAMPLES) -> np.ndarray:
+    """Distance (N,) m from origin (2,) to the centre of the first occupied pixel met by each ray's
+    `n_samples` equidistant samples at radii 0 .. extent.side (the first at the origin itself);
+    NaN where none is occupied. directions (N, 2) unit."""
+    o = np.asarray(origin, dtype=np.float64).reshape(1, 1, 2)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 1, 2)
+    radii = np.linspace(0.0, extent.side, n_samples).reshape(1, -1, 1)
+    idx = paper_pixel_of((o + radii * d).reshape(-1, 2), extent).reshape(len(d), n_samples, 2)
+    occ = occupied[idx[..., 0], idx[..., 1]]  # (N, S)
+    hit = occ.any(axis=1)
+    first = np.argmax(occ, axis=1)
+    centre = extent.corner + idx[np.arange(len(d)), first] * extent.pixel  # (N, 2)
+    out = np.linalg.norm(centre - o[0], axis=1)
+    return np.where(hit, out, np.nan)
+
+
+def paper_gt_scan(
+    map_points: np.ndarray,
+    test_point: TestPoint,
+    extent: SquareExtent,
+    slice_height: float,
+    n_rays: int = 512,
+    band: float = 0.05,
+    lidar_deg: tuple[float, float] = FULL_CIRCLE_DEG,
+) -> GroundTruth:
+    """The authors' GT scan of one test point: the slice at `slice_height` (the mean camera height
+    of all test points) +-band, rasterised and sampled as in `paper_cast`."""
+    slice_xy = height_slice(map_points, slice_height, band)
+    occ = paper_raster(slice_xy, extent)
+    r = paper_cast(occ, extent, test_point.origin_xy, horizontal_directions(n_rays)[:, :2])
+    return _ground_truth(test_point, r, slice_xy, "paper", lidar_deg=lidar_deg)

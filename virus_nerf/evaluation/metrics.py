@@ -11,8 +11,17 @@ Definitions (all distances 2D, metres; depth = distance from the test point's sc
 - Zones are closed intervals lo <= depth <= hi on float depths (design 9.7); zones nest.
 - inlier + too_close + too_far = 1 in every zone with points.
 - A test point contributes accuracy only if it has FoV-GT points, and coverage only if the
-  sensor returned at least one point there (a nearest neighbour must exist). Points are pooled
-  over test points before the statistics. No points -> None (JSON null), never NaN.
+  sensor returned at least one point there (a nearest neighbour must exist: the paper's
+  definition, kept as `cov_*`). Points are pooled over test points before the statistics.
+  No points -> None (JSON null), never NaN.
+- gt_unseen: the share of all FoV-GT points (pooled, zone by the GT depth) that lie at test
+  points where the sensor returned nothing, i.e. the GT points `cov_*` leaves out. A sparse
+  sensor that is silent at most test points has a flattering `cov_*` and a large `gt_unseen`.
+
+metrics.json names the ground-truth protocol its numbers use ("gt": "map" | "exact" | "paper",
+design 6.7; a document without it is from before the protocols and used "map"). When several
+protocols were asked, "sensors" holds the first and "by_gt" maps every protocol asked (the
+first included) to {"sensors": ...} of the same form.
 """
 
 from __future__ import annotations
@@ -20,6 +29,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
+from dataclasses import field as dataclass_field
 from pathlib import Path
 from typing import Any
 
@@ -28,12 +38,16 @@ from scipy.spatial import cKDTree
 
 from virus_nerf.utils.io import write_json_atomic
 
+GT_PROTOCOLS = ("map", "exact", "paper")  # ground-truth protocols (design 6.7; evaluation.gt)
+
 INLIER_M = 0.1
 METRIC_KEYS = (
     "acc_mean", "acc_median", "acc_inlier", "acc_too_close", "acc_too_far",
-    "cov_mean", "cov_median", "cov_inlier", "cov_too_close", "cov_too_far",
+    "cov_mean", "cov_median", "cov_inlier", "cov_too_close", "cov_too_far", "gt_unseen",
     "n_pred", "n_gt",
 )
+LEGACY_METRIC_KEYS = tuple(k for k in METRIC_KEYS if k != "gt_unseen")  # metrics.json before gt_unseen
+DEFAULT_GT = "map"  # the protocol of a metrics.json that names none
 
 
 @dataclass(frozen=True)
@@ -62,10 +76,12 @@ class NNDSamples:
     cov_dist: np.ndarray  # (K,) m, GT point -> nearest predicted point
     cov_gt_depth: np.ndarray  # (K,) m, depth of the GT point (decides the zone)
     cov_pred_depth: np.ndarray  # (K,) m, depth of its nearest predicted point
+    # (U,) m, depths of FoV-GT points at test points where the sensor returned nothing
+    unseen_gt_depth: np.ndarray = dataclass_field(default_factory=lambda: np.zeros(0))
 
     @staticmethod
     def empty() -> NNDSamples:
-        return NNDSamples(*(np.zeros(0) for _ in range(6)))
+        return NNDSamples(*(np.zeros(0) for _ in fields(NNDSamples)))
 
     @staticmethod
     def concat(items: Sequence[NNDSamples]) -> NNDSamples:
@@ -84,6 +100,8 @@ def nnd_samples(pred: np.ndarray, gt: np.ndarray, origin: np.ndarray) -> NNDSamp
     pred_depth = np.linalg.norm(pred - origin, axis=1)
     gt_depth = np.linalg.norm(gt - origin, axis=1)
     out = NNDSamples.empty()
+    if len(gt) and not len(pred):
+        out.unseen_gt_depth = gt_depth
     if len(gt) and len(pred):
         d_acc, j = cKDTree(gt).query(pred)
         d_cov, i = cKDTree(pred).query(gt)
@@ -114,6 +132,7 @@ class ZoneMetrics:
     cov_too_far: float | None
     n_pred: int
     n_gt: int
+    gt_unseen: float | None = None  # share of FoV-GT points at test points with no return
 
     def to_json(self) -> dict[str, float | int | None]:
         d = asdict(self)
@@ -152,7 +171,10 @@ def zone_metrics(
         acc = _stats(samples.acc_dist[a], samples.acc_pred_depth[a] < samples.acc_gt_depth[a], inlier_m)
         cov = _stats(samples.cov_dist[c], samples.cov_pred_depth[c] < samples.cov_gt_depth[c], inlier_m)
         vals = [None if v is None else float(v) for v in acc + cov]
-        out[z.name] = ZoneMetrics(*vals, n_pred=int(a.sum()), n_gt=int(c.sum()))
+        n_unseen = int(z.contains(samples.unseen_gt_depth).sum())
+        n_in_view = int(c.sum()) + n_unseen
+        unseen = n_unseen / n_in_view if n_in_view else None
+        out[z.name] = ZoneMetrics(*vals, n_pred=int(a.sum()), n_gt=int(c.sum()), gt_unseen=unseen)
     return SensorMetrics(out)
 
 
@@ -164,46 +186,97 @@ def metrics_document(
     sensors: Mapping[str, SensorMetrics],
     zones: Sequence[Zone] = DEFAULT_ZONES,
     train: Mapping[str, Any] | None = None,
+    gt: str = DEFAULT_GT,
+    by_gt: Mapping[str, Mapping[str, SensorMetrics]] | None = None,
 ) -> dict[str, Any]:
-    """The metrics.json object of design 7 (zones, sensors, optional train block)."""
+    """The metrics.json object of design 7: gt, zones, sensors[, by_gt][, train].
+
+    `sensors` are the metrics under protocol `gt`; `by_gt` (every protocol asked -> metrics, `gt`
+    among them) is written only when it holds more than that one protocol.
+    """
     doc: dict[str, Any] = {
+        "gt": gt,
         "zones": {z.name: [_json_number(z.lo), _json_number(z.hi)] for z in zones},
         "sensors": {name: m.to_json() for name, m in sensors.items()},
     }
+    if by_gt is not None and list(by_gt) != [gt]:
+        if gt not in by_gt:
+            raise ValueError(f"by_gt {list(by_gt)} lacks the document's protocol {gt!r}")
+        doc["by_gt"] = {p: {"sensors": {n: m.to_json() for n, m in ms.items()}} for p, ms in by_gt.items()}
     if train is not None:
         doc["train"] = dict(train)
     check_metrics_document(doc)
     return doc
 
 
+def _check_sensors_block(sensors: Mapping[str, Any], zone_names: list[str], where: str) -> None:
+    for sensor, per_zone in sensors.items():
+        if list(per_zone) != zone_names:
+            raise ValueError(f"{where}sensor {sensor!r} has zones {list(per_zone)}, expected {zone_names}")
+        for zname, block in per_zone.items():
+            if tuple(block) not in (METRIC_KEYS, LEGACY_METRIC_KEYS):
+                raise ValueError(f"{where}{sensor}/{zname} keys {list(block)} != {list(METRIC_KEYS)}")
+            for k, v in block.items():
+                if k.startswith("n_"):
+                    if not isinstance(v, int) or v < 0:
+                        raise ValueError(f"{where}{sensor}/{zname}/{k} must be a non-negative int, got {v!r}")
+                elif v is not None and not (isinstance(v, float | int) and math.isfinite(v)):
+                    raise ValueError(f"{where}{sensor}/{zname}/{k} must be a finite number or null, got {v!r}")
+
+
 def check_metrics_document(doc: Mapping[str, Any]) -> None:
-    """Raise ValueError unless `doc` follows the design-7 schema (finite numbers or null)."""
-    if set(doc) - {"zones", "sensors", "train"} or not {"zones", "sensors"} <= set(doc):
-        raise ValueError(f"metrics document keys must be zones, sensors[, train]; got {sorted(doc)}")
+    """Raise ValueError unless `doc` follows the design-7 schema (finite numbers or null).
+
+    Documents written before the ground-truth protocols (no "gt", no "gt_unseen") are accepted.
+    """
+    allowed = {"gt", "zones", "sensors", "by_gt", "train"}
+    if set(doc) - allowed or not {"zones", "sensors"} <= set(doc):
+        raise ValueError(f"metrics document keys must be [gt,] zones, sensors[, by_gt][, train]; got {sorted(doc)}")
+    gt = doc.get("gt", DEFAULT_GT)
+    if gt not in GT_PROTOCOLS:
+        raise ValueError(f"metrics document gt {gt!r}: expected one of {', '.join(GT_PROTOCOLS)}")
     zone_names = list(doc["zones"])
     for name, bounds in doc["zones"].items():
         if not (isinstance(bounds, list) and len(bounds) == 2):
             raise ValueError(f"zone {name!r} must be [lo, hi], got {bounds!r}")
-    for sensor, per_zone in doc["sensors"].items():
-        if list(per_zone) != zone_names:
-            raise ValueError(f"sensor {sensor!r} has zones {list(per_zone)}, expected {zone_names}")
-        for zname, block in per_zone.items():
-            if tuple(block) != METRIC_KEYS:
-                raise ValueError(f"{sensor}/{zname} keys {list(block)} != {list(METRIC_KEYS)}")
-            for k, v in block.items():
-                if k.startswith("n_"):
-                    if not isinstance(v, int) or v < 0:
-                        raise ValueError(f"{sensor}/{zname}/{k} must be a non-negative int, got {v!r}")
-                elif v is not None and not (isinstance(v, float | int) and math.isfinite(v)):
-                    raise ValueError(f"{sensor}/{zname}/{k} must be a finite number or null, got {v!r}")
+    _check_sensors_block(doc["sensors"], zone_names, "")
+    if "by_gt" in doc:
+        by_gt = doc["by_gt"]
+        if not isinstance(by_gt, Mapping) or gt not in by_gt:
+            raise ValueError(f"by_gt must map every protocol asked (including gt {gt!r}) to {{'sensors': ...}}")
+        for p, block in by_gt.items():
+            if p not in GT_PROTOCOLS or not isinstance(block, Mapping) or set(block) != {"sensors"}:
+                raise ValueError(f"by_gt[{p!r}] must be {{'sensors': ...}} of a protocol in {GT_PROTOCOLS}")
+            _check_sensors_block(block["sensors"], zone_names, f"by_gt[{p!r}]: ")
+        if by_gt[gt]["sensors"] != doc["sensors"]:
+            raise ValueError(f"by_gt[{gt!r}] differs from the document's sensors (protocol {gt!r})")
 
 
-def sensor_metrics_from_json(doc: Mapping[str, Any]) -> dict[str, SensorMetrics]:
-    """Inverse of `metrics_document` for the sensors block (e.g. to aggregate saved runs)."""
+def gt_protocols_of(doc: Mapping[str, Any]) -> list[str]:
+    """The protocols a metrics document holds, its own ("gt") first."""
+    gt = doc.get("gt", DEFAULT_GT)
+    return [gt] + [p for p in doc.get("by_gt", {}) if p != gt]
+
+
+def sensors_block(doc: Mapping[str, Any], gt: str | None = None) -> Mapping[str, Any]:
+    """The "sensors" object of protocol `gt` (default: the document's own); KeyError naming the
+    protocols present when the document lacks it."""
+    own = doc.get("gt", DEFAULT_GT)
+    if gt is None or gt == own:
+        return doc["sensors"]
+    if gt in doc.get("by_gt", {}):
+        return doc["by_gt"][gt]["sensors"]
+    raise KeyError(f"no metrics for ground truth {gt!r}; the document holds {gt_protocols_of(doc)}")
+
+
+def sensor_metrics_from_json(doc: Mapping[str, Any], gt: str | None = None) -> dict[str, SensorMetrics]:
+    """Inverse of `metrics_document` for the sensors block of protocol `gt` (default: the
+    document's own), e.g. to aggregate saved runs; older blocks without gt_unseen read as None."""
     check_metrics_document(doc)
     return {
-        name: SensorMetrics({z: ZoneMetrics(**{k: block[k] for k in METRIC_KEYS}) for z, block in per_zone.items()})
-        for name, per_zone in doc["sensors"].items()
+        name: SensorMetrics({z: ZoneMetrics(**{k: block[k] for k in METRIC_KEYS if k in block})
+                             for z, block in per_zone.items()})
+        for name, per_zone in sensors_block(doc, gt).items()
     }
 
 
@@ -212,9 +285,11 @@ def write_metrics_json(
     sensors: Mapping[str, SensorMetrics],
     zones: Sequence[Zone] = DEFAULT_ZONES,
     train: Mapping[str, Any] | None = None,
+    gt: str = DEFAULT_GT,
+    by_gt: Mapping[str, Mapping[str, SensorMetrics]] | None = None,
 ) -> dict[str, Any]:
     """Write metrics.json atomically; returns the written object."""
-    doc = metrics_document(sensors, zones, train)
+    doc = metrics_document(sensors, zones, train, gt=gt, by_gt=by_gt)
     write_json_atomic(path, doc)
     return doc
 
@@ -228,16 +303,22 @@ def _fmt(v: float | int | None, width: int = 7) -> str:
 
 
 def format_table(sensors: Mapping[str, SensorMetrics], zones: Sequence[Zone] = DEFAULT_ZONES) -> str:
-    """Compact text table: one row per sensor and zone; NND in metres, shares in [0, 1]."""
-    head = ("sensor", "zone", "acc_mean", "acc_med", "acc_inl", "cov_mean", "cov_med", "cov_inl", "n_pred", "n_gt")
-    widths = (8, 6, 8, 8, 8, 8, 8, 8, 7, 7)
+    """Compact text table: one row per sensor and zone; NND in metres, shares in [0, 1].
+
+    `unseen` is gt_unseen: the share of in-view GT points at test points where the sensor
+    returned nothing (left out of cov_*).
+    """
+    head = ("sensor", "zone", "acc_mean", "acc_med", "acc_inl", "cov_mean", "cov_med", "cov_inl", "unseen",
+            "n_pred", "n_gt")
+    widths = (8, 6, 8, 8, 8, 8, 8, 8, 7, 7, 7)
     lines = [" ".join(h.rjust(w) if i > 1 else h.ljust(w) for i, (h, w) in enumerate(zip(head, widths, strict=True)))]
     for name, m in sensors.items():
         for z in zones:
             zm = m.zones.get(z.name)
             if zm is None:
                 continue
-            vals = (zm.acc_mean, zm.acc_median, zm.acc_inlier, zm.cov_mean, zm.cov_median, zm.cov_inlier, zm.n_pred, zm.n_gt)
+            vals = (zm.acc_mean, zm.acc_median, zm.acc_inlier, zm.cov_mean, zm.cov_median, zm.cov_inlier,
+                    zm.gt_unseen, zm.n_pred, zm.n_gt)
             cells = [name.ljust(widths[0]), z.name.ljust(widths[1])]
             cells += [_fmt(v, w) for v, w in zip(vals, widths[2:], strict=True)]
             lines.append(" ".join(cells))

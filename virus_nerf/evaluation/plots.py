@@ -3,7 +3,10 @@
 - `plot_test_point`: top-down map of one test point, one panel with every scan and one panel
   per sensor/model with its field-of-view GT, in metres with equal aspect.
 - `plot_metric_bars`: per zone and sensor, mean NND (bars) with the median (markers), and the
-  inlier / too-close / too-far shares as stacked bars, for accuracy and coverage.
+  inlier / too-close / too-far shares as stacked bars, for accuracy and coverage; the coverage
+  shares are of all in-view GT points, with the GT at test points where the sensor returned
+  nothing (gt_unseen) as a grey "unseen" part on top.
+Every title names the ground-truth protocol (design 6.7).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from virus_nerf.evaluation.scans import FieldOfView  # noqa: E402
 from virus_nerf.utils.io import atomic_path  # noqa: E402
 
 COLOURS = {"GT": "black", "LiDAR": "tab:blue", "USS": "tab:orange", "IRS": "tab:green", "NeRF": "tab:red"}
+GT_MARKERS = {"map": "o", "exact": "x", "paper": "+"}  # the further protocols' GT in the "all" panel
 EXTRA_COLOURS = ("tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
 
 
@@ -74,7 +78,13 @@ def plot_test_point(tps, path: str | Path, title: str = "", window_m: float | No
     for ax, panel in zip(axes.ravel(), panels, strict=False):
         ax.scatter(sl[in_view, 0], sl[in_view, 1], s=1, c="0.78", marker=".", linewidths=0, label="map slice")
         if panel == "all":
-            ax.scatter(gt.scan.points[:, 0], gt.scan.points[:, 1], s=4, c=COLOURS["GT"], label=f"GT ({len(gt.scan)})")
+            ax.scatter(gt.scan.points[:, 0], gt.scan.points[:, 1], s=4, c=COLOURS["GT"],
+                       label=f"GT {gt.protocol} ({len(gt.scan)})")
+            for p, other in getattr(tps, "all_gt", {}).items():
+                if p == gt.protocol:
+                    continue
+                ax.scatter(other.scan.points[:, 0], other.scan.points[:, 1], s=10, c="0.35", linewidths=0.6,
+                           marker=GT_MARKERS.get(p, "."), label=f"GT {p} ({len(other.scan)})")
             for name, scan in tps.scans.items():
                 ax.scatter(scan.points[:, 0], scan.points[:, 1], s=6, c=colour_of(name, names), label=f"{name} ({len(scan)})")
             ax.set_title("all scans")
@@ -82,7 +92,8 @@ def plot_test_point(tps, path: str | Path, title: str = "", window_m: float | No
             scan = tps.scans[panel]
             fgt = tps.fov_gt(panel)
             c = colour_of(panel, names)
-            ax.scatter(fgt.points[:, 0], fgt.points[:, 1], s=4, c=COLOURS["GT"], label=f"GT in FoV ({len(fgt)})")
+            ax.scatter(fgt.points[:, 0], fgt.points[:, 1], s=4, c=COLOURS["GT"],
+                       label=f"GT {gt.protocol} in FoV ({len(fgt)})")
             ax.scatter(scan.points[:, 0], scan.points[:, 1], s=8, c=c, label=f"{panel} ({len(scan)})")
             _draw_fov(ax, scan.fov, radius, c)
             ax.set_title(panel)
@@ -100,7 +111,8 @@ def plot_test_point(tps, path: str | Path, title: str = "", window_m: float | No
     for ax in axes.ravel()[len(panels):]:
         ax.axis("off")
     tp = tps.test_point
-    fig.suptitle(title or f"test point: stack-1 frame {tp.index1}, t = {tp.time:.3f} s, camera height z = {tp.height:.3f} m")
+    fig.suptitle(title or f"test point: stack-1 frame {tp.index1}, t = {tp.time:.3f} s, camera height "
+                          f"z = {tp.height:.3f} m; ground truth: {gt.protocol}")
     fig.tight_layout()
     return save_png(fig, path)
 
@@ -111,8 +123,10 @@ def plot_metric_bars(
     zones: Sequence[Zone] = DEFAULT_ZONES,
     title: str = "",
     inlier_m: float = 0.1,
+    gt: str | None = None,
 ) -> Path:
-    """Fig. 3 style: mean NND per zone and sensor, and inlier / too-close / too-far shares."""
+    """Fig. 3 style: mean NND per zone and sensor, and inlier / too-close / too-far shares
+    (coverage: of all in-view GT points, with gt_unseen). `gt` names the protocol in the title."""
     names = list(metrics)
     fig, axes = plt.subplots(2, 2, figsize=(13, 8.5))
     nz = len(zones)
@@ -143,21 +157,27 @@ def plot_metric_bars(
         for k, name in enumerate(names):
             xs = x - 0.4 + width * (k + 0.5)
             bottom = np.zeros(nz)
+            zms = [metrics[name].zones.get(z.name) for z in zones]
+            # coverage: shares of all in-view GT points; the unseen ones (no return) on top
+            unseen = np.array([(zm.gt_unseen or 0.0) if (zm is not None and kind == "cov") else 0.0 for zm in zms])
             for part, c in parts:
-                vals = np.array([
-                    (getattr(metrics[name].zones[z.name], f"{kind}_{part}") or 0.0) if z.name in metrics[name].zones else 0.0
-                    for z in zones
-                ])
+                vals = np.array([(getattr(zm, f"{kind}_{part}") or 0.0) if zm is not None else 0.0 for zm in zms])
+                vals = vals * (1.0 - unseen)
                 ax.bar(xs, vals, width * 0.9, bottom=bottom, color=c, edgecolor="white", lw=0.5,
                        label=part.replace("_", " ") if k == 0 else None)
                 bottom += vals
+            if kind == "cov":
+                ax.bar(xs, unseen, width * 0.9, bottom=bottom, color="0.75", edgecolor="white", lw=0.5, hatch="//",
+                       label="unseen (no return)" if k == 0 else None)
+                bottom += unseen
             for i in range(nz):
                 ax.text(xs[i], 1.01, name, ha="center", va="bottom", fontsize=6, rotation=90)
         ax.set_xticks(x, [z.name for z in zones])
         ax.set_ylim(0, 1.25)
-        ax.set_ylabel("share of points")
-        ax.set_title(f"{label}: inliers (< {inlier_m:g} m) and outliers")
-        ax.legend(fontsize=8, loc="upper right")
-    fig.suptitle(title or "NND metrics per zone")
+        ax.set_ylabel("share of points" if kind == "acc" else "share of in-view GT points")
+        ax.set_title(f"{label}: inliers (< {inlier_m:g} m) and outliers"
+                     + (", GT at test points with no return (gt_unseen)" if kind == "cov" else ""))
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=4)
+    fig.suptitle(title or ("NND metrics per zone" + (f"; ground truth: {gt}" if gt else "")))
     fig.tight_layout()
     return save_png(fig, path)

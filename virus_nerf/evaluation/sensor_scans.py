@@ -35,10 +35,25 @@ def lidar_fov(lidar_pose: np.ndarray, angle_range_deg: float) -> FieldOfView:
     return FieldOfView((Sector(apex.copy(), float(yaw_of(lidar_pose, axis=0)), float(half)),))
 
 
+def lidar_fov_between(lidar_pose: np.ndarray, lo_deg: float, hi_deg: float) -> FieldOfView:
+    """Sector from lo_deg to hi_deg (degrees, counter-clockwise) relative to the LiDAR x axis,
+    e.g. (-140, 60); a span of 360 degrees or more is the full circle."""
+    if not hi_deg > lo_deg:
+        raise ValueError(f"LiDAR angle range must have hi > lo (degrees), got ({lo_deg}, {hi_deg})")
+    apex = lidar_pose[:2, 3]
+    span = hi_deg - lo_deg
+    half = np.pi if span >= 360.0 else np.deg2rad(span) / 2
+    heading = float(yaw_of(lidar_pose, axis=0)) + np.deg2rad((lo_deg + hi_deg) / 2)
+    return FieldOfView((Sector(apex.copy(), heading, float(half)),))
+
+
 def lidar_scan_2d(
-    recording: Recording, test_point: TestPoint, band: float = 0.05, angle_range_deg: float = 360.0
+    recording: Recording, test_point: TestPoint, band: float = 0.05, angle_range_deg: float = 360.0,
+    angles_deg: tuple[float, float] | None = None,
 ) -> Scan2D:
-    """LiDAR points at camera height from the scan nearest in time to the test point."""
+    """LiDAR points at camera height from the scan nearest in time to the test point, within
+    `angle_range_deg` centred on the LiDAR heading or, when given, `angles_deg` (lo, hi) relative
+    to it."""
     if len(recording.lidar_times) == 0:
         fov = FieldOfView(())
         return Scan2D("LiDAR", np.zeros((0, 2)), test_point.origin_xy, fov)
@@ -47,7 +62,7 @@ def lidar_scan_2d(
     pose = recording.lidar_pose_at(t_scan)  # (4, 4) LiDAR to world
     pts = transform_points(pose, recording.lidar_scan(k).astype(np.float64))  # (M, 3) world
     pts = pts[np.abs(pts[:, 2] - test_point.height) <= band]
-    fov = lidar_fov(pose, angle_range_deg)
+    fov = lidar_fov(pose, angle_range_deg) if angles_deg is None else lidar_fov_between(pose, *angles_deg)
     xy = pts[:, :2]
     keep = fov.contains(xy)
     return Scan2D("LiDAR", xy[keep], test_point.origin_xy, fov, extra={"z": pts[keep, 2], "time": np.array([t_scan])})

@@ -82,16 +82,32 @@ def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
     return float(np.mean(v)), float(np.std(v))
 
 
-def aggregate(out: Path, scenes: tuple[str, ...], seeds: int) -> list[dict]:
-    """One record per (row, scene): mean and std over seeds, the paper's figure, steps/s."""
+def run_block(doc: dict, gt: str, run: Path) -> dict:
+    """The NeRF zone-3 block of a run's metrics under protocol `gt` (a UsageError naming the run
+    when it was scored under other protocols, e.g. an earlier ablation with another --gt)."""
+    from virus_nerf.errors import UsageError
+    from virus_nerf.evaluation.metrics import gt_protocols_of, sensors_block
+
+    try:
+        return sensors_block(doc, gt)["NeRF"]["zone3"]
+    except KeyError:
+        raise UsageError(f"--gt {gt}: {run / 'metrics.json'} holds ground truth {gt_protocols_of(doc)} only; "
+                         f"evaluate it with `virus-nerf evaluate --run {run} --gt {gt}` or use a new --out") from None
+
+
+def aggregate(out: Path, scenes: tuple[str, ...], seeds: int, gt: str = "map") -> list[dict]:
+    """One record per (row, scene): mean and std over seeds under ground truth `gt`, the paper's
+    figure, steps/s."""
     records = []
     for row in ROWS:
         for scene in scenes:
-            docs = [load_metrics(out / "runs" / scene / f"row{row.number}_seed{s}") for s in range(seeds)]
-            docs = [d for d in docs if d is not None]
-            rec: dict = {"row": row.number, "label": row.label, "scene": scene, "runs": len(docs)}
+            runs = [out / "runs" / scene / f"row{row.number}_seed{s}" for s in range(seeds)]
+            pairs = [(r, load_metrics(r)) for r in runs]
+            blocks = [run_block(d, gt, r) for r, d in pairs if d is not None]
+            docs = [d for _, d in pairs if d is not None]
+            rec: dict = {"row": row.number, "label": row.label, "scene": scene, "gt": gt, "runs": len(docs)}
             for key in KEYS:
-                vals = [d["sensors"]["NeRF"]["zone3"][key] for d in docs]
+                vals = [b[key] for b in blocks]
                 rec[key], rec[key + "_std"] = _mean_std(vals)
             rec["steps_per_s"], rec["steps_per_s_std"] = _mean_std([d["train"]["steps_per_s"] for d in docs])
             for k, v in zip(KEYS, PAPER[(row.number, scene)], strict=True):
@@ -157,7 +173,7 @@ def plot_rows(records: list[dict], path: Path) -> Path:
                            label="paper" if k == 0 else None)
             ax.set_xticks(x, [str(r["row"]) for r in recs])
             ax.set_xlabel("Table I row")
-            ax.set_title(f"{scene}: zone 3 {title}")
+            ax.set_title(f"{scene}: zone 3 {title} (GT {recs[0].get('gt', 'map')})")
             ax.grid(axis="y", alpha=0.3)
             ax.legend(fontsize=8)
     fig.tight_layout()
@@ -171,6 +187,7 @@ def ablation(
     workers: int = 2,
     train_time: float | None = None,
     scenes: tuple[str, ...] | None = None,
+    gt: str = "map",
 ) -> None:
     """Run the paper's Table I ablation on simulated rooms and aggregate it.
 
@@ -189,10 +206,13 @@ def ablation(
         workers: Trainings in parallel (each gets cores / workers threads).
         train_time: Seconds of training per run (default 120; quick 15).
         scenes: Scenes to run (default office and common; quick office).
+        gt: Ground truth of the runs' evaluation, one or more of map, exact, paper, comma-separated
+            (default map); a table per protocol, the first one's in the plot.
     """
     import json
 
     from virus_nerf.errors import UsageError, require_int, require_number
+    from virus_nerf.evaluation.evaluate import parse_gt_flag
     from virus_nerf.experiments.online import refuse_existing
     from virus_nerf.sim.command import simulate
     from virus_nerf.utils.io import write_json_atomic, write_text_atomic
@@ -200,6 +220,7 @@ def ablation(
     if seeds is not None:
         require_int("--seeds", seeds, 1, 1000)
     require_int("--workers", workers, 1, 64)
+    protocols = parse_gt_flag(gt)
     if train_time is not None:
         require_number("--train-time", train_time, 0.0)
     for scene in scenes or ():
@@ -223,16 +244,20 @@ def ablation(
             data=out / "data" / scene,
             room=scene,
             out=out / "runs" / scene / f"row{row.number}_seed{s}",
-            args=row.args() + ("--seed", str(s), "--max-time", str(t_train), "--image-scale", "1.0"),
+            args=row.args() + ("--seed", str(s), "--max-time", str(t_train), "--image-scale", "1.0",
+                               "--gt", ",".join(protocols)),
         )
         for scene in scenes
         for row in ROWS
         for s in range(n_seeds)
     ]
     failed = run_all(specs, workers=workers)
-    records = aggregate(out, scenes, n_seeds)
+    by_gt = {p: aggregate(out, scenes, n_seeds, p) for p in protocols}
+    records = by_gt[protocols[0]]
     refuse_existing(summaries)  # again: another process may have finished the same folder meanwhile
-    md = table_markdown(records)
+    from virus_nerf.evaluation.gt import GT_DESCRIPTIONS
+
+    md = "\n\n".join(f"Ground truth: **{p}** ({GT_DESCRIPTIONS[p]})\n\n{table_markdown(r)}" for p, r in by_gt.items())
     speed = grid_speed(records)
     speed_md = ", ".join(f"{k}: {v:.2f}x" if v else f"{k}: -" for k, v in speed.items())
     write_text_atomic(
@@ -241,12 +266,14 @@ def ablation(
         f"Grid speed, VIRUS / Instant-NGP steps/s (row 8 vs row 2): {speed_md} (paper: 1.46x)\n",
     )
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(records[0]))
+    all_records = [r for recs in by_gt.values() for r in recs]
+    writer = csv.DictWriter(buf, fieldnames=list(all_records[0]))
     writer.writeheader()
-    writer.writerows(records)
+    writer.writerows(all_records)
     write_text_atomic(out / "ablation.csv", buf.getvalue())
-    write_json_atomic(out / "ablation.json", {"records": records, "grid_speed_ratio": speed,
-                                              "seeds": n_seeds, "train_time": t_train})
+    write_json_atomic(out / "ablation.json", {"gt": protocols[0], "records": records, "grid_speed_ratio": speed,
+                                              "seeds": n_seeds, "train_time": t_train,
+                                              **({"by_gt": by_gt} if len(by_gt) > 1 else {})})
     plot_rows(records, out / "ablation.png")
     print(md)
     print(f"grid speed VIRUS / Instant-NGP: {json.dumps(speed)}")

@@ -327,12 +327,23 @@ class LidarModel:
     """RoboSense RS-16-like spinning LiDAR: beams elevations evenly over +-vfov_deg, azimuth
     steps of h_step_deg over 360 deg, radial noise N(0, sigma), returns within
     [min_range, max_range]; points in the sensor frame (x forward, y left, z up). A scan is
-    taken at one pose (motion during the 0.1 s sweep is not modelled: "filtered" = deskewed)."""
+    taken at one pose (motion during the 0.1 s sweep is not modelled: "filtered" = deskewed).
+
+    Range noise calibrated on the real sample (issue 11; was 0.025 m, the datasheet's accuracy
+    bound): along each beam's ring of the 11 real scans, the second difference of consecutive
+    ranges (0.18 deg apart) has a robust std of 7.3 mm, i.e. a per-point range noise of 3.0 mm
+    (std / sqrt(6); the same estimator returns 3.0 mm on this model's scans at sigma 0.003).
+    The real map agrees: a real scan point hit head-on on a plane lies a median 1.75 cm behind
+    the front of the map's voxels along its ray (p25/p75 0.5/4.0 cm), the simulated map built
+    the same way gives 2.5 cm at sigma 0.003 and 5.25 cm at the old 0.025, whose >= 2-hit voxel
+    shell made map-based GT ~8 cm short of the true surfaces. The real scans' heavier tail
+    (12.8 % vs 3.9 % of second differences above 2 cm) is taken for clutter edges and not modelled.
+    """
 
     beams: int = 16
     vfov_deg: float = 15.0
     h_step_deg: float = 0.4
-    sigma: float = 0.025
+    sigma: float = 0.003
     min_range: float = 0.3
     max_range: float = 30.0
 
@@ -356,7 +367,9 @@ class LidarModel:
 @dataclass
 class VoxelMap:
     """The global map as the real one is built: world points into voxels of `voxel` m, voxels
-    hit at least `min_hits` times kept, their centres returned (design 4)."""
+    hit at least `min_hits` times kept, their centres returned (design 4). Fed with the exact
+    poses: the real map shows no registration shell beyond what its 3 mm range noise and the
+    3 cm voxels explain (see LidarModel), so none is added."""
 
     voxel: float = 0.03
     min_hits: int = 2

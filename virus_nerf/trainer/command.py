@@ -80,13 +80,16 @@ def _resolve_config(
     image_scale: float | None,
     eval_interval: float | None,
     base=None,
+    gt: str | None = None,
 ):
     """The run's TrainConfig: `base` (or the --config file, or the defaults) with the flags on top."""
     from virus_nerf.config_io import load_json_config
+    from virus_nerf.evaluation.evaluate import parse_gt_flag
     from virus_nerf.trainer.config import TrainConfig
 
     sensor_names = _check_train_flags(sensors, max_time, max_steps, batch_size, seed, playback_speed, image_scale,
                                       eval_interval)
+    protocols = parse_gt_flag(gt) if gt is not None else None
     if config is not None:
         cfg = load_json_config(TrainConfig, config)
     else:
@@ -110,6 +113,8 @@ def _resolve_config(
         changes["online"] = True
     if odometry_poses:
         changes["odometry_poses"] = True
+    if protocols is not None:
+        changes["evaluation"] = dataclasses.replace(cfg.evaluation, gt=protocols)
     try:
         return dataclasses.replace(cfg, **changes)
     except ValueError as exc:  # a flag that clashes with the config file (flags are checked above)
@@ -124,6 +129,7 @@ def _split_file(recording) -> str:
 
 def check_recording_for_training(recording, cfg, eval_recording=None) -> None:
     """Refuse, before any training, a recording the run could not train on or be scored on."""
+    from virus_nerf.evaluation.evaluate import check_ground_truth_inputs
     from virus_nerf.evaluation.testpoints import MAIN_STACK, make_test_points
 
     if not any((s.split == "train").any() for s in recording.stacks.values()):
@@ -135,7 +141,9 @@ def check_recording_for_training(recording, cfg, eval_recording=None) -> None:
             f"no CAM{MAIN_STACK} rows labelled 'test'; the evaluation scores the test frames of stack {MAIN_STACK}",
             field=f"CAM{MAIN_STACK}",
         )
-    ev.lidar_map()  # ground truth comes from the LiDAR map: a missing or bad map fails now, not after training
+    # the ground truth needs the LiDAR map (map, paper) or scene.json (exact): a missing or bad
+    # one fails now, not after training
+    check_ground_truth_inputs(ev, cfg.evaluation.gt)
     for sid, stack in recording.stacks.items():
         small = stack.intrinsics.scaled(cfg.image_scale)
         if small.width < 1 or small.height < 1:
@@ -353,6 +361,7 @@ def train(
     config: Path | None = None,
     resume: bool = False,
     quiet: bool = False,
+    gt: str | None = None,
 ) -> None:
     """Train a VIRUS-NeRF (or Instant-NGP) on a recording, then evaluate its 2D scans.
 
@@ -381,6 +390,10 @@ def train(
         config: JSON config file (a run's config.json works); flags given here override it.
         resume: Continue the run in OUT from its checkpoint.
         quiet: No progress bar.
+        gt: Ground truth of the evaluation, one or more of map (default; LiDAR map slice as solid
+            3 cm voxels), exact (the simulator's exact scene; simulated recordings only), paper (the
+            authors' raster protocol), comma-separated; the first is the primary (metrics.json's
+            own, metric vs time), the others go to by_gt.
     """
     out = Path(out)
     if room is not None and (not room.strip() or "/" in room or "\\" in room or room in (".", "..")):
@@ -394,38 +407,46 @@ def train(
             raise UsageError(f"--room {room}: the run in {out} was trained on room {info.room!r}; "
                              "omit --data and --room with --resume")
         cfg = _resolve_config(config, grid, sensors, max_time, max_steps, batch_size, seed, online,
-                              odometry_poses, playback_speed, image_scale, eval_interval, base=saved_cfg)
+                              odometry_poses, playback_speed, image_scale, eval_interval, base=saved_cfg, gt=gt)
         run_training(Path(info.data), info.room, out, cfg, quiet=quiet or None, resume=True)
         return
     if data is None or room is None:
         raise UsageError(f"{'--data' if data is None else '--room'} is required: give --data DIR --room NAME "
                          "(or --resume to continue the run in --out)")
     cfg = _resolve_config(config, grid, sensors, max_time, max_steps, batch_size, seed, online, odometry_poses,
-                          playback_speed, image_scale, eval_interval)
+                          playback_speed, image_scale, eval_interval, gt=gt)
     run_training(data, room, out, cfg, quiet=True if quiet else None)
 
 
-def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None) -> None:
-    """Evaluate a trained run's 2D scans against the map, beside the LiDAR, USS and IRS scans.
+def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: str | None = None) -> None:
+    """Evaluate a trained run's 2D scans against the ground truth, beside the LiDAR, USS and IRS scans.
 
     Args:
         run: A run folder written by `virus-nerf train`.
         out: metrics.json to write (default RUN/evaluation/metrics.json; never overwritten).
         n_rays: Rays per 360 deg scan (default: the run's setting, 512).
+        gt: Ground truth, one or more of map, exact (simulated recordings only), paper,
+            comma-separated (default: the run's setting, map); the first is the document's own.
     """
     from virus_nerf.errors import OutputExistsError
     from virus_nerf.evaluation.command import plots_dir_for, write_plots
+    from virus_nerf.evaluation.evaluate import check_ground_truth_inputs, parse_gt_flag
     from virus_nerf.trainer.loop import TrainSummary, train_summary_block
 
     if n_rays is not None:
         require_int("--n-rays", n_rays, 1, 1_000_000)
+    protocols = parse_gt_flag(gt) if gt is not None else None
     out = Path(out) if out is not None else Path(run) / "evaluation" / "metrics.json"
     if out.exists() or plots_dir_for(out).exists():
         raise OutputExistsError(out if out.exists() else plots_dir_for(out))
     trainer, cfg, _ = load_trained(run, "--run")
-    if n_rays is not None:
-        cfg = dataclasses.replace(cfg, evaluation=dataclasses.replace(cfg.evaluation, n_rays=n_rays))
+    if n_rays is not None or protocols is not None:
+        ev = cfg.evaluation
+        ev = dataclasses.replace(ev, n_rays=n_rays if n_rays is not None else ev.n_rays,
+                                 gt=protocols if protocols is not None else ev.gt)
+        cfg = dataclasses.replace(cfg, evaluation=ev)
         trainer.config = cfg
+    check_ground_truth_inputs(trainer.recording, cfg.evaluation.gt)
     result = _final_evaluation(trainer, run)
     summary = TrainSummary(trainer.step, trainer.seconds, trainer.samples)
     write_plots(result, plots_dir_for(out), max_maps=8)
