@@ -26,7 +26,8 @@ def test_scan_occupancy_marks_path_free_and_end_occupied(tmp_path):
     assert np.count_nonzero(img == OCCUPIED) == 4
     pgm, yaml = write_map_server(m, tmp_path)
     assert pgm.read_bytes().startswith(b"P5\n30 30\n255\n") and len(pgm.read_bytes()) == 13 + 900
-    assert "origin: [0.0000, 0.0000, 0.0]" in yaml.read_text() and "resolution: 0.1" in yaml.read_text()
+    assert "origin: [0.000000, 0.000000, 0.0]" in yaml.read_text() and "resolution: 0.1\n" in yaml.read_text()
+    assert "mode: trinary" in yaml.read_text()
 
 
 def test_missed_rays_mark_nothing():

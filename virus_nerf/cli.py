@@ -17,8 +17,8 @@ def _commands() -> dict:
     from virus_nerf.evaluation.command import sensors
     from virus_nerf.experiments.ablation import ablation
     from virus_nerf.experiments.demo import demo
-    from virus_nerf.experiments.export import export
     from virus_nerf.experiments.online import online
+    from virus_nerf.exports.command import export
     from virus_nerf.sim.command import simulate
     from virus_nerf.trainer.command import evaluate, train
 

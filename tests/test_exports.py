@@ -1,0 +1,348 @@
+"""`virus-nerf export`: every format read back by an independent reader (PIL for PGM/PNG, a
+small YAML parser, numpy on the PLY and PCD binary layouts, json/np.load) with values known by
+hand on analytic inputs, and a tiny trained run exported end to end."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from virus_nerf.exports import clouds, esdf, grid3d, maps
+
+# ------------------------------------------------------------------ independent readers
+
+
+def read_yaml(path: Path) -> dict:
+    """The flat map_server YAML: `key: scalar` and `key: [a, b, c]` lines, '#' comments."""
+    doc = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        key, _, value = line.partition(":")
+        value = value.strip()
+        if value.startswith("["):
+            doc[key.strip()] = [float(v) for v in value.strip("[]").split(",")]
+        else:
+            try:
+                doc[key.strip()] = float(value)
+            except ValueError:
+                doc[key.strip()] = value
+    return doc
+
+
+def map_value_at(yaml_path: Path, x: float, y: float) -> tuple[int, dict]:
+    """Pixel value of a map_server map at world (x, y), as map_server places the image."""
+    doc = read_yaml(yaml_path)
+    img = np.asarray(Image.open(yaml_path.parent / doc["image"]))
+    res, (ox, oy, _) = doc["resolution"], doc["origin"]
+    col = int(math.floor((x - ox) / res))
+    row = img.shape[0] - 1 - int(math.floor((y - oy) / res))
+    return int(img[row, col]), doc
+
+
+def read_ply(path: Path) -> np.ndarray:
+    """Binary little-endian PLY with one vertex element -> structured array."""
+    raw = path.read_bytes()
+    end = raw.index(b"end_header\n") + len(b"end_header\n")
+    header = raw[:end].decode("ascii").splitlines()
+    assert header[0] == "ply" and header[1] == "format binary_little_endian 1.0"
+    kinds = {"float": "<f4", "uchar": "u1"}
+    n, fields = 0, []
+    for line in header:
+        parts = line.split()
+        if parts[:2] == ["element", "vertex"]:
+            n = int(parts[2])
+        elif parts[0] == "property":
+            fields.append((parts[2], kinds[parts[1]]))
+    arr = np.frombuffer(raw[end:], dtype=fields)
+    assert len(arr) == n
+    return arr
+
+
+def read_pcd(path: Path) -> np.ndarray:
+    """Binary PCD (DATA binary) -> structured array, from the header's FIELDS/SIZE/TYPE/COUNT."""
+    raw = path.read_bytes()
+    head, pos = {}, 0
+    while True:
+        nl = raw.index(b"\n", pos)
+        line = raw[pos:nl].decode("ascii").strip()
+        pos = nl + 1
+        if line and not line.startswith("#"):
+            key, *vals = line.split()
+            head[key] = vals
+            if key == "DATA":
+                break
+    assert head["DATA"] == ["binary"], head["DATA"]
+    dt = [(f, {"F": "<f", "U": "<u", "I": "<i"}[t] + s) for f, s, t in zip(head["FIELDS"], head["SIZE"], head["TYPE"],
+                                                                           strict=True)]
+    arr = np.frombuffer(raw[pos:], dtype=dt, count=int(head["POINTS"][0]))
+    return arr
+
+
+# ------------------------------------------------------------------ analytic inputs
+
+
+def test_probability_map_of_an_analytic_grid(tmp_path):
+    # grid box 4 x 2 x 1 m, 8 x 4 x 2 cells of 0.5 m; p = 0.1 everywhere except a block of 2 cells,
+    # ix 2..3, iy 1, iz 1 (x in [1, 2), y in [0.5, 1), z in [0.5, 1)) at p = 0.9: 4 x 2 map pixels of 0.25 m
+    prob = np.full((8, 4, 2), 0.1)
+    prob[2:4, 1, 1] = 0.9
+    lo, hi = np.zeros(2), np.array([4.0, 2.0])
+    p = maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), height=0.75, band=0.1, lo=lo, hi=hi, resolution=0.25)
+    assert p.shape == (16, 8)
+    assert np.all(p[4:8, 2:4] == 0.9) and np.count_nonzero(p == 0.9) == 8 and np.all(p[p != 0.9] == 0.1)
+    # a slice through the lower layer never sees the block; a wide band takes the maximum of both
+    assert np.all(maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 0.25, 0.1, lo, hi, 0.25) == 0.1)
+    assert np.count_nonzero(maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 0.5, 0.25, lo, hi, 0.25) == 0.9) == 8
+    # a raster larger than the grid: outside pixels are 0.5 (no knowledge)
+    big = maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 0.75, 0.1, np.array([-1.0, 0]), hi, 0.25)
+    assert big.shape == (20, 8) and np.all(big[:4] == 0.5) and np.all(big[8:12, 2:4] == 0.9)
+
+    maps.write_map_server(maps.scale_map(p, lo, 0.25), tmp_path, "prob")
+    for (x, y), want in {(1.5, 0.75): 0.9, (1.01, 0.51): 0.9, (0.2, 0.2): 0.1, (3.9, 1.9): 0.1, (2.1, 0.75): 0.1}.items():
+        value, doc = map_value_at(tmp_path / "prob.yaml", x, y)
+        assert doc["negate"] == 0 and doc["mode"] == "scale"
+        assert abs((255 - value) / 255 - want) <= 0.5 / 255 + 1e-9  # map_server's p, negate 0
+    assert doc["image"] == "prob.pgm" and doc["resolution"] == 0.25 and doc["origin"] == [0.0, 0.0, 0.0]
+    assert doc["occupied_thresh"] == 0.65 and doc["free_thresh"] == 0.196
+    assert Image.open(tmp_path / "prob.pgm").size == (16, 8)
+
+
+def test_esdf_of_one_occupied_pixel_is_the_distance_to_it(tmp_path):
+    occ = np.zeros((11, 13), dtype=bool)
+    occ[4, 6] = True
+    d = esdf.signed_distance(occ, 0.1)
+    r, c = np.mgrid[0:11, 0:13]
+    want = 0.1 * np.hypot(r - 4, c - 6)
+    want[4, 6] = -0.1  # inside: minus the distance to the nearest free pixel
+    np.testing.assert_allclose(d, want, atol=1e-6)
+    esdf.write_esdf(esdf.DistanceField2D(d, 0.1, (-1.0, 2.0)), tmp_path)
+    back = np.load(tmp_path / "esdf.npy")
+    assert back.dtype == np.float32 and back.shape == (11, 13)
+    doc = read_yaml(tmp_path / "esdf.yaml")
+    assert doc["data"] == "esdf.npy" and doc["resolution"] == 0.1 and doc["origin"] == [-1.0, 2.0, 0.0]
+    # world point of the obstacle pixel centre: x = ox + (6 + 0.5) res, y = oy + (11 - 1 - 4 + 0.5) res
+    row = 11 - 1 - int((2.0 + 6.5 * 0.1 - 2.0) / 0.1)
+    assert back[row, int((-1.0 + 0.65 + 1.0) / 0.1)] == pytest.approx(-0.1)
+    png = np.asarray(Image.open(tmp_path / "esdf.png"))
+    assert png.shape == (11, 13) and png[4, 6] < 128 < png[0, 0]
+    assert np.all(np.isinf(esdf.signed_distance(np.zeros((3, 3), bool), 0.1)))  # no obstacle: infinitely far
+
+
+def test_grid3d_npy_and_sidecar_locate_cells(tmp_path):
+    logodds = np.full((4, 3, 2), -2.0, dtype=np.float32)
+    logodds[1, 2, 0] = 3.0
+    prob = 1 / (1 + np.exp(-logodds))
+    info = grid3d.Grid3DInfo(lo=(-1.0, 0.0, 0.0), hi=(1.0, 1.5, 1.0), resolution=(4, 3, 2), cell_size=(0.5, 0.5, 0.5))
+    grid3d.write_grid3d(prob, logodds, info, tmp_path)
+    side = json.loads((tmp_path / "grid.json").read_text())
+    arr = np.load(tmp_path / side["data"])
+    assert arr.dtype == np.float32 and list(arr.shape) == side["shape"] and side["axis_order"] == ["x", "y", "z"]
+    point = np.array([-0.3, 1.2, 0.2])  # inside cell (1, 2, 0)
+    ijk = np.floor((point - side["lo"]) / (np.array(side["hi"]) - side["lo"]) * side["shape"]).astype(int)
+    assert tuple(ijk) == (1, 2, 0) and arr[tuple(ijk)] == pytest.approx(1 / (1 + math.exp(-3)))
+    np.testing.assert_allclose(np.array(side["lo"]) + (ijk + 0.5) * side["cell_size"], [-0.25, 1.25, 0.25])
+    np.testing.assert_allclose(np.load(tmp_path / side["logodds"]), logodds)
+
+
+def test_point_clouds_round_trip_through_independent_parsers(tmp_path):
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(50, 3)).astype(np.float32)
+    rgb = rng.integers(0, 256, size=(50, 3)).astype(np.uint8)
+    clouds.write_ply(tmp_path / "a.ply", xyz, rgb)
+    clouds.write_pcd(tmp_path / "a.pcd", xyz, rgb)
+    clouds.write_ply(tmp_path / "b.ply", xyz)
+    clouds.write_pcd(tmp_path / "b.pcd", xyz)
+    for name in ("a", "b"):
+        ply, pcd = read_ply(tmp_path / f"{name}.ply"), read_pcd(tmp_path / f"{name}.pcd")
+        for arr in (ply, pcd):
+            np.testing.assert_array_equal(np.column_stack([arr["x"], arr["y"], arr["z"]]), xyz)
+    ply, pcd = read_ply(tmp_path / "a.ply"), read_pcd(tmp_path / "a.pcd")
+    np.testing.assert_array_equal(np.column_stack([ply["red"], ply["green"], ply["blue"]]), rgb)
+    packed = pcd["rgb"].view(np.uint32)
+    np.testing.assert_array_equal(np.column_stack([packed >> 16 & 255, packed >> 8 & 255, packed & 255]), rgb)
+    clouds.write_ply(tmp_path / "empty.ply", np.zeros((0, 3)))
+    assert len(read_ply(tmp_path / "empty.ply")) == 0
+
+
+# ------------------------------------------------------------------ a tiny trained run
+
+
+def small_config():
+    from virus_nerf.grid.ngp import NgpGridConfig
+    from virus_nerf.grid.virus import VirusGridConfig
+    from virus_nerf.trainer.config import MarchConfig, TrainConfig
+
+    base = TrainConfig(
+        max_steps=5, max_time=None, batch_size=128, image_scale=1.0, log_every=2,
+        march=MarchConfig(step_size=0.06, max_samples=32),
+        virus_grid=VirusGridConfig(warmup_steps=16, update_interval=4, rays_per_update=64),
+        ngp_grid=NgpGridConfig(warmup_steps=16, update_interval=4, max_resolution=32),
+    )
+    base.evaluation = dataclasses.replace(base.evaluation, n_rays=64)
+    return base
+
+
+def run_cli(argv) -> tuple[int, str, str]:
+    from virus_nerf.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    code = 0
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            main([str(a) for a in argv])
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+    return code, out.getvalue(), err.getvalue()
+
+
+@pytest.fixture(scope="module")
+def trained_run(tiny_office, tmp_path_factory) -> Path:
+    from virus_nerf.config_io import to_dict
+
+    root = tmp_path_factory.mktemp("export_run")
+    (root / "small.json").write_text(json.dumps(to_dict(small_config())))
+    code, _, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", root / "run",
+                            "--config", root / "small.json", "--quiet"])
+    assert code == 0, err
+    return root / "run"
+
+
+@pytest.fixture(scope="module")
+def exported(trained_run, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("export_out") / "export"
+    code, stdout, err = run_cli(["export", "--run", trained_run, "--out", out, "--what", "all", "--max-poses", "2",
+                                 "--n-rays", "90", "--cloud-points", "3000", "--image-scale", "0.5"])
+    assert code == 0, err
+    assert "wrote" in stdout
+    return out
+
+
+def test_export_all_writes_every_format(exported):
+    names = {p.relative_to(exported).as_posix() for p in exported.rglob("*") if p.is_file()}
+    assert {"map.pgm", "map.yaml", "map.png", "prob.pgm", "prob.yaml", "esdf.npy", "esdf.yaml", "esdf.png",
+            "grid_probability.npy", "grid_logodds.npy", "grid.json", "poses.csv", "cloud.pcd", "cloud.ply",
+            "export.json", "scans/scan_0000.pcd", "scans/scan_0001.ply", "images/color_0001.png",
+            "images/depth_0000.png"} <= names
+    trinary, prob = read_yaml(exported / "map.yaml"), read_yaml(exported / "prob.yaml")
+    assert trinary["mode"] == "trinary" and prob["mode"] == "scale"
+    assert trinary["origin"] == prob["origin"] and trinary["resolution"] == prob["resolution"] == 0.05
+    a, b = np.asarray(Image.open(exported / "map.pgm")), np.asarray(Image.open(exported / "prob.pgm"))
+    assert a.shape == b.shape and set(np.unique(a)) <= {0, 205, 254}
+    # the ESDF is the signed distance to the trinary map's occupied pixels
+    d = np.load(exported / "esdf.npy")
+    assert d.shape == a.shape
+    if (a == 0).any():
+        assert np.all(d[a == 0] < 0) and np.all(d[a != 0] > 0)
+    side = json.loads((exported / "grid.json").read_text())
+    p3 = np.load(exported / "grid_probability.npy")
+    np.testing.assert_allclose(p3, 1 / (1 + np.exp(-np.load(exported / "grid_logodds.npy"))), atol=1e-6)
+    assert list(p3.shape) == side["shape"] and 0 <= p3.min() <= p3.max() <= 1
+    np.testing.assert_allclose(np.array(side["hi"]) - side["lo"], np.array(side["cell_size"]) * side["shape"])
+
+
+def test_scans_lie_at_the_model_ranges(exported, trained_run):
+    from virus_nerf.evaluation.scans import horizontal_directions
+    from virus_nerf.trainer.command import load_trained
+
+    trainer, _, _ = load_trained(trained_run, "--run")
+    rows = [ln.split(",") for ln in (exported / "poses.csv").read_text().splitlines()[1:]]
+    assert len(rows) == 2
+    pos = np.array([float(v) for v in rows[0][2:5]])
+    ply, pcd = read_ply(exported / "scans" / "scan_0000.ply"), read_pcd(exported / "scans" / "scan_0000.pcd")
+    pts = np.column_stack([ply["x"], ply["y"], ply["z"]])
+    np.testing.assert_array_equal(pts, np.column_stack([pcd["x"], pcd["y"], pcd["z"]]))
+    dirs = horizontal_directions(90)
+    r = trainer.model.ranges(np.tile(pos, (90, 1)), dirs)
+    ok = np.isfinite(r) & (r > 0)
+    np.testing.assert_allclose(pts, (pos + dirs[ok] * r[ok, None]).astype(np.float32), atol=1e-4)
+    cloud = read_ply(exported / "cloud.ply")
+    assert 0 < len(cloud) <= 3000 and len(read_pcd(exported / "cloud.pcd")) == len(cloud)
+
+
+def test_rendered_depth_png_matches_the_model_ranges(exported, trained_run):
+    from virus_nerf.sensors.camera import pixel_directions
+    from virus_nerf.trainer.command import load_trained
+
+    trainer, _, _ = load_trained(trained_run, "--run")
+    doc = json.loads((exported / "export.json").read_text())["images"]
+    from virus_nerf.sensors.camera import Intrinsics
+
+    intr = Intrinsics(doc["fx"], doc["fy"], doc["cx"], doc["cy"], doc["width"], doc["height"])
+    depth = np.asarray(Image.open(exported / "images" / "depth_0000.png"))
+    colour = np.asarray(Image.open(exported / "images" / "color_0000.png"))
+    assert depth.dtype == np.uint16 and depth.shape == (intr.height, intr.width)
+    assert colour.shape == (intr.height, intr.width, 3)
+    row = (exported / "poses.csv").read_text().splitlines()[1].split(",")
+    from scipy.spatial.transform import Rotation
+
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_quat([float(v) for v in row[5:9]]).as_matrix()
+    pose[:3, 3] = [float(v) for v in row[2:5]]
+    v, u = np.mgrid[0 : intr.height : 3, 0 : intr.width : 3]
+    dirs_cam = pixel_directions(intr, u.ravel(), v.ravel())
+    r = trainer.model.ranges(np.tile(pose[:3, 3], (len(dirs_cam), 1)), dirs_cam @ pose[:3, :3].T)
+    want = np.where(np.isfinite(r), np.rint(r * dirs_cam[:, 2] * 1000), 0)
+    got = depth[v.ravel(), u.ravel()].astype(float)
+    assert np.mean((got > 0) == (want > 0)) >= 0.99  # hit / no hit as SceneModel.ranges says
+    both = (got > 0) & (want > 0)
+    assert both.sum() > 0 and np.abs(got[both] - want[both]).max() <= 1  # mm
+
+
+def test_user_poses_csv_drives_scans(trained_run, tmp_path):
+    csv = tmp_path / "poses.csv"
+    csv.write_text("time,x,y,z,qx,qy,qz,qw\n0.0,1.0,0.5,-0.1,0,0,0,1\n1.5,2.0,0.0,0.1,0,0,0.7071068,0.7071068\n")
+    out = tmp_path / "exp"
+    code, _, err = run_cli(["export", "--run", trained_run, "--out", out, "--what", "scans", "--poses", csv,
+                            "--n-rays", "16"])
+    assert code == 0, err
+    assert sorted(p.name for p in out.iterdir()) == ["export.json", "poses.csv", "scans"]
+    rows = [[float(v) for v in ln.split(",")] for ln in (out / "poses.csv").read_text().splitlines()[1:]]
+    np.testing.assert_allclose(np.array(rows)[:, 1:5], [[0.0, 1.0, 0.5, -0.1], [1.5, 2.0, 0.0, 0.1]])
+    np.testing.assert_allclose(np.array(rows)[1, 5:], [0, 0, 0.7071068, 0.7071068], atol=1e-6)
+    for k, z in ((0, -0.1), (1, 0.1)):
+        ply = read_ply(out / "scans" / f"scan_{k:04d}.ply")
+        assert np.allclose(ply["z"], z, atol=1e-6)
+    assert json.loads((out / "export.json").read_text())["poses"] == {"source": str(csv), "count": 2}
+
+
+@pytest.mark.parametrize(
+    "csv, fragment",
+    [
+        ("time,x,y,z,qx,qy,qz,qw\n0,1,2,3,0,0,0,2\n", "poses.csv, row 2, field 'qx/qy/qz/qw': quaternion (0, 0, 0, 2)"),
+        ("time,x,y\n0,1,2\n", "poses.csv, row 1: header ['time', 'x', 'y'] lacks column(s) ['z', 'qx', 'qy', 'qz', 'qw']"),
+        ("time,x,y,z,qx,qy,qz,qw\n", "poses.csv: no poses"),
+    ],
+)
+def test_bad_pose_files_are_named(tmp_path, csv, fragment):
+    (tmp_path / "poses.csv").write_text(csv)
+    code, _, err = run_cli(["export", "--run", tmp_path / "no-run", "--out", tmp_path / "exp", "--poses",
+                            tmp_path / "poses.csv"])
+    assert code == 2 and err.count("\n") == 1 and fragment in err, err
+    assert not (tmp_path / "exp").exists()
+
+
+def test_grid_exports_need_a_virus_run(trained_run, tmp_path):
+    run = tmp_path / "ngp_run"
+    run.mkdir()
+    cfg = json.loads((trained_run / "config.json").read_text())
+    cfg["grid"] = "ngp"
+    (run / "config.json").write_text(json.dumps(cfg))
+    (run / "run.json").write_text((trained_run / "run.json").read_text())
+    code, _, err = run_cli(["export", "--run", run, "--out", tmp_path / "exp", "--what", "map,prob"])
+    assert code == 2 and "--what 'map,prob': 'prob' needs the Bayesian VIRUS grid" in err, err
+    assert not (tmp_path / "exp").exists()
+    from virus_nerf.exports.command import parse_what
+
+    assert parse_what(None, "ngp") == ("map", "esdf", "scans")
+    assert parse_what("all", "virus") == ("map", "prob", "grid3d", "esdf", "scans", "cloud", "images")
+    assert parse_what("esdf,map", "virus") == ("map", "esdf")

@@ -1,0 +1,206 @@
+"""`virus-nerf export`: a trained run as map, grid, distance-field, point-cloud and image files.
+
+Every flag, the run folder, the pose file and the output folder are checked before the model
+is loaded; the output is built in a temporary folder beside OUT and renamed when complete.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from virus_nerf.errors import UsageError
+from virus_nerf.exports.maps import MAX_PIXELS, OccupancyMap2D, raster_shape, scan_occupancy
+
+KINDS = ("map", "prob", "grid3d", "esdf", "scans", "cloud", "images")
+DEFAULT_KINDS = ("map", "prob", "grid3d", "esdf", "scans")  # cloud and images render many camera rays
+NEEDS_VIRUS = ("prob", "grid3d")  # read the Bayesian grid's probabilities
+
+
+def parse_what(what: str | None, grid: str) -> tuple[str, ...]:
+    """--what 'map,esdf' or 'all' -> the kinds to export, in KINDS order; the default skips
+    the VIRUS-grid kinds for an Instant-NGP run, an explicit request for them is an error."""
+    if what is None:
+        return tuple(k for k in DEFAULT_KINDS if grid == "virus" or k not in NEEDS_VIRUS)
+    names = [s.strip() for s in what.split(",")]
+    if names == ["all"]:
+        names = [k for k in KINDS if grid == "virus" or k not in NEEDS_VIRUS]
+    bad = [s for s in names if s not in KINDS]
+    if bad or not names:
+        problem = f"unknown export {bad[0]!r}" if bad and bad[0] else "an empty name"
+        raise UsageError(f"--what {what!r}: {problem}; expected 'all' or a comma-separated subset of {','.join(KINDS)}")
+    need = [k for k in names if k in NEEDS_VIRUS]
+    if need and grid != "virus":
+        raise UsageError(f"--what {what!r}: {need[0]!r} needs the Bayesian VIRUS grid, but the run was trained "
+                         f"with grid {grid!r}; leave it out")
+    return tuple(k for k in KINDS if k in names)
+
+
+def export(
+    run: Path,
+    out: Path,
+    what: str | None = None,
+    poses: Path | None = None,
+    resolution: float = 0.05,
+    n_rays: int = 720,
+    max_poses: int = 60,
+    band: float = 0.1,
+    cloud_points: int = 200_000,
+    image_scale: float | None = None,
+) -> None:
+    """Export a trained run: ROS map_server maps, the 3D grid, an ESDF, scans, a cloud, images.
+
+    Args:
+        run: A run folder written by `virus-nerf train`.
+        out: New folder for the files (refused if it exists; README "Exports" lists them).
+        what: Comma-separated subset of map,prob,grid3d,esdf,scans,cloud,images, or 'all' (default: map,prob,grid3d,esdf,scans).
+        poses: CSV of camera poses time,x,y,z,qx,qy,qz,qw (s, m, camera-to-world, OpenCV axes) for scans and images (default: the recording's test poses).
+        resolution: Metres per map pixel (> 0).
+        n_rays: Rays per 360 deg scan.
+        max_poses: At most this many poses for the map's scans, for scans and for images (evenly spread).
+        band: Metres above and below camera height whose grid layers form the probability map.
+        cloud_points: At most this many rays (points) for the dense surface cloud.
+        image_scale: Rendered image size as a share of the camera's (default: the run's image_scale).
+    """
+    from virus_nerf.errors import OutputExistsError, require_int, require_number
+    from virus_nerf.trainer.command import load_trained, open_run
+    from virus_nerf.utils.io import new_output_dir
+
+    require_number("--resolution", resolution, 0.0)
+    require_int("--n-rays", n_rays, 1, 1_000_000)
+    require_int("--max-poses", max_poses, 1)
+    require_number("--band", band, 0.0, 10.0, lo_open=False)
+    require_int("--cloud-points", cloud_points, 1, 50_000_000)
+    if image_scale is not None:
+        require_number("--image-scale", image_scale, 0.0, 1.0)
+    parse_what(what, "virus")  # the names; whether the run's grid has them is checked below
+    pose_set = None
+    if poses is not None:
+        from virus_nerf.exports.views import read_pose_csv
+
+        if not Path(poses).is_file():
+            raise UsageError(f"--poses {poses}: no such file; expected a CSV with columns time,x,y,z,qx,qy,qz,qw")
+        pose_set = read_pose_csv(Path(poses))
+    out = Path(out)
+    if out.exists():
+        raise OutputExistsError(out)  # before any work
+    cfg, _ = open_run(run, "--run")
+    kinds = parse_what(what, cfg.grid)
+    with new_output_dir(out) as tmp:  # made (and checked writable) before anything is computed
+        trainer, cfg, _ = load_trained(run, "--run", poses="odometry" if cfg.odometry_poses else "optimised")
+        written = _export_all(trainer, cfg, tmp, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,
+                              image_scale if image_scale is not None else cfg.image_scale)
+    print(f"wrote {out}/: " + ", ".join(written))
+
+
+def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,
+                image_scale) -> list[str]:
+    """Compute and write every requested kind into `folder`; returns a short line per kind."""
+    from virus_nerf.exports import clouds, esdf, grid3d, maps, views
+    from virus_nerf.utils.io import write_json_atomic, write_text_atomic
+
+    lo, hi = np.asarray(trainer.box.lo[:2], float), np.asarray(trainer.box.hi[:2], float)
+    nx, ny = raster_shape(lo, hi, resolution)
+    if nx * ny > MAX_PIXELS and {"map", "prob", "esdf"} & set(kinds):
+        raise UsageError(f"--resolution {resolution}: the {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} m scene would be "
+                         f"a {nx}x{ny} px map; expected at most {MAX_PIXELS // 1_000_000} M px (a coarser resolution)")
+    summary: dict = {"kinds": list(kinds), "resolution": resolution, "origin": [float(lo[0]), float(lo[1]), 0.0]}
+    done = []
+    if "map" in kinds or "esdf" in kinds:
+        m = _render_map(trainer, resolution, n_rays, max_poses)
+        if "map" in kinds:
+            maps.write_map_server(m, folder, "map")
+            _write_png(folder / "map.png", m.image)
+            done.append(f"map.pgm/.yaml ({m.image.shape[1]}x{m.image.shape[0]} px)")
+        if "esdf" in kinds:
+            d = esdf.signed_distance(m.image == maps.OCCUPIED, resolution)
+            esdf.write_esdf(esdf.DistanceField2D(d, resolution, m.origin), folder)
+            done.append("esdf.npy/.yaml/.png")
+    if "prob" in kinds or "grid3d" in kinds:
+        grid = trainer.grid
+        prob3 = grid.probability.detach().cpu().numpy()
+        spec = grid.spec
+        if "prob" in kinds:
+            height = camera_height(trainer.recording)
+            p_xy = maps.probability_slice(prob3, spec.box.lo, spec.box.hi, height, band, lo, hi, resolution)
+            maps.write_map_server(maps.scale_map(p_xy, lo, resolution), folder, "prob")
+            summary["prob_map"] = {"height": height, "band": band, "projection": "max over layers in the band"}
+            done.append(f"prob.pgm/.yaml (scale, z {height:.2f} +- {band:g} m)")
+        if "grid3d" in kinds:
+            info = grid3d.Grid3DInfo(lo=tuple(map(float, spec.box.lo)), hi=tuple(map(float, spec.box.hi)),
+                                     resolution=tuple(int(r) for r in spec.resolution),
+                                     cell_size=tuple(float(c) for c in spec.cell_size))
+            grid3d.write_grid3d(prob3, grid.logodds.detach().cpu().numpy(), info, folder)
+            done.append(f"grid_probability.npy {prob3.shape}")
+    if {"scans", "images"} & set(kinds):
+        pose_set = (pose_set or views.recording_test_poses(trainer.recording)).subsample(max_poses)
+        write_text_atomic(folder / "poses.csv", pose_set.csv())
+        summary["poses"] = {"source": pose_set.source, "count": len(pose_set)}
+    if "scans" in kinds:
+        (folder / "scans").mkdir()
+        n_pts = 0
+        for k, pose in enumerate(pose_set.cam_to_world):
+            pts = views.scan_points(trainer.model, pose[:3, 3], n_rays)
+            clouds.write_pcd(folder / "scans" / f"scan_{k:04d}.pcd", pts)
+            clouds.write_ply(folder / "scans" / f"scan_{k:04d}.ply", pts)
+            n_pts += len(pts)
+        done.append(f"scans/ ({len(pose_set)} poses, {n_pts} points)")
+    if "cloud" in kinds:
+        xyz, rgb = views.surface_cloud(trainer.model, trainer.recording, cloud_points, cfg.image_scale)
+        clouds.write_pcd(folder / "cloud.pcd", xyz, rgb)
+        clouds.write_ply(folder / "cloud.ply", xyz, rgb)
+        summary["cloud_points"] = len(xyz)
+        done.append(f"cloud.pcd/.ply ({len(xyz)} points)")
+    if "images" in kinds:
+        from virus_nerf.evaluation.testpoints import MAIN_STACK
+
+        stack = trainer.recording.stacks.get(MAIN_STACK) or next(iter(trainer.recording.stacks.values()))
+        intr = stack.intrinsics.scaled(image_scale)
+        (folder / "images").mkdir()
+        for k, pose in enumerate(pose_set.cam_to_world):
+            rgb, depth_mm = views.render_image(trainer.model, intr, pose)
+            _write_png(folder / "images" / f"color_{k:04d}.png", rgb)
+            _write_png(folder / "images" / f"depth_{k:04d}.png", depth_mm)
+        summary["images"] = {"width": intr.width, "height": intr.height, "fx": intr.fx, "fy": intr.fy,
+                             "cx": intr.cx, "cy": intr.cy, "depth": "uint16 z-depth in mm, 0 = no hit"}
+        done.append(f"images/ ({len(pose_set)} x {intr.width}x{intr.height} colour + depth)")
+    write_json_atomic(folder / "export.json", summary)
+    return done
+
+
+def camera_height(recording) -> float:
+    """Median camera-1 height (m) over the recording: the height of the 2D maps (design 6.3)."""
+    from virus_nerf.evaluation.testpoints import MAIN_STACK
+
+    stacks = [recording.stacks[MAIN_STACK]] if MAIN_STACK in recording.stacks else list(recording.stacks.values())
+    return float(np.median(np.concatenate([s.cam_to_world[:, 2, 3] for s in stacks])))
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    """8-bit grey/RGB or 16-bit grey (uint16) PNG, atomically."""
+    from PIL import Image
+
+    from virus_nerf.utils.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(image)).save(tmp, format="PNG")
+
+
+def _render_map(trainer, resolution: float, n_rays: int, max_poses: int) -> OccupancyMap2D:
+    """360 deg model scans from up to `max_poses` camera positions -> occupancy raster."""
+    from virus_nerf.evaluation.scans import horizontal_directions
+
+    recording = trainer.recording
+    lo, hi = np.asarray(trainer.box.lo[:2]), np.asarray(trainer.box.hi[:2])
+    positions = np.concatenate([s.cam_to_world[:, :3, 3] for s in recording.stacks.values()])
+    positions = positions[np.linspace(0, len(positions) - 1, min(max_poses, len(positions))).astype(int)]
+    dirs = horizontal_directions(n_rays)
+    origins_all, dirs_all, ranges_all = [], [], []
+    for p in positions:
+        origins = np.broadcast_to(p, dirs.shape).copy()
+        ranges_all.append(trainer.model.ranges(origins, dirs))
+        origins_all.append(origins[:, :2])
+        dirs_all.append(dirs[:, :2])
+    return scan_occupancy(np.concatenate(origins_all), np.concatenate(dirs_all), np.concatenate(ranges_all),
+                          lo, hi, resolution)

@@ -1,0 +1,56 @@
+"""The 2D signed Euclidean distance field (ESDF) of a map, for planners.
+
+Signed, in metres, between pixel centres: outside obstacles the distance to the nearest
+occupied pixel (> 0), inside obstacles minus the distance to the nearest pixel that is not
+occupied (<= -resolution). Unknown pixels count as not occupied: the field says how far the
+known obstacles are, not where it is safe to drive (the map's unknown pixels say that). Written as
+float32 `.npy` in image layout (row 0 = largest y, the map_server raster of `maps`), a map_server
+style YAML naming it, and a PNG preview.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass
+class DistanceField2D:
+    distance: np.ndarray  # (H, W) float32 metres, row 0 = largest y; +inf where the map has no obstacle
+    resolution: float  # metres per pixel
+    origin: tuple[float, float]  # world (x, y) of the lower-left pixel corner
+
+
+def signed_distance(occupied: np.ndarray, resolution: float) -> np.ndarray:
+    """(H, W) bool obstacles -> (H, W) float32 signed distance in metres (see module docstring)."""
+    from scipy.ndimage import distance_transform_edt
+
+    occ = np.asarray(occupied, dtype=bool)
+    if not occ.any():
+        return np.full(occ.shape, np.inf, dtype=np.float32)
+    outside = distance_transform_edt(~occ)  # to the nearest occupied pixel; 0 on obstacles
+    inside = distance_transform_edt(occ) if not occ.all() else np.full(occ.shape, np.inf)
+    return ((outside - inside) * resolution).astype(np.float32)
+
+
+def write_esdf(field: DistanceField2D, folder: Path, name: str = "esdf", preview_max: float = 2.0) -> None:
+    """esdf.npy + esdf.yaml (origin, resolution, units) + esdf.png (distance clipped to
+    [-preview_max, preview_max] m: black = deep inside obstacles, mid grey = surface, white far)."""
+    from PIL import Image
+
+    from virus_nerf.utils.io import atomic_path, write_text_atomic
+
+    with atomic_path(folder / f"{name}.npy") as tmp, tmp.open("wb") as fh:
+        np.save(fh, field.distance.astype(np.float32))
+    write_text_atomic(
+        folder / f"{name}.yaml",
+        f"data: {name}.npy\nunits: metres\nsigned: true  # negative inside obstacles\n"
+        f"resolution: {field.resolution!r}\norigin: [{field.origin[0]:.6f}, {field.origin[1]:.6f}, 0.0]\n"
+        "layout: rows top (largest y) to bottom, columns x increasing, as the map_server image\n",
+    )
+    d = np.clip(np.nan_to_num(field.distance, posinf=preview_max), -preview_max, preview_max)
+    grey = np.rint((d + preview_max) / (2 * preview_max) * 255).astype(np.uint8)
+    with atomic_path(folder / f"{name}.png") as tmp:
+        Image.fromarray(grey).save(tmp, format="PNG")
