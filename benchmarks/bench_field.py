@@ -1,4 +1,4 @@
-"""Hash-encoding and field throughput on CPU (design 10): numba vs plain PyTorch backends.
+"""Hash-encoding and field throughput on CPU (docs/method.md 10): numba vs plain PyTorch backends.
 
 Run: .venv/bin/python benchmarks/bench_field.py [--n 131072] [--reps 5]
 Prints one JSON object. Points are ray-like (4096 rays x 32 samples along random directions in

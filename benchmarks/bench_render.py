@@ -1,4 +1,4 @@
-"""Speed of the ray marcher, the compositor and the Instant-NGP grid update (design 10).
+"""Speed of the ray marcher, the compositor and the Instant-NGP grid update (docs/method.md 10).
 
 Prints one JSON object. Marching: 4096 rays in a 9 x 8 x 2.6 m room whose 128-cell grid is ~20 %
 occupied (walls, floor, ceiling, furniture blocks), numba vs torch. Compositing: 4096 x 64

@@ -3,7 +3,7 @@
 For each scene (simulated office and common area, seeds no test uses) and each configuration
 variant, one fresh Python process trains exactly as `virus-nerf train` does (imports, reading,
 frame decoding, numba loading and the grid's start-up pass all count) and scores the NeRF's 2D
-scans against the map-based ground truth (design 6; "map" protocol) when the wall clock passes
+scans against the map-based ground truth (docs/method.md 6; "map" protocol) when the wall clock passes
 each checkpoint. Evaluation time is excluded from the clock (the run pauses while it is scored).
 
 Modes:
@@ -174,7 +174,7 @@ def main() -> None:
     ap.add_argument("--no-default", action="store_true", help="do not run the default configuration")
     ap.add_argument("--separate", action="store_true", help="one run per checkpoint (a user's --max-time)")
     ap.add_argument("--steps", action="store_true", help="checkpoints are training steps, not wall seconds")
-    ap.add_argument("--gt", default="map,exact", help="ground-truth protocols; the first is the headline (design 6.7)")
+    ap.add_argument("--gt", default="map,exact", help="ground-truth protocols; the first is the headline (docs/method.md 6.7)")
     ap.add_argument("--train-seed", type=int, default=0)
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="where the simulated rooms are kept")
     ap.add_argument("--out", type=Path, help="JSON document (default: print)")
@@ -196,7 +196,7 @@ def main() -> None:
     doc: dict = {
         "benchmark": "time_to_map",
         "ground_truth": f"{args.gt.split(',')[0]} (headline; 'map' = LiDAR map slice, solid 3 cm voxels); "
-                        f"every protocol of {args.gt!r} under points[].by_gt (design 6.7)",
+                        f"every protocol of {args.gt!r} under points[].by_gt (docs/method.md 6.7)",
         "zone": "zone3 (0-100 m)",
         "mode": ("separate" if args.separate else "curve") + (" (steps)" if args.steps else ""),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},

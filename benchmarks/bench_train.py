@@ -1,4 +1,4 @@
-"""Training-step throughput on a simulated office: steps/s and samples/s (design 10, issue 5/6).
+"""Training-step throughput on a simulated office: steps/s and samples/s (docs/method.md 10, issue 5/6).
 
 For each (field profile, batch size, grid) the trainer first runs past the grid warm-up
 (untimed), then times `--steps` steps. Both grids run in the same process on the same data,

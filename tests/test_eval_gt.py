@@ -1,4 +1,4 @@
-"""GT ray caster on analytic rooms, and model scans through the RangeModel interface (design 6.2, 6.3)."""
+"""GT ray caster on analytic rooms, and model scans through the RangeModel interface (docs/method.md 6.2, 6.3)."""
 
 from __future__ import annotations
 
@@ -75,7 +75,7 @@ def test_no_map_points_no_hits_and_origin_cell_ignored():
     tp = make_tp(0.0, 0.0, 0.0)
     gt = gt_scan(room_cloud(heights=(1.0,)), tp, n_rays=64)
     assert len(gt.scan) == 0 and np.isnan(gt.ranges).all()
-    # an occupied cell at the origin itself is not a hit at distance 0 (design 9.8)
+    # an occupied cell at the origin itself is not a hit at distance 0 (docs/method.md 9.8)
     raster = rasterise(np.array([[0.0, 0.0], [1.0, 0.0]]), res=0.02, footprint=0.0)
     r = cast_rays(raster, np.array([0.001, 0.001]), np.array([[1.0, 0.0], [-1.0, 0.0]]))
     assert r[0] == pytest.approx(1.0 - 0.001, abs=0.021) and np.isnan(r[1])

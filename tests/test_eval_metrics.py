@@ -1,4 +1,4 @@
-"""NND metrics on hand-placed points with known answers (design 6.5, 6.6, 7)."""
+"""NND metrics on hand-placed points with known answers (docs/method.md 6.5, 6.6, 7)."""
 
 from __future__ import annotations
 
@@ -92,7 +92,7 @@ def test_zone_borders_at_exactly_1_and_2_m_are_inclusive():
     assert m["zone1"].acc_mean == pytest.approx(0.02)
     assert m["zone2"].acc_mean == pytest.approx(0.26)
     assert m["zone3"].acc_mean == pytest.approx((0.02 + 0.5 + 0.3) / 3)
-    # a GT point at 1.0000001 m is not in zone 1 (float depths, no rounding: design 9.7)
+    # a GT point at 1.0000001 m is not in zone 1 (float depths, no rounding: docs/method.md 9.7)
     m = metrics_of(np.array([[1.0000001, 0.0]]), np.array([[1.0000001, 0.0]])).zones
     assert m["zone1"].n_gt == 0 and m["zone1"].acc_mean is None and m["zone2"].n_gt == 1
     # accuracy zone follows the nearest GT point's depth, not the prediction's own depth

@@ -1,4 +1,4 @@
-"""The evaluation end to end on the real office sample, and the `sensors` command (design 6, 7).
+"""The evaluation end to end on the real office sample, and the `sensors` command (docs/method.md 6, 7).
 
 Measured on the sample (2 test points, 512 rays): GT 474 hits per test point; LiDAR zone3
 accuracy median 0.191 m, mean 0.337 m, 94 % of the outliers "too far". The LiDAR's points lie
@@ -102,7 +102,7 @@ def test_uss_and_irs_produce_points_where_expected(result, sample_recording):
         assert len(irs) == 4 and (irs.extra["stack"] == 1).all()  # stack 3 has ~no valid zones
         assert (np.abs(irs.extra["z"] - tp.height) <= 0.05).all()
         assert np.linalg.norm(irs.points - tp.origin_xy, axis=1).max() < 4.0
-    # the IRS agrees with the map to a few cm; the USS arc is wide (worst accuracy, design 8)
+    # the IRS agrees with the map to a few cm; the USS arc is wide (worst accuracy, docs/method.md 8)
     irs3 = result.metrics["IRS"].zones["zone3"]
     assert irs3.acc_median < 0.08 and irs3.acc_inlier == 1.0
     assert result.metrics["USS"].zones["zone3"].acc_mean > irs3.acc_mean

@@ -1,4 +1,4 @@
-"""Sensor scans collapsed to 2D on hand-made poses and readings (design 6.4)."""
+"""Sensor scans collapsed to 2D on hand-made poses and readings (docs/method.md 6.4)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The one cell-index formula (design 9.5): torch `cell_index` and numba `cell_index_scalar` agree."""
+"""The one cell-index formula (docs/method.md 9.5): torch `cell_index` and numba `cell_index_scalar` agree."""
 
 from __future__ import annotations
 

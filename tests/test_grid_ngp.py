@@ -1,4 +1,4 @@
-"""Instant-NGP occupancy grid (design 3.3): warm-up, n/4 + n/4 draws, decay, threshold, resume."""
+"""Instant-NGP occupancy grid (docs/method.md 3.3): warm-up, n/4 + n/4 draws, decay, threshold, resume."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The Bayesian VIRUS grid (design 3.4): sensor model, traversal, eq. 9, warm-up, resume."""
+"""The Bayesian VIRUS grid (docs/method.md 3.4): sensor model, traversal, eq. 9, warm-up, resume."""
 
 import math
 
@@ -83,7 +83,7 @@ def test_depth_update_convergence_to_the_clamps():
 
 
 def test_depth_update_with_tiny_noise_still_hits_the_peak_cell():
-    # sigma far below the cell size: the segment-averaged Gaussian still finds the peak (design 9.4)
+    # sigma far below the cell size: the segment-averaged Gaussian still finds the peak (docs/method.md 9.4)
     cfg = VirusGridConfig(max_resolution=40, std_per_m=0.0, std_floor=0.002)
     grid = VirusGrid(BAR, cfg)
     before = grid.logodds.clone()

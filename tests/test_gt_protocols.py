@@ -1,4 +1,4 @@
-"""Ground-truth protocols (design 6.7, issue 11): map, exact and paper on a box room computed by
+"""Ground-truth protocols (docs/method.md 6.7, issue 11): map, exact and paper on a box room computed by
 hand, gt_unseen for a sensor that returns nothing, the metrics.json schema with several
 protocols, and the command-line errors of --gt.
 

@@ -1,4 +1,4 @@
-"""The IRS zone layout and range convention, shown from the data (design 4).
+"""The IRS zone layout and range convention, shown from the data (docs/method.md 4).
 
 For every valid IRS zone of both stacks we compare the reading with the aligned RGB-D depth
 inside the zone's angular footprint, for all 8 re-orderings of the 8x8 block (identity, flips,

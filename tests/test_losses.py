@@ -1,4 +1,4 @@
-"""Losses (design 3.2): known values, masking, NaN safety, gradients only where they belong."""
+"""Losses (docs/method.md 3.2): known values, masking, NaN safety, gradients only where they belong."""
 
 import math
 

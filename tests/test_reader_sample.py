@@ -1,4 +1,4 @@
-"""The ETHZ reader on the real one-second office sample (design 4)."""
+"""The ETHZ reader on the real one-second office sample (docs/method.md 4)."""
 
 from __future__ import annotations
 

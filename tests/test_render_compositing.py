@@ -1,4 +1,4 @@
-"""Volume rendering (design 3.1): analytic answers, numba == torch values and gradients, gradcheck."""
+"""Volume rendering (docs/method.md 3.1): analytic answers, numba == torch values and gradients, gradcheck."""
 
 from __future__ import annotations
 

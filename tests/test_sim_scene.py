@@ -1,4 +1,4 @@
-"""Exact ray casting of the simulator's primitives (design 5) against hand-computed answers."""
+"""Exact ray casting of the simulator's primitives (docs/method.md 5) against hand-computed answers."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Sensor models and rig of the simulator (design 5): mounting from the sample, USS vs bench."""
+"""Sensor models and rig of the simulator (docs/method.md 5): mounting from the sample, USS vs bench."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The `virus-nerf` console command (design 7). Each subcommand lives beside its stage."""
+"""The `virus-nerf` console command (docs/method.md 7). Each subcommand lives beside its stage."""
 
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ def _commands() -> dict:
 
 
 def _keep_large_allocations() -> None:
-    """Stop glibc returning large tensors to the OS after every step (design 10: ~1.4x faster)."""
+    """Stop glibc returning large tensors to the OS after every step (docs/method.md 10: ~1.4x faster)."""
     try:
         import ctypes
 

@@ -1,4 +1,4 @@
-"""The axis-aligned scene box in metres (design 3.5, 9.2): anisotropic, fitted to the room.
+"""The axis-aligned scene box in metres (docs/method.md 3.5, 9.2): anisotropic, fitted to the room.
 
 The field normalises world points to [0, 1]^3 inside this box; the occupancy grids cover the
 same box. A flat room gets a flat box, so no grid layer is wasted on empty height.

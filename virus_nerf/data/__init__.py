@@ -1,1 +1,1 @@
-"""Reading and writing recordings in the ETHZ format (design 4)."""
+"""Reading and writing recordings in the ETHZ format (docs/method.md 4)."""

@@ -1,4 +1,4 @@
-"""Reader for recordings in the ETHZ format (design 4).
+"""Reader for recordings in the ETHZ format (docs/method.md 4).
 
 Layout under DATA/: camera_intrinsics.CSV and per room ROOM/measurements, ROOM/poses,
 ROOM/lidars/filtered, ROOM/maps, ROOM/split. Everything returned is in metres, seconds and

@@ -1,4 +1,4 @@
-"""Train/val/test split per sample (design 4): read from split.csv or made deterministically."""
+"""Train/val/test split per sample (docs/method.md 4): read from split.csv or made deterministically."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""2D scan evaluation (design 6): GT scans from the LiDAR map, sensor and model scans, NND metrics.
+"""2D scan evaluation (docs/method.md 6): GT scans from the LiDAR map, sensor and model scans, NND metrics.
 
 Plots (matplotlib) and the `sensors` command live in `plots` and `command` and are imported
 on demand, so importing this package stays light.

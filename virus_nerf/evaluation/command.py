@@ -1,4 +1,4 @@
-"""`virus-nerf sensors`: score the instantaneous LiDAR, USS and IRS scans alone (design 6, 7)."""
+"""`virus-nerf sensors`: score the instantaneous LiDAR, USS and IRS scans alone (docs/method.md 6, 7)."""
 
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ def sensors(
 ) -> None:
     """Evaluate the instantaneous LiDAR, USS and IRS scans against the ground truth.
 
-    Writes the metrics (design 7 schema) to OUT and the plots to a folder beside it named
+    Writes the metrics (docs/method.md 7 schema) to OUT and the plots to a folder beside it named
     after OUT's stem (results/metrics.json -> results/metrics_plots/); refuses to overwrite
     either. Prints a compact table of the metrics per sensor and distance zone, per protocol.
 

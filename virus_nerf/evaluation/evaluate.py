@@ -1,10 +1,10 @@
-"""The evaluation of one recording (design 6): GT scans, sensor scans, model scans, metrics.
+"""The evaluation of one recording (docs/method.md 6): GT scans, sensor scans, model scans, metrics.
 
 Reusable by the trainer: build the ground truth once (`build_ground_truth`) and pass it to
 `evaluate` at every evaluation interval together with the model(s); sensor scans can be left
 out (`sensors=()`) when only a model is scored.
 
-Ground truth under several protocols (design 6.7, `EvaluationConfig.gt`): every scan is made
+Ground truth under several protocols (docs/method.md 6.7, `EvaluationConfig.gt`): every scan is made
 once per test point and scored against each protocol's GT; the first protocol is the primary
 one (`EvaluationResult.metrics`, the plots' scan maps, the trainer's metric-vs-time curve), the
 others are in `EvaluationResult.by_gt`. Under `paper` the LiDAR is scored over the authors'
@@ -81,14 +81,14 @@ class EvaluationConfig:
 
     n_rays: int = 512  # rays of the 360 deg GT and model scans
     height_band_m: float = 0.05  # +- around the camera height for map slice, LiDAR and IRS
-    raster_res_m: float = 0.02  # GT occupancy raster cell (<= 0.02, design 6.2)
+    raster_res_m: float = 0.02  # GT occupancy raster cell (<= 0.02, docs/method.md 6.2)
     map_voxel_m: float = 0.03  # footprint drawn for each map point (its voxel size)
     lidar_angle_range_deg: float = 360.0  # LiDAR horizontal range centred on the robot heading
     uss_arc_step_deg: float = 1.0  # spacing of the points on the USS arc
     inlier_m: float = INLIER_M
     zones: tuple[Zone, ...] = DEFAULT_ZONES
     sensors: tuple[str, ...] = SENSOR_NAMES  # which instantaneous sensors to score
-    gt: tuple[GtProtocol, ...] = ("map",)  # ground-truth protocols (design 6.7); the first is the primary
+    gt: tuple[GtProtocol, ...] = ("map",)  # ground-truth protocols (docs/method.md 6.7); the first is the primary
 
     def __post_init__(self) -> None:
         check_gt_protocols(self.gt)
@@ -140,12 +140,12 @@ class TestPointScans:
         return self.ground_truth.test_point
 
     def fov_gt(self, name: str) -> Scan2D:
-        """The GT restricted to scan `name`'s field of view (design 6.5)."""
+        """The GT restricted to scan `name`'s field of view (docs/method.md 6.5)."""
         return fov_gt(self.ground_truth, self.scans[name])
 
 
 def fov_gt(gt: GroundTruth, scan: Scan2D) -> Scan2D:
-    """The GT points inside `scan`'s field of view (design 6.5)."""
+    """The GT points inside `scan`'s field of view (docs/method.md 6.5)."""
     keep = scan.fov.contains(gt.scan.points)
     return Scan2D(f"GT[{scan.name}]", gt.scan.points[keep], gt.scan.origin, scan.fov)
 
@@ -199,7 +199,7 @@ def check_ground_truth_inputs(recording: Recording, protocols: Sequence[str]) ->
 def protocol_ground_truth(
     recording: Recording, protocol: str, config: EvaluationConfig, test_points: Sequence[TestPoint]
 ) -> list[GroundTruth]:
-    """GT scans of `test_points` under one protocol (design 6.7)."""
+    """GT scans of `test_points` under one protocol (docs/method.md 6.7)."""
     if protocol == "map":
         cloud = recording.lidar_map()
         return [gt_scan(cloud, tp, config.n_rays, config.height_band_m, config.raster_res_m, config.map_voxel_m)

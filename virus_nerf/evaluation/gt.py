@@ -1,4 +1,4 @@
-"""Ground-truth 2D scans (design 6.2, 6.7), under three protocols.
+"""Ground-truth 2D scans (docs/method.md 6.2, 6.7), under three protocols.
 
 - `map` (default): the LiDAR map is a cloud of 3 cm voxel centres. Points within +-band of the
   camera height are drawn into a 2D occupancy raster (<= 2 cm cells), each point as its voxel's
@@ -193,7 +193,7 @@ def gt_scan(
 ) -> GroundTruth:
     """Cast `n_rays` horizontal rays over 360 deg from the test point's scan origin into the map slice."""
     if res > 0.02 + 1e-12:
-        raise ValueError(f"GT raster resolution must be <= 0.02 m (design 6.2), got {res}")
+        raise ValueError(f"GT raster resolution must be <= 0.02 m (docs/method.md 6.2), got {res}")
     slice_xy = height_slice(map_points, test_point.height, band)
     origin = test_point.origin_xy
     raster = rasterise(slice_xy, res=res, footprint=footprint, include=origin)

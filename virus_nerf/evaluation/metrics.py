@@ -1,4 +1,4 @@
-"""Nearest-neighbour distance metrics per distance zone (design 6.5, 6.6) and metrics.json (design 7).
+"""Nearest-neighbour distance metrics per distance zone (docs/method.md 6.5, 6.6) and metrics.json (docs/method.md 7).
 
 Definitions (all distances 2D, metres; depth = distance from the test point's scan origin):
 - accuracy: for each predicted point, the distance to its nearest FoV-GT point. The point's zone
@@ -8,7 +8,7 @@ Definitions (all distances 2D, metres; depth = distance from the test point's sc
 - coverage: for each FoV-GT point, the distance to its nearest predicted point. The zone is
   decided by the GT point's own depth. An outlier is "too close" when that nearest predicted
   point is nearer to the origin than the GT point (the prediction is too close), else "too far".
-- Zones are closed intervals lo <= depth <= hi on float depths (design 9.7); zones nest.
+- Zones are closed intervals lo <= depth <= hi on float depths (docs/method.md 9.7); zones nest.
 - inlier + too_close + too_far = 1 in every zone with points.
 - A test point contributes accuracy only if it has FoV-GT points, and coverage only if the
   sensor returned at least one point there (a nearest neighbour must exist: the paper's
@@ -19,7 +19,7 @@ Definitions (all distances 2D, metres; depth = distance from the test point's sc
   sensor that is silent at most test points has a flattering `cov_*` and a large `gt_unseen`.
 
 metrics.json names the ground-truth protocol its numbers use ("gt": "map" | "exact" | "paper",
-design 6.7; a document without it is from before the protocols and used "map"). When several
+docs/method.md 6.7; a document without it is from before the protocols and used "map"). When several
 protocols were asked, "sensors" holds the first and "by_gt" maps every protocol asked (the
 first included) to {"sensors": ...} of the same form.
 """
@@ -38,7 +38,7 @@ from scipy.spatial import cKDTree
 
 from virus_nerf.utils.io import write_json_atomic
 
-GT_PROTOCOLS = ("map", "exact", "paper")  # ground-truth protocols (design 6.7; evaluation.gt)
+GT_PROTOCOLS = ("map", "exact", "paper")  # ground-truth protocols (docs/method.md 6.7; evaluation.gt)
 
 INLIER_M = 0.1
 METRIC_KEYS = (
@@ -118,7 +118,7 @@ def nnd_samples(pred: np.ndarray, gt: np.ndarray, origin: np.ndarray) -> NNDSamp
 
 @dataclass
 class ZoneMetrics:
-    """The design-7 numbers of one sensor in one zone; None where no point was scored."""
+    """The docs/method.md 7 numbers of one sensor in one zone; None where no point was scored."""
 
     acc_mean: float | None
     acc_median: float | None
@@ -189,7 +189,7 @@ def metrics_document(
     gt: str = DEFAULT_GT,
     by_gt: Mapping[str, Mapping[str, SensorMetrics]] | None = None,
 ) -> dict[str, Any]:
-    """The metrics.json object of design 7: gt, zones, sensors[, by_gt][, train].
+    """The metrics.json object of docs/method.md 7: gt, zones, sensors[, by_gt][, train].
 
     `sensors` are the metrics under protocol `gt`; `by_gt` (every protocol asked -> metrics, `gt`
     among them) is written only when it holds more than that one protocol.
@@ -225,7 +225,7 @@ def _check_sensors_block(sensors: Mapping[str, Any], zone_names: list[str], wher
 
 
 def check_metrics_document(doc: Mapping[str, Any]) -> None:
-    """Raise ValueError unless `doc` follows the design-7 schema (finite numbers or null).
+    """Raise ValueError unless `doc` follows the docs/method.md 7 schema (finite numbers or null).
 
     Documents written before the ground-truth protocols (no "gt", no "gt_unseen") are accepted.
     """

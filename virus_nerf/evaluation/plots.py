@@ -6,7 +6,7 @@
   inlier / too-close / too-far shares as stacked bars, for accuracy and coverage; the coverage
   shares are of all in-view GT points, with the GT at test points where the sensor returned
   nothing (gt_unseen) as a grey "unseen" part on top.
-Every title names the ground-truth protocol (design 6.7).
+Every title names the ground-truth protocol (docs/method.md 6.7).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""2D scans, horizontal fields of view and the scan interface for models (design 6.3, 6.5, 9.9).
+"""2D scans, horizontal fields of view and the scan interface for models (docs/method.md 6.3, 6.5, 9.9).
 
 Every scan of a test point is a set of 2D points in the world frame (x, y in metres) seen from
 one scan origin, the camera-1 position. A sensor's field of view is a union of horizontal
@@ -80,7 +80,7 @@ class Scan2D:
 
 @runtime_checkable
 class RangeModel(Protocol):
-    """Anything that can render ray lengths: the NeRF (design 6.3) or an analytic test scene."""
+    """Anything that can render ray lengths: the NeRF (docs/method.md 6.3) or an analytic test scene."""
 
     def ranges(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """origins (N, 3) m, unit directions (N, 3) -> (N,) distance along each ray in metres,
@@ -102,7 +102,7 @@ def horizontal_directions(n_rays: int) -> np.ndarray:
 
 
 def points_from_ranges(origin_xy: np.ndarray, directions: np.ndarray, ranges: np.ndarray) -> np.ndarray:
-    """Hit points (M, 2) of rays with a finite positive range; misses are dropped (design 9.8)."""
+    """Hit points (M, 2) of rays with a finite positive range; misses are dropped (docs/method.md 9.8)."""
     r = np.asarray(ranges, dtype=np.float64).reshape(-1)
     ok = np.isfinite(r) & (r > 0)
     return np.asarray(origin_xy, dtype=np.float64)[None, :2] + directions[ok, :2] * r[ok, None]

@@ -1,4 +1,4 @@
-"""Instantaneous sensor scans collapsed to 2D in the world frame (design 6.4).
+"""Instantaneous sensor scans collapsed to 2D in the world frame (docs/method.md 6.4).
 
 - LiDAR: the scan nearest in time, moved to the world by the LiDAR pose at the scan's time,
   points within +-band of the camera height, optionally only a horizontal angle range
@@ -8,7 +8,7 @@
   +-band of the camera height (the camera is pitched, so most zones look above or below).
 - USS: both stacks, the cone's horizontal arc (+-27.5 deg around the camera heading) at the
   echo range, at camera height.
-No return is no point; nothing is ever placed at the sensor origin (design 9.8).
+No return is no point; nothing is ever placed at the sensor origin (docs/method.md 9.8).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Test points of the evaluation (design 6.1): the test frames of stack 1 and the stack-3 frame
+"""Test points of the evaluation (docs/method.md 6.1): the test frames of stack 1 and the stack-3 frame
 taken at (nearly) the same time. One test point = one scan origin shared by every scan."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ PARTNER_STACK = 3
 
 @dataclass(frozen=True, eq=False)
 class TestPoint:
-    """Where and when a 2D scan is taken; the scan origin is the camera-1 position (design 9.9)."""
+    """Where and when a 2D scan is taken; the scan origin is the camera-1 position (docs/method.md 9.9)."""
 
     __test__ = False  # not a pytest test class
 

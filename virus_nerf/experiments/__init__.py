@@ -1,1 +1,1 @@
-"""What a user runs end to end: the demo, the ablation table, offline vs online (design 1, 8)."""
+"""What a user runs end to end: the demo, the ablation table, offline vs online (docs/method.md 1, 8)."""

@@ -1,4 +1,4 @@
-"""`virus-nerf ablation`: the eight rows of the paper's Table I on simulated rooms (design 8).
+"""`virus-nerf ablation`: the eight rows of the paper's Table I on simulated rooms (docs/method.md 8).
 
 Each (row, scene, seed) is one training process with the same time budget; finished runs are
 not redone, interrupted ones resume. The table gives mean +- std over seeds of zone 3 NND

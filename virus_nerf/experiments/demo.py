@@ -1,4 +1,4 @@
-"""`virus-nerf demo`: the main job on an embedded default (design 1, issue 'main job').
+"""`virus-nerf demo`: the main job on an embedded default (docs/method.md 1, issue 'main job').
 
 Simulate an office (fixed seed), train VIRUS-NeRF (camera + USS + IRS, VIRUS grid) on a CPU
 time budget, evaluate it beside the instantaneous LiDAR, USS and IRS scans, write a report.

@@ -170,7 +170,7 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
 
 
 def camera_height(recording) -> float:
-    """Median camera-1 height (m) over the recording: the height of the 2D maps (design 6.3)."""
+    """Median camera-1 height (m) over the recording: the height of the 2D maps (docs/method.md 6.3)."""
     from virus_nerf.evaluation.testpoints import MAIN_STACK
 
     stacks = [recording.stacks[MAIN_STACK]] if MAIN_STACK in recording.stacks else list(recording.stacks.values())

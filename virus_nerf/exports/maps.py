@@ -82,7 +82,7 @@ def probability_slice(
 ) -> np.ndarray:
     """(nx, ny) occupancy probability of a 3D grid in a horizontal band around `height`.
 
-    Why a band and a maximum: the 2D map is judged at camera height (design 6.3), where a wheeled
+    Why a band and a maximum: the 2D map is judged at camera height (docs/method.md 6.3), where a wheeled
     robot carrying the cameras collides; a grid layer is ~8 cm thick and a wall seen a little
     above or below camera height still blocks the robot, so every layer whose centre lies within
     `band` metres of `height` (at least the layer containing `height`) is taken, and a column's

@@ -58,7 +58,7 @@ def read_pose_csv(path: Path) -> PoseSet:
 
 
 def recording_test_poses(recording) -> PoseSet:
-    """The recording's evaluation test poses (camera 1 at the test frames, design 6.1)."""
+    """The recording's evaluation test poses (camera 1 at the test frames, docs/method.md 6.1)."""
     from virus_nerf.evaluation.testpoints import make_test_points
 
     pts = make_test_points(recording)
@@ -84,7 +84,7 @@ def render_rays(model, origins: np.ndarray, directions: np.ndarray, chunk: int =
 
 
 def scan_points(model, position: np.ndarray, n_rays: int) -> np.ndarray:
-    """A 360 deg horizontal scan at `position` (3,) -> hit points (M, 3), world frame (design 6.3)."""
+    """A 360 deg horizontal scan at `position` (3,) -> hit points (M, 3), world frame (docs/method.md 6.3)."""
     from virus_nerf.evaluation.scans import horizontal_directions
 
     dirs = horizontal_directions(n_rays)

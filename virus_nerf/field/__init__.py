@@ -1,4 +1,4 @@
-"""NeRF field (design 3.5): multiresolution hash encoding (numba CPU / PyTorch), SH direction
+"""NeRF field (docs/method.md 3.5): multiresolution hash encoding (numba CPU / PyTorch), SH direction
 encoding, density and colour MLPs."""
 
 from virus_nerf.field.field import FieldConfig, NerfField, trunc_exp

@@ -1,4 +1,4 @@
-"""The NeRF field (design 3.5): hash encoding -> density MLP -> (sigma, geometry features);
+"""The NeRF field (docs/method.md 3.5): hash encoding -> density MLP -> (sigma, geometry features);
 [SH(direction), features] -> colour MLP -> RGB.
 
 World points in metres are normalised to [0,1]^3 with the SceneBox inside the field only; points
@@ -67,7 +67,7 @@ class FieldConfig:
 
     @staticmethod
     def cpu_default() -> FieldConfig:
-        """CPU profile (design 10): 2^16 entries per level (512 KB, fits a core's L2 cache; 2.5-3.7x
+        """CPU profile (docs/method.md 10): 2^16 entries per level (512 KB, fits a core's L2 cache; 2.5-3.7x
         faster steps than 2^19) and N_max = 512 (2 cm cells over 10 m, still finer than the 0.1 m
         inlier threshold, and fewer hash collisions per entry than 1024 with the smaller table)."""
         return FieldConfig(log2_table_size=16, max_resolution=512)

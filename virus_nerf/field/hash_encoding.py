@@ -1,4 +1,4 @@
-"""Multiresolution hash encoding (Muller et al. 2022; design 3.5), layout and PyTorch backend.
+"""Multiresolution hash encoding (Muller et al. 2022; docs/method.md 3.5), layout and PyTorch backend.
 
 Level l has `resolutions[l]` cells per axis of the unit box, i.e. res+1 vertices per axis; the
 resolutions grow geometrically from `base_resolution` to `max_resolution` (N_l = floor(N_min b^l)).

@@ -1,4 +1,4 @@
-"""Fused numba CPU kernels for the hash encoding (design 3.5, 10) and their autograd wrapper.
+"""Fused numba CPU kernels for the hash encoding (docs/method.md 3.5, 10) and their autograd wrapper.
 
 Forward: parallel over points; each point walks all levels, computes the 8 corner rows and
 trilinear weights once per level and writes its (L*F) features. Backward: parallel over levels;

@@ -1,6 +1,6 @@
 """Real spherical harmonics up to degree 3 ("degree 4" = 16 components, as in Instant-NGP).
 
-Used as the direction encoding of the colour MLP (design 3.5). The basis is the standard
+Used as the direction encoding of the colour MLP (docs/method.md 3.5). The basis is the standard
 orthonormal real SH on the unit sphere (integral of Y_i Y_j over the sphere = delta_ij), without
 the Condon-Shortley phase; order (l, m) = (0,0), (1,-1), (1,0), (1,1), (2,-2) .. (3,3), with
 m < 0 the sin(|m| phi) terms. Constants are derived from their closed forms, not typed in.

@@ -1,4 +1,4 @@
-"""The Instant-NGP occupancy grid, the baseline of the ablation (design 3.3).
+"""The Instant-NGP occupancy grid, the baseline of the ablation (docs/method.md 3.3).
 
 A density value per cell over the scene box. Every update (the trainer calls it every
 `update_interval` steps) evaluates the field at one jittered point inside some cells: all cells

@@ -1,9 +1,9 @@
-"""Inverse sensor models of the VIRUS grid (design 3.4): log-odds increments per cell.
+"""Inverse sensor models of the VIRUS grid (docs/method.md 3.4): log-odds increments per cell.
 
 Depth-Update (IRS rays): a MURIEL-style multiple-target model (Konolige 1997).
 NeRF-Update: paper eq. 9.
 Cell traversal: exact voxel traversal (Amanatides & Woo 1987), one segment per crossed cell, the
-cell named by the shared `cell_index_scalar` at the segment midpoint (design 9.4, 9.5).
+cell named by the shared `cell_index_scalar` at the segment midpoint (docs/method.md 9.4, 9.5).
 
 Depth model, derivation. A beam leaves the sensor; the world along it is seen through the
 "independent cell" lens: cell c (segment [a, b] along the beam, midpoint d, length s = b - a) is
@@ -273,7 +273,7 @@ def nerf_log_odds(
     """Paper eq. 9: P(M=sigma|occ) = 1 / (1 + (sigma_T/sigma)^zeta), P(M|emp) = 1 - P(M|occ).
 
     The log-odds increment is ln P(M|occ)/P(M|emp) = zeta ln(sigma / sigma_T): zero at
-    sigma = sigma_T, positive above, negative below (design 9.3: not sigma * sigma_T). sigma (N,)
+    sigma = sigma_T, positive above, negative below (docs/method.md 9.3: not sigma * sigma_T). sigma (N,)
     in 1/m is floored at `sigma_floor` so ln never sees 0; result (N,) float64, clamped.
     """
     s = np.maximum(np.asarray(sigma, dtype=np.float64), sigma_floor)

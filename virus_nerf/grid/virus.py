@@ -1,12 +1,12 @@
-"""The Bayesian VIRUS occupancy grid (paper III-B, design 3.4).
+"""The Bayesian VIRUS occupancy grid (paper III-B, docs/method.md 3.4).
 
 Cells hold clamped log-odds l = ln p/(1-p) (float32); the marcher samples where l > 0 (p > 0.5).
 Every update step (every `update_interval` training steps) the grid:
-1. moves every cell along the warm-up schedule (counted in training steps, design 9.6),
+1. moves every cell along the warm-up schedule (counted in training steps, docs/method.md 9.6),
 2. runs the Depth-Update on a share of the batch's IRS rays (sensor_model.depth_log_odds,
-   every crossed cell visited, design 9.4),
+   every crossed cell visited, docs/method.md 9.4),
 3. runs the NeRF-Update (eq. 9) on points along the rest of the rays.
-Writes use the shared cell-index formula (design 9.5): both updates name cells with
+Writes use the shared cell-index formula (docs/method.md 9.5): both updates name cells with
 `cell_index_scalar`, the numba twin of the marcher's `cell_index`.
 
 Warm-up: l = l_init (p_init = 0.55, so everything is marched at first) plus an offset that goes
@@ -75,7 +75,7 @@ class VirusGridConfig:
     # Depth-Update (IRS, MURIEL model; sensor_model docstring)
     std_per_m: float = 0.03  # range noise grows 3 cm per metre ...
     std_floor: float = 0.02  # ... on top of 2 cm (pose error, zone width)
-    false_rate: float = 0.3  # lambda: false detections per metre (design 3.4)
+    false_rate: float = 0.3  # lambda: false detections per metre (docs/method.md 3.4)
     hit_probability: float = 0.4  # p_hit: an occupied cell crossed fully stops the beam (0.7 punched holes: a zone-median range is not every pixel ray's range)
     stop_length: float = 0.02  # metres of beam inside a cell for p_det to reach 63 % of p_hit
     max_increment: float = 2.0  # |log-odds change| per cell per measurement
@@ -84,7 +84,7 @@ class VirusGridConfig:
     nerf_points_per_ray: int = 64  # points drawn uniformly in [0, nerf_far] per ray
     pos_noise_per_m: float = 0.05  # std of the point jitter per metre along the ray
     threshold_step: float = 0.01  # sigma_T_max: density at which a step of this many metres ...
-    threshold_alpha: float = 0.01  # ... has this alpha (the Instant-NGP convention, design 3.3)
+    threshold_alpha: float = 0.01  # ... has this alpha (the Instant-NGP convention, docs/method.md 3.3)
     sigma_floor: float = 1e-6  # 1/m, keeps ln(sigma) finite
     # sigma_T: "mean" = min(sigma_T_max, mean density of the update's points) (paper eq. 9);
     # "fixed" = sigma_T_max. Where most of the space is empty the mean falls far below
@@ -209,7 +209,7 @@ class VirusGrid(OccupancyGrid):
 
         Depth rays get round(depth_share * rays_per_update) (fewer if the batch has fewer); the
         NeRF-Update gets the rest of rays_per_update, so a camera-only run (no depth rays) spends
-        the whole budget on the NeRF-Update and every sensor combination runs (design 9.10).
+        the whole budget on the NeRF-Update and every sensor combination runs (docs/method.md 9.10).
         All randomness comes from `generator`.
         """
         if step < 0:

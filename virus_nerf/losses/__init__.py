@@ -1,4 +1,4 @@
-"""Training losses (design 3.2)."""
+"""Training losses (docs/method.md 3.2)."""
 
 from virus_nerf.losses.terms import (
     LossTerms,

@@ -1,4 +1,4 @@
-"""Training losses (paper eq. 3, 5, 6, 7; design 3.2), pure functions on per-ray tensors.
+"""Training losses (paper eq. 3, 5, 6, 7; docs/method.md 3.2), pure functions on per-ray tensors.
 
 Every depth loss is a mean over the rays where its sensor has a valid value (NaN = invalid), in
 metres squared, never over all rays, so the weights do not depend on the room size or on how
@@ -95,7 +95,7 @@ def _check_same(pred: torch.Tensor, target: torch.Tensor, name: str) -> None:
 
 @dataclass(frozen=True)
 class LossWeights:
-    """Weights of L_tot (design 3.2). Depth terms are in m^2, colour in [0,1]^2 units.
+    """Weights of L_tot (docs/method.md 3.2). Depth terms are in m^2, colour in [0,1]^2 units.
 
     Depth defaults ~ the authors' weights (IRS/USS 50, RGB-D 100 on depths normalised by roughly
     a 10 m room) converted to metres: 50 / 100 ~ 0.5 and 100 / 100 ~ 1.0.

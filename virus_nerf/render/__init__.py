@@ -1,4 +1,4 @@
-"""Ray marching through the occupancy grid and volume rendering of packed samples (design 2, 3.1).
+"""Ray marching through the occupancy grid and volume rendering of packed samples (docs/method.md 2, 3.1).
 
 samples = march_rays(origins, directions, grid.occupied, grid.spec, near, far, step_size, ...)
 sigmas, rgbs = field(samples.positions(origins, directions), directions[samples.ray_indices])

@@ -1,10 +1,10 @@
-"""Volume rendering of packed samples (design 3.1, paper eq. 1, 2, 4).
+"""Volume rendering of packed samples (docs/method.md 3.1, paper eq. 1, 2, 4).
 
 Per ray, samples j = 1..M with density sigma_j, colour c_j, interval length delta_j, midpoint t_j:
     tau_j = sigma_j delta_j,  alpha_j = 1 - exp(-tau_j),  T_j = exp(-sum_{l<j} tau_l),
     w_j = T_j alpha_j,  A = sum_j w_j,  C = sum_j w_j c_j + (1 - A) b,  D = sum_j w_j t_j.
 D is the paper's unnormalised depth (metres along the unit ray, biased short where A < 1);
-`scan_depth` gives D / A for the 2D scans (design 6.3).
+`scan_depth` gives D / A for the 2D scans (docs/method.md 6.3).
 
 Backward (closed form used by the numba kernel). With upstream gradients g_C (3,), g_D, g_A per
 ray and g_w per sample, the loss depends on w_j through
@@ -89,7 +89,7 @@ def composite(
 
 
 def scan_depth(render: RenderOutput, min_opacity: float = 0.5) -> torch.Tensor:
-    """(R,) metres: D / A where the opacity A >= min_opacity, else NaN (design 3.1, 6.3)."""
+    """(R,) metres: D / A where the opacity A >= min_opacity, else NaN (docs/method.md 3.1, 6.3)."""
     d = render.depth / render.opacity.clamp(min=1e-12)
     return torch.where(render.opacity >= min_opacity, d, torch.full_like(d, math.nan))
 

@@ -1,9 +1,9 @@
-"""Ray marching: packed samples only where the occupancy grid says "occupied" (design 2, 3.3, 3.4).
+"""Ray marching: packed samples only where the occupancy grid says "occupied" (docs/method.md 2, 3.3, 3.4).
 
 Each ray is clipped to the scene box (slab test) and to [near, far]; it is then walked from a start
 jittered by one random fraction of the first step, and a sample [t_start, t_end] is kept where the
 cell of its midpoint is occupied. Cells are looked up with THE shared cell-index formula
-(`cell_index` in torch, `cell_index_scalar` in numba; design 9.5), evaluated in float64 so that the
+(`cell_index` in torch, `cell_index_scalar` in numba; docs/method.md 9.5), evaluated in float64 so that the
 two backends agree bit for bit.
 
 Step rules (both backends, identical arithmetic):

@@ -1,4 +1,4 @@
-"""Packed ray samples (nerfacc style, design 2): no padding, one row per kept sample.
+"""Packed ray samples (nerfacc style, docs/method.md 2): no padding, one row per kept sample.
 
 A batch of R rays yields S samples in total; sample j belongs to ray `ray_indices[j]` and covers
 the interval [t_starts[j], t_ends[j]] in metres along that ray's unit direction. Samples are sorted
@@ -37,7 +37,7 @@ class PackedSamples:
 
     @property
     def deltas(self) -> torch.Tensor:
-        """(S,) metres: length of each sample interval (delta_j of design 3.1)."""
+        """(S,) metres: length of each sample interval (delta_j of docs/method.md 3.1)."""
         return self.t_ends - self.t_starts
 
     @property

@@ -1,4 +1,4 @@
-"""The batch sampler (design 3.6): random pixels + USS-cone pixels + IRS-zone pixels.
+"""The batch sampler (docs/method.md 3.6): random pixels + USS-cone pixels + IRS-zone pixels.
 
 Every ray is a camera pixel and carries colour; rays whose pixel lies in a sensor's footprint
 also carry that sensor's range, converted to a distance along the ray in metres (the IRS

@@ -2,7 +2,7 @@
 
 Images are decoded once at the training resolution; a 10-minute two-camera recording at
 640x480 is ~5.5 GB of uint8, so above `mmap_above_bytes` the store lives in a .npy file
-under the run folder and the OS pages it in and out (design: train within 8 GB of RAM).
+under the run folder and the OS pages it in and out (docs/method.md 3.6: train within 8 GB of RAM).
 """
 
 from __future__ import annotations

@@ -1,1 +1,1 @@
-"""Sensor models: every measurement becomes world-frame rays in metres (design 2)."""
+"""Sensor models: every measurement becomes world-frame rays in metres (docs/method.md 2)."""

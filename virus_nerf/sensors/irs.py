@@ -1,6 +1,6 @@
 """Infrared time-of-flight sensor (VL53L5CX): 8x8 zones over 45x45 deg, ranges as z-depth.
 
-Zone layout and range convention were determined from the real sample (design 4): comparing
+Zone layout and range convention were determined from the real sample (docs/method.md 4): comparing
 the 64 ranges with the aligned RGB-D depth over all dihedral re-orderings of the 8x8 block and
 both range conventions, the best agreement is
 
@@ -18,7 +18,7 @@ import numpy as np
 
 IRS_FOV_DEG = 45.0
 IRS_ZONES = 8
-IRS_MIN_VALID_M = 0.1  # readings at or below this are invalid (design 4)
+IRS_MIN_VALID_M = 0.1  # readings at or below this are invalid (docs/method.md 4)
 IRS_MAX_RANGE_M = 4.0
 
 

@@ -1,4 +1,4 @@
-"""`virus-nerf simulate`: write a simulated recording in the ETHZ format (design 5, 7)."""
+"""`virus-nerf simulate`: write a simulated recording in the ETHZ format (docs/method.md 5, 7)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Numba kernels of the simulator: exact ray casting against boxes and vertical cylinders,
 and the camera renderer (ray casting + procedural texture + Lambertian shading).
 
-Primitives are packed into flat arrays by `scene.Scene` (design 5):
+Primitives are packed into flat arrays by `scene.Scene` (docs/method.md 5):
   ptype (P,) int64       0 = box (yawed about z), 1 = vertical cylinder
   pcen (P, 3) m          centre
   phalf (P, 3) m         box half sizes (local x, y, z); cylinder (radius, radius, half height)

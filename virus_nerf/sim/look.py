@@ -1,4 +1,4 @@
-"""Pictures of a simulated room for a person: a top-down view with the drive loop (design 5)."""
+"""Pictures of a simulated room for a person: a top-down view with the drive loop (docs/method.md 5)."""
 
 from __future__ import annotations
 

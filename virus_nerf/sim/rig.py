@@ -1,4 +1,4 @@
-"""The robot's sensor rig: where the two sensor stacks sit relative to the LiDAR (design 4).
+"""The robot's sensor rig: where the two sensor stacks sit relative to the LiDAR (docs/method.md 4).
 
 The camera-to-LiDAR transforms were derived from the real sample recording
 (../shared/data/sample_dataset/office/poses): T_lidar_cam = inv(lidar_to_world) @ cam_to_world

@@ -1,4 +1,4 @@
-"""Room presets (design 5): an office (~72 m^2) and a common area (~216 m^2) from primitives.
+"""Room presets (docs/method.md 5): an office (~72 m^2) and a common area (~216 m^2) from primitives.
 
 Each room is a box shell (4 walls, floor, ceiling as slabs) with furniture placed at random
 (numpy Generator) outside a corridor around the robot's drive loop, so nothing ever blocks the

@@ -1,4 +1,4 @@
-"""Exact scenes from primitives (design 5): yawed boxes and vertical cylinders with materials.
+"""Exact scenes from primitives (docs/method.md 5): yawed boxes and vertical cylinders with materials.
 
 A `Scene` is a list of `SceneObject`s (a wall, a table, a chair ...), each made of primitives
 and one `Material` (colours, procedural pattern, acoustic smoothness, infrared reflectance).
@@ -54,7 +54,7 @@ class Material:
     """Surface appearance and sensor response.
 
     colour/colour2: RGB in [0, 1] mixed by the pattern; scale: pattern period (m);
-    smooth: acoustically smooth (USS gets no echo at grazing incidence, design 5);
+    smooth: acoustically smooth (USS gets no echo at grazing incidence, docs/method.md 5);
     ir_reflectance: in [0, 1], scales the IRS return signal; seed: texture noise seed.
     """
 
@@ -126,7 +126,7 @@ def _prim_aabb(p: Primitive) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class Scene:
-    """An exact room: objects made of primitives, cast against exactly (design 5)."""
+    """An exact room: objects made of primitives, cast against exactly (docs/method.md 5)."""
 
     objects: list[SceneObject]
     name: str = "room"

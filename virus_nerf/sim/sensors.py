@@ -1,8 +1,8 @@
-"""Sensor models of the simulator (design 5); each has its parameters in a dataclass.
+"""Sensor models of the simulator (docs/method.md 5); each has its parameters in a dataclass.
 
 All models cast exact rays into a `Scene` and add documented noise with a numpy Generator, so a
 seed fixes every reading. Distances are metres; ranges are z-depth for the camera depth and
-the IRS and radial for the USS and LiDAR (as on the real robot, design 4).
+the IRS and radial for the USS and LiDAR (as on the real robot, docs/method.md 4).
 """
 
 from __future__ import annotations
@@ -191,7 +191,7 @@ class UssModel:
     lost with probability dropout (no echo = NaN, raw 50000).
 
     Calibration (bench data ../shared/data/uss_characterisation, URM37, reference offset 0.005 m
-    subtracted, design 5): second series and the third series' 0 deg columns, pooled over
+    subtracted, docs/method.md 5): second series and the third series' 0 deg columns, pooled over
     targets, give mean errors -0.015/-0.033/-0.022/-0.023 m at 0.25/0.5/1/2 m (a linear fit:
     -0.0230 - 0.0003 d) and std 0.000/0.004/0.004/0.011 m (fit 0.0054 d); the first
     series (readings long by an unknown offset, used only relative to 0 deg) shows +0.01 to
@@ -367,7 +367,7 @@ class LidarModel:
 @dataclass
 class VoxelMap:
     """The global map as the real one is built: world points into voxels of `voxel` m, voxels
-    hit at least `min_hits` times kept, their centres returned (design 4). Fed with the exact
+    hit at least `min_hits` times kept, their centres returned (docs/method.md 4). Fed with the exact
     poses: the real map shows no registration shell beyond what its 3 mm range noise and the
     3 cm voxels explain (see LidarModel), so none is added."""
 

@@ -1,4 +1,4 @@
-"""The robot's drive (design 5): a smooth 2D loop at walking pace with low view variation.
+"""The robot's drive (docs/method.md 5): a smooth 2D loop at walking pace with low view variation.
 
 The path is a "stadium" loop: forward along the room's x axis from the origin, a left U-turn,
 a return leg on a parallel lane, a U-turn back to the start, repeated while time lasts. The

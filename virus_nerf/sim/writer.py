@@ -1,4 +1,4 @@
-"""Writers for the ETHZ layout (design 4), the exact inverse of virus_nerf.data.ethz's reader.
+"""Writers for the ETHZ layout (docs/method.md 4), the exact inverse of virus_nerf.data.ethz's reader.
 
 All writes are atomic (temporary file + rename); numbers are written with fixed formats so
 that a seed gives byte-identical files.

@@ -1,1 +1,1 @@
-"""Training: the scene model (field + grid + marcher), the loop, checkpoints and logs (design 3.6)."""
+"""Training: the scene model (field + grid + marcher), the loop, checkpoints and logs (docs/method.md 3.6)."""

@@ -1,4 +1,4 @@
-"""`virus-nerf train` and `virus-nerf evaluate` (design 7).
+"""`virus-nerf train` and `virus-nerf evaluate` (docs/method.md 7).
 
 Everything a user can get wrong is checked before any work is done and before any file is
 written: the flags, the config file, the recording (split with 'train' rows and with 'test'
@@ -366,7 +366,7 @@ def train(
     """Train a VIRUS-NeRF (or Instant-NGP) on a recording, then evaluate its 2D scans.
 
     Writes OUT/ (refused if it exists, unless --resume): config.json, run.json, train_log.csv,
-    checkpoint.pt, metrics.json (design 7), metrics_vs_time.csv and plots/. Everything is
+    checkpoint.pt, metrics.json (docs/method.md 7), metrics_vs_time.csv and plots/. Everything is
     checked before OUT is made; a training that fails before its first checkpoint removes OUT.
     --resume continues an interrupted run from its checkpoint (its data and room come from
     OUT/run.json); a finished run (budget reached, metrics.json written) is refused untouched,

@@ -52,7 +52,7 @@ class TrainConfig:
     eval_interval: float = 0.0  # seconds of training between NeRF-scan evaluations (0 = end only)
     log_every: int = 25  # steps between log lines
     checkpoint_every: float = 60.0  # seconds of training between checkpoints
-    min_opacity: float = 0.5  # scan rays with lower opacity give no point (design 3.1)
+    min_opacity: float = 0.5  # scan rays with lower opacity give no point (docs/method.md 3.1)
     # depth-supervised (IRS, RGB-D) rays train the density alone: no colour MLP, no colour loss
     density_only_depth_rays: bool = False
     field: FieldConfig = dc_field(default_factory=FieldConfig.cpu_default)

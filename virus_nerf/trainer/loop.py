@@ -1,4 +1,4 @@
-"""The training loop (design 3.6): sample rays, render, losses, Adam, grid updates, evaluation.
+"""The training loop (docs/method.md 3.6): sample rays, render, losses, Adam, grid updates, evaluation.
 
 Reproducible: one seed drives the ray sampler (numpy Generator) and the marcher jitter and
 grid updates (torch Generator); both states go into the checkpoint, so a resumed run continues
@@ -401,7 +401,7 @@ def write_eval_history(path: Path, history: list[dict]) -> None:
 
 
 def train_summary_block(config: TrainConfig, summary: TrainSummary) -> dict:
-    """The "train" block of metrics.json (design 7)."""
+    """The "train" block of metrics.json (docs/method.md 7)."""
     return {
         "steps": summary.steps,
         "seconds": round(summary.seconds, 3),

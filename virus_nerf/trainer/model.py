@@ -1,7 +1,7 @@
 """The scene model: field + occupancy grid + marcher, rendering rays end to end.
 
-`SceneModel.ranges` makes a trained model a RangeModel for the 2D scan evaluation (design 6.3):
-depth / opacity along each ray, NaN where opacity < min_opacity (design 3.1).
+`SceneModel.ranges` makes a trained model a RangeModel for the 2D scan evaluation (docs/method.md 6.3):
+depth / opacity along each ray, NaN where opacity < min_opacity (docs/method.md 3.1).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ USS_MAX_RANGE_M = 5.0  # the URM37's useful range; bounds the box when there is 
 
 
 def fit_scene_box(recording: Recording, margin: float = 0.1) -> SceneBox:
-    """Anisotropic box around the room (design 3.5, 9.2), in metres.
+    """Anisotropic box around the room (docs/method.md 3.5, 9.2), in metres.
 
     From the LiDAR map where there is one (robust 0.1/99.9 percentiles), otherwise from the
     camera positions grown by the longest sensor range.
@@ -110,7 +110,7 @@ class SceneModel:
 
     @torch.no_grad()
     def ranges(self, origins: np.ndarray, directions: np.ndarray, chunk: int = 8192) -> np.ndarray:
-        """Scan depth (N,) metres along unit rays; NaN where the model sees nothing (design 3.1)."""
+        """Scan depth (N,) metres along unit rays; NaN where the model sees nothing (docs/method.md 3.1)."""
         out = np.full(len(origins), np.nan)
         o_all = torch.as_tensor(np.asarray(origins, dtype=np.float32), device=self.device)
         d_all = torch.as_tensor(np.asarray(directions, dtype=np.float32), device=self.device)
