@@ -4,35 +4,22 @@ traceback, and no output written. All rejected before any recording is read or t
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from helpers import run_cli
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from virus_nerf.cli import main, tyro_error_line
+from virus_nerf.cli import tyro_error_line
 from virus_nerf.config_io import from_dict, load_json_config, to_dict
 from virus_nerf.errors import ConfigError, UsageError
 from virus_nerf.trainer.config import TrainConfig
 
 PREFIX = "virus-nerf: error: "
-
-
-def run_cli(argv: list[str]) -> tuple[int, str, str]:
-    """main(argv) in this process -> (exit code, stdout, stderr)."""
-    out, err = io.StringIO(), io.StringIO()
-    code = 0
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            main(argv)
-        except SystemExit as exc:
-            code = exc.code if isinstance(exc.code, int) else 1
-    return code, out.getvalue(), err.getvalue()
 
 
 def assert_one_line_error(code: int, err: str, *fragments: str) -> str:

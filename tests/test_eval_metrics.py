@@ -13,9 +13,9 @@ from virus_nerf.evaluation.metrics import (
     METRIC_KEYS,
     NNDSamples,
     Zone,
-    aggregate_runs,
     check_metrics_document,
     format_table,
+    mean_std,
     metrics_document,
     nnd_samples,
     sensor_metrics_from_json,
@@ -186,17 +186,12 @@ def test_metrics_document_schema_and_table():
     assert lines[4].split()[2] == "-"  # USS without points
 
 
-def test_aggregate_runs_mean_and_std():
-    gt = np.array([[2.0, 0.0]])
-    runs = [{"NeRF": metrics_of(np.array([[2.0 + e, 0.0]]), gt)} for e in (0.1, 0.2, 0.3)]
-    runs.append({"NeRF": metrics_of(np.zeros((0, 2)), gt)})  # a run without points: skipped
-    agg = aggregate_runs(runs)
-    assert agg.mean["NeRF"]["zone3"]["acc_mean"] == pytest.approx(0.2)
-    assert agg.std["NeRF"]["zone3"]["acc_mean"] == pytest.approx(0.1)  # sample std of .1 .2 .3
-    assert agg.n_runs["NeRF"]["zone3"]["acc_mean"] == 3
-    assert agg.mean["NeRF"]["zone1"]["acc_mean"] is None and agg.std["NeRF"]["zone1"]["acc_mean"] is None
-    # counts are never None: the run without predictions scored no coverage (n_gt 0)
-    assert agg.mean["NeRF"]["zone3"]["n_gt"] == pytest.approx(0.75)
+def test_mean_std_is_the_sample_std_over_runs():
+    # hand-computed: values .1 .2 .3 -> mean .2, sample variance ((.1)^2 + 0 + (.1)^2) / 2 = .01
+    assert mean_std([0.1, 0.2, 0.3]) == pytest.approx((0.2, 0.1))
+    assert mean_std([0.1, None, 0.3]) == pytest.approx((0.2, math.sqrt(0.02)))  # None skipped
+    assert mean_std([0.5]) == (0.5, 0.0)  # one run: no spread
+    assert mean_std([None, None]) == (None, None)
 
 
 def test_custom_zones():

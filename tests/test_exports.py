@@ -4,15 +4,13 @@ hand on analytic inputs, and a tiny trained run exported end to end."""
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
-import io
 import json
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import run_cli, tiny_train_config
 from PIL import Image
 
 from virus_nerf.exports import clouds, esdf, grid3d, maps
@@ -177,40 +175,12 @@ def test_point_clouds_round_trip_through_independent_parsers(tmp_path):
 # ------------------------------------------------------------------ a tiny trained run
 
 
-def small_config():
-    from virus_nerf.grid.ngp import NgpGridConfig
-    from virus_nerf.grid.virus import VirusGridConfig
-    from virus_nerf.trainer.config import MarchConfig, TrainConfig
-
-    base = TrainConfig(
-        max_steps=5, max_time=None, batch_size=128, image_scale=1.0, log_every=2,
-        march=MarchConfig(step_size=0.06, max_samples=32),
-        virus_grid=VirusGridConfig(warmup_steps=16, update_interval=4, rays_per_update=64),
-        ngp_grid=NgpGridConfig(warmup_steps=16, update_interval=4, max_resolution=32),
-    )
-    base.evaluation = dataclasses.replace(base.evaluation, n_rays=64)
-    return base
-
-
-def run_cli(argv) -> tuple[int, str, str]:
-    from virus_nerf.cli import main
-
-    out, err = io.StringIO(), io.StringIO()
-    code = 0
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            main([str(a) for a in argv])
-        except SystemExit as exc:
-            code = exc.code if isinstance(exc.code, int) else 1
-    return code, out.getvalue(), err.getvalue()
-
-
 @pytest.fixture(scope="module")
 def trained_run(tiny_office, tmp_path_factory) -> Path:
     from virus_nerf.config_io import to_dict
 
     root = tmp_path_factory.mktemp("export_run")
-    (root / "small.json").write_text(json.dumps(to_dict(small_config())))
+    (root / "small.json").write_text(json.dumps(to_dict(tiny_train_config())))
     code, _, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", root / "run",
                             "--config", root / "small.json", "--quiet"])
     assert code == 0, err

@@ -8,7 +8,7 @@ import torch
 
 from virus_nerf.grid.base import GridSpec, GridUpdateBatch, cell_index
 from virus_nerf.grid.sensor_model import cells_along_ray, depth_log_odds, nerf_log_odds
-from virus_nerf.grid.virus import VirusGrid, VirusGridConfig, benchmark_update
+from virus_nerf.grid.virus import VirusGrid, VirusGridConfig
 from virus_nerf.scene_box import SceneBox
 
 L_INIT = math.log(0.55 / 0.45)
@@ -281,11 +281,6 @@ def test_bad_config_and_bad_rays_are_clear_errors():
     grid = VirusGrid(CUBE, VirusGridConfig(max_resolution=4))
     with pytest.raises(ValueError, match="depth rays"):
         grid.depth_update(torch.zeros(2, 3), torch.ones(3, 3), torch.ones(2))
-
-
-def test_benchmark_runs_and_reports_positive_times():
-    t = benchmark_update(n_rays=64, repeats=1, config=VirusGridConfig(max_resolution=32, rays_per_update=64))
-    assert t.depth_ms > 0 and t.nerf_ms > 0 and t.update_ms > 0 and t.n_depth == t.n_nerf == 32
 
 
 def test_free_space_update_only_lowers_cells_up_to_the_echo():

@@ -15,6 +15,7 @@ import json
 
 import numpy as np
 import pytest
+from helpers import horizontal_test_point
 
 from virus_nerf.evaluation.evaluate import (
     EvaluationConfig,
@@ -46,20 +47,9 @@ from virus_nerf.evaluation.metrics import (
     zone_metrics,
 )
 from virus_nerf.evaluation.sensor_scans import lidar_fov_between
-from virus_nerf.evaluation.testpoints import TestPoint
 from virus_nerf.sim.scene import Box, Material, Scene, SceneObject
 
 AXES = [0, 128, 256, 384]  # +x, +y, -x, -y of 512 rays
-
-
-def make_tp(x: float, y: float, z: float = 0.0, yaw: float = 0.0, index: int = 0) -> TestPoint:
-    c, s = np.cos(yaw), np.sin(yaw)
-    rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-    cam = np.array([[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]])  # camera x, y, z axes in the world
-    pose = np.eye(4)
-    pose[:3, :3] = rz @ cam
-    pose[:3, 3] = (x, y, z)
-    return TestPoint(index1=index, index3=None, time=float(index), time3=None, pose1=pose, pose3=None)
 
 
 def box_scene() -> Scene:
@@ -80,7 +70,7 @@ def box_map() -> np.ndarray:
 
 # ------------------------------------------------------------------------------ the box room by hand
 def test_box_room_exact_map_and_paper_by_hand():
-    tp = make_tp(0.305, -0.015)
+    tp = horizontal_test_point(0.305, -0.015)
     # exact: the inner faces, 2 - 0.305, 2 + 0.015, 2 + 0.305, 2 - 0.015
     exact = exact_gt_scan(box_scene(), tp, 512)
     np.testing.assert_allclose(exact.ranges[AXES], [1.695, 2.015, 2.305, 1.985], atol=1e-9)
@@ -106,7 +96,7 @@ def test_box_room_exact_map_and_paper_by_hand():
     assert np.isnan(pp.ranges[[128, 384]]).all()
     # from x = 0.285 (column 284 = 56 + 3 * 76, a wall column) the +y ray stops at the pixel
     # centre 1.995: 1.995 + 0.015
-    pp2 = paper_gt_scan(box_map(), make_tp(0.285, -0.015), ext, slice_height=0.0, n_rays=512)
+    pp2 = paper_gt_scan(box_map(), horizontal_test_point(0.285, -0.015), ext, slice_height=0.0, n_rays=512)
     assert pp2.ranges[128] == pytest.approx(2.01, abs=1e-9)
     assert pp.lidar_deg == (-180.0, 180.0) and pp.protocol == "paper"
 
@@ -116,9 +106,9 @@ def test_paper_slice_is_around_the_mean_camera_height():
     ext = SquareExtent((0.0, 0.0), 5.11)
     cloud = box_map()
     cloud[:, 2] += 0.07  # map layers at 0.055 and 0.085
-    low = paper_gt_scan(cloud, make_tp(0.305, -0.015, z=0.0), ext, slice_height=0.0)  # band [-0.05, 0.05]
+    low = paper_gt_scan(cloud, horizontal_test_point(0.305, -0.015, z=0.0), ext, slice_height=0.0)  # band [-0.05, 0.05]
     assert np.isnan(low.ranges).all()
-    high = paper_gt_scan(cloud, make_tp(0.305, -0.015, z=0.0), ext, slice_height=0.04)  # [-0.01, 0.09]
+    high = paper_gt_scan(cloud, horizontal_test_point(0.305, -0.015, z=0.0), ext, slice_height=0.04)  # [-0.01, 0.09]
     assert high.ranges[0] == pytest.approx(1.69, abs=1e-9)
 
 
@@ -313,7 +303,7 @@ def test_gt_flag_and_config_values():
     for bad in ((), ("map", "map"), ("voxels",)):
         with pytest.raises(ValueError, match="evaluation.gt"):
             EvaluationConfig(gt=bad)
-    assert PointGroundTruth.of(gt_scan(box_map(), make_tp(0.3, 0.0))).by_protocol.keys() == {"map"}
+    assert PointGroundTruth.of(gt_scan(box_map(), horizontal_test_point(0.3, 0.0))).by_protocol.keys() == {"map"}
 
 
 def test_exact_on_a_recording_without_scene_is_a_one_line_error(sample_dir, tmp_path):

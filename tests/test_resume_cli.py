@@ -4,47 +4,18 @@ split is refused before training, and the atomic-write helpers leave no temporar
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
 import hashlib
-import io
 import json
 import os
 import shutil
 from pathlib import Path
 
 import pytest
+from helpers import run_cli, tiny_train_config
 
-from virus_nerf.cli import main
 from virus_nerf.config_io import to_dict
-from virus_nerf.grid.ngp import NgpGridConfig
-from virus_nerf.grid.virus import VirusGridConfig
-from virus_nerf.trainer.config import MarchConfig, TrainConfig
 
 PREFIX = "virus-nerf: error: "
-
-
-def small_config(**changes) -> TrainConfig:
-    base = TrainConfig(
-        max_steps=5, max_time=None, batch_size=128, image_scale=1.0, log_every=2,
-        march=MarchConfig(step_size=0.06, max_samples=32),
-        virus_grid=VirusGridConfig(warmup_steps=16, update_interval=4, rays_per_update=64),
-        ngp_grid=NgpGridConfig(warmup_steps=16, update_interval=4, max_resolution=32),
-    )
-    base.evaluation = dataclasses.replace(base.evaluation, n_rays=64)
-    return dataclasses.replace(base, **changes)
-
-
-def run_cli(argv: list[str]) -> tuple[int, str]:
-    """main(argv) in this process -> (exit code, stderr)."""
-    err = io.StringIO()
-    code = 0
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            main([str(a) for a in argv])
-        except SystemExit as exc:
-            code = exc.code if isinstance(exc.code, int) else 1
-    return code, err.getvalue()
 
 
 def one_line_error(code: int, err: str, *fragments: str) -> str:
@@ -69,8 +40,8 @@ def finished_run(tiny_office, tmp_path_factory) -> Path:
     """A 5-step run trained through the CLI (config file + flags), kept pristine for copying."""
     root = tmp_path_factory.mktemp("finished")
     cfg = root / "small.json"
-    cfg.write_text(json.dumps(to_dict(small_config())))
-    code, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", root / "run", "--config", cfg,
+    cfg.write_text(json.dumps(to_dict(tiny_train_config())))
+    code, _, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", root / "run", "--config", cfg,
                          "--quiet"])
     assert code == 0, err
     return root / "run"
@@ -88,7 +59,7 @@ def test_resume_of_a_finished_run_is_refused_and_touches_nothing(run_copy, tiny_
     before = snapshot(run_copy)
     assert {"checkpoint.pt", "metrics.json", "metrics_vs_time.csv", "plots/metrics_bars.png"} <= set(before)
     for extra in ([], ["--data", tiny_office, "--room", "office"]):
-        code, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet", *extra])
+        code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet", *extra])
         one_line_error(code, err, f"--resume {run_copy}: the run is finished (step 5", "budget max_steps 5",
                        "nothing to resume")
         assert snapshot(run_copy) == before
@@ -101,7 +72,7 @@ def test_resume_after_a_crash_before_the_metrics_only_evaluates(run_copy):
     (run_copy / "plots" / "metrics_bars.png").unlink()  # a stale, incomplete plots folder
     ckpt = snapshot(run_copy)["checkpoint.pt"]
     log = (run_copy / "train_log.csv").read_bytes()
-    code, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet"])
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet"])
     assert code == 0, err
     doc = json.loads((run_copy / "metrics.json").read_text())
     assert doc["train"]["steps"] == 5
@@ -109,14 +80,14 @@ def test_resume_after_a_crash_before_the_metrics_only_evaluates(run_copy):
     assert (run_copy / "train_log.csv").read_bytes() == log
     assert (run_copy / "plots" / "metrics_bars.png").is_file()
     assert not [p.name for p in run_copy.iterdir() if p.name.startswith(".")]  # no temporaries left
-    code, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet"])  # and now it is finished
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet"])  # and now it is finished
     one_line_error(code, err, "the run is finished")
 
 
 def test_resume_with_a_larger_budget_trains_on_and_replaces_the_results(run_copy):
     stale = run_copy / ".checkpoint.pt.abc123.tmp"  # left by a process killed while saving
     stale.write_bytes(b"half a checkpoint")
-    code, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--quiet"])
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--quiet"])
     assert code == 0, err
     assert json.loads((run_copy / "metrics.json").read_text())["train"]["steps"] == 7
     assert json.loads((run_copy / "config.json").read_text())["max_steps"] == 7
@@ -129,7 +100,7 @@ def test_resume_with_another_grid_is_refused(run_copy):
     before = snapshot(run_copy)
     (run_copy / "metrics.json").unlink()  # an unfinished run: only the grid is wrong
     before.pop("metrics.json")
-    code, err = run_cli(["train", "--out", run_copy, "--resume", "--grid", "ngp"])
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--grid", "ngp"])
     one_line_error(code, err, "grid 'ngp':", "trained with grid 'virus'", "a run keeps its grid")
     assert snapshot(run_copy) == before
 
@@ -140,14 +111,14 @@ def test_resume_with_another_network_shape_is_refused(run_copy, tmp_path):
     (tmp_path / "bigger.json").write_text(json.dumps(cfg))
     (run_copy / "metrics.json").unlink()
     before = snapshot(run_copy)
-    code, err = run_cli(["train", "--out", run_copy, "--resume", "--config", tmp_path / "bigger.json"])
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--config", tmp_path / "bigger.json"])
     one_line_error(code, err, "field.log2_table_size 17:", "was trained with field.log2_table_size 16",
                    "a run keeps its network and grid shape")
     assert snapshot(run_copy) == before
 
 
 def test_resume_with_other_data_is_refused(run_copy, tmp_path):
-    code, err = run_cli(["train", "--out", run_copy, "--resume", "--data", tmp_path, "--room", "office"])
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--data", tmp_path, "--room", "office"])
     one_line_error(code, err, f"--data {tmp_path}: the run in {run_copy} was trained on")
 
 
@@ -192,23 +163,23 @@ def test_damaged_run_folders_are_named(run_copy, tmp_path, command, damage, frag
         "evaluate": ["evaluate", "--run", run_copy],
         "export": ["export", "--run", run_copy, "--out", tmp_path / "map"],
     }[command]
-    code, err = run_cli(argv)
+    code, _, err = run_cli(argv)
     one_line_error(code, err, fragment)
     assert snapshot(run_copy) == before
     assert not (tmp_path / "map").exists()
 
 
 def test_evaluate_and_export_still_work(run_copy, tmp_path):
-    code, err = run_cli(["evaluate", "--run", run_copy, "--n-rays", "32"])
+    code, _, err = run_cli(["evaluate", "--run", run_copy, "--n-rays", "32"])
     assert code == 0, err
     assert json.loads((run_copy / "evaluation" / "metrics.json").read_text())["train"]["steps"] == 5
     assert (run_copy / "evaluation" / "metrics_plots" / "metrics_bars.png").is_file()
-    code, err = run_cli(["evaluate", "--run", run_copy])
+    code, _, err = run_cli(["evaluate", "--run", run_copy])
     one_line_error(code, err, "evaluation/metrics.json: output file already exists")
-    code, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "map", "--max-poses", "2", "--n-rays", "16"])
+    code, _, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "map", "--max-poses", "2", "--n-rays", "16"])
     assert code == 0, err
     assert (tmp_path / "map" / "map.pgm").read_bytes().startswith(b"P5")
-    code, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "map2", "--resolution", "1e-6"])
+    code, _, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "map2", "--resolution", "1e-6"])
     one_line_error(code, err, "--resolution 1e-06: the", "expected at most 100 M px")
     assert not (tmp_path / "map2").exists()
 
@@ -221,7 +192,7 @@ def test_export_makes_its_output_folder_before_computing(run_copy, tmp_path, mon
 
     monkeypatch.setattr(train_command, "load_trained", no_work)
     (tmp_path / "afile").write_text("a file where a folder should be")
-    code, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "afile" / "map"])
+    code, _, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "afile" / "map"])
     one_line_error(code, err, f"{tmp_path / 'afile' / 'map'}: cannot create this folder (a parent is not a folder)")
 
 
@@ -245,7 +216,7 @@ def recording_copy(tiny_office: Path, tmp_path: Path, relabel: dict[str, str]) -
 )
 def test_split_without_train_or_test_rows_is_refused_before_training(tiny_office, tmp_path, relabel, fragment):
     data = recording_copy(tiny_office, tmp_path, relabel)
-    code, err = run_cli(["train", "--data", data, "--room", "office", "--out", tmp_path / "run", "--max-steps", "2"])
+    code, _, err = run_cli(["train", "--data", data, "--room", "office", "--out", tmp_path / "run", "--max-steps", "2"])
     one_line_error(code, err, fragment)
     assert not (tmp_path / "run").exists()
 
@@ -257,7 +228,7 @@ def test_a_training_that_fails_at_the_start_leaves_no_run_folder(tiny_office, tm
     data = recording_copy(tiny_office, tmp_path, {})
     img = data / "office" / "measurements" / "CAM1_color_image_raw" / "img0.png"
     img.write_bytes(img.read_bytes()[:60])  # IHDR intact (size check passes), pixel data cut
-    code, err = run_cli(["train", "--data", data, "--room", "office", "--out", tmp_path / "run", "--max-steps", "2",
+    code, _, err = run_cli(["train", "--data", data, "--room", "office", "--out", tmp_path / "run", "--max-steps", "2",
                          "--quiet"])
     one_line_error(code, err, "img0.png: not a readable image")
     assert not (tmp_path / "run").exists()
@@ -275,11 +246,11 @@ def test_plots_are_written_before_metrics(tiny_office, tmp_path, monkeypatch):
 
     monkeypatch.setattr(report, "write_run_plots", broken)
     with pytest.raises(RuntimeError, match="plotting failed"):
-        run_training(tiny_office, "office", tmp_path / "run", small_config(max_steps=2), quiet=True)
+        run_training(tiny_office, "office", tmp_path / "run", tiny_train_config(max_steps=2), quiet=True)
     assert (tmp_path / "run" / "checkpoint.pt").is_file()
     assert not (tmp_path / "run" / "metrics.json").exists()
     monkeypatch.undo()
-    code, err = run_cli(["train", "--out", tmp_path / "run", "--resume", "--quiet"])
+    code, _, err = run_cli(["train", "--out", tmp_path / "run", "--resume", "--quiet"])
     assert code == 0, err
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["train"]["steps"] == 2
 
@@ -381,6 +352,6 @@ def test_experiments_refuse_to_overwrite_their_summaries(tmp_path, monkeypatch, 
     out.mkdir()
     (out / summary).write_text("the earlier result")
     before = snapshot(out)
-    code, err = run_cli([experiment, "--out", out, "--quick"])
+    code, _, err = run_cli([experiment, "--out", out, "--quick"])
     one_line_error(code, err, f"{out / summary}: output file already exists")
     assert snapshot(out) == before

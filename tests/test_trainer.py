@@ -129,24 +129,46 @@ def test_train_and_evaluate_under_several_ground_truths(tiny_office, tmp_path):
 
 
 def test_online_mode_reveals_frames_with_the_clock(tiny_office, tmp_path):
+    """A frame is available once the training clock x playback speed passes its timestamp."""
     rec = load_recording(tiny_office, "office")
-    cfg = small_config(online=True, playback_speed=1.0, max_steps=None, max_time=1.0)
+    cfg = small_config(online=True, playback_speed=2.0, max_steps=None, max_time=1.0)
     trainer = Trainer(rec, cfg, tmp_path, quiet=True)
-    first = len(trainer.available_frames())
-    assert first < len(trainer.store)
-    trainer.seconds = trainer.duration
-    assert len(trainer.available_frames()) == len(trainer.store)
-    assert trainer.max_time == pytest.approx(trainer.duration)
+    times = np.sort(trainer.store.times)
+    assert len(trainer.available_frames()) == 1  # at clock 0 only the first frame
+    for k in (1, len(times) // 2, len(times) - 1):
+        trainer.seconds = (times[k] - times[0]) / 2.0 + 1e-6  # just past frame k at playback x2
+        assert len(trainer.available_frames()) == k + 1 + int(np.sum(times[k + 1:] == times[k]))
+        trainer.seconds = (times[k] - times[0]) / 2.0 - 1e-6  # just before it
+        assert len(trainer.available_frames()) == int(np.sum(times < times[k]))
+    assert trainer.max_time == pytest.approx((times[-1] - times[0]) / 2.0)
 
 
-def test_scene_model_is_a_range_model(tiny_office, tmp_path):
+class _WallField(torch.nn.Module):
+    """A field with a known answer: empty up to the plane x = x_wall, opaque behind it."""
+
+    def __init__(self, x_wall: float):
+        super().__init__()
+        self.x_wall = x_wall
+        self.unused = torch.nn.Parameter(torch.zeros(1))  # SceneModel reads the device from it
+
+    def forward(self, positions, dirs, rgb_mask=None):
+        sigma = torch.where(positions[:, 0] >= self.x_wall, torch.tensor(1e4), torch.tensor(0.0))
+        return sigma, torch.zeros_like(positions)
+
+
+def test_scene_model_ranges_find_a_known_wall(tiny_office, tmp_path):
+    """Rays along +x hit the wall 1 m ahead within one marching step; rays along -x see nothing
+    (opacity 0 < min_opacity) and give NaN, never a point at the origin."""
     rec = load_recording(tiny_office, "office")
-    trainer = Trainer(rec, small_config(), tmp_path, quiet=True)
-    origins = np.tile(rec.stacks[1].cam_to_world[0, :3, 3], (16, 1))
-    dirs = np.tile([1.0, 0.0, 0.0], (16, 1))
+    cfg = small_config()
+    trainer = Trainer(rec, cfg, tmp_path, quiet=True)  # grid before any update: every cell occupied
+    origin = rec.stacks[1].cam_to_world[0, :3, 3]
+    trainer.model.field = _WallField(float(origin[0]) + 1.0)
+    origins = np.tile(origin, (8, 1))
+    dirs = np.array([[1.0, 0.0, 0.0]] * 4 + [[-1.0, 0.0, 0.0]] * 4)
     r = trainer.model.ranges(origins, dirs)
-    assert r.shape == (16,)
-    assert np.all(np.isnan(r) | (r > 0))
+    assert np.all(np.abs(r[:4] - 1.0) <= cfg.march.step_size)
+    assert np.all(np.isnan(r[4:]))
 
 
 def test_command_line_train_evaluate_export(tiny_office, tmp_path, capsys):

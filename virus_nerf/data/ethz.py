@@ -18,6 +18,7 @@ from typing import Literal
 import numpy as np
 
 from virus_nerf.data.csvtable import check_sorted_times, read_numeric_csv
+from virus_nerf.data.images import check_depth_header, image_size, read_depth, read_rgb
 from virus_nerf.data.pcd import read_pcd_xyz
 from virus_nerf.data.split import make_split, read_split, read_split_ratios
 from virus_nerf.data.split import write_split as write_split_file
@@ -29,7 +30,6 @@ from virus_nerf.sensors.geometry import pose_matrix
 PoseSource = Literal["optimised", "odometry"]
 POSE_COLUMNS = ("time", "x", "y", "z", "qx", "qy", "qz", "qw")
 TOF_COLUMNS = ("time",) + tuple(f"meas_{k}" for k in range(64))
-DEPTH_INVALID_MM = (0, 65535)
 # A pose quaternion must have unit norm within this tolerance: | |q| - 1 | <= 1e-3. Rounding
 # every component to 4 decimals moves |q| by at most ~1e-4, so any honest export passes (the
 # real sample is unit to 2e-9); a quaternion further off is a column mix-up or garbage, which
@@ -214,92 +214,6 @@ def read_tof(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return table["time"], irs.grid_from_measurements(metres)
 
 
-def read_rgb(path: Path, intr: Intrinsics) -> np.ndarray:
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            arr = np.asarray(im.convert("RGB"))
-    except FileNotFoundError:
-        raise DataFormatError(path, "image file not found") from None
-    except OSError as exc:
-        raise DataFormatError(path, f"not a readable image: {exc}") from exc
-    if arr.shape[:2] != (intr.height, intr.width):
-        raise DataFormatError(
-            path, f"image is {arr.shape[1]}x{arr.shape[0]}; the intrinsics expect {intr.width}x{intr.height}"
-        )
-    return arr
-
-
-def read_depth(path: Path, intr: Intrinsics) -> np.ndarray:
-    """An aligned depth map: .npy of unsigned 16-bit integers in millimetres (0 and 65535 invalid).
-
-    Other integer types are accepted if every value fits 0..65535; floating-point maps are
-    refused (a float map is usually in metres, and reading it as millimetres would shrink the
-    scene 1000 times).
-    """
-    try:
-        raw = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise DataFormatError(path, "depth file not found") from None
-    except (OSError, ValueError, EOFError) as exc:
-        raise DataFormatError(path, f"not a readable .npy depth map: {exc}") from exc
-    if not isinstance(raw, np.ndarray):
-        raise DataFormatError(path, "not a .npy array; expected a uint16 depth map in millimetres")
-    if raw.shape != (intr.height, intr.width):
-        raise DataFormatError(path, f"depth map has shape {raw.shape}; expected ({intr.height}, {intr.width})")
-    if raw.dtype.kind == "f":
-        finite = raw[np.isfinite(raw)]
-        top = float(finite.max()) if finite.size else float("nan")
-        hint = f" (values up to {top:.3g} look like metres)" if finite.size and top < 100 else ""
-        raise DataFormatError(
-            path, f"depth map is {raw.dtype}{hint}; expected uint16 millimetres (e.g. (metres * 1000).astype(np.uint16))"
-        )
-    if raw.dtype.kind not in "ui":
-        raise DataFormatError(path, f"depth map is {raw.dtype}; expected uint16 millimetres")
-    if raw.dtype != np.uint16 and raw.size and (raw.min() < 0 or raw.max() > 65535):
-        raise DataFormatError(
-            path, f"depth map ({raw.dtype}) has values {raw.min()}..{raw.max()}; expected uint16 millimetres 0..65535"
-        )
-    depth = raw.astype(np.float32) / 1000.0
-    depth[np.isin(raw, DEPTH_INVALID_MM)] = np.nan
-    return depth
-
-
-def _check_depth_header(path: Path, intr: Intrinsics) -> None:
-    """Shape and type of a depth map from its .npy header alone (no pixels are read)."""
-    try:
-        with path.open("rb") as fh:
-            version = np.lib.format.read_magic(fh)
-            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
-                np.lib.format.read_array_header_2_0
-            shape, _, dtype = read_header(fh)
-    except FileNotFoundError:
-        raise DataFormatError(path, "depth file not found") from None
-    except (OSError, ValueError, EOFError) as exc:
-        raise DataFormatError(path, f"not a readable .npy depth map: {exc}") from exc
-    if shape != (intr.height, intr.width):
-        raise DataFormatError(path, f"depth map has shape {shape}; expected ({intr.height}, {intr.width})")
-    if dtype.kind == "f":
-        raise DataFormatError(
-            path, f"depth map is {dtype} (metres?); expected uint16 millimetres (e.g. (metres * 1000).astype(np.uint16))"
-        )
-    if dtype.kind not in "ui":
-        raise DataFormatError(path, f"depth map is {dtype}; expected uint16 millimetres")
-
-
-def _image_size(path: Path) -> tuple[int, int]:
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except FileNotFoundError:
-        raise DataFormatError(path, "image file not found") from None
-    except OSError as exc:
-        raise DataFormatError(path, f"not a readable image: {exc}") from exc
-
-
 def _numbered_files(folder: Path, suffix: str) -> list[Path]:
     """img0.png, img1.png, ... in numeric order; the numbers must run 0..N-1 without gaps."""
     if not folder.is_dir():
@@ -379,13 +293,13 @@ def load_recording(
             )
         if check_images and images:
             for p in images:
-                size = _image_size(p)
+                size = image_size(p)
                 if size != (intr.width, intr.height):
                     raise DataFormatError(
                         p, f"image is {size[0]}x{size[1]}; the intrinsics of CAM{s} expect {intr.width}x{intr.height}"
                     )
             for p in depths:
-                _check_depth_header(p, intr)
+                check_depth_header(p, intr)
         loaded[s] = dict(
             intrinsics=intr, times=t_cam, cam_to_world=cam_to_world, lidar_to_world=lidar_to_world,
             uss_range=uss_range, irs_range=irs_range, image_paths=images, depth_paths=depths,

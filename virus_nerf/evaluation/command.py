@@ -4,53 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from virus_nerf.errors import OutputExistsError
-
-
-def plots_dir_for(out: Path) -> Path:
-    """Plot folder beside a metrics file: results/metrics.json -> results/metrics_plots/."""
-    out = Path(out)
-    return out.parent / f"{out.stem}_plots"
-
-
-def write_plots(result, folder: Path, max_maps: int | None = None, replace: bool = False) -> list[Path]:
-    """Plots of an EvaluationResult into a new folder (refuses an existing one unless `replace`).
-
-    One scan map per test point (at most `max_maps`, evenly spread) and the metric bars. The
-    folder is built under a temporary name and renamed when complete.
-    """
-    from virus_nerf.utils.io import new_output_dir
-
-    with new_output_dir(folder, replace=replace) as tmp:
-        names = write_plot_files(result, tmp, max_maps=max_maps)
-    return [Path(folder) / n for n in names]
-
-
-def write_plot_files(result, folder: Path, max_maps: int | None = None) -> list[str]:
-    """The scan maps and the metric bars into an existing folder; returns the file names.
-
-    The scan maps show the primary protocol's GT (the others' GT overlaid in the "all" panel);
-    metrics_bars.png is the primary protocol's, metrics_bars_gt-<protocol>.png each further one.
-    """
-    from virus_nerf.evaluation.plots import plot_metric_bars, plot_test_point
-
-    names: list[str] = []
-    points = result.points
-    if max_maps is not None and len(points) > max_maps:
-        points = [points[i] for i in np.linspace(0, len(points) - 1, max_maps).astype(int)]
-    for tps in points:
-        name = f"scan_frame{tps.test_point.index1:04d}.png"
-        plot_test_point(tps, Path(folder) / name)
-        names.append(name)
-    by_gt = result.by_gt or {result.gt: result.metrics}
-    for k, (protocol, metrics) in enumerate(by_gt.items()):
-        name = "metrics_bars.png" if k == 0 else f"metrics_bars_gt-{protocol}.png"
-        plot_metric_bars(metrics, Path(folder) / name, result.config.zones, inlier_m=result.config.inlier_m,
-                         gt=protocol)
-        names.append(name)
-    return names
+from virus_nerf.evaluation.plots import plots_dir_for, write_plots
 
 
 def sensors(

@@ -22,7 +22,7 @@ import numpy as np  # noqa: E402
 
 from virus_nerf.evaluation.metrics import DEFAULT_ZONES, SensorMetrics, Zone  # noqa: E402
 from virus_nerf.evaluation.scans import FieldOfView  # noqa: E402
-from virus_nerf.utils.io import atomic_path  # noqa: E402
+from virus_nerf.utils.io import atomic_path, new_output_dir  # noqa: E402
 
 COLOURS = {"GT": "black", "LiDAR": "tab:blue", "USS": "tab:orange", "IRS": "tab:green", "NeRF": "tab:red"}
 GT_MARKERS = {"map": "o", "exact": "x", "paper": "+"}  # the further protocols' GT in the "all" panel
@@ -181,3 +181,61 @@ def plot_metric_bars(
     fig.suptitle(title or ("NND metrics per zone" + (f"; ground truth: {gt}" if gt else "")))
     fig.tight_layout()
     return save_png(fig, path)
+
+
+def plot_metric_vs_time(curves: Mapping[str, Sequence], path: Path, key: str = "acc_mean",
+                        title: str = "NeRF zone 3 vs training time") -> Path | None:
+    """One line per run label: `key` of its EvalPoints (e.g. acc_mean, m) vs training seconds (paper Fig. 6)."""
+    curves = {k: [e for e in v if getattr(e, key) is not None] for k, v in curves.items()}
+    curves = {k: v for k, v in curves.items() if v}
+    if not curves:
+        return None
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for label, hist in curves.items():
+        ax.plot([e.seconds for e in hist], [getattr(e, key) for e in hist], marker="o", ms=3, label=label)
+    ax.set_xlabel("training time [s]")
+    ax.set_ylabel(f"zone 3 {key.replace('_', ' ')} [m]" if "mean" in key else f"zone 3 {key}")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    return save_png(fig, path)
+
+
+def plots_dir_for(out: Path) -> Path:
+    """Plot folder beside a metrics file: results/metrics.json -> results/metrics_plots/."""
+    out = Path(out)
+    return out.parent / f"{out.stem}_plots"
+
+
+def write_plots(result, folder: Path, max_maps: int | None = None, replace: bool = False) -> list[Path]:
+    """Plots of an EvaluationResult into a new folder (refuses an existing one unless `replace`).
+
+    One scan map per test point (at most `max_maps`, evenly spread) and the metric bars. The
+    folder is built under a temporary name and renamed when complete.
+    """
+    with new_output_dir(folder, replace=replace) as tmp:
+        names = write_plot_files(result, tmp, max_maps=max_maps)
+    return [Path(folder) / n for n in names]
+
+
+def write_plot_files(result, folder: Path, max_maps: int | None = None) -> list[str]:
+    """The scan maps and the metric bars into an existing folder; returns the file names.
+
+    The scan maps show the primary protocol's GT (the others' GT overlaid in the "all" panel);
+    metrics_bars.png is the primary protocol's, metrics_bars_gt-<protocol>.png each further one.
+    """
+    names: list[str] = []
+    points = result.points
+    if max_maps is not None and len(points) > max_maps:
+        points = [points[i] for i in np.linspace(0, len(points) - 1, max_maps).astype(int)]
+    for tps in points:
+        name = f"scan_frame{tps.test_point.index1:04d}.png"
+        plot_test_point(tps, Path(folder) / name)
+        names.append(name)
+    by_gt = result.by_gt or {result.gt: result.metrics}
+    for k, (protocol, metrics) in enumerate(by_gt.items()):
+        name = "metrics_bars.png" if k == 0 else f"metrics_bars_gt-{protocol}.png"
+        plot_metric_bars(metrics, Path(folder) / name, result.config.zones, inlier_m=result.config.inlier_m,
+                         gt=protocol)
+        names.append(name)
+    return names

@@ -15,7 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from virus_nerf.experiments.runs import RunSpec, load_metrics, run_all
+from virus_nerf.evaluation.metrics import RunMetrics, ZoneMetrics, mean_std, read_metrics
+from virus_nerf.experiments.runs import RunSpec, run_all
+from virus_nerf.trainer.run_folder import METRICS
 
 
 @dataclass(frozen=True)
@@ -75,23 +77,15 @@ PROFILES = {
 }
 
 
-def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
-    v = [x for x in values if x is not None]
-    if not v:
-        return None, None
-    return float(np.mean(v)), float(np.std(v))
-
-
-def run_block(doc: dict, gt: str, run: Path) -> dict:
-    """The NeRF zone-3 block of a run's metrics under protocol `gt` (a UsageError naming the run
-    when it was scored under other protocols, e.g. an earlier ablation with another --gt)."""
+def run_zone3(metrics: RunMetrics, gt: str, run: Path) -> ZoneMetrics:
+    """The NeRF zone-3 metrics of a run under protocol `gt` (a UsageError naming the run when it
+    was scored under other protocols, e.g. an earlier ablation with another --gt)."""
     from virus_nerf.errors import UsageError
-    from virus_nerf.evaluation.metrics import gt_protocols_of, sensors_block
 
     try:
-        return sensors_block(doc, gt)["NeRF"]["zone3"]
+        return metrics.sensors(gt)["NeRF"].zones["zone3"]
     except KeyError:
-        raise UsageError(f"--gt {gt}: {run / 'metrics.json'} holds ground truth {gt_protocols_of(doc)} only; "
+        raise UsageError(f"--gt {gt}: {run / METRICS} holds ground truth {list(metrics.by_gt)} only; "
                          f"evaluate it with `virus-nerf evaluate --run {run} --gt {gt}` or use a new --out") from None
 
 
@@ -102,14 +96,14 @@ def aggregate(out: Path, scenes: tuple[str, ...], seeds: int, gt: str = "map") -
     for row in ROWS:
         for scene in scenes:
             runs = [out / "runs" / scene / f"row{row.number}_seed{s}" for s in range(seeds)]
-            pairs = [(r, load_metrics(r)) for r in runs]
-            blocks = [run_block(d, gt, r) for r, d in pairs if d is not None]
-            docs = [d for _, d in pairs if d is not None]
+            done = [(r, read_metrics(r / METRICS)) for r in runs if (r / METRICS).is_file()]
+            blocks = [run_zone3(m, gt, r) for r, m in done]
+            docs = [m for _, m in done]
             rec: dict = {"row": row.number, "label": row.label, "scene": scene, "gt": gt, "runs": len(docs)}
             for key in KEYS:
-                vals = [b[key] for b in blocks]
-                rec[key], rec[key + "_std"] = _mean_std(vals)
-            rec["steps_per_s"], rec["steps_per_s_std"] = _mean_std([d["train"]["steps_per_s"] for d in docs])
+                vals = [getattr(b, key) for b in blocks]
+                rec[key], rec[key + "_std"] = mean_std(vals)
+            rec["steps_per_s"], rec["steps_per_s_std"] = mean_std([m.train.get("steps_per_s") for m in docs])
             for k, v in zip(KEYS, PAPER[(row.number, scene)], strict=True):
                 rec["paper_" + k] = v
             records.append(rec)

@@ -32,6 +32,7 @@ def demo(
     """
     from virus_nerf.errors import OutputExistsError, require_int, require_number
     from virus_nerf.evaluation.evaluate import parse_gt_flag
+    from virus_nerf.evaluation.metrics import RunMetrics
     from virus_nerf.experiments.report import metrics_markdown_by_gt
     from virus_nerf.sim.command import simulate
     from virus_nerf.trainer.command import run_training
@@ -75,7 +76,7 @@ def demo(
         "Accuracy: distance from each scan point to the nearest ground-truth point; coverage: from each",
         "ground-truth point (inside the sensor's field of view) to the nearest scan point. Inliers: < 0.1 m.",
         "",
-        metrics_markdown_by_gt(doc),
+        metrics_markdown_by_gt(RunMetrics.from_document(doc)),
         "",
         f"## Metrics per sensor and zone (paper Fig. 3; ground truth: {protocols[0]})",
         "",

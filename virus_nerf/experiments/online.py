@@ -13,7 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from virus_nerf.evaluation.metrics import mean_std
 from virus_nerf.experiments.runs import RunSpec, run_all
+from virus_nerf.trainer.run_folder import METRICS_VS_TIME, EvalPoint, read_eval_history
 
 
 def refuse_existing(paths: list[Path]) -> None:
@@ -25,30 +27,23 @@ def refuse_existing(paths: list[Path]) -> None:
             raise OutputExistsError(p)
 
 
-def read_history(run: Path) -> list[dict]:
-    path = run / "metrics_vs_time.csv"
-    if not path.is_file():
-        return []
-    lines = path.read_text().strip().splitlines()
-    keys = lines[0].split(",")
-    return [{k: (float(v) if v else None) for k, v in zip(keys, line.split(","), strict=True)} for line in lines[1:]]
-
-
-def band(histories: list[list[dict]], key: str, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and std over runs of `key`, each run interpolated onto the time grid (NaN outside)."""
+def band(histories: list[list[EvalPoint]], key: str, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and std over runs of `key`, each run interpolated onto the time grid (NaN outside);
+    per time, the same statistics as `metrics.mean_std` (sample std, 0 where one run covers it)."""
     rows = []
     for h in histories:
-        h = [e for e in h if e.get(key) is not None]
+        h = [e for e in h if getattr(e, key) is not None]
         if len(h) < 1:
             continue
-        t = np.array([e["seconds"] for e in h])
-        v = np.array([e[key] for e in h])
+        t = np.array([e.seconds for e in h])
+        v = np.array([getattr(e, key) for e in h])
         rows.append(np.where((grid >= t[0]) & (grid <= t[-1]), np.interp(grid, t, v), np.nan))
     if not rows:
         return np.full_like(grid, np.nan), np.full_like(grid, np.nan)
-    a = np.array(rows)
-    with np.errstate(invalid="ignore"):
-        return np.nanmean(a, axis=0), np.nanstd(a, axis=0)
+    stats = [mean_std(None if np.isnan(x) else float(x) for x in column) for column in np.array(rows).T]
+    mean = np.array([np.nan if m is None else m for m, _ in stats])
+    std = np.array([np.nan if s is None else s for _, s in stats])
+    return mean, std
 
 
 def online(
@@ -123,13 +118,13 @@ def online(
     summary = {}
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
     for mode, colour in (("offline", "tab:blue"), ("online", "tab:orange")):
-        hist = [read_history(out / "runs" / f"{mode}_seed{s}") for s in range(n_seeds)]
+        hist = [read_eval_history(out / "runs" / f"{mode}_seed{s}" / METRICS_VS_TIME) for s in range(n_seeds)]
         mean, std = band(hist, "acc_mean", grid)
         ax.plot(grid, mean, color=colour, label=mode)
         ax.fill_between(grid, mean - std, mean + std, color=colour, alpha=0.25)
-        finals = [h[-1]["acc_mean"] for h in hist if h and h[-1].get("acc_mean") is not None]
-        summary[mode] = {"final_acc_mean": float(np.mean(finals)) if finals else None,
-                         "final_acc_std": float(np.std(finals)) if finals else None, "runs": len(finals)}
+        finals = [h[-1].acc_mean for h in hist if h and h[-1].acc_mean is not None]
+        final_mean, final_std = mean_std(finals)
+        summary[mode] = {"final_acc_mean": final_mean, "final_acc_std": final_std, "runs": len(finals)}
     ax.set_xlabel("training time [s]")
     ax.set_ylabel("NeRF zone 3 accuracy mean [m]")
     ax.set_title(f"offline vs online (playback x{playback_speed:g}), mean ± std over {n_seeds} seed(s); "

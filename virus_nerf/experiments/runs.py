@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -67,8 +66,3 @@ def run_all(specs: list[RunSpec], workers: int = 2, threads_per_worker: int | No
             if status != "ok":
                 failed.append(spec)
     return failed
-
-
-def load_metrics(out: Path) -> dict | None:
-    path = out / "metrics.json"
-    return json.loads(path.read_text()) if path.is_file() else None

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from virus_nerf.field.hash_encoding import HashGridLayout, prepare_coords
+from virus_nerf.field.hash_layout import HashGridLayout, prepare_coords
 
 _P1 = np.int64(2654435761)
 _P2 = np.int64(805459861)

@@ -41,6 +41,7 @@ import numba
 import numpy as np
 
 from virus_nerf.grid.base import GridSpec, cell_index_scalar
+from virus_nerf.utils.slab import slab_clip
 
 _SQRT_HALF = 1.0 / math.sqrt(2.0)
 
@@ -107,24 +108,10 @@ def traverse_ray(ox, oy, oz, dx, dy, dz, t_start, t_end, lo, size, res, cells, s
     """
     o = (ox, oy, oz)
     dvec = (dx, dy, dz)
-    # clip to the box (slab method)
-    t0 = t_start
-    t1 = t_end
+    hi = np.empty(3)
     for ax in range(3):
-        lo_a = lo[ax]
-        hi_a = lo[ax] + size[ax]
-        if abs(dvec[ax]) < 1e-15:
-            if o[ax] < lo_a or o[ax] > hi_a:
-                return 0
-        else:
-            ta = (lo_a - o[ax]) / dvec[ax]
-            tb = (hi_a - o[ax]) / dvec[ax]
-            if ta > tb:
-                ta, tb = tb, ta
-            if ta > t0:
-                t0 = ta
-            if tb < t1:
-                t1 = tb
+        hi[ax] = lo[ax] + size[ax]
+    t0, t1 = slab_clip(ox, oy, oz, dx, dy, dz, lo, hi, t_start, t_end, 1e-15)
     if not t1 > t0:
         return 0
     # DDA state per axis: next integer boundary k (cell coordinates) and its t

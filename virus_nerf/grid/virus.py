@@ -18,10 +18,7 @@ cell with evidence keeps it (the offset is small, 0.24 in log-odds).
 
 from __future__ import annotations
 
-import math
-import time
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import torch
@@ -40,100 +37,8 @@ from virus_nerf.grid.sensor_model import (
     points_to_cells,
     spec_arrays,
 )
+from virus_nerf.grid.virus_config import VirusGridConfig
 from virus_nerf.scene_box import SceneBox
-
-
-def _logit(p: float) -> float:
-    return math.log(p / (1.0 - p))
-
-
-@dataclass(frozen=True)
-class VirusGridConfig:
-    """VIRUS grid parameters; every length in metres, rates per metre, densities in 1/m."""
-
-    max_resolution: int = 128  # cells along the longest box axis (GridSpec.from_box)
-    logodds_min: float = -4.0  # clamp (p ~ 0.018)
-    logodds_max: float = 4.0  # clamp (p ~ 0.982)
-    init_probability: float = 0.55  # slightly above 0.5: everything is marched at first
-    prior_probability: float = 0.49  # where unsupported cells end after the warm-up (empty)
-    warmup_steps: int = 128  # training steps (not updates) of the decay init -> prior (~30 s on 2 CPU cores)
-    update_interval: int = 16  # training steps between grid updates (the trainer calls update)
-    rays_per_update: int = 1024  # rays per update, both kinds together (paper: ~1k)
-    depth_share: float = 0.5  # share of rays_per_update for the Depth-Update (rest: NeRF)
-    # Start-up: before step 0, a Depth-Update over every training IRS frame ("sensors"), so free
-    # space and surfaces the IRS saw are known from the start; "none" = the paper's plain warm-up.
-    init: Literal["sensors", "none"] = "sensors"
-    init_zone_samples: int = 3  # rays per IRS zone and axis in that pass (3 -> 9 rays per zone)
-    init_uss_free: bool = False  # also free-space evidence in front of every USS echo (its cone)
-    # NeRF-Update densities: "forward" (default, the paper's speed-up) reuses the densities of
-    # the training forward pass: no extra network pass, and only cells the marcher sampled get
-    # evidence, so cells nothing renders through are not raised by haze (office 60 s: 0.197 /
-    # 0.254 m at 11.1 steps/s against 0.217 / 0.258 at 9.2; common area 180 s: 0.635 / 0.964
-    # against 0.679 / 1.075; README, time to map). "resample" draws nerf_points_per_ray points
-    # along rays of the batch and evaluates the density MLP there.
-    nerf_update_source: Literal["resample", "forward"] = "forward"
-    # Depth-Update (IRS, MURIEL model; sensor_model docstring)
-    std_per_m: float = 0.03  # range noise grows 3 cm per metre ...
-    std_floor: float = 0.02  # ... on top of 2 cm (pose error, zone width)
-    false_rate: float = 0.3  # lambda: false detections per metre (docs/method.md 3.4)
-    hit_probability: float = 0.4  # p_hit: an occupied cell crossed fully stops the beam (0.7 punched holes: a zone-median range is not every pixel ray's range)
-    stop_length: float = 0.02  # metres of beam inside a cell for p_det to reach 63 % of p_hit
-    max_increment: float = 2.0  # |log-odds change| per cell per measurement
-    # NeRF-Update (eq. 9)
-    zeta: float = 0.25  # slope: a density ratio of 1000 moves a cell by 1.7
-    nerf_points_per_ray: int = 64  # points drawn uniformly in [0, nerf_far] per ray
-    pos_noise_per_m: float = 0.05  # std of the point jitter per metre along the ray
-    threshold_step: float = 0.01  # sigma_T_max: density at which a step of this many metres ...
-    threshold_alpha: float = 0.01  # ... has this alpha (the Instant-NGP convention, docs/method.md 3.3)
-    sigma_floor: float = 1e-6  # 1/m, keeps ln(sigma) finite
-    # sigma_T: "mean" = min(sigma_T_max, mean density of the update's points) (paper eq. 9);
-    # "fixed" = sigma_T_max. Where most of the space is empty the mean falls far below
-    # sigma_T_max and any cell denser than average is kept occupied (haze becomes occupied).
-    threshold_mode: Literal["mean", "fixed"] = "mean"
-
-    def __post_init__(self) -> None:
-        checks = {
-            "max_resolution": self.max_resolution >= 1,
-            "logodds_min/logodds_max": self.logodds_min < 0.0 < self.logodds_max,
-            "init_probability": 0.5 < self.init_probability < 1.0,
-            "prior_probability": 0.0 < self.prior_probability < 0.5,
-            "warmup_steps": self.warmup_steps >= 1,
-            "update_interval": self.update_interval >= 1,
-            "rays_per_update": self.rays_per_update >= 0,
-            "depth_share": 0.0 <= self.depth_share <= 1.0,
-            "init": self.init in ("sensors", "none"),
-            "init_zone_samples": self.init_zone_samples >= 1,
-            "nerf_update_source": self.nerf_update_source in ("resample", "forward"),
-            "std_per_m": self.std_per_m >= 0.0,
-            "std_floor": self.std_floor > 0.0,
-            "false_rate": self.false_rate > 0.0,
-            "hit_probability": 0.0 < self.hit_probability < 1.0,
-            "stop_length": self.stop_length > 0.0,
-            "max_increment": self.max_increment > 0.0,
-            "zeta": self.zeta > 0.0,
-            "nerf_points_per_ray": self.nerf_points_per_ray >= 1,
-            "pos_noise_per_m": self.pos_noise_per_m >= 0.0,
-            "threshold_step": self.threshold_step > 0.0,
-            "threshold_alpha": 0.0 < self.threshold_alpha < 1.0,
-            "sigma_floor": self.sigma_floor > 0.0,
-            "threshold_mode": self.threshold_mode in ("mean", "fixed"),
-        }
-        bad = [name for name, ok in checks.items() if not ok]
-        if bad:
-            raise ValueError(f"VirusGridConfig: invalid value for {', '.join(bad)}: {self}")
-
-    @property
-    def sigma_threshold_max(self) -> float:
-        """sigma_T_max (1/m): -ln(1 - alpha) / step, 1.005 /m by default."""
-        return -math.log(1.0 - self.threshold_alpha) / self.threshold_step
-
-    @property
-    def logodds_init(self) -> float:
-        return _logit(self.init_probability)
-
-    @property
-    def logodds_prior(self) -> float:
-        return _logit(self.prior_probability)
 
 
 @dataclass(frozen=True)
@@ -426,73 +331,3 @@ def _check_rays(origins, directions, ranges, what: str) -> tuple[np.ndarray, np.
         raise ValueError(f"{what} rays: directions contain a zero vector")
     d = d / norm.clamp_min(1e-300)
     return o.contiguous().numpy(), d.contiguous().numpy(), m.contiguous().numpy()
-
-
-# --------------------------------------------------------------- benchmark
-@dataclass(frozen=True)
-class UpdateTiming:
-    """Milliseconds per call (median over repeats) of the grid's parts, density cost excluded-ish."""
-
-    depth_ms: float  # Depth-Update of n_depth rays
-    nerf_ms: float  # NeRF-Update of n_nerf rays with an analytic density (no network)
-    update_ms: float  # a whole update() call, warm-up decay included
-    n_depth: int
-    n_nerf: int
-    resolution: tuple[int, int, int]
-
-
-def benchmark_update(
-    n_rays: int = 1024, repeats: int = 20, seed: int = 0, config: VirusGridConfig | None = None
-) -> UpdateTiming:
-    """Time one update in a 9 x 8 x 2.6 m room at the configured resolution (128 by default).
-
-    IRS-like rays from 0.4-1.2 m height with ranges 0.3-4 m; NeRF rays with far = 6 m and a
-    cheap analytic density (walls dense, inside empty), so the number measures the grid itself.
-    """
-    cfg = config or VirusGridConfig(rays_per_update=n_rays)
-    box = SceneBox((0.0, 0.0, 0.0), (9.0, 8.0, 2.6))
-    g = torch.Generator().manual_seed(seed)
-    k = n_rays
-
-    def rays(n: int) -> tuple[torch.Tensor, torch.Tensor]:
-        o = torch.rand(n, 3, generator=g) * torch.tensor([7.0, 6.0, 0.8]) + torch.tensor([1.0, 1.0, 0.4])
-        d = torch.randn(n, 3, generator=g)
-        d[:, 2] *= 0.3
-        return o, d / d.norm(dim=-1, keepdim=True)
-
-    do, dd = rays(k)
-    no, nd = rays(k)
-    batch = GridUpdateBatch(
-        depth_origins=do, depth_directions=dd, depth_ranges=0.3 + 3.7 * torch.rand(k, generator=g),
-        nerf_origins=no, nerf_directions=nd, nerf_far=torch.full((k,), 6.0),
-    )
-
-    def density(p: torch.Tensor) -> torch.Tensor:  # walls 0.2 m thick are dense
-        lo = torch.tensor([0.2, 0.2, 0.2])
-        hi = torch.tensor([8.8, 7.8, 2.4])
-        wall = ((p < lo) | (p > hi)).any(dim=-1)
-        return torch.where(wall, torch.tensor(500.0), torch.tensor(0.05))
-
-    grid = VirusGrid(box, cfg)
-    n_depth = min(k, round(cfg.depth_share * cfg.rays_per_update))
-    n_nerf = min(k, cfg.rays_per_update - n_depth)
-    grid.depth_update(do[:n_depth], dd[:n_depth], batch.depth_ranges[:n_depth])  # compile/warm
-    grid.update(0, density, batch, g)
-
-    def timed(fn) -> float:
-        ts = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn()
-            ts.append(time.perf_counter() - t0)
-        return 1e3 * float(np.median(ts))
-
-    depth_ms = timed(lambda: grid.depth_update(do[:n_depth], dd[:n_depth], batch.depth_ranges[:n_depth]))
-    nerf_ms = timed(lambda: grid.nerf_update(density, no[:n_nerf], nd[:n_nerf], batch.nerf_far[:n_nerf], g))
-    steps = iter(range(1, 10**9))
-    update_ms = timed(lambda: grid.update(next(steps) * cfg.update_interval, density, batch, g))
-    return UpdateTiming(depth_ms, nerf_ms, update_ms, n_depth, n_nerf, grid.spec.resolution)
-
-
-if __name__ == "__main__":  # python -m virus_nerf.grid.virus
-    print(benchmark_update())

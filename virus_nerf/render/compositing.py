@@ -32,8 +32,8 @@ import numpy as np
 import torch
 from numba import prange
 
-from virus_nerf.render.marching import Backend, resolve_backend
 from virus_nerf.render.samples import PackedSamples
+from virus_nerf.utils.backend import Backend, resolve_backend
 
 
 @dataclass

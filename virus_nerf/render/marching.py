@@ -24,7 +24,6 @@ measured to cost more than the lookups it saves, so it is not done there.)
 from __future__ import annotations
 
 import math
-from typing import Literal
 
 import numba
 import numpy as np
@@ -33,25 +32,10 @@ from numba import prange
 
 from virus_nerf.grid.base import GridSpec, cell_index, cell_index_scalar
 from virus_nerf.render.samples import PackedSamples
-
-Backend = Literal["auto", "numba", "torch"]
+from virus_nerf.utils.backend import Backend, resolve_backend
 
 _SKIP_MARGIN = 1e-5  # cells: a step is skipped only if its midpoint is this far inside the cell
 _TORCH_CHUNK = 1 << 21  # candidate steps per torch chunk (memory: ~100 MB of float64 points)
-
-
-def resolve_backend(backend: Backend, *tensors: torch.Tensor) -> Literal["numba", "torch"]:
-    """`auto` -> numba when every tensor is on the CPU (the numba kernels are CPU-only)."""
-    if backend not in ("auto", "numba", "torch"):
-        raise ValueError(f"backend must be 'auto', 'numba' or 'torch', got {backend!r}")
-    on_cpu = all(t.device.type == "cpu" for t in tensors)
-    if backend == "numba" and not on_cpu:
-        raise ValueError(
-            "the numba backend needs CPU tensors; use backend='torch' on other devices"
-        )
-    if backend == "auto":
-        return "numba" if on_cpu else "torch"
-    return backend
 
 
 def ray_box_interval(

@@ -21,6 +21,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from virus_nerf.utils.slab import slab_clip
+
 EPS = 1e-9
 T_MIN = 1e-6  # hits closer than this (m) are ignored
 
@@ -29,28 +31,9 @@ PATTERN_CODES = {"plain": 0, "stripes": 1, "checker": 2, "noise": 3, "wood": 4}
 
 @njit(cache=True, inline="always")
 def _aabb_hit(ox, oy, oz, dx, dy, dz, lo, hi, tmax):
-    """Slab test of a ray against a world AABB within (0, tmax)."""
-    t0 = 0.0
-    t1 = tmax
-    for a in range(3):
-        o = ox if a == 0 else (oy if a == 1 else oz)
-        d = dx if a == 0 else (dy if a == 1 else dz)
-        if abs(d) < EPS:
-            if o < lo[a] or o > hi[a]:
-                return False
-        else:
-            inv = 1.0 / d
-            ta = (lo[a] - o) * inv
-            tb = (hi[a] - o) * inv
-            if ta > tb:
-                ta, tb = tb, ta
-            if ta > t0:
-                t0 = ta
-            if tb < t1:
-                t1 = tb
-            if t0 > t1:
-                return False
-    return True
+    """Does the ray hit the world AABB [lo, hi] within (0, tmax)? (the shared slab test)"""
+    t0, t1 = slab_clip(ox, oy, oz, dx, dy, dz, lo, hi, 0.0, tmax, EPS)
+    return not t0 > t1
 
 
 @njit(cache=True)

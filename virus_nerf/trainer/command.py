@@ -16,19 +16,19 @@ from pathlib import Path
 from typing import Literal
 
 from virus_nerf.errors import DataFormatError, UsageError, one_line, require_int, require_number
+from virus_nerf.trainer.config import check_device
+from virus_nerf.trainer.run_folder import (
+    CHECKPOINT,
+    CONFIG,
+    METRICS,
+    METRICS_VS_TIME,
+    RunInfo,
+    open_run,
+    read_checkpoint_header,
+)
 from virus_nerf.utils.io import write_json_atomic
 
 SENSORS = ("camera", "uss", "irs", "rgbd")
-# Checkpoint entries the trainer reads back (Trainer.load_checkpoint).
-CHECKPOINT_KEYS = ("field", "optimizer", "grid", "step", "seconds", "samples", "numpy_rng", "torch_generator")
-
-
-@dataclasses.dataclass
-class RunInfo:
-    """Where a run's data came from (run.json), so `evaluate --run` can find it again."""
-
-    data: str
-    room: str
 
 
 def _check_train_flags(
@@ -153,102 +153,21 @@ def check_recording_for_training(recording, cfg, eval_recording=None) -> None:
             )
 
 
-def check_device(cfg) -> None:
-    """A config asking for CUDA where there is none is refused up front (not a torch traceback)."""
-    if not cfg.device.startswith("cuda"):
-        return
-    import torch
-
-    if not torch.cuda.is_available():
-        raise UsageError(f"device {cfg.device!r}: no CUDA GPU is available here; use 'auto' or 'cpu'")
-    index = cfg.device.partition(":")[2]
-    if index and (not index.isdigit() or int(index) >= torch.cuda.device_count()):
-        raise UsageError(f"device {cfg.device!r}: expected cuda:<index> with index < {torch.cuda.device_count()}")
-
-
-def open_run(run: Path, flag: str):
-    """A finished or interrupted run folder -> (TrainConfig, RunInfo); every problem named."""
-    from virus_nerf.config_io import load_json_config
-    from virus_nerf.trainer.config import TrainConfig
-
-    run = Path(run)
-    if not run.exists():
-        raise UsageError(f"{flag} {run}: no such run folder; expected a folder written by `virus-nerf train`")
-    if not run.is_dir():
-        raise UsageError(f"{flag} {run}: is a file; expected a run folder written by `virus-nerf train`")
-    for name in ("config.json", "run.json"):
-        if not (run / name).is_file():
-            raise DataFormatError(run / name, f"missing; {flag} expects a run folder written by `virus-nerf train`")
-    cfg = load_json_config(TrainConfig, run / "config.json")
-    path = run / "run.json"
-    try:
-        info = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataFormatError(path, f"not valid JSON: {one_line(exc)}") from None
-    if not isinstance(info, dict):
-        raise DataFormatError(path, 'expected a JSON object {"data": ..., "room": ...}')
-    for key in ("data", "room"):
-        if not isinstance(info.get(key), str) or not info[key]:
-            raise DataFormatError(path, "expected a non-empty string (where the run's recording is)", field=key)
-    return cfg, RunInfo(data=info["data"], room=info["room"])
-
-
-def read_checkpoint_header(path: Path, cfg) -> dict:
-    """Read checkpoint.pt on the CPU and check it fits `cfg`; returns its step/seconds/config.
-
-    A missing, truncated or foreign file is a DataFormatError naming it; a checkpoint of another
-    grid or field than `cfg` asks for (e.g. `--resume --grid ngp` on a VIRUS run) a UsageError.
-    """
-    import torch
-
-    from virus_nerf.config_io import to_dict
-
-    path = Path(path)
-    if not path.is_file():
-        raise DataFormatError(path, "missing: the run has no checkpoint (it stopped before its first one); "
-                                    "start a new run")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # truncated zip, pickle garbage, not a torch file: torch raises many types
-        raise DataFormatError(path, f"not a readable checkpoint ({type(exc).__name__}: {one_line(exc, 160)})") from None
-    if not isinstance(state, dict):
-        raise DataFormatError(path, f"not a virus-nerf checkpoint (holds a {type(state).__name__}, expected a dict)")
-    missing = [k for k in CHECKPOINT_KEYS if k not in state]
-    if missing:
-        raise DataFormatError(path, f"not a complete virus-nerf checkpoint: lacks {missing}")
-    saved = state.get("config")
-    if isinstance(saved, dict):
-        now = to_dict(cfg)
-        if saved.get("grid") != now["grid"]:
-            raise UsageError(f"grid {now['grid']!r}: {path} holds a run trained with grid {saved.get('grid')!r}; "
-                             "a run keeps its grid (omit --grid, or start a new run)")
-        def section(doc: dict, name: str) -> dict:
-            return doc[name] if isinstance(doc.get(name), dict) else {}
-
-        grid_key = f"{now['grid']}_grid"
-        # the shapes of the network and the grid; the backend and other knobs may change on resume
-        shape_keys = [("field", k) for k in section(saved, "field") if k not in ("backend", "density_clamp")]
-        shape_keys.append((grid_key, "max_resolution"))
-        for sec, name in shape_keys:  # keys both versions know (a newer version may add some)
-            old, new = section(saved, sec).get(name), section(now, sec).get(name)
-            if old is not None and new is not None and old != new:
-                key = f"{sec}.{name}"
-                raise UsageError(f"{key} {one_line(new, 60)}: {path} was trained with {key} {one_line(old, 60)}; "
-                                 "a run keeps its network and grid shape")
-    return {"step": int(state["step"]), "seconds": float(state["seconds"]), "config": saved}
-
-
 def load_trained(run: Path, flag: str, *, poses: str | None = None, quiet: bool = True):
-    """(Trainer with the run's checkpoint loaded, TrainConfig, RunInfo) for `evaluate` and `export`."""
+    """(Trainer with the run's checkpoint loaded, TrainConfig, RunInfo) for `evaluate` and `export`.
+
+    poses: "optimised" (default: the true frame, in which the map is judged) or "odometry"
+    (the frame an odometry-trained model was trained in, e.g. to render its own views).
+    """
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.trainer.loop import Trainer
 
     cfg, info = open_run(run, flag)
     check_device(cfg)
-    read_checkpoint_header(Path(run) / "checkpoint.pt", cfg)
+    read_checkpoint_header(Path(run) / CHECKPOINT, cfg)
     recording = load_recording(info.data, info.room, poses=poses or "optimised")
     trainer = Trainer(recording, cfg, run, quiet=quiet)
-    trainer.load_checkpoint(Path(run) / "checkpoint.pt")
+    trainer.load_checkpoint(Path(run) / CHECKPOINT)
     return trainer, cfg, info
 
 
@@ -266,8 +185,9 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     from virus_nerf.config_io import to_dict
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.errors import OutputExistsError
-    from virus_nerf.trainer.loop import Trainer, TrainSummary, write_run_metrics
+    from virus_nerf.trainer.loop import Trainer, TrainSummary
     from virus_nerf.trainer.report import write_run_plots
+    from virus_nerf.trainer.run_folder import write_run_metrics
     from virus_nerf.utils.io import new_output_dir, remove_stale_temps
     from virus_nerf.utils.seeding import seed_everything
 
@@ -281,31 +201,31 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     check_recording_for_training(recording, cfg, eval_recording)
 
     if resume:
-        header = read_checkpoint_header(out / "checkpoint.pt", cfg)
+        header = read_checkpoint_header(out / CHECKPOINT, cfg)
         trainer = Trainer(recording, cfg, out, quiet=quiet)
-        trainer.load_checkpoint(out / "checkpoint.pt")
+        trainer.load_checkpoint(out / CHECKPOINT)
         finished = trainer._done()
-        if finished and (out / "metrics.json").is_file():
+        if finished and (out / METRICS).is_file():
             raise UsageError(
                 f"--resume {out}: the run is finished (step {header['step']}, {header['seconds']:.1f} s of training "
                 f"reached the budget {_budget(cfg)}) and has its metrics.json; nothing to resume "
                 "(give a larger --max-steps or --max-time to train on)"
             )
-        for name in ("checkpoint.pt", "metrics.json", "metrics_vs_time.csv", "config.json"):
+        for name in (CHECKPOINT, METRICS, METRICS_VS_TIME, CONFIG):
             remove_stale_temps(out / name)  # left by a process killed while writing
         if to_dict(cfg) != _saved_config(out):
-            write_json_atomic(out / "config.json", to_dict(cfg))  # the budget given for this resume
+            write_json_atomic(out / CONFIG, to_dict(cfg))  # the budget given for this resume
         # budget reached before the metrics were written: evaluate only (no step, no file rewritten)
         summary = TrainSummary(trainer.step, trainer.seconds, trainer.samples) if finished else trainer.fit()
     else:
         with new_output_dir(out) as tmp:  # OUT appears with both files or not at all
-            write_json_atomic(tmp / "config.json", to_dict(cfg))
-            write_json_atomic(tmp / "run.json", dataclasses.asdict(RunInfo(data=str(Path(data).resolve()), room=room)))
+            write_json_atomic(tmp / CONFIG, to_dict(cfg))
+            RunInfo(data=str(Path(data).resolve()), room=room).write(tmp)
         try:
             trainer = Trainer(recording, cfg, out, quiet=quiet)
             summary = trainer.fit()
         except BaseException:
-            if not (out / "checkpoint.pt").is_file():
+            if not (out / CHECKPOINT).is_file():
                 shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
             raise
     if cfg.odometry_poses:
@@ -338,7 +258,7 @@ def _budget(cfg) -> str:
 
 def _saved_config(out: Path):
     try:
-        return json.loads((out / "config.json").read_text())
+        return json.loads((out / CONFIG).read_text())
     except (OSError, ValueError):
         return None
 
@@ -429,9 +349,10 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
             comma-separated (default: the run's setting, map); the first is the document's own.
     """
     from virus_nerf.errors import OutputExistsError
-    from virus_nerf.evaluation.command import plots_dir_for, write_plots
     from virus_nerf.evaluation.evaluate import check_ground_truth_inputs, parse_gt_flag
-    from virus_nerf.trainer.loop import TrainSummary, train_summary_block
+    from virus_nerf.evaluation.plots import plots_dir_for, write_plots
+    from virus_nerf.trainer.loop import TrainSummary
+    from virus_nerf.trainer.run_folder import train_summary_block
 
     if n_rays is not None:
         require_int("--n-rays", n_rays, 1, 1_000_000)

@@ -183,3 +183,18 @@ class TrainConfig:
             ok = all(isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) for v in (z.lo, z.hi))
             if not (ok and 0.0 <= z.lo < z.hi):
                 raise bad(f"evaluation.zones[{i}]", f"[{z.lo}, {z.hi}]", "0 <= lo < hi metres")
+
+
+def check_device(cfg) -> None:
+    """A config asking for CUDA where there is none is refused up front (not a torch traceback)."""
+    from virus_nerf.errors import UsageError
+
+    if not cfg.device.startswith("cuda"):
+        return
+    import torch
+
+    if not torch.cuda.is_available():
+        raise UsageError(f"device {cfg.device!r}: no CUDA GPU is available here; use 'auto' or 'cpu'")
+    index = cfg.device.partition(":")[2]
+    if index and (not index.isdigit() or int(index) >= torch.cuda.device_count()):
+        raise UsageError(f"device {cfg.device!r}: expected cuda:<index> with index < {torch.cuda.device_count()}")

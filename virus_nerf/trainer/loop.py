@@ -33,6 +33,12 @@ from virus_nerf.sampler.sensor_rays import irs_zone_rays, uss_cone_rays
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.model import SceneModel, fit_scene_box
+from virus_nerf.trainer.run_folder import (
+    CHECKPOINT,
+    METRICS_VS_TIME,
+    EvalPoint,
+    write_eval_history,
+)
 from virus_nerf.trainer.train_log import Every, LogRow, TrainLog, psnr_db
 from virus_nerf.utils.clock import since_process_start
 from virus_nerf.utils.io import atomic_path
@@ -98,7 +104,7 @@ class Trainer:
         self.seconds = 0.0
         self.samples = 0
         self._gt = None
-        self.eval_history: list[dict] = []
+        self.eval_history: list[EvalPoint] = []
         self._prepared = False
         self.startup_s: float | None = None  # process start -> first step (set by prepare)
         self.grid_init_s = 0.0
@@ -288,13 +294,13 @@ class Trainer:
             "samples": self.samples,
             "numpy_rng": self.rng.bit_generator.state,
             "torch_generator": self.generator.get_state(),
-            "eval_history": self.eval_history,
+            "eval_history": [dataclasses.asdict(p) for p in self.eval_history],
             "box": self.box.to_dict(),
             "config": to_dict(self.config),
         }
 
     def save_checkpoint(self) -> None:
-        with atomic_path(self.run_dir / "checkpoint.pt") as tmp:
+        with atomic_path(self.run_dir / CHECKPOINT) as tmp:
             torch.save(self.state(), tmp)
 
     def load_checkpoint(self, path: Path) -> None:
@@ -321,7 +327,7 @@ class Trainer:
         self.samples = int(state["samples"])
         self.rng.bit_generator.state = state["numpy_rng"]
         self.generator.set_state(state["torch_generator"])
-        self.eval_history = list(state.get("eval_history", []))
+        self.eval_history = [EvalPoint(**e) for e in state.get("eval_history", [])]
 
     # ------------------------------------------------------------------ the loop
     def fit(self) -> TrainSummary:
@@ -379,43 +385,12 @@ class Trainer:
 
     def record_eval(self, result: EvaluationResult, log: TrainLog | None = None) -> None:
         z3 = result.metrics["NeRF"].zones["zone3"]
-        entry = {"step": self.step, "seconds": round(self.seconds, 3),
-                 "acc_mean": z3.acc_mean, "cov_mean": z3.cov_mean,
-                 "acc_inlier": z3.acc_inlier, "cov_inlier": z3.cov_inlier,
-                 "n_test_points": len(result.points)}
-        self.eval_history.append(entry)
-        write_eval_history(self.run_dir / "metrics_vs_time.csv", self.eval_history)
+        point = EvalPoint(step=self.step, seconds=round(self.seconds, 3),
+                          acc_mean=z3.acc_mean, cov_mean=z3.cov_mean,
+                          acc_inlier=z3.acc_inlier, cov_inlier=z3.cov_inlier,
+                          n_test_points=len(result.points))
+        self.eval_history.append(point)
+        write_eval_history(self.run_dir / METRICS_VS_TIME, self.eval_history)
         if log is not None:
             for k in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier"):
-                log.scalar(f"eval/zone3_{k}", entry[k], self.step)
-
-
-def write_eval_history(path: Path, history: list[dict]) -> None:
-    if not history:
-        return
-    keys = list(history[0])
-    lines = [",".join(keys)] + [",".join("" if e[k] is None else str(e[k]) for k in keys) for e in history]
-    from virus_nerf.utils.io import write_text_atomic
-
-    write_text_atomic(path, "\n".join(lines) + "\n")
-
-
-def train_summary_block(config: TrainConfig, summary: TrainSummary) -> dict:
-    """The "train" block of metrics.json (docs/method.md 7)."""
-    return {
-        "steps": summary.steps,
-        "seconds": round(summary.seconds, 3),
-        "steps_per_s": round(summary.steps_per_s, 4),
-        "samples_per_s": round(summary.samples_per_s, 1),
-        "startup_s": None if summary.startup_s is None else round(summary.startup_s, 3),
-        "wall_s": None if summary.wall_s is None else round(summary.wall_s, 3),
-        "grid": config.grid,
-        "sensors": list(config.sensors),
-        "seed": config.seed,
-        "online": config.online,
-        "odometry_poses": config.odometry_poses,
-    }
-
-
-def write_run_metrics(run_dir: Path, result: EvaluationResult, config: TrainConfig, summary: TrainSummary) -> dict:
-    return result.write_json(run_dir / "metrics.json", train=train_summary_block(config, summary))
+                log.scalar(f"eval/zone3_{k}", getattr(point, k), self.step)

@@ -1,0 +1,85 @@
+"""Structure checks of the package (issue 15): the layering stays readable as the code grows.
+
+- no import circle between modules (lazy imports inside functions included: a circle hidden in
+  a function is still a circle a reader must untangle);
+- no module imports a command module (`cli.py`, `*/command.py`) except the commands themselves
+  and the experiments, which are commands too;
+- no file over 400 lines outside the numba kernel modules.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "virus_nerf"
+MAX_LINES = 400
+KERNEL_MODULES = {"sim/kernels.py"}  # numba kernels stay in one file with their helpers
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = path.relative_to(PACKAGE.parent).with_suffix("")
+        name = ".".join(rel.parts)
+        out[name.removesuffix(".__init__")] = path
+    return out
+
+
+def _imports(path: Path, modules: dict[str, Path]) -> set[str]:
+    """Package modules imported anywhere in `path` (module level or inside functions)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        names = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        for n in names:
+            if n in modules:
+                found.add(n)
+    return found
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = _modules()
+    return {name: _imports(path, modules) - {name} for name, path in modules.items()}
+
+
+def test_no_import_circle():
+    graph = _graph()
+    # package __init__ files re-export their modules: an edge into a package is not a cycle source
+    graph = {m: {d for d in deps if not (PACKAGE.parent / d.replace(".", "/") / "__init__.py").exists()}
+             for m, deps in graph.items()}
+    state: dict[str, int] = {}
+    cycles = []
+
+    def visit(m: str, stack: list[str]) -> None:
+        state[m] = 1
+        for d in sorted(graph.get(m, ())):
+            if state.get(d) == 1:
+                cycles.append(stack[stack.index(d):] + [d])
+            elif d not in state:
+                visit(d, stack + [d])
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [m])
+    assert not cycles, f"import circles: {cycles}"
+
+
+def _is_command(name: str) -> bool:
+    return name == "virus_nerf.cli" or name.endswith(".command")
+
+
+def test_no_module_imports_a_command_module():
+    bad = [(m, d) for m, deps in _graph().items() for d in deps
+           if _is_command(d) and not (_is_command(m) or m.startswith("virus_nerf.experiments"))]
+    assert not bad, f"modules importing a CLI command module: {bad}"
+
+
+def test_no_file_over_400_lines_outside_kernel_modules():
+    long = {str(p.relative_to(PACKAGE)): n for p in PACKAGE.rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > MAX_LINES and str(p.relative_to(PACKAGE)) not in KERNEL_MODULES}
+    assert not long, f"files over {MAX_LINES} lines: {long}"

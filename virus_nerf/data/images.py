@@ -1,0 +1,103 @@
+"""Colour images and aligned depth maps of the ETHZ layout, read one at a time (docs/method.md 4).
+
+Colour: any image PIL reads, returned as RGB uint8 (H, W, 3). Depth: .npy of unsigned 16-bit
+millimetres (0 and 65535 invalid), returned in metres with NaN where invalid. Every problem is
+a DataFormatError naming the file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from virus_nerf.errors import DataFormatError
+from virus_nerf.sensors.camera import Intrinsics
+
+DEPTH_INVALID_MM = (0, 65535)
+
+
+def read_rgb(path: Path, intr: Intrinsics) -> np.ndarray:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            arr = np.asarray(im.convert("RGB"))
+    except FileNotFoundError:
+        raise DataFormatError(path, "image file not found") from None
+    except OSError as exc:
+        raise DataFormatError(path, f"not a readable image: {exc}") from exc
+    if arr.shape[:2] != (intr.height, intr.width):
+        raise DataFormatError(
+            path, f"image is {arr.shape[1]}x{arr.shape[0]}; the intrinsics expect {intr.width}x{intr.height}"
+        )
+    return arr
+
+
+def read_depth(path: Path, intr: Intrinsics) -> np.ndarray:
+    """An aligned depth map: .npy of unsigned 16-bit integers in millimetres (0 and 65535 invalid).
+
+    Other integer types are accepted if every value fits 0..65535; floating-point maps are
+    refused (a float map is usually in metres, and reading it as millimetres would shrink the
+    scene 1000 times).
+    """
+    try:
+        raw = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise DataFormatError(path, "depth file not found") from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise DataFormatError(path, f"not a readable .npy depth map: {exc}") from exc
+    if not isinstance(raw, np.ndarray):
+        raise DataFormatError(path, "not a .npy array; expected a uint16 depth map in millimetres")
+    if raw.shape != (intr.height, intr.width):
+        raise DataFormatError(path, f"depth map has shape {raw.shape}; expected ({intr.height}, {intr.width})")
+    if raw.dtype.kind == "f":
+        finite = raw[np.isfinite(raw)]
+        top = float(finite.max()) if finite.size else float("nan")
+        hint = f" (values up to {top:.3g} look like metres)" if finite.size and top < 100 else ""
+        raise DataFormatError(
+            path, f"depth map is {raw.dtype}{hint}; expected uint16 millimetres (e.g. (metres * 1000).astype(np.uint16))"
+        )
+    if raw.dtype.kind not in "ui":
+        raise DataFormatError(path, f"depth map is {raw.dtype}; expected uint16 millimetres")
+    if raw.dtype != np.uint16 and raw.size and (raw.min() < 0 or raw.max() > 65535):
+        raise DataFormatError(
+            path, f"depth map ({raw.dtype}) has values {raw.min()}..{raw.max()}; expected uint16 millimetres 0..65535"
+        )
+    depth = raw.astype(np.float32) / 1000.0
+    depth[np.isin(raw, DEPTH_INVALID_MM)] = np.nan
+    return depth
+
+
+def check_depth_header(path: Path, intr: Intrinsics) -> None:
+    """Shape and type of a depth map from its .npy header alone (no pixels are read)."""
+    try:
+        with path.open("rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                np.lib.format.read_array_header_2_0
+            shape, _, dtype = read_header(fh)
+    except FileNotFoundError:
+        raise DataFormatError(path, "depth file not found") from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise DataFormatError(path, f"not a readable .npy depth map: {exc}") from exc
+    if shape != (intr.height, intr.width):
+        raise DataFormatError(path, f"depth map has shape {shape}; expected ({intr.height}, {intr.width})")
+    if dtype.kind == "f":
+        raise DataFormatError(
+            path, f"depth map is {dtype} (metres?); expected uint16 millimetres (e.g. (metres * 1000).astype(np.uint16))"
+        )
+    if dtype.kind not in "ui":
+        raise DataFormatError(path, f"depth map is {dtype}; expected uint16 millimetres")
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except FileNotFoundError:
+        raise DataFormatError(path, "image file not found") from None
+    except OSError as exc:
+        raise DataFormatError(path, f"not a readable image: {exc}") from exc

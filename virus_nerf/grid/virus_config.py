@@ -1,0 +1,100 @@
+"""The VIRUS grid's parameters (docs/method.md 3.4): one frozen dataclass, checked on creation."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+@dataclass(frozen=True)
+class VirusGridConfig:
+    """VIRUS grid parameters; every length in metres, rates per metre, densities in 1/m."""
+
+    max_resolution: int = 128  # cells along the longest box axis (GridSpec.from_box)
+    logodds_min: float = -4.0  # clamp (p ~ 0.018)
+    logodds_max: float = 4.0  # clamp (p ~ 0.982)
+    init_probability: float = 0.55  # slightly above 0.5: everything is marched at first
+    prior_probability: float = 0.49  # where unsupported cells end after the warm-up (empty)
+    warmup_steps: int = 128  # training steps (not updates) of the decay init -> prior (~30 s on 2 CPU cores)
+    update_interval: int = 16  # training steps between grid updates (the trainer calls update)
+    rays_per_update: int = 1024  # rays per update, both kinds together (paper: ~1k)
+    depth_share: float = 0.5  # share of rays_per_update for the Depth-Update (rest: NeRF)
+    # Start-up: before step 0, a Depth-Update over every training IRS frame ("sensors"), so free
+    # space and surfaces the IRS saw are known from the start; "none" = the paper's plain warm-up.
+    init: Literal["sensors", "none"] = "sensors"
+    init_zone_samples: int = 3  # rays per IRS zone and axis in that pass (3 -> 9 rays per zone)
+    init_uss_free: bool = False  # also free-space evidence in front of every USS echo (its cone)
+    # NeRF-Update densities: "forward" (default, the paper's speed-up) reuses the densities of
+    # the training forward pass: no extra network pass, and only cells the marcher sampled get
+    # evidence, so cells nothing renders through are not raised by haze (office 60 s: 0.197 /
+    # 0.254 m at 11.1 steps/s against 0.217 / 0.258 at 9.2; common area 180 s: 0.635 / 0.964
+    # against 0.679 / 1.075; README, time to map). "resample" draws nerf_points_per_ray points
+    # along rays of the batch and evaluates the density MLP there.
+    nerf_update_source: Literal["resample", "forward"] = "forward"
+    # Depth-Update (IRS, MURIEL model; sensor_model docstring)
+    std_per_m: float = 0.03  # range noise grows 3 cm per metre ...
+    std_floor: float = 0.02  # ... on top of 2 cm (pose error, zone width)
+    false_rate: float = 0.3  # lambda: false detections per metre (docs/method.md 3.4)
+    hit_probability: float = 0.4  # p_hit: an occupied cell crossed fully stops the beam (0.7 punched holes: a zone-median range is not every pixel ray's range)
+    stop_length: float = 0.02  # metres of beam inside a cell for p_det to reach 63 % of p_hit
+    max_increment: float = 2.0  # |log-odds change| per cell per measurement
+    # NeRF-Update (eq. 9)
+    zeta: float = 0.25  # slope: a density ratio of 1000 moves a cell by 1.7
+    nerf_points_per_ray: int = 64  # points drawn uniformly in [0, nerf_far] per ray
+    pos_noise_per_m: float = 0.05  # std of the point jitter per metre along the ray
+    threshold_step: float = 0.01  # sigma_T_max: density at which a step of this many metres ...
+    threshold_alpha: float = 0.01  # ... has this alpha (the Instant-NGP convention, docs/method.md 3.3)
+    sigma_floor: float = 1e-6  # 1/m, keeps ln(sigma) finite
+    # sigma_T: "mean" = min(sigma_T_max, mean density of the update's points) (paper eq. 9);
+    # "fixed" = sigma_T_max. Where most of the space is empty the mean falls far below
+    # sigma_T_max and any cell denser than average is kept occupied (haze becomes occupied).
+    threshold_mode: Literal["mean", "fixed"] = "mean"
+
+    def __post_init__(self) -> None:
+        checks = {
+            "max_resolution": self.max_resolution >= 1,
+            "logodds_min/logodds_max": self.logodds_min < 0.0 < self.logodds_max,
+            "init_probability": 0.5 < self.init_probability < 1.0,
+            "prior_probability": 0.0 < self.prior_probability < 0.5,
+            "warmup_steps": self.warmup_steps >= 1,
+            "update_interval": self.update_interval >= 1,
+            "rays_per_update": self.rays_per_update >= 0,
+            "depth_share": 0.0 <= self.depth_share <= 1.0,
+            "init": self.init in ("sensors", "none"),
+            "init_zone_samples": self.init_zone_samples >= 1,
+            "nerf_update_source": self.nerf_update_source in ("resample", "forward"),
+            "std_per_m": self.std_per_m >= 0.0,
+            "std_floor": self.std_floor > 0.0,
+            "false_rate": self.false_rate > 0.0,
+            "hit_probability": 0.0 < self.hit_probability < 1.0,
+            "stop_length": self.stop_length > 0.0,
+            "max_increment": self.max_increment > 0.0,
+            "zeta": self.zeta > 0.0,
+            "nerf_points_per_ray": self.nerf_points_per_ray >= 1,
+            "pos_noise_per_m": self.pos_noise_per_m >= 0.0,
+            "threshold_step": self.threshold_step > 0.0,
+            "threshold_alpha": 0.0 < self.threshold_alpha < 1.0,
+            "sigma_floor": self.sigma_floor > 0.0,
+            "threshold_mode": self.threshold_mode in ("mean", "fixed"),
+        }
+        bad = [name for name, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(f"VirusGridConfig: invalid value for {', '.join(bad)}: {self}")
+
+    @property
+    def sigma_threshold_max(self) -> float:
+        """sigma_T_max (1/m): -ln(1 - alpha) / step, 1.005 /m by default."""
+        return -math.log(1.0 - self.threshold_alpha) / self.threshold_step
+
+    @property
+    def logodds_init(self) -> float:
+        return _logit(self.init_probability)
+
+    @property
+    def logodds_prior(self) -> float:
+        return _logit(self.prior_probability)

@@ -1,0 +1,207 @@
+"""The run folder: one place that knows its file names and reads and writes each file typed.
+
+A run folder (`virus-nerf train --out RUN`) holds:
+
+    config.json          the resolved TrainConfig (pass it back with --config)
+    run.json             RunInfo: where the recording is (data folder, room)
+    train_log.csv        one LogRow per logged step (trainer/train_log.py)
+    checkpoint.pt        field, optimiser, grid, step, clock, RNG states, scene box, config
+    metrics_vs_time.csv  one EvalPoint per evaluation during training (and the final one)
+    metrics.json         the final evaluation (docs/method.md 7); its presence marks a finished run
+    plots/               figures of the final evaluation
+    tensorboard/         optional TensorBoard logs
+
+`open_run` (and `trainer.command.load_trained` on top of it, which also loads the checkpoint into a
+Trainer) is the only way the commands (evaluate, export, resume) open an existing run, so every
+damaged or foreign folder is refused the same way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from virus_nerf.errors import DataFormatError, UsageError, one_line
+from virus_nerf.utils.io import write_json_atomic, write_text_atomic
+
+CONFIG = "config.json"
+RUN_INFO = "run.json"
+TRAIN_LOG = "train_log.csv"
+CHECKPOINT = "checkpoint.pt"
+METRICS = "metrics.json"
+METRICS_VS_TIME = "metrics_vs_time.csv"
+PLOTS = "plots"
+TENSORBOARD = "tensorboard"
+
+# Checkpoint entries the trainer reads back (Trainer.load_checkpoint).
+CHECKPOINT_KEYS = ("field", "optimizer", "grid", "step", "seconds", "samples", "numpy_rng", "torch_generator")
+
+
+@dataclass(frozen=True)
+class RunInfo:
+    """Where a run's data came from (run.json), so `evaluate --run` can find it again."""
+
+    data: str  # absolute path of the recording's data folder
+    room: str  # room folder inside it
+
+    def write(self, folder: Path) -> None:
+        write_json_atomic(Path(folder) / RUN_INFO, dataclasses.asdict(self))
+
+    @staticmethod
+    def read(folder: Path) -> RunInfo:
+        path = Path(folder) / RUN_INFO
+        try:
+            info = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise DataFormatError(path, f"not valid JSON: {one_line(exc)}") from None
+        if not isinstance(info, dict):
+            raise DataFormatError(path, 'expected a JSON object {"data": ..., "room": ...}')
+        for key in ("data", "room"):
+            if not isinstance(info.get(key), str) or not info[key]:
+                raise DataFormatError(path, "expected a non-empty string (where the run's recording is)", field=key)
+        return RunInfo(data=info["data"], room=info["room"])
+
+
+@dataclass(frozen=True)
+class EvalPoint:
+    """One evaluation of the NeRF's scans during training (zone 3 of the primary ground truth)."""
+
+    step: int
+    seconds: float  # training clock
+    acc_mean: float | None  # m
+    cov_mean: float | None  # m
+    acc_inlier: float | None  # share in [0, 1]
+    cov_inlier: float | None
+    n_test_points: int  # test points scored (online: those the drive has reached)
+
+    FIELDS = ("step", "seconds", "acc_mean", "cov_mean", "acc_inlier", "cov_inlier", "n_test_points")
+
+
+def write_eval_history(path: Path, points: list[EvalPoint]) -> None:
+    """metrics_vs_time.csv, atomically; an empty cell is None."""
+    if not points:
+        return
+    lines = [",".join(EvalPoint.FIELDS)]
+    for p in points:
+        lines.append(",".join("" if getattr(p, k) is None else str(getattr(p, k)) for k in EvalPoint.FIELDS))
+    write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def read_eval_history(path: Path) -> list[EvalPoint]:
+    """metrics_vs_time.csv -> EvalPoints ([] when the file is absent)."""
+    path = Path(path)
+    if not path.is_file():
+        return []
+    lines = path.read_text().strip().splitlines()
+    keys = lines[0].split(",") if lines else []
+    if tuple(keys) != EvalPoint.FIELDS:
+        raise DataFormatError(path, f"header {keys}: expected {list(EvalPoint.FIELDS)}")
+    points = []
+    for row_no, line in enumerate(lines[1:], start=2):
+        cells = dict(zip(keys, line.split(","), strict=False))
+        try:
+            points.append(EvalPoint(
+                step=int(cells["step"]), seconds=float(cells["seconds"]),
+                acc_mean=_opt(cells["acc_mean"]), cov_mean=_opt(cells["cov_mean"]),
+                acc_inlier=_opt(cells["acc_inlier"]), cov_inlier=_opt(cells["cov_inlier"]),
+                n_test_points=int(cells["n_test_points"]),
+            ))
+        except (KeyError, ValueError):
+            raise DataFormatError(path, f"expected {len(keys)} numbers", row=row_no) from None
+    return points
+
+
+def _opt(text: str) -> float | None:
+    return float(text) if text else None
+
+
+# ---------------------------------------------------------------------------- metrics.json
+def train_summary_block(config, summary) -> dict:
+    """The "train" block of metrics.json (docs/method.md 7)."""
+    return {
+        "steps": summary.steps,
+        "seconds": round(summary.seconds, 3),
+        "steps_per_s": round(summary.steps_per_s, 4),
+        "samples_per_s": round(summary.samples_per_s, 1),
+        "startup_s": None if summary.startup_s is None else round(summary.startup_s, 3),
+        "wall_s": None if summary.wall_s is None else round(summary.wall_s, 3),
+        "grid": config.grid,
+        "sensors": list(config.sensors),
+        "seed": config.seed,
+        "online": config.online,
+        "odometry_poses": config.odometry_poses,
+    }
+
+
+def write_run_metrics(run_dir: Path, result, config, summary) -> dict:
+    """RUN/metrics.json (atomic): the EvaluationResult with the train block of `summary`."""
+    return result.write_json(run_dir / METRICS, train=train_summary_block(config, summary))
+
+
+# ---------------------------------------------------------------------------- opening a run
+def open_run(run: Path, flag: str):
+    """A finished or interrupted run folder -> (TrainConfig, RunInfo); every problem named."""
+    from virus_nerf.config_io import load_json_config
+    from virus_nerf.trainer.config import TrainConfig
+
+    run = Path(run)
+    if not run.exists():
+        raise UsageError(f"{flag} {run}: no such run folder; expected a folder written by `virus-nerf train`")
+    if not run.is_dir():
+        raise UsageError(f"{flag} {run}: is a file; expected a run folder written by `virus-nerf train`")
+    for name in (CONFIG, RUN_INFO):
+        if not (run / name).is_file():
+            raise DataFormatError(run / name, f"missing; {flag} expects a run folder written by `virus-nerf train`")
+    cfg = load_json_config(TrainConfig, run / CONFIG)
+    return cfg, RunInfo.read(run)
+
+
+def read_checkpoint_header(path: Path, cfg) -> dict:
+    """Read checkpoint.pt on the CPU and check it fits `cfg`; returns its step/seconds/config.
+
+    A missing, truncated or foreign file is a DataFormatError naming it; a checkpoint of another
+    grid or field than `cfg` asks for (e.g. `--resume --grid ngp` on a VIRUS run) a UsageError.
+    """
+    import torch
+
+    from virus_nerf.config_io import to_dict
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, "missing: the run has no checkpoint (it stopped before its first one); "
+                                    "start a new run")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # truncated zip, pickle garbage, not a torch file: torch raises many types
+        raise DataFormatError(path, f"not a readable checkpoint ({type(exc).__name__}: {one_line(exc, 160)})") from None
+    if not isinstance(state, dict):
+        raise DataFormatError(path, f"not a virus-nerf checkpoint (holds a {type(state).__name__}, expected a dict)")
+    missing = [k for k in CHECKPOINT_KEYS if k not in state]
+    if missing:
+        raise DataFormatError(path, f"not a complete virus-nerf checkpoint: lacks {missing}")
+    saved = state.get("config")
+    if isinstance(saved, dict):
+        _check_same_shapes(path, saved, to_dict(cfg))
+    return {"step": int(state["step"]), "seconds": float(state["seconds"]), "config": saved}
+
+
+def _check_same_shapes(path: Path, saved: dict, now: dict) -> None:
+    """A run keeps its grid kind, network shape and grid resolution (other knobs may change)."""
+    if saved.get("grid") != now["grid"]:
+        raise UsageError(f"grid {now['grid']!r}: {path} holds a run trained with grid {saved.get('grid')!r}; "
+                         "a run keeps its grid (omit --grid, or start a new run)")
+
+    def section(doc: dict, name: str) -> dict:
+        return doc[name] if isinstance(doc.get(name), dict) else {}
+
+    grid_key = f"{now['grid']}_grid"
+    shape_keys = [("field", k) for k in section(saved, "field") if k not in ("backend", "density_clamp")]
+    shape_keys.append((grid_key, "max_resolution"))
+    for sec, name in shape_keys:  # keys both versions know (a newer version may add some)
+        old, new = section(saved, sec).get(name), section(now, sec).get(name)
+        if old is not None and new is not None and old != new:
+            key = f"{sec}.{name}"
+            raise UsageError(f"{key} {one_line(new, 60)}: {path} was trained with {key} {one_line(old, 60)}; "
+                             "a run keeps its network and grid shape")
