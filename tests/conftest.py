@@ -54,3 +54,14 @@ def _frame_cache_in_tmp(tmp_path_factory):
         os.environ.pop("VIRUS_NERF_CACHE_DIR", None)
     else:
         os.environ["VIRUS_NERF_CACHE_DIR"] = old
+
+
+SIMULATED_RUN_FIXTURES = {"tiny_office", "sim_root", "tiny"}  # fixtures that simulate a drive
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark as `slow` every test that simulates a drive or trains on one (directly or through a
+    fixture built on `tiny_office`), so `pytest -m "not slow"` is a quick loop over the rest."""
+    for item in items:
+        if SIMULATED_RUN_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)

@@ -87,6 +87,7 @@ def test_online_band_interpolates_and_spreads():
     assert np.isnan(mean[3])
 
 
+@pytest.mark.slow
 def test_demo_end_to_end(tmp_path: Path):
     from virus_nerf.experiments.demo import demo
 
