@@ -78,7 +78,8 @@ def test_camera_only_has_no_depth_targets_and_same_seed_same_batch(store):
 
 def test_rgbd_range_matches_depth_map(store):
     sampler = BatchSampler(store, ("rgbd",))
-    batch = sampler.frame_rays(0)
+    hw = store.height * store.width
+    batch = sampler._rays(np.zeros(hw, dtype=np.int64), np.arange(hw, dtype=np.int64))  # every pixel of frame 0
     rng = batch.rgbd_range.numpy()
     mm = store.depths_mm[0].ravel()
     fp = store.footprints[1]

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sim_reference import cast_reference
 
 from virus_nerf.sim.rooms import build_room
-from virus_nerf.sim.scene import Box, Cylinder, Material, Scene, SceneObject, cast_reference
+from virus_nerf.sim.scene import Box, Cylinder, Material, Scene, SceneObject
 
 GREY = Material((0.5, 0.5, 0.5))
 

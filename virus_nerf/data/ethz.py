@@ -29,7 +29,7 @@ from virus_nerf.sensors.geometry import pose_matrix
 
 PoseSource = Literal["optimised", "odometry"]
 POSE_COLUMNS = ("time", "x", "y", "z", "qx", "qy", "qz", "qw")
-TOF_COLUMNS = ("time",) + tuple(f"meas_{k}" for k in range(64))
+TOF_COLUMNS = ("time",) + tuple(f"meas_{k}" for k in range(irs.IRS_ZONE_COUNT))
 # A pose quaternion must have unit norm within this tolerance: | |q| - 1 | <= 1e-3. Rounding
 # every component to 4 decimals moves |q| by at most ~1e-4, so any honest export passes (the
 # real sample is unit to 2e-9); a quaternion further off is a column mix-up or garbage, which
@@ -208,7 +208,7 @@ def read_tof(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """TOF<id>.csv (time, meas_0..63 in mm) -> times (N,), (N, 8, 8) m in image zone order."""
     table = read_numeric_csv(path, TOF_COLUMNS)
     check_sorted_times(path, table["time"])
-    mm = np.stack([table[f"meas_{k}"] for k in range(64)], axis=1)
+    mm = np.stack([table[f"meas_{k}"] for k in range(irs.IRS_ZONE_COUNT)], axis=1)
     metres = mm / 1000.0
     metres[~np.isfinite(mm) | (metres <= irs.IRS_MIN_VALID_M)] = np.nan
     return table["time"], irs.grid_from_measurements(metres)

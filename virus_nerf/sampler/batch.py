@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from virus_nerf.sampler.frames import FrameStore
+from virus_nerf.sensors.irs import IRS_ZONE_COUNT
 
 SENSORS = ("camera", "uss", "irs", "rgbd")
 
@@ -73,7 +74,7 @@ class BatchSampler:
         f = frames[rng.integers(0, len(frames), size=n_rays)]
         pix = np.empty(n_rays, dtype=np.int64)
         u01 = rng.random(n_rays)
-        zone_pick = rng.random((n_rays, 64))
+        zone_pick = rng.random((n_rays, IRS_ZONE_COUNT))
         hw = store.height * store.width
         for s, fp in store.footprints.items():
             in_stack = store.stack_ids[f] == s
@@ -83,7 +84,7 @@ class BatchSampler:
             pix[sel] = fp.uss_pixels[np.minimum((u01[sel] * len(fp.uss_pixels)).astype(np.int64), len(fp.uss_pixels) - 1)]
             sel = np.flatnonzero(in_stack & (kind == 2))
             if sel.size:
-                valid = np.isfinite(store.irs_range[f[sel]].reshape(-1, 64))  # (n, 64)
+                valid = np.isfinite(store.irs_range[f[sel]].reshape(-1, IRS_ZONE_COUNT))  # (n, 64)
                 # a valid zone of the frame, uniformly; frames without one fall back to any zone
                 weights = np.where(valid.any(axis=1, keepdims=True), valid, True)
                 zone = np.argmax(zone_pick[sel] * weights, axis=1)
@@ -101,7 +102,7 @@ class BatchSampler:
             sel = store.stack_ids[f] == s
             dirs_cam[sel] = fp.dirs_cam[pix[sel]]
             zone = fp.irs_zone[pix[sel]].astype(np.int64)
-            z = np.where(zone >= 0, store.irs_range[f[sel]].reshape(-1, 64)[np.arange(sel.sum()), np.maximum(zone, 0)], np.nan)
+            z = np.where(zone >= 0, store.irs_range[f[sel]].reshape(-1, IRS_ZONE_COUNT)[np.arange(sel.sum()), np.maximum(zone, 0)], np.nan)
             irs_range[sel] = z / dirs_cam[sel, 2]
             uss_range[sel] = np.where(fp.in_uss[pix[sel]], store.uss_range[f[sel]], np.nan)
         if "irs" not in self.sensors:
@@ -125,8 +126,3 @@ class BatchSampler:
             rgbd_range=torch.from_numpy(rgbd_range.astype(np.float32)),
             frames=torch.from_numpy(f.astype(np.int64)),
         )
-
-    def frame_rays(self, frame: int) -> RayBatch:
-        """All pixels of one frame, row-major (for rendering a full image)."""
-        hw = self.store.height * self.store.width
-        return self._rays(np.full(hw, frame, dtype=np.int64), np.arange(hw, dtype=np.int64))

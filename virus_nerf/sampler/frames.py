@@ -16,6 +16,7 @@ from virus_nerf.data.ethz import Recording
 from virus_nerf.sampler import frame_cache
 from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics, pixel_directions
+from virus_nerf.sensors.irs import IRS_ZONE_COUNT
 
 
 @dataclass
@@ -37,7 +38,7 @@ class StackFootprints:
         zone = np.where(row >= 0, row * irs.IRS_ZONES + col, -1).astype(np.int16)
         inside = np.flatnonzero(zone >= 0)
         order = inside[np.argsort(zone[inside], kind="stable")]
-        counts = np.bincount(zone[order], minlength=64)
+        counts = np.bincount(zone[order], minlength=IRS_ZONE_COUNT)
         start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         in_cone = uss.in_cone(dirs)
         return StackFootprints(

@@ -17,7 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 IRS_FOV_DEG = 45.0
-IRS_ZONES = 8
+IRS_ZONES = 8  # zones per axis
+IRS_ZONE_COUNT = IRS_ZONES * IRS_ZONES  # 64 ranges per reading
 IRS_MIN_VALID_M = 0.1  # readings at or below this are invalid (docs/method.md 4)
 IRS_MAX_RANGE_M = 4.0
 
@@ -33,7 +34,7 @@ def measurements_from_grid(grid: np.ndarray) -> np.ndarray:
     """Inverse of `grid_from_measurements`: (..., 8, 8) image order -> (..., 64) sensor order."""
     g = np.asarray(grid)
     m = np.rot90(g, k=1, axes=(-2, -1))
-    return m.reshape(g.shape[:-2] + (64,)).copy()
+    return m.reshape(g.shape[:-2] + (IRS_ZONE_COUNT,)).copy()
 
 
 def zone_edges_rad() -> np.ndarray:

@@ -11,6 +11,7 @@ import numpy as np
 
 from virus_nerf.data.pcd import write_pcd_xyz
 from virus_nerf.data.split import DEFAULT_RATIOS, make_split, write_split
+from virus_nerf.sensors.irs import IRS_ZONE_COUNT
 from virus_nerf.sim import writer
 from virus_nerf.sim.rig import CAMERA_INTRINSICS, STACK_IDS, STACK_TIME_OFFSET_S, camera_in_lidar
 from virus_nerf.sim.rooms import Room, build_room
@@ -125,8 +126,8 @@ def simulate_dataset(
             lidar_pose = traj.lidar_to_world(times)  # (N, 4, 4)
             cam_pose = lidar_pose @ camera_in_lidar(s)
             uss_r = np.empty(len(times))
-            tof_mm = np.empty((len(times), 64))
-            tof_std = np.empty((len(times), 64))
+            tof_mm = np.empty((len(times), IRS_ZONE_COUNT))
+            tof_std = np.empty((len(times), IRS_ZONE_COUNT))
             for i in range(len(times)):
                 frame_id = s * 1_000_000 + i
                 f = render_camera(room.scene, intr[s], cam_pose[i], cfg.camera, frame_seed=seed * 7919 + frame_id)

@@ -154,12 +154,12 @@ class IrsModel:
         s2 = self.samples_per_axis**2
         # the zone's median over all its rays (like the median of the RGB-D pixels in the zone);
         # valid when the median target is within range (>= half the rays hit within max_range)
-        zmed = np.median(z.reshape(64, s2), axis=1)
-        sig = np.median(signal.reshape(64, s2), axis=1)
+        zmed = np.median(z.reshape(irs.IRS_ZONE_COUNT, s2), axis=1)
+        sig = np.median(signal.reshape(irs.IRS_ZONE_COUNT, s2), axis=1)
         valid = (zmed <= self.max_range) & (sig >= 1.0)
         zmed = np.where(valid, zmed, 0.0)
         std = self.sigma0 + self.sigma_per_m * zmed
-        noisy = zmed + std * rng.standard_normal(64)
+        noisy = zmed + std * rng.standard_normal(irs.IRS_ZONE_COUNT)
         valid &= noisy > irs.IRS_MIN_VALID_M
         out = np.where(valid, noisy, np.nan).reshape(8, 8)
         return out, np.where(valid, std, np.nan).reshape(8, 8)

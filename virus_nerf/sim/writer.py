@@ -12,6 +12,7 @@ import numpy as np
 
 from virus_nerf.sensors import uss
 from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.sensors.irs import IRS_ZONE_COUNT
 from virus_nerf.sim.trajectory import poses_to_rows
 from virus_nerf.utils.io import atomic_path, write_text_atomic
 
@@ -48,7 +49,7 @@ def write_uss(path: Path, times: np.ndarray, ranges_m: np.ndarray) -> None:
 
 def write_tof(path: Path, times: np.ndarray, meas_mm: np.ndarray, stds_mm: np.ndarray) -> None:
     """time, meas_0..63 (mm, sensor order, 0 = invalid), stds_0..63 (mm, 65535 = n/a)."""
-    header = ["time"] + [f"meas_{k}" for k in range(64)] + [f"stds_{k}" for k in range(64)]
+    header = ["time"] + [f"meas_{k}" for k in range(IRS_ZONE_COUNT)] + [f"stds_{k}" for k in range(IRS_ZONE_COUNT)]
     lines = [",".join(header)]
     for t, m, s in zip(times, meas_mm, stds_mm, strict=True):
         lines.append(f"{t:.6f}," + ",".join(f"{v:.1f}" for v in m) + "," + ",".join(f"{v:.1f}" for v in s))
