@@ -63,6 +63,8 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=20, help="timed steps per configuration")
     ap.add_argument("--warm", type=int, default=48, help="untimed steps first (grid warm-up is warm/2)")
     ap.add_argument("--quick", action="store_true", help="CPU-default field and 1024 rays only")
+    ap.add_argument("--batches", default=None, help="comma-separated rays per step (default 1024,4096)")
+    ap.add_argument("--fields", default=None, help="comma-separated field profiles: cpu_default,paper")
     ap.add_argument("--data", type=Path, default=None, help="an ETHZ recording (default: simulate an office)")
     args = ap.parse_args()
     _keep_large_allocations()
@@ -77,6 +79,10 @@ def main() -> None:
         recording = load_recording(data, "office")
         fields = ("cpu_default",) if args.quick else ("cpu_default", "paper")
         batches = (1024,) if args.quick else (1024, 4096)
+        if args.fields:
+            fields = tuple(args.fields.split(","))
+        if args.batches:
+            batches = tuple(int(b) for b in args.batches.split(","))
         results = {}
         for field in fields:
             for batch in batches:
