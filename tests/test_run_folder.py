@@ -1,0 +1,61 @@
+"""The run folder's typed files and the training schedule, on hand-made values."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from virus_nerf.errors import DataFormatError
+from virus_nerf.trainer.run_folder import EvalPoint, RunInfo, read_eval_history, write_eval_history
+from virus_nerf.trainer.train_log import Every, LogRow, psnr_db, truncate_log
+
+
+def test_eval_history_round_trips_with_missing_values(tmp_path):
+    points = [EvalPoint(10, 1.5, 0.25, 0.5, 0.4, None, 2), EvalPoint(20, 3.0, None, None, None, None, 0)]
+    path = tmp_path / "metrics_vs_time.csv"
+    write_eval_history(path, points)
+    assert path.read_text().splitlines()[0] == ",".join(EvalPoint.FIELDS)
+    assert path.read_text().splitlines()[2] == "20,3.0,,,,,0"  # None is an empty cell
+    assert read_eval_history(path) == points
+    assert read_eval_history(tmp_path / "absent.csv") == []
+
+
+def test_eval_history_with_a_foreign_header_or_row_is_named(tmp_path):
+    path = tmp_path / "metrics_vs_time.csv"
+    path.write_text("step,seconds\n1,2\n")
+    with pytest.raises(DataFormatError, match="header"):
+        read_eval_history(path)
+    path.write_text(",".join(EvalPoint.FIELDS) + "\n1,x,,,,,0\n")
+    with pytest.raises(DataFormatError, match="row 2"):
+        read_eval_history(path)
+
+
+def test_run_info_round_trips_and_bad_files_are_named(tmp_path):
+    RunInfo(data="/data/rec", room="office").write(tmp_path)
+    assert RunInfo.read(tmp_path) == RunInfo(data="/data/rec", room="office")
+    (tmp_path / "run.json").write_text('{"data": "", "room": "office"}')
+    with pytest.raises(DataFormatError, match="data"):
+        RunInfo.read(tmp_path)
+
+
+def test_log_row_fields_and_psnr():
+    row = LogRow(5, 1.25, 0.1, 0.01, 0.0, 0.0, 0.0, psnr_db(0.01), 12.5, 0.3, 7)
+    assert row.values()[:2] == (5, 1.25) and len(row.values()) == len(LogRow.FIELDS)
+    assert psnr_db(0.01) == pytest.approx(20.0)  # -10 log10(0.01)
+    assert psnr_db(0.0) == pytest.approx(100.0)  # floored at 1e-10
+
+
+def test_truncate_log_keeps_rows_up_to_the_checkpoint(tmp_path):
+    path = tmp_path / "train_log.csv"
+    path.write_text("step,loss\n5,1\n10,1\n15,1\n")
+    truncate_log(path, 10)
+    assert path.read_text() == "step,loss\n5,1\n10,1\n"
+
+
+def test_every_fires_on_the_training_clock():
+    evals = Every.aligned(10.0, 23.0)  # a resumed run at 23 s evaluates at 30, 40, ...
+    assert evals.next_at == 30.0 and not evals.due(29.9) and evals.due(30.0)
+    assert Every.aligned(0.0, 5.0).next_at == math.inf  # period 0: never
+    ckpt = Every.after(60.0, 12.5)
+    assert ckpt.next_at == 72.5
