@@ -275,3 +275,12 @@ def test_an_rdb_study_keeps_its_objective(tmp_path):
     assert study.directions[1].name == "MINIMIZE" and base["optim"]["lr"] == TrainConfig().optim.lr
     with pytest.raises(UsageError, match="--objective weighted --acc-weight 0.5: study 's' optimises"):
         open_study("s", url, Objective("weighted"), None, 0, "none", tmp_path, "office")
+
+
+def test_a_study_folder_holds_one_study(tmp_path):
+    (tmp_path / "d" / "office").mkdir(parents=True)
+    (tmp_path / "study").mkdir()
+    (tmp_path / "study" / "study.json").write_text('{"study": "other"}')
+    code, _, err = run_cli(_tune_args(tmp_path, tmp_path / "d", "--trials", 1))
+    assert code == 2 and "holds the trials of study 'other'; give study 's' its own --out" in err, err
+    assert sorted(p.name for p in (tmp_path / "study").iterdir()) == ["study.json"]

@@ -87,6 +87,9 @@ def run_trial(ctx: _Context) -> str:
             trial.set_user_attr(key, value)
         ctx.trials_dir.mkdir(parents=True, exist_ok=True)
         cfg_path = ctx.trials_dir / f"{n:04d}.json"
+        if cfg_path.exists() or run.exists():  # a fresh trial number: never take over a foreign run
+            study.tell(trial, state=optuna.trial.TrialState.FAIL)
+            return f"trial {n}: FAILED ({run} exists already, not from this trial; not reused)"
         write_json_atomic(cfg_path, to_dict(build_config(ctx.base, trial.params, where=str(cfg_path))))
         spec = RunSpec(name=f"trial {n}", data=ctx.data, room=ctx.room, out=run, args=("--config", str(cfg_path)))
         future = ctx.executor.submit(spec)
@@ -181,6 +184,26 @@ def _base_config(config: Path | None, max_steps: int | None, max_time: float | N
         raise UsageError(f"{config or 'flags'}: {one_line(exc)}") from None
 
 
+def _claim_folder(out: Path, study: str) -> None:
+    """OUT/study.json names the one study whose trials live in OUT: trial numbers restart in
+    every study, so a second study in the same folder would find the first one's finished runs
+    under its own trial numbers (and take their results)."""
+    import json
+
+    from virus_nerf.errors import UsageError
+    from virus_nerf.utils.io import write_json_atomic
+
+    marker = out / "study.json"
+    if marker.is_file():
+        owner = json.loads(marker.read_text()).get("study")
+        if owner != study:
+            raise UsageError(f"--out {out}: holds the trials of study {owner!r}; give study {study!r} its own --out")
+    elif (out / "trials").exists():
+        raise UsageError(f"--out {out}: holds trials/ of an unnamed study; give study {study!r} its own --out")
+    else:
+        write_json_atomic(marker, {"study": study})
+
+
 def tune(
     data: Path,
     room: str,
@@ -259,6 +282,7 @@ def tune(
         require_extra("distributed", "dask", f"--scheduler {scheduler}")
     base = _base_config(config, max_steps, max_time, eval_interval)
     out = Path(out if out is not None else Path("studies") / study).absolute()
+    _claim_folder(out, study)
     obj = Objective(objective, acc_weight)
     handle, base = studies.open_study(study, studies.storage_for(storage, out), obj, base, seed, pruner,
                                               Path(data).absolute(), room)
