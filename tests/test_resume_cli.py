@@ -346,7 +346,7 @@ def test_experiments_refuse_to_overwrite_their_summaries(tmp_path, monkeypatch, 
         raise AssertionError("work started although the summary exists")
 
     monkeypatch.setattr(sim_command, "simulate", no_work)
-    monkeypatch.setattr("virus_nerf.experiments.runs.run_all", no_work)
+    monkeypatch.setattr("virus_nerf.experiments.executors.run_all", no_work)
     monkeypatch.setattr(f"virus_nerf.experiments.{experiment}.run_all", no_work)
     out = tmp_path / "exp"
     out.mkdir()

@@ -18,6 +18,7 @@ def _commands() -> dict:
     from virus_nerf.experiments.ablation import ablation
     from virus_nerf.experiments.demo import demo
     from virus_nerf.experiments.online import online
+    from virus_nerf.experiments.tune import tune
     from virus_nerf.exports.command import export
     from virus_nerf.sim.command import simulate
     from virus_nerf.trainer.command import evaluate, train
@@ -30,6 +31,7 @@ def _commands() -> dict:
         "demo": demo,
         "ablation": ablation,
         "online": online,
+        "tune": tune,
         "export": export,
     }
 

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.evaluation.metrics import RunMetrics, ZoneMetrics, mean_std, read_metrics
-from virus_nerf.experiments.runs import RunSpec, run_all
+from virus_nerf.experiments.executors import run_all
+from virus_nerf.experiments.runs import RunSpec
 from virus_nerf.trainer.run_folder import METRICS
 
 
@@ -89,17 +90,36 @@ def run_zone3(metrics: RunMetrics, gt: str, run: Path) -> ZoneMetrics:
                          f"evaluate it with `virus-nerf evaluate --run {run} --gt {gt}` or use a new --out") from None
 
 
-def aggregate(out: Path, scenes: tuple[str, ...], seeds: int, gt: str = "map") -> list[dict]:
+def select_rows(rows: str | None) -> tuple[AblationRow, ...]:
+    """`--rows 3,8` -> those rows of Table I (all eight when None)."""
+    from virus_nerf.errors import UsageError
+
+    if rows is None:
+        return ROWS
+    by_number = {r.number: r for r in ROWS}
+    picked = []
+    for text in rows.split(","):
+        if not text.strip().isdigit() or int(text) not in by_number:
+            raise UsageError(f"--rows {rows!r}: {text.strip()!r} is not a row; expected a comma-separated "
+                             f"subset of {','.join(str(n) for n in by_number)}")
+        picked.append(by_number[int(text)])
+    return tuple(dict.fromkeys(picked))
+
+
+def aggregate(out: Path, scenes: tuple[str, ...], seeds: int, gt: str = "map",
+              rows: tuple[AblationRow, ...] = ROWS) -> list[dict]:
     """One record per (row, scene): mean and std over seeds under ground truth `gt`, the paper's
-    figure, steps/s."""
+    figure, steps/s; `failed` counts the row's runs without a metrics.json (died twice, or not
+    run yet)."""
     records = []
-    for row in ROWS:
+    for row in rows:
         for scene in scenes:
             runs = [out / "runs" / scene / f"row{row.number}_seed{s}" for s in range(seeds)]
             done = [(r, read_metrics(r / METRICS)) for r in runs if (r / METRICS).is_file()]
             blocks = [run_zone3(m, gt, r) for r, m in done]
             docs = [m for _, m in done]
-            rec: dict = {"row": row.number, "label": row.label, "scene": scene, "gt": gt, "runs": len(docs)}
+            rec: dict = {"row": row.number, "label": row.label, "scene": scene, "gt": gt, "runs": len(docs),
+                         "failed": len(runs) - len(docs)}
             for key in KEYS:
                 vals = [getattr(b, key) for b in blocks]
                 rec[key], rec[key + "_std"] = mean_std(vals)
@@ -116,6 +136,11 @@ def _fmt(m: float | None, s: float | None) -> str:
     return f"{m:.3f} ± {s:.3f}"
 
 
+def _runs(r: dict) -> str:
+    """Finished runs, and how many of the row's runs failed (no metrics.json)."""
+    return f"{r['runs']}" + (f" ({r['failed']} failed)" if r.get("failed") else "")
+
+
 def table_markdown(records: list[dict]) -> str:
     lines = [
         "| row | grid, sensors | scene | runs | acc mean [m] | cov mean [m] | acc inlier | cov inlier | steps/s "
@@ -124,7 +149,7 @@ def table_markdown(records: list[dict]) -> str:
     ]
     for r in records:
         lines.append(
-            f"| {r['row']} | {r['label']} | {r['scene']} | {r['runs']} | {_fmt(r['acc_mean'], r['acc_mean_std'])} | "
+            f"| {r['row']} | {r['label']} | {r['scene']} | {_runs(r)} | {_fmt(r['acc_mean'], r['acc_mean_std'])} | "
             f"{_fmt(r['cov_mean'], r['cov_mean_std'])} | {_fmt(r['acc_inlier'], r['acc_inlier_std'])} | "
             f"{_fmt(r['cov_inlier'], r['cov_inlier_std'])} | {_fmt(r['steps_per_s'], r['steps_per_s_std'])} | "
             f"{r['paper_acc_mean']:.3f} / {r['paper_cov_mean']:.3f} | "
@@ -180,14 +205,22 @@ def ablation(
     seeds: int | None = None,
     workers: int = 2,
     train_time: float | None = None,
+    max_steps: int | None = None,
     scenes: tuple[str, ...] | None = None,
+    rows: str | None = None,
+    config: Path | None = None,
+    scheduler: str | None = None,
+    threads_per_run: int | None = None,
     gt: str = "map",
 ) -> None:
     """Run the paper's Table I ablation on simulated rooms and aggregate it.
 
     Writes OUT/data/<scene> (simulated once, seed 0), OUT/runs/<scene>/row<k>_seed<s>/ (one
     training each), and OUT/ablation.{md,csv,json} plus OUT/ablation.png. Re-running the same
-    command continues where it stopped: finished runs are kept, interrupted ones resume.
+    command continues where it stopped: finished runs are kept (never rerun or overwritten),
+    interrupted ones resume; a run that dies is retried once, then counted as failed in the
+    table. The runs go to local processes, or with --scheduler to a Dask cluster (the same run
+    folders: an ablation may be continued with the other executor).
     The summaries are never overwritten: if OUT already holds any of ablation.{md,csv,json,png}
     (a finished ablation) the command is refused before anything runs; to aggregate OUT's runs
     again (e.g. with more seeds), move those files away first, and the finished runs are reused.
@@ -197,9 +230,18 @@ def ablation(
         out: Experiment folder (created, or continued if it holds an unfinished ablation).
         quick: Smoke profile: office only, 1 seed, 15 s per run.
         seeds: Training seeds per row and scene (default 3; quick 1).
-        workers: Trainings in parallel (each gets cores / workers threads).
-        train_time: Seconds of training per run (default 120; quick 15).
+        workers: Trainings in parallel (local: each gets cores / workers threads; with
+            --scheduler local: the LocalCluster's workers).
+        train_time: Seconds of training per run (default 75; quick 15); not with --max-steps alone.
+        max_steps: Training steps per run instead of a time budget (bit-reproducible on CPU);
+            with --train-time too, whichever comes first.
         scenes: Scenes to run (default office and common; quick office).
+        rows: Table I rows to run, comma-separated (default all eight, e.g. 3,8).
+        config: JSON config every run starts from (`train --config`); the row's grid and
+            sensors, the seed and the budget are set on top.
+        scheduler: Dask scheduler address (tcp://HOST:8786) to send the runs to, or 'local' for a
+            LocalCluster of --workers workers; default: local processes (needs the [dask] extra).
+        threads_per_run: Threads of each training (default: cores / workers locally, 1 on Dask).
         gt: Ground truth of the runs' evaluation, one or more of map, exact, paper, comma-separated
             (default map); a table per protocol, the first one's in the plot.
     """
@@ -217,36 +259,53 @@ def ablation(
     protocols = parse_gt_flag(gt)
     if train_time is not None:
         require_number("--train-time", train_time, 0.0)
+    if max_steps is not None:
+        require_int("--max-steps", max_steps, 1)
+    if threads_per_run is not None:
+        require_int("--threads-per-run", threads_per_run, 1, 1024)
     for scene in scenes or ():
         if scene not in ("office", "common"):
             raise UsageError(f"--scenes {scene!r}: expected 'office' and/or 'common'")
+    chosen = select_rows(rows)
+    if config is not None:
+        from virus_nerf.config_io import load_json_config
+        from virus_nerf.trainer.config import TrainConfig
+
+        load_json_config(TrainConfig, config)  # a bad file fails now, not in every run
+        config = Path(config).absolute()
     summaries = [out / f"ablation.{ext}" for ext in ("md", "csv", "json", "png")]
     refuse_existing(summaries)
     prof = PROFILES["quick" if quick else "full"]
     scenes = tuple(dict.fromkeys(scenes)) if scenes else prof.scenes
     n_seeds = seeds or prof.seeds
-    t_train = train_time or prof.train_time
+    t_train = train_time or (None if max_steps is not None else prof.train_time)
+    budget = (("--max-steps", str(max_steps)) if max_steps is not None else ()) + \
+        (("--max-time", str(t_train)) if t_train is not None else ())
+    budget_text = " and ".join(([f"{max_steps} steps"] if max_steps is not None else []) +
+                               ([f"{t_train:.0f} s"] if t_train is not None else []))
+    out = Path(out).absolute()  # Dask workers may run in other folders
     out.mkdir(parents=True, exist_ok=True)
     for scene in scenes:
         data = out / "data" / scene
         if not (data / scene).is_dir():
             print(f"simulating {scene} ({prof.duration:.0f} s drive) -> {data}")
             simulate(scene=scene, out=data, seed=0, duration=prof.duration, resolution_scale=0.5)
+    base = ("--config", str(config)) if config is not None else ()
     specs = [
         RunSpec(
             name=f"{scene} row {row.number} seed {s}",
             data=out / "data" / scene,
             room=scene,
             out=out / "runs" / scene / f"row{row.number}_seed{s}",
-            args=row.args() + ("--seed", str(s), "--max-time", str(t_train), "--image-scale", "1.0",
-                               "--gt", ",".join(protocols)),
+            args=base + row.args() + ("--seed", str(s)) + budget + ("--image-scale", "1.0",
+                                                                    "--gt", ",".join(protocols)),
         )
         for scene in scenes
-        for row in ROWS
+        for row in chosen
         for s in range(n_seeds)
     ]
-    failed = run_all(specs, workers=workers)
-    by_gt = {p: aggregate(out, scenes, n_seeds, p) for p in protocols}
+    failed = run_all(specs, workers=workers, threads_per_worker=threads_per_run, scheduler=scheduler)
+    by_gt = {p: aggregate(out, scenes, n_seeds, p, chosen) for p in protocols}
     records = by_gt[protocols[0]]
     refuse_existing(summaries)  # again: another process may have finished the same folder meanwhile
     from virus_nerf.evaluation.gt import GT_DESCRIPTIONS
@@ -256,7 +315,7 @@ def ablation(
     speed_md = ", ".join(f"{k}: {v:.2f}x" if v else f"{k}: -" for k, v in speed.items())
     write_text_atomic(
         out / "ablation.md",
-        f"# Table I ablation ({n_seeds} seed(s), {t_train:.0f} s of training per run)\n\n{md}\n\n"
+        f"# Table I ablation ({n_seeds} seed(s), {budget_text} of training per run)\n\n{md}\n\n"
         f"Grid speed, VIRUS / Instant-NGP steps/s (row 8 vs row 2): {speed_md} (paper: 1.46x)\n",
     )
     buf = io.StringIO()
@@ -266,10 +325,11 @@ def ablation(
     writer.writerows(all_records)
     write_text_atomic(out / "ablation.csv", buf.getvalue())
     write_json_atomic(out / "ablation.json", {"gt": protocols[0], "records": records, "grid_speed_ratio": speed,
-                                              "seeds": n_seeds, "train_time": t_train,
+                                              "seeds": n_seeds, "train_time": t_train, "max_steps": max_steps,
+                                              "failed": [s.name for s in failed],
                                               **({"by_gt": by_gt} if len(by_gt) > 1 else {})})
     plot_rows(records, out / "ablation.png")
     print(md)
     print(f"grid speed VIRUS / Instant-NGP: {json.dumps(speed)}")
     if failed:
-        raise SystemExit(f"{len(failed)} run(s) failed: " + ", ".join(s.name for s in failed))
+        raise SystemExit(f"{len(failed)} run(s) failed (counted in the table): " + ", ".join(s.name for s in failed))

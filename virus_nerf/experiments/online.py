@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.evaluation.metrics import mean_std
-from virus_nerf.experiments.runs import RunSpec, run_all
+from virus_nerf.experiments.executors import run_all
+from virus_nerf.experiments.runs import RunSpec
 from virus_nerf.trainer.run_folder import METRICS_VS_TIME, EvalPoint, read_eval_history
 
 

@@ -1,14 +1,23 @@
-"""Running many trainings as separate processes, resumably (finished runs are never redone)."""
+"""One training run as a separate `virus-nerf train` process, resumable and retried once.
+
+`execute_run` is what every executor runs (`executors.py`: local threads, or a Dask worker on
+another machine), so a run folder looks the same whichever executor ran it. It never reruns or
+overwrites a finished run (finished = metrics.json exists); a run that died is retried once
+(resumed from its checkpoint, or started again with the dead folder kept aside); a run whose
+stop file (`RUN.stop`, beside the folder) appears is terminated and not retried (tune's pruning).
+"""
 
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+
+USAGE_EXIT = 2  # `virus-nerf` exits 2 on a user mistake: the same command would fail again
 
 
 @dataclass(frozen=True)
@@ -26,8 +35,43 @@ class RunSpec:
                 "--out", str(self.out), "--quiet", *self.args]
 
 
+@dataclass(frozen=True)
+class RunResult:
+    """What became of a RunSpec: exit code of the last attempt, attempts made (0: it was finished
+    already), whether it was stopped on request, the host it ran on and its wall seconds."""
+
+    spec: RunSpec
+    returncode: int
+    attempts: int
+    stopped: bool = False
+    host: str = ""
+    seconds: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return run_done(self.spec.out)
+
+
 def run_done(out: Path) -> bool:
-    return (out / "metrics.json").is_file()
+    return (Path(out) / "metrics.json").is_file()
+
+
+def log_file(out: Path) -> Path:
+    """RUN.log beside the run folder: the train process's output, every attempt appended."""
+    out = Path(out)
+    return out.with_name(f"{out.name}.log")
+
+
+def stop_file(out: Path) -> Path:
+    """RUN.stop beside the run folder: while it exists the run is terminated / not started."""
+    out = Path(out)
+    return out.with_name(f"{out.name}.stop")
+
+
+def request_stop(out: Path, reason: str = "stop requested") -> None:
+    path = stop_file(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(reason + "\n")
 
 
 def _worker_env(threads: int) -> dict[str, str]:
@@ -37,32 +81,45 @@ def _worker_env(threads: int) -> dict[str, str]:
     return env
 
 
-def _run_one(spec: RunSpec, threads: int) -> tuple[RunSpec, int, float]:
-    t0 = time.perf_counter()
+def _attempt(spec: RunSpec, threads: int, poll_s: float) -> tuple[int, bool]:
+    """One train process for `spec`; returns (exit code, stopped on request)."""
     cmd = spec.command()
     if spec.out.exists() and (spec.out / "checkpoint.pt").is_file():
         cmd = cmd + ["--resume"]  # an interrupted run continues from its checkpoint
     elif spec.out.exists():
-        # interrupted before its first checkpoint: keep it aside, never delete
-        spec.out.rename(spec.out.with_name(f"{spec.out.name}.incomplete-{int(time.time())}"))
+        # died before its first checkpoint: keep it aside, never delete
+        spec.out.rename(spec.out.with_name(f"{spec.out.name}.incomplete-{time.time_ns()}"))
     spec.out.parent.mkdir(parents=True, exist_ok=True)
-    log = spec.out.parent / f"{spec.out.name}.log"
-    with log.open("a") as fh:
-        proc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env=_worker_env(threads))
-    return spec, proc.returncode, time.perf_counter() - t0
+    with log_file(spec.out).open("a") as fh:
+        fh.write(f"# {socket.gethostname()} pid {os.getpid()}: {' '.join(cmd)}\n")
+        fh.flush()
+        proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=_worker_env(threads))
+        while True:
+            try:
+                return proc.wait(timeout=poll_s), False
+            except subprocess.TimeoutExpired:
+                if not stop_file(spec.out).exists():
+                    continue
+            proc.terminate()  # SIGTERM: the run folder stays as it is (no clean-up handler runs)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            return proc.returncode, True
 
 
-def run_all(specs: list[RunSpec], workers: int = 2, threads_per_worker: int | None = None) -> list[RunSpec]:
-    """Run every unfinished spec, `workers` at a time; returns the specs that failed."""
-    todo = [s for s in specs if not run_done(s.out)]
-    done = len(specs) - len(todo)
-    print(f"{len(specs)} runs: {done} already finished, {len(todo)} to run with {workers} worker(s)")
-    threads = threads_per_worker or max(1, (os.cpu_count() or 2) // max(1, workers))
-    failed: list[RunSpec] = []
-    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        for k, (spec, rc, secs) in enumerate(pool.map(lambda s: _run_one(s, threads), todo), start=1):
-            status = "ok" if rc == 0 and run_done(spec.out) else f"FAILED (exit {rc}, see {spec.out}.log)"
-            print(f"  [{k}/{len(todo)}] {spec.name}: {status} in {secs:.0f} s", flush=True)
-            if status != "ok":
-                failed.append(spec)
-    return failed
+def execute_run(spec: RunSpec, threads: int = 1, retries: int = 1, poll_s: float = 0.5) -> RunResult:
+    """Run `spec` to its end: nothing if finished, else up to 1 + `retries` attempts (a run that
+    died is retried; a usage error, exit 2, or a stop request is not)."""
+    t0 = time.perf_counter()
+    host = socket.gethostname()
+    if run_done(spec.out):
+        return RunResult(spec, 0, 0, host=host)
+    attempts, rc, stopped = 0, 0, stop_file(spec.out).exists()
+    while not stopped and attempts <= retries:
+        rc, stopped = _attempt(spec, threads, poll_s)
+        attempts += 1
+        if run_done(spec.out) or rc == USAGE_EXIT:
+            break
+    return RunResult(spec, rc, attempts, stopped=stopped, host=host, seconds=time.perf_counter() - t0)

@@ -1,0 +1,148 @@
+"""Where runs execute: local processes (threads each waiting on a `virus-nerf train` process) or
+a Dask cluster (`--scheduler ADDRESS`, or `--scheduler local` for a LocalCluster on this machine).
+
+Both run `runs.execute_run` on a RunSpec, so a run folder is the same whichever executor ran
+it, and an ablation or a study started with one executor can be continued with the other. With a
+remote cluster the data and output folders must be reachable at the same paths on every worker
+(a shared file system); the RunSpecs carry absolute paths.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import os
+from collections.abc import Iterable, Iterator
+from typing import Any
+
+from virus_nerf.experiments.runs import RunResult, RunSpec, execute_run, log_file, run_done
+
+
+def require_extra(module: str, extra: str, what: str) -> Any:
+    """Import an optional dependency, or a one-line UsageError naming the extra to install."""
+    import importlib
+
+    from virus_nerf.errors import UsageError
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise UsageError(f"{what} needs the optional package '{module}', which is not installed: "
+                         f"pip install 'virus-nerf[{extra}]'") from None
+
+
+class LocalExecutor:
+    """`workers` runs at a time on this machine, each a subprocess with `threads` threads."""
+
+    def __init__(self, workers: int, threads: int | None = None) -> None:
+        self.workers = max(1, workers)
+        self.threads = threads or max(1, (os.cpu_count() or 2) // self.workers)
+        self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=self.workers)
+
+    def describe(self) -> str:
+        return f"{self.workers} local worker(s), {self.threads} thread(s) per run"
+
+    def submit(self, spec: RunSpec):
+        """A future (done(), result() -> RunResult)."""
+        return self._pool.submit(execute_run, spec, self.threads)
+
+    def as_completed(self, futures: list) -> Iterator:
+        return concurrent.futures.as_completed(futures)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class DaskExecutor:
+    """Runs sent to a dask.distributed scheduler; each task occupies one worker thread for the
+    length of its training (start workers with `--nthreads 1`, one per training at a time)."""
+
+    def __init__(self, scheduler: str, workers: int = 2, threads: int | None = None) -> None:
+        from virus_nerf.errors import UsageError
+
+        self._distributed = require_extra("distributed", "dask", f"--scheduler {scheduler}")
+        self.threads = threads or 1
+        self._cluster = None
+        if scheduler == "local":
+            self._cluster = self._distributed.LocalCluster(n_workers=max(1, workers), threads_per_worker=1,
+                                                           processes=True, dashboard_address=None)
+            self.client = self._distributed.Client(self._cluster)
+        else:
+            try:
+                self.client = self._distributed.Client(scheduler, timeout="20s")
+            except (OSError, TimeoutError, ValueError) as exc:
+                raise UsageError(f"--scheduler {scheduler}: cannot connect to a Dask scheduler there "
+                                 f"({type(exc).__name__}); expected e.g. tcp://HOST:8786 or 'local'") from None
+        self.scheduler = scheduler
+
+    @property
+    def n_workers(self) -> int:
+        return len(self.client.scheduler_info().get("workers", {}))
+
+    def describe(self) -> str:
+        return f"Dask scheduler {self.scheduler} ({self.n_workers} worker(s)), {self.threads} thread(s) per run"
+
+    def submit(self, spec: RunSpec):
+        return self.client.submit(execute_run, spec, self.threads, pure=False)
+
+    def as_completed(self, futures: list) -> Iterator:
+        return iter(self._distributed.as_completed(futures))
+
+    def close(self) -> None:
+        self.client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def make_executor(scheduler: str | None, workers: int, threads: int | None = None):
+    """LocalExecutor without a scheduler, DaskExecutor with one ('local': a LocalCluster of
+    `workers` single-thread workers)."""
+    if scheduler is None:
+        return LocalExecutor(workers, threads)
+    return DaskExecutor(scheduler, workers, threads)
+
+
+def run_many(executor, specs: Iterable[RunSpec]) -> Iterator[tuple[RunSpec, RunResult | None, str]]:
+    """Submit every spec; yield (spec, result or None, error text) as each completes."""
+    futures = {}
+    for spec in specs:
+        futures[executor.submit(spec)] = spec
+    for fut in executor.as_completed(list(futures)):
+        spec = futures[fut]
+        try:
+            yield spec, fut.result(), ""
+        except Exception as exc:  # the task itself broke (e.g. a worker lost the shared folder)
+            yield spec, None, f"{type(exc).__name__}: {exc}"
+
+
+def run_all(specs: list[RunSpec], workers: int = 2, threads_per_worker: int | None = None,
+            scheduler: str | None = None) -> list[RunSpec]:
+    """Run every unfinished spec, `workers` at a time locally or on the Dask `scheduler`; a run
+    that dies is retried once. Returns the specs that failed (no metrics.json in the end)."""
+    todo = [s for s in specs if not run_done(s.out)]
+    failed: list[RunSpec] = []
+    with make_executor(scheduler, workers, threads_per_worker) as executor:
+        print(f"{len(specs)} runs: {len(specs) - len(todo)} already finished, {len(todo)} to run on "
+              f"{executor.describe()}", flush=True)
+        for k, (spec, res, error) in enumerate(run_many(executor, todo), start=1):
+            if res is not None and res.ok:
+                status = f"ok in {res.seconds:.0f} s" + (f" ({res.attempts} attempts)" if res.attempts > 1 else "")
+            elif res is not None:
+                status = f"FAILED after {res.attempts} attempt(s) (exit {res.returncode}, see {log_file(spec.out)})"
+            else:
+                status = f"FAILED ({error})"
+            print(f"  [{k}/{len(todo)}] {spec.name}: {status}", flush=True)
+            if res is None or not res.ok:
+                failed.append(spec)
+    return failed
