@@ -38,6 +38,14 @@ def _batch(depth=None, nerf=None) -> GridUpdateBatch:
     return GridUpdateBatch(do, dd, dr, no, nd, nf)
 
 
+def _config(**changes) -> VirusGridConfig:
+    """The grid parameters the hand-computed cases below are laid out for (the values before the
+    tuning study: 3 cm/m range noise, 0.3 false detections/m, zeta 0.25, Instant-NGP's alpha 0.01)."""
+    earlier = dict(std_per_m=0.03, false_rate=0.3, zeta=0.25, threshold_alpha=0.01, warmup_steps=128,
+                   update_interval=16, rays_per_update=1024)
+    return VirusGridConfig(**{**earlier, **changes})
+
+
 def _unit(v) -> torch.Tensor:
     t = torch.tensor(v, dtype=torch.float32)
     return t / t.norm(dim=-1, keepdim=True)
@@ -48,7 +56,7 @@ BAR = SceneBox((0.0, 0.0, 0.0), (4.0, 1.0, 1.0))  # 40 x 10 x 10 cells of 0.1 m
 
 
 def test_depth_update_profile_along_one_ray():
-    cfg = VirusGridConfig(max_resolution=40)
+    cfg = _config(max_resolution=40)
     grid = VirusGrid(BAR, cfg)
     assert grid.spec.resolution == (40, 10, 10)
     m = 2.0
@@ -71,7 +79,7 @@ def test_depth_update_profile_along_one_ray():
 
 
 def test_depth_update_convergence_to_the_clamps():
-    cfg = VirusGridConfig(max_resolution=40)
+    cfg = _config(max_resolution=40)
     grid = VirusGrid(BAR, cfg)
     o, d, m = torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([2.05])
     for _ in range(30):
@@ -84,7 +92,7 @@ def test_depth_update_convergence_to_the_clamps():
 
 def test_depth_update_with_tiny_noise_still_hits_the_peak_cell():
     # sigma far below the cell size: the segment-averaged Gaussian still finds the peak (docs/method.md 9.4)
-    cfg = VirusGridConfig(max_resolution=40, std_per_m=0.0, std_floor=0.002)
+    cfg = _config(max_resolution=40, std_per_m=0.0, std_floor=0.002)
     grid = VirusGrid(BAR, cfg)
     before = grid.logodds.clone()
     grid.depth_update(torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([1.234]))
@@ -94,7 +102,7 @@ def test_depth_update_with_tiny_noise_still_hits_the_peak_cell():
 
 
 def test_depth_log_odds_is_unimodal_in_distance():
-    cfg = VirusGridConfig()
+    cfg = _config()
     for m in (0.3, 1.0, 2.5, 4.0):
         starts = np.arange(0.0, m + 0.3, 0.01)
         inc = [depth_log_odds(a, a + 0.05, m, cfg.std_per_m * m + cfg.std_floor, cfg.false_rate,
@@ -106,7 +114,7 @@ def test_depth_log_odds_is_unimodal_in_distance():
 
 
 def test_traversal_visits_a_gapless_chain_of_every_crossed_cell():
-    grid = VirusGrid(SceneBox((0.0, 0.0, 0.0), (2.0, 1.5, 1.0)), VirusGridConfig(max_resolution=20))
+    grid = VirusGrid(SceneBox((0.0, 0.0, 0.0), (2.0, 1.5, 1.0)), _config(max_resolution=20))
     spec = grid.spec  # 20 x 15 x 10 cells of 0.1 m
     o = np.array([0.03, 0.07, 0.11])
     d = np.array([1.0, 0.73, 0.41])
@@ -127,7 +135,7 @@ def test_traversal_visits_a_gapless_chain_of_every_crossed_cell():
 
 
 def test_traversal_of_a_ray_from_outside_starts_at_the_box():
-    spec = VirusGrid(SceneBox((0.0, 0.0, 0.0), (2.0, 1.5, 1.0)), VirusGridConfig(max_resolution=20)).spec
+    spec = VirusGrid(SceneBox((0.0, 0.0, 0.0), (2.0, 1.5, 1.0)), _config(max_resolution=20)).spec
     cells, a, b = cells_along_ray(spec, [-1.0, 0.52, 0.47], [1.0, 0.1, 0.0], t_end=100.0)
     assert a[0] == pytest.approx(math.sqrt(1.01))
     assert len(cells) == 20 + 1  # x crosses 20 cells, y one boundary (0.52 -> 0.72)
@@ -135,7 +143,7 @@ def test_traversal_of_a_ray_from_outside_starts_at_the_box():
 
 
 def test_marcher_reads_the_cell_the_depth_update_writes():
-    cfg = VirusGridConfig()
+    cfg = _config()
     grid = VirusGrid(SceneBox((0.0, 0.0, 0.0), (9.0, 8.0, 2.6)), cfg)  # 128 x 114 x 37
     o = torch.tensor([[1.0, 1.2, 0.9]])
     d = _unit([[0.83, 0.51, 0.13]])
@@ -167,7 +175,7 @@ def test_eq9_increment_sign_and_value():
 
 
 def test_nerf_update_hand_computed_bayes_step_then_clamp():
-    cfg = VirusGridConfig(max_resolution=10, pos_noise_per_m=0.0)
+    cfg = _config(max_resolution=10, pos_noise_per_m=0.0)
     grid = VirusGrid(CUBE, cfg)
     rays = (torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([1.0]))
     g = torch.Generator().manual_seed(1)
@@ -184,7 +192,7 @@ def test_nerf_update_hand_computed_bayes_step_then_clamp():
 
 
 def test_nerf_update_at_threshold_changes_nothing_and_splits_above_below():
-    cfg = VirusGridConfig(max_resolution=10, pos_noise_per_m=0.0, nerf_points_per_ray=64)
+    cfg = _config(max_resolution=10, pos_noise_per_m=0.0, nerf_points_per_ray=64)
     o = torch.tensor([[0.0, y, z] for y in (0.15, 0.55, 0.85) for z in (0.25, 0.65)])
     rays = (o, torch.tensor([[1.0, 0.0, 0.0]]).expand(6, 3), torch.full((6,), 1.0))
     g = torch.Generator().manual_seed(2)
@@ -200,7 +208,7 @@ def test_nerf_update_at_threshold_changes_nothing_and_splits_above_below():
 
 # --------------------------------------------------------------------- warm-up
 def test_untouched_cells_empty_after_warmup_counted_in_steps():
-    cfg = VirusGridConfig(max_resolution=8, update_interval=16, warmup_steps=256)
+    cfg = _config(max_resolution=8, update_interval=16, warmup_steps=256)
     g = torch.Generator().manual_seed(0)
     every = VirusGrid(CUBE, cfg)
     for step in range(0, 257, 16):
@@ -215,7 +223,7 @@ def test_untouched_cells_empty_after_warmup_counted_in_steps():
 
 
 def test_evidence_holds_a_cell_up_through_the_warmup():
-    cfg = VirusGridConfig(max_resolution=40, warmup_steps=256)
+    cfg = _config(max_resolution=40, warmup_steps=256)
     grid = VirusGrid(BAR, cfg)
     g = torch.Generator().manual_seed(0)
     depth = (torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([2.05]))
@@ -240,7 +248,7 @@ def _density(p: torch.Tensor) -> torch.Tensor:
 
 
 def test_camera_only_and_depth_only_batches_run():
-    cfg = VirusGridConfig(max_resolution=10, rays_per_update=32)
+    cfg = _config(max_resolution=10, rays_per_update=32)
     b = _mixed_batch(torch.Generator().manual_seed(3))
     camera_only = _batch(nerf=(b.nerf_origins, b.nerf_directions, b.nerf_far))
     depth_only = _batch(depth=(b.depth_origins, b.depth_directions, b.depth_ranges))
@@ -255,7 +263,7 @@ def test_camera_only_and_depth_only_batches_run():
 
 
 def test_state_round_trip_and_resume_are_exact():
-    cfg = VirusGridConfig(max_resolution=12, rays_per_update=32)
+    cfg = _config(max_resolution=12, rays_per_update=32)
     data = _mixed_batch(torch.Generator().manual_seed(4))
     a = VirusGrid(CUBE, cfg)
     ga = torch.Generator().manual_seed(5)
@@ -272,19 +280,19 @@ def test_state_round_trip_and_resume_are_exact():
     assert torch.equal(a.logodds, b.logodds)
     assert a.state_dict()["decay_applied"] == b.state_dict()["decay_applied"]
     with pytest.raises(ValueError, match="logodds"):
-        VirusGrid(CUBE, VirusGridConfig(max_resolution=8)).load_state_dict(a.state_dict())
+        VirusGrid(CUBE, _config(max_resolution=8)).load_state_dict(a.state_dict())
 
 
 def test_bad_config_and_bad_rays_are_clear_errors():
     with pytest.raises(ValueError, match="hit_probability"):
-        VirusGridConfig(hit_probability=1.0)
-    grid = VirusGrid(CUBE, VirusGridConfig(max_resolution=4))
+        _config(hit_probability=1.0)
+    grid = VirusGrid(CUBE, _config(max_resolution=4))
     with pytest.raises(ValueError, match="depth rays"):
         grid.depth_update(torch.zeros(2, 3), torch.ones(3, 3), torch.ones(2))
 
 
 def test_free_space_update_only_lowers_cells_up_to_the_echo():
-    grid = VirusGrid(BAR, VirusGridConfig(max_resolution=40))
+    grid = VirusGrid(BAR, _config(max_resolution=40))
     before = grid.logodds.clone()
     grid.free_space_update(torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([1.5]))
     row = (grid.logodds - before)[:, 5, 5]
@@ -293,7 +301,7 @@ def test_free_space_update_only_lowers_cells_up_to_the_echo():
 
 
 def test_grid_over_a_given_spec_matches_the_box_constructor():
-    cfg = VirusGridConfig(max_resolution=16)
+    cfg = _config(max_resolution=16)
     a = VirusGrid(BAR, cfg)
     b = VirusGrid(GridSpec.from_box(BAR, 16), cfg, device="cpu")
     assert a.spec == b.spec and b.occupied.device == torch.device("cpu")
@@ -304,7 +312,7 @@ def test_grid_over_a_given_spec_matches_the_box_constructor():
 def test_initialise_from_sensor_rays_is_one_depth_update_per_ray():
     from virus_nerf.grid.base import SensorRays
 
-    cfg = VirusGridConfig(max_resolution=40)
+    cfg = _config(max_resolution=40)
     rays = SensorRays(torch.tensor([[0.0, 0.55, 0.55], [0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]] * 2),
                       torch.tensor([2.05, float("nan")]))
     grid = VirusGrid(BAR, cfg)
@@ -320,13 +328,13 @@ def test_initialise_from_sensor_rays_is_one_depth_update_per_ray():
     free.initialise(None, SensorRays(rays.origins[:1], rays.directions[:1], torch.tensor([1.0])))
     assert (free.logodds <= L_INIT + 1e-6).all() and free.logodds[5, 5, 5] < L_INIT
     # the paper's plain warm-up ignores the prior
-    plain = VirusGrid(BAR, VirusGridConfig(max_resolution=40, init="none"))
+    plain = VirusGrid(BAR, _config(max_resolution=40, init="none"))
     assert plain.initialise(rays.valid()) == 0
     assert torch.all(plain.logodds == torch.tensor(L_INIT, dtype=torch.float32))
 
 
 def test_nan_densities_never_reach_a_cell():
-    cfg = VirusGridConfig(max_resolution=10, pos_noise_per_m=0.0)
+    cfg = _config(max_resolution=10, pos_noise_per_m=0.0)
     rays = (torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([1.0]))
     grid = VirusGrid(CUBE, cfg)
     # NaN in the first half of the ray, 10 /m behind: only the dense half moves, by eq. 9 exactly
@@ -343,7 +351,7 @@ def test_nan_densities_never_reach_a_cell():
 
 
 def test_forward_samples_update_the_cells_they_lie_in():
-    cfg = VirusGridConfig(max_resolution=10, nerf_update_source="forward")
+    cfg = _config(max_resolution=10, nerf_update_source="forward")
     grid = VirusGrid(CUBE, cfg)
     pts = torch.tensor([[0.15, 0.15, 0.15], [0.16, 0.12, 0.18], [0.85, 0.85, 0.85], [2.0, 0.5, 0.5]])
     sigma = torch.tensor([100.0, 1.0, 0.001, 50.0])  # the last point is outside the box
@@ -360,7 +368,7 @@ def test_forward_samples_update_the_cells_they_lie_in():
 def test_fixed_threshold_does_not_follow_a_thin_mean():
     rays = (torch.tensor([[0.0, 0.55, 0.55]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([1.0]))
     for mode, expected in (("mean", L_INIT), ("fixed", L_INIT + 0.25 * math.log(0.5 / (-math.log(0.99) / 0.01)))):
-        grid = VirusGrid(CUBE, VirusGridConfig(max_resolution=10, pos_noise_per_m=0.0, threshold_mode=mode))
+        grid = VirusGrid(CUBE, _config(max_resolution=10, pos_noise_per_m=0.0, threshold_mode=mode))
         grid.nerf_update(lambda p: torch.full((p.shape[0],), 0.5), *rays, torch.Generator().manual_seed(0))
         assert torch.allclose(grid.logodds[:, 5, 5], torch.tensor(expected, dtype=torch.float32)), mode
 
@@ -368,7 +376,7 @@ def test_fixed_threshold_does_not_follow_a_thin_mean():
 def test_nan_forward_densities_never_reach_a_cell():
     """Issue 13, item 4, on the default path (NeRF-Update from the forward pass's densities): a
     NaN density is dropped, it neither poisons its cell nor drags the mean threshold."""
-    grid = VirusGrid(CUBE, VirusGridConfig(max_resolution=10, nerf_update_source="forward"))
+    grid = VirusGrid(CUBE, _config(max_resolution=10, nerf_update_source="forward"))
     pts = torch.tensor([[0.15, 0.15, 0.15], [0.16, 0.12, 0.18], [0.85, 0.85, 0.85]])
     info = grid.nerf_update_from_samples(pts, torch.tensor([float("nan"), 100.0, float("nan")]))
     assert torch.isfinite(grid.logodds).all()

@@ -13,16 +13,21 @@ def _logit(p: float) -> float:
 
 @dataclass(frozen=True)
 class VirusGridConfig:
-    """VIRUS grid parameters; every length in metres, rates per metre, densities in 1/m."""
+    """VIRUS grid parameters; every length in metres, rates per metre, densities in 1/m.
+
+    warmup_steps, update_interval, rays_per_update, std_per_m, false_rate, zeta and
+    threshold_alpha come from the tuning study (see LossWeights); configs/paper.json restores the
+    earlier values (128, 16, 1024, 0.03, 0.3, 0.25, 0.01).
+    """
 
     max_resolution: int = 128  # cells along the longest box axis (GridSpec.from_box)
     logodds_min: float = -4.0  # clamp (p ~ 0.018)
     logodds_max: float = 4.0  # clamp (p ~ 0.982)
     init_probability: float = 0.55  # slightly above 0.5: everything is marched at first
     prior_probability: float = 0.49  # where unsupported cells end after the warm-up (empty)
-    warmup_steps: int = 128  # training steps (not updates) of the decay init -> prior (~30 s on 2 CPU cores)
-    update_interval: int = 16  # training steps between grid updates (the trainer calls update)
-    rays_per_update: int = 1024  # rays per update, both kinds together (paper: ~1k)
+    warmup_steps: int = 330  # training steps (not updates) of the decay init -> prior
+    update_interval: int = 21  # training steps between grid updates (the trainer calls update)
+    rays_per_update: int = 438  # rays per update, both kinds together (paper: ~1k)
     depth_share: float = 0.5  # share of rays_per_update for the Depth-Update (rest: NeRF)
     # Start-up: before step 0, a Depth-Update over every training IRS frame ("sensors"), so free
     # space and surfaces the IRS saw are known from the start; "none" = the paper's plain warm-up.
@@ -37,18 +42,18 @@ class VirusGridConfig:
     # along rays of the batch and evaluates the density MLP there.
     nerf_update_source: Literal["resample", "forward"] = "forward"
     # Depth-Update (IRS, MURIEL model; sensor_model docstring)
-    std_per_m: float = 0.03  # range noise grows 3 cm per metre ...
+    std_per_m: float = 0.0066  # range noise grows 0.66 cm per metre ...
     std_floor: float = 0.02  # ... on top of 2 cm (pose error, zone width)
-    false_rate: float = 0.3  # lambda: false detections per metre (docs/method.md 3.4)
+    false_rate: float = 2.4043  # lambda: false detections per metre (docs/method.md 3.4)
     hit_probability: float = 0.4  # p_hit: an occupied cell crossed fully stops the beam (0.7 punched holes: a zone-median range is not every pixel ray's range)
     stop_length: float = 0.02  # metres of beam inside a cell for p_det to reach 63 % of p_hit
     max_increment: float = 2.0  # |log-odds change| per cell per measurement
     # NeRF-Update (eq. 9)
-    zeta: float = 0.25  # slope: a density ratio of 1000 moves a cell by 1.7
+    zeta: float = 0.4196  # slope: a density ratio of 1000 moves a cell by 2.9
     nerf_points_per_ray: int = 64  # points drawn uniformly in [0, nerf_far] per ray
     pos_noise_per_m: float = 0.05  # std of the point jitter per metre along the ray
     threshold_step: float = 0.01  # sigma_T_max: density at which a step of this many metres ...
-    threshold_alpha: float = 0.01  # ... has this alpha (the Instant-NGP convention, docs/method.md 3.3)
+    threshold_alpha: float = 0.0438  # ... has this alpha (Instant-NGP: 0.01, docs/method.md 3.3)
     sigma_floor: float = 1e-6  # 1/m, keeps ln(sigma) finite
     # sigma_T: "mean" = min(sigma_T_max, mean density of the update's points) (paper eq. 9);
     # "fixed" = sigma_T_max. Where most of the space is empty the mean falls far below

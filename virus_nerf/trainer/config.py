@@ -35,7 +35,7 @@ class MarchConfig:
 
 @dataclass
 class OptimConfig:
-    lr: float = 1e-2  # Adam (paper 5e-3 on a GPU with 4096 rays; see README)
+    lr: float = 0.0094  # Adam; from the tuning study (paper 5e-3 on a GPU with 4096 rays; see README)
     eps: float = 1e-15
     betas: tuple[float, float] = (0.9, 0.99)
     lr_decay_to: float = 0.1  # exponential decay to this fraction of lr at max_steps/max_time
