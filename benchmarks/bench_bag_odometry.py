@@ -18,8 +18,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 from virus_nerf.data.bags.odometry import KissIcpSettings, kiss_icp_track
 from virus_nerf.data.ethz import load_recording
 from virus_nerf.evaluation.trajectory import frame_points, rigid_fit, trajectory_error
@@ -27,12 +25,10 @@ from virus_nerf.sim.rig import camera_in_lidar
 
 VARIANTS = {
     "kiss_defaults": KissIcpSettings.library_defaults(),
-    "range30_voxel0.3_no_refine": KissIcpSettings(refine_start_s=0.0),
-    "range30_voxel0.3_deskew_no_refine": KissIcpSettings(refine_start_s=0.0, deskew=True),
-    "range30_voxel0.3_thr0.3_no_refine": KissIcpSettings(refine_start_s=0.0, initial_threshold_m=0.3),
-    "range30_voxel0.2_no_refine": KissIcpSettings(refine_start_s=0.0, voxel_size_m=0.2),
-    "range30_voxel0.2_refine": KissIcpSettings(voxel_size_m=0.2),
-    "range30_voxel0.3_refine1s": KissIcpSettings(refine_start_s=1.0),
+    "range30_voxel0.3_no_refine": KissIcpSettings(voxel_size_m=0.3, refine_start_s=0.0),
+    "range30_voxel0.2_no_refine": KissIcpSettings(refine_start_s=0.0),
+    "range30_voxel0.2_drop_floor_no_refine": KissIcpSettings(refine_start_s=0.0, drop_floor_ceiling_m=0.2),
+    "range30_voxel0.2_drop_floor_refine": KissIcpSettings(drop_floor_ceiling_m=0.2),
     "chosen": KissIcpSettings(),
 }
 

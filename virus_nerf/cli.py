@@ -14,6 +14,7 @@ from virus_nerf.errors import one_line
 
 def _commands() -> dict:
     """Subcommand name -> function; imports are light (torch is imported inside the commands)."""
+    from virus_nerf.data.bags.command import import_bag
     from virus_nerf.evaluation.command import sensors
     from virus_nerf.experiments.ablation import ablation
     from virus_nerf.experiments.demo import demo
@@ -33,6 +34,7 @@ def _commands() -> dict:
         "online": online,
         "tune": tune,
         "export": export,
+        "import-bag": import_bag,
     }
 
 

@@ -20,14 +20,20 @@ from typing import Literal
 import numpy as np
 
 from virus_nerf.data.bags import messages as m
-from virus_nerf.data.bags.odometry import KissIcpSettings, PoseTrack, Transform, csv_track, kiss_icp_track, tf_track
+from virus_nerf.data.bags.odometry import (
+    KissIcpSettings,
+    PoseTrack,
+    Transform,
+    csv_track,
+    kiss_icp_track,
+    tf_track,
+)
 from virus_nerf.data.bags.reader import BagReader
 from virus_nerf.data.bags.sync import StackMatch, TopicReport, match_stack
 from virus_nerf.data.bags.topics import TopicsConfig, default_topics, read_topics
 from virus_nerf.data.pcd import read_pcd_xyz, write_pcd_xyz
 from virus_nerf.data.split import DEFAULT_RATIOS, make_split, write_split
 from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError
-from virus_nerf.sensors import uss
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.sim import writer
 from virus_nerf.sim.sensors import VoxelMap
@@ -333,7 +339,3 @@ class _Importer:
             write_pcd_xyz(self.room_dir / "maps" / "map_balm.pcd", pts)
         return len(pts)
 
-
-def uss_ranges(raw_us: np.ndarray) -> np.ndarray:
-    """Echo times (us) -> the ranges (m) the ETHZ writer takes (it converts them back to us)."""
-    return uss.range_from_raw(np.asarray(raw_us, dtype=np.float64))

@@ -52,7 +52,15 @@ class PoseTrack:
 class KissIcpSettings:
     """KISS-ICP parameters (metres). deskew needs per-point times, which the ETHZ-style filtered
     scans do not carry; refine_start_s re-registers the scans of the first seconds, taken while the
-    constant-velocity prediction of KISS-ICP is still wrong, against the map of the next seconds."""
+    constant-velocity prediction of KISS-ICP is still wrong, against the map of the next seconds.
+
+    drop_floor_ceiling_m: registration ignores points within this distance of the floor and the
+    ceiling (found in the first scan, `horizontal_planes`; 0 = keep all). A 16-beam LiDAR draws
+    the floor as rings centred on itself that move with it; matched point to point they pull the
+    estimate back towards standstill (measured: 8 cm lag after 2.5 s of a simulated start, 1 cm
+    without the rings). Off by default: without the floor the 16 beams constrain pitch and roll
+    poorly (20 s office: 1.6 deg median rotation error against 0.26 deg with it); the re-registration
+    of the start (refine_start_s) removes most of the lag instead."""
 
     max_range_m: float = 30.0
     min_range_m: float = 0.3
@@ -62,12 +70,31 @@ class KissIcpSettings:
     min_motion_m: float = 0.1
     refine_start_s: float = 2.0
     refine_window_s: float = 3.0
+    drop_floor_ceiling_m: float = 0.0
+
 
     @classmethod
     def library_defaults(cls) -> KissIcpSettings:
         """KISS-ICP 1.x's own (outdoor) defaults, for comparison."""
         return cls(max_range_m=100.0, min_range_m=0.0, voxel_size_m=1.0, deskew=True,
-                   initial_threshold_m=2.0, min_motion_m=0.1, refine_start_s=0.0)
+                   initial_threshold_m=2.0, min_motion_m=0.1, refine_start_s=0.0, drop_floor_ceiling_m=0.0)
+
+
+def horizontal_planes(points: np.ndarray, bin_m: float = 0.02, min_share: float = 0.03) -> tuple[float, float]:
+    """Heights (m, sensor frame) of the floor below and the ceiling above the sensor: the densest
+    2 cm height bin below -0.1 m and above +0.1 m holding at least `min_share` of the points
+    (-inf / +inf where none does: outdoors, or a LiDAR that does not see the floor)."""
+    z = np.asarray(points)[:, 2]
+    out = []
+    for part, none in ((z[z < -0.1], -np.inf), (z[z > 0.1], np.inf)):
+        if len(part) == 0:
+            out.append(none)
+            continue
+        k = np.floor(part / bin_m).astype(np.int64)
+        vals, counts = np.unique(k, return_counts=True)
+        best = int(np.argmax(counts))
+        out.append(float((vals[best] + 0.5) * bin_m) if counts[best] >= min_share * len(z) else none)
+    return out[0], out[1]
 
 
 def _kiss_config(s: KissIcpSettings):
@@ -91,6 +118,14 @@ def kiss_icp_track(times_s: np.ndarray, load_scan: Callable[[int], np.ndarray],
 
     s = settings or KissIcpSettings()
     cfg = _kiss_config(s)
+    if s.drop_floor_ceiling_m > 0 and len(times_s):
+        floor, ceiling = horizontal_planes(load_scan(0))
+        lo, hi = floor + s.drop_floor_ceiling_m, ceiling - s.drop_floor_ceiling_m
+        raw_scan = load_scan
+
+        def load_scan(k: int) -> np.ndarray:  # noqa: F811 - the same scans without the rings
+            p = raw_scan(k)
+            return p[(p[:, 2] > lo) & (p[:, 2] < hi)]
     icp = KissICP(cfg)
     poses = np.empty((len(times_s), 4, 4))
     no_times = np.empty(0)
