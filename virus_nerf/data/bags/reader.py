@@ -135,11 +135,20 @@ class BagReader:
 
     def iter_topic(self, topic: str) -> Iterator[Message]:
         """Messages of `topic` in bag order, deserialised."""
-        conns = [c for c in self._reader.connections if c.topic == topic]
+        for _, msg in self.iter_topics([topic]):
+            yield msg
+
+    def iter_topics(self, topics: list[str]) -> Iterator[tuple[str, Message]]:
+        """(topic, message) of several topics in one pass over the bag, in bag time order;
+        Message.index counts within each topic (the same in every pass)."""
+        conns = [c for c in self._reader.connections if c.topic in set(topics)]
+        counts = dict.fromkeys(topics, 0)
         try:
-            for k, (conn, t_ns, raw) in enumerate(self._reader.messages(connections=conns)):
+            for conn, t_ns, raw in self._reader.messages(connections=conns):
                 msg = self._reader.deserialize(raw, conn.msgtype)
                 stamp = m.stamp_s(msg)
-                yield Message(k, stamp if stamp > 0 else t_ns * 1e-9, msg, m.normalise_type(conn.msgtype))
+                k = counts[conn.topic]
+                counts[conn.topic] = k + 1
+                yield conn.topic, Message(k, stamp if stamp > 0 else t_ns * 1e-9, msg, m.normalise_type(conn.msgtype))
         except self._errors as exc:
             raise self.corrupt(exc) from None
