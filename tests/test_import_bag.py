@@ -87,6 +87,57 @@ def test_training_on_the_import_matches_the_original(imported, tiny_office, tmp_
         assert abs(zb["n_gt"] - za["n_gt"]) <= 0.1 * za["n_gt"]
 
 
+def _poses_close(ref, got, tol_m: float = 1e-5) -> None:
+    for s in (1, 3):
+        a, b = ref.stacks[s], got.stacks[s]
+        assert np.array_equal(a.times, b.times)
+        assert np.abs(a.cam_to_world - b.cam_to_world).max() < tol_m
+        assert np.abs(a.lidar_to_world - b.lidar_to_world).max() < tol_m
+
+
+def test_tf_poses_range_uss_and_compressed_images(tiny_office, tmp_path):
+    """--poses tf through a dynamic and a static link; USS as sensor_msgs/Range; PNG CompressedImage."""
+    bag = write_bag(tiny_office, tmp_path / "tf_bag", ros_version=2, uss_as_range=True, compressed_color=True,
+                    tf=True, lidar_topic=None)
+    code, out, err = run_cli(["import-bag", bag, "--out", tmp_path / "d", "--poses", "tf", "--tf-child", "rslidar",
+                              "--room", "office"])
+    assert code == 0, err
+    assert "no LiDAR in the bag" in out
+    ref, got = load_recording(tiny_office, "office"), load_recording(tmp_path / "d", "office")
+    _poses_close(ref, got)
+    a, b = ref.stacks[1], got.stacks[1]
+    assert all(np.array_equal(a.image(i), b.image(i)) for i in range(len(a)))
+    assert np.array_equal(np.isnan(a.uss_range), np.isnan(b.uss_range))
+    assert np.nanmax(np.abs(a.uss_range - b.uss_range)) < 1e-4
+    assert got.map_path is None
+    _fails([bag, "--out", tmp_path / "e", "--poses", "tf", "--tf-child", "lidar9"], "--tf-child 'lidar9'",
+           "frame not in tf", "base_link")
+
+
+def test_csv_and_tum_poses(tiny_office, tmp_path):
+    ref = load_recording(tiny_office, "office")
+    times = np.concatenate([ref.stacks[s].times for s in (1, 3)])
+    poses = np.concatenate([ref.stacks[s].lidar_to_world for s in (1, 3)])
+    order = np.argsort(times)
+    from virus_nerf.sensors.geometry import matrix_to_quat
+
+    q = matrix_to_quat(poses[order, :3, :3])
+    rows = [f"{t:.6f} " + " ".join(f"{v:.9f}" for v in (*p[:3, 3], *qq)) for t, p, qq in zip(times[order], poses[order], q,
+                                                                                          strict=True)]
+    tum = tmp_path / "poses.tum"
+    tum.write_text("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(rows) + "\n")
+    csvp = tmp_path / "poses.csv"
+    csvp.write_text("time,x,y,z,qx,qy,qz,qw\n" + "\n".join(r.replace(" ", ",") for r in rows) + "\n")
+    bag = write_bag(tiny_office, tmp_path / "b.bag", ros_version=1)
+    for i, f in enumerate((tum, csvp)):
+        code, _, err = run_cli(["import-bag", bag, "--out", tmp_path / f"d{i}", "--poses", "csv", "--poses-file", f,
+                                "--room", "office"])
+        assert code == 0, err
+        _poses_close(ref, load_recording(tmp_path / f"d{i}", "office"))
+    csvp.write_text("time,x,y,z,qx,qy,qz,qw\n1,0,0,0,0,0,0,2\n")
+    _fails([bag, "--out", tmp_path / "e", "--poses", "csv", "--poses-file", csvp], "poses.csv, row 2", "unit norm")
+
+
 # ------------------------------------------------------------------------------- broken input
 def _mini_bag(path: Path, ros: int = 1, *, lidar: bool = True, uss_type: str = "sensors/msg/USS",
               uss_offset_s: float = 0.0) -> Path:
@@ -213,6 +264,26 @@ def test_mini_bag_imports_with_a_topics_file(tmp_path):
     rec = load_recording(tmp_path / "out", "lab")
     assert len(rec.stacks[1]) == 3 and np.allclose(rec.stacks[1].uss_range, 0.8)
     assert np.isnan(rec.stacks[1].irs_range).all() and np.isnan(rec.stacks[1].depth(0)).all()
+
+
+def test_a_ros2_bag_without_type_definitions_reads_with_the_registered_custom_types(tmp_path):
+    """Older rosbag2 recordings store no message definitions; the standard types and the ETHZ
+    custom USS/TOF types are then taken from the importer's own typestore."""
+    import sqlite3
+
+    bag = _mini_bag(tmp_path / "b", 2)
+    db = next(bag.glob("*.db3"))
+    with sqlite3.connect(db) as con:
+        con.execute("DELETE FROM message_definitions")
+    topics = _topics_file(tmp_path / "t.toml", uss="/USS1")
+    code, _, err = run_cli(["import-bag", bag, "--out", tmp_path / "out", "--topics", topics, "--room", "lab"])
+    assert code == 0, err
+    assert np.allclose(load_recording(tmp_path / "out", "lab").stacks[1].uss_range, 0.8)
+    # a custom type the importer does not know is refused by name
+    bag2 = _mini_bag(tmp_path / "c", 2, uss_type="robot/msg/Sonar")
+    with sqlite3.connect(next(bag2.glob("*.db3"))) as con:
+        con.execute("DELETE FROM message_definitions")
+    _fails([bag2, "--out", tmp_path / "out2", "--topics", topics], "robot/msg/Sonar")
 
 
 def test_missing_ros_extra_is_one_line(tmp_path, monkeypatch):

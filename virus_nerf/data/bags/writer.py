@@ -22,9 +22,15 @@ from virus_nerf.sensors import irs
 
 def write_bag(recording_dir: str | Path, bag_path: str | Path, ros_version: Literal[1, 2] = 1,
               room: str | None = None, uss_as_range: bool = False, lidar_topic: str | None = "/rslidar_points",
-              storage: Literal["sqlite3", "mcap"] = "sqlite3") -> Path:
-    """Write the recording `recording_dir` (an ETHZ data folder; `room` default: its only room)
-    to `bag_path` (ROS 1: a .bag file; ROS 2: a new folder). Bag times = header stamps."""
+              storage: Literal["sqlite3", "mcap"] = "sqlite3", compressed_color: bool = False,
+              tf: bool = False) -> Path:
+    """Write the recording `recording_dir` (an ETHZ data folder; `room` default: its first room)
+    to `bag_path` (ROS 1: a .bag file; ROS 2: a new folder). Bag times = header stamps.
+
+    uss_as_range: USS as sensor_msgs/Range (m) instead of the custom message; compressed_color:
+    colour as PNG CompressedImage; tf: the recording's LiDAR poses at the camera stamps on /tf
+    (odom -> base_link) with base_link -> rslidar on /tf_static (for `import-bag --poses tf`).
+    Holds all messages in memory before writing: meant for short recordings."""
     from virus_nerf.data.ethz import load_recording
 
     data = Path(recording_dir)
@@ -64,8 +70,13 @@ def write_bag(recording_dir: str | Path, bag_path: str | Path, ros_version: Lite
         for i, ts in enumerate(st.times):
             h = header(float(ts), frame)
             rgb = st.image(i)
-            add(ts, color, m.IMAGE, t[m.IMAGE](header=h, height=rgb.shape[0], width=rgb.shape[1], encoding="rgb8",
-                                               is_bigendian=0, step=3 * rgb.shape[1], data=rgb.reshape(-1)))
+            if compressed_color:
+                add(ts, color, m.COMPRESSED, t[m.COMPRESSED](header=h, format="rgb8; png compressed rgb8",
+                                                             data=np.frombuffer(st.image_paths[i].read_bytes(), np.uint8)))
+            else:
+                add(ts, color, m.IMAGE, t[m.IMAGE](header=h, height=rgb.shape[0], width=rgb.shape[1],
+                                                   encoding="rgb8", is_bigendian=0, step=3 * rgb.shape[1],
+                                                   data=rgb.reshape(-1)))
             d = np.load(st.depth_paths[i]).astype("<u2")
             add(ts, depth, m.IMAGE, t[m.IMAGE](header=h, height=d.shape[0], width=d.shape[1], encoding="16UC1",
                                                is_bigendian=0, step=2 * d.shape[1], data=d.view(np.uint8).reshape(-1)))
@@ -74,12 +85,41 @@ def write_bag(recording_dir: str | Path, bag_path: str | Path, ros_version: Lite
             mm = np.clip(np.round(tof_rows[i, 1:1 + irs.IRS_ZONE_COUNT]), 0, 65535).astype(np.uint16)
             sd = np.clip(np.round(tof_rows[i, 1 + irs.IRS_ZONE_COUNT:]), 0, 65535).astype(np.uint16)
             add(ts, f"/TOF{s}", m.TOF_TYPE, t[m.TOF_TYPE](header=h, meas=mm, stds=sd))
+    if tf:
+        _add_tf(t, rec, header, add)
     if lidar_topic:
         for kk, ts in enumerate(rec.lidar_times):
             add(ts, lidar_topic, m.CLOUD, _cloud(t, header(float(ts), "rslidar"), rec.lidar_scan(kk)))
     messages.sort(key=lambda x: x[0])
     _write(bag_path, ros_version, store, messages, storage)
     return bag_path
+
+
+# base_link -> rslidar of the written /tf_static: any fixed mounting, to exercise the chain
+BASE_TO_LIDAR = ((0.1, 0.0, 0.5), (0.0, 0.0, 0.0, 1.0))
+
+
+def _add_tf(t, rec, header, add) -> None:
+    """/tf odom -> base_link at the union of camera stamps and /tf_static base_link -> rslidar."""
+    from virus_nerf.sensors.geometry import invert_pose, matrix_to_quat, pose_matrix
+
+    base_to_lidar = pose_matrix(np.array(BASE_TO_LIDAR[0]), np.array(BASE_TO_LIDAR[1]))
+
+    def stamped(ts: float, parent: str, child: str, pose: np.ndarray):
+        q = matrix_to_quat(pose[:3, :3])
+        tr = t["geometry_msgs/msg/Transform"](
+            translation=t["geometry_msgs/msg/Vector3"](x=pose[0, 3], y=pose[1, 3], z=pose[2, 3]),
+            rotation=t["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+        return t["geometry_msgs/msg/TransformStamped"](header=header(ts, parent), child_frame_id=child, transform=tr)
+
+    times = np.concatenate([st.times for st in rec.stacks.values()])
+    poses = np.concatenate([st.lidar_to_world for st in rec.stacks.values()])
+    order = np.argsort(times, kind="stable")
+    first = float(times[order[0]])
+    add(first, "/tf_static", m.TF, t[m.TF](transforms=[stamped(first, "base_link", "rslidar", base_to_lidar)]))
+    for j in order:
+        odom_base = poses[j] @ invert_pose(base_to_lidar)
+        add(float(times[j]), "/tf", m.TF, t[m.TF](transforms=[stamped(float(times[j]), "odom", "base_link", odom_base)]))
 
 
 def _camera_info(t, ros_version: int, h, width: int, height: int, k: list, p: list):
