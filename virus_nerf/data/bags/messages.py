@@ -160,10 +160,18 @@ def decode_camera_info(msg, where: Where) -> Intrinsics:
                       width=int(msg.width), height=int(msg.height))
 
 
-def decode_uss_us(msg, msgtype: str) -> float:
+def _field(msg, name: str, where: Where):
+    """msg.name, or a named error when a custom message of the bag lacks the field."""
+    if not hasattr(msg, name):
+        raise where.error(f"message has no field {name!r}; expected the ETHZ layout "
+                          f"({USS_MSG.strip()!r} / {TOF_MSG.strip()!r})", field=name)
+    return getattr(msg, name)
+
+
+def decode_uss_us(msg, msgtype: str, where: Where) -> float:
     """USS reading -> echo time in microseconds (sensors/msg/USS as is; Range m * 5000, no echo 50000)."""
     if msgtype == USS_TYPE:
-        return float(msg.meas)
+        return float(_field(msg, "meas", where))
     r = float(msg.range)
     if not np.isfinite(r) or r <= 0 or (msg.max_range > 0 and r > float(msg.max_range)):
         return 50000.0
@@ -172,10 +180,10 @@ def decode_uss_us(msg, msgtype: str) -> float:
 
 def decode_tof(msg, where: Where) -> tuple[np.ndarray, np.ndarray]:
     """TOF -> meas (64,) mm in sensor order and stds (64,) mm (65535 where the message has none)."""
-    meas = np.asarray(msg.meas, dtype=np.float64)
+    meas = np.asarray(_field(msg, "meas", where), dtype=np.float64)
     if meas.size != 64:
         raise where.error(f"has {meas.size} zones; expected 64 (8x8)", field="meas")
-    stds = np.asarray(msg.stds, dtype=np.float64)
+    stds = np.asarray(getattr(msg, "stds", ()), dtype=np.float64)
     if stds.size != 64:
         stds = np.full(64, 65535.0)
     return meas, stds

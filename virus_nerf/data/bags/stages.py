@@ -103,7 +103,7 @@ class ImportRun:
                 self.stamps[(stack, role)].append(msg.time_s)
                 where = m.Where(self.reader.path, topic, msg.index)
                 if role == "uss":
-                    self.small[(stack, role)].append(m.decode_uss_us(msg.msg, msg.msgtype))
+                    self.small[(stack, role)].append(m.decode_uss_us(msg.msg, msg.msgtype, where))
                 elif role == "tof":
                     self.small[(stack, role)].append(m.decode_tof(msg.msg, where))
                 elif role == "camera_info" and stack not in self.camera_info:
