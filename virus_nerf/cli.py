@@ -20,6 +20,7 @@ def _commands() -> dict:
     from virus_nerf.experiments.online import online
     from virus_nerf.experiments.tune import tune
     from virus_nerf.exports.command import export
+    from virus_nerf.mapping.command import map_bag
     from virus_nerf.sim.command import simulate
     from virus_nerf.trainer.command import evaluate, train
 
@@ -33,6 +34,7 @@ def _commands() -> dict:
         "online": online,
         "tune": tune,
         "export": export,
+        "map-bag": map_bag,
     }
 
 
