@@ -81,7 +81,6 @@ def replay(
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.trainer.config import TrainConfig
     from virus_nerf.trainer.mapper import Mapper
-    from virus_nerf.trainer.model import fit_scene_box
     from virus_nerf.utils.io import write_json_atomic
 
     require_number("--playback", playback, 0.0)
@@ -106,7 +105,7 @@ def replay(
     drive_s = times[-1] - times[0]
     cfg = config if config is not None else TrainConfig()
     cfg = dataclasses.replace(cfg, max_steps=None, max_time=max(drive_s / playback, 1e-3))  # lr decay horizon
-    mapper = Mapper(cfg, {s: st.intrinsics for s, st in recording.stacks.items()}, fit_scene_box(recording))
+    mapper = Mapper.for_recording(recording, cfg)
     with_depth = "rgbd" in cfg.sensors
 
     (out / SNAPSHOTS).mkdir(parents=True)

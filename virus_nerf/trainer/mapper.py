@@ -55,7 +55,7 @@ from virus_nerf.scene_box import SceneBox
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.map_views import MapViews
-from virus_nerf.trainer.model import SceneModel
+from virus_nerf.trainer.model import SceneModel, fit_scene_box
 
 
 def resolve_device(name: str) -> torch.device:
@@ -125,6 +125,11 @@ class Mapper(MapViews):
         self._prior_done = 0  # frames (store rows 0..n-1) whose sensor prior the grid has had
         self._prior_skip = False  # an old checkpoint without the count: frames present count as done
         self._warm = False
+
+    @classmethod
+    def for_recording(cls, recording, config: TrainConfig) -> Mapper:
+        """A mapper for a recording's stacks and scene box (trainer.model.fit_scene_box), no frames."""
+        return cls(config, {s: st.intrinsics for s, st in recording.stacks.items()}, fit_scene_box(recording))
 
     # ------------------------------------------------------------------ frames
     @property
@@ -303,6 +308,8 @@ class Mapper(MapViews):
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict:
+        """Everything to continue training (not the frames): the live tensors, so write it out
+        (torch.save) before training on."""
         return {
             "field": self.field.state_dict(),
             "optimizer": self.optimizer.state_dict(),
