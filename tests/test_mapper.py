@@ -263,3 +263,18 @@ def test_mapper_state_round_trip_continues_identically():
     for x, y in zip(a.field.parameters(), c.field.parameters(), strict=True):
         assert np.array_equal(x.detach().numpy(), y.detach().numpy())
     assert np.array_equal(a.grid.logodds.numpy(), c.grid.logodds.numpy())
+
+
+def test_rgbd_frames_with_and_without_depth_and_an_instant_ngp_snapshot(tmp_path):
+    rgbd = _mapper(sensors=("camera", "rgbd"))
+    rgbd.add_frame(_frame(0.0, depth=np.full((INTR.height, INTR.width), 1.5, dtype=np.float32)))
+    rgbd.add_frame(_frame(1.0))  # no depth image: every pixel invalid
+    assert rgbd.store.depths_mm[0].min() == 1500 and rgbd.store.depths_mm[1].max() == 0
+    assert rgbd.train(600.0, steps=1).steps == 1
+    ngp = _mapper(grid="ngp")
+    ngp.add_frame(_frame(0.0))
+    ngp.train(600.0, steps=1)
+    assert ngp.probability_map() is None
+    ngp.snapshot(tmp_path / "ngp", n_rays=8, max_poses=1)
+    assert sorted(p.name for p in (tmp_path / "ngp").iterdir()) == ["map.pgm", "map.png", "map.yaml",
+                                                                    "snapshot.json"]
