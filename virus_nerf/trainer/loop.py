@@ -147,6 +147,8 @@ class Trainer:
         """Hand the mapper the frames available now (offline: all at once, without a copy;
         online: the ones the clock has newly passed, in time order)."""
         store = self.store
+        if self.mapper.frames == len(store):
+            return  # every frame is there (offline from the start, online once the drive is over)
         avail = self.available_frames()
         new = avail[~self._added[avail]]
         if new.size == 0:
