@@ -21,6 +21,7 @@ def _commands() -> dict:
     from virus_nerf.experiments.online import online
     from virus_nerf.experiments.tune import tune
     from virus_nerf.exports.command import export
+    from virus_nerf.mapping.command import map_bag
     from virus_nerf.sim.command import simulate
     from virus_nerf.trainer.command import evaluate, train
 
@@ -35,6 +36,7 @@ def _commands() -> dict:
         "tune": tune,
         "export": export,
         "import-bag": import_bag,
+        "map-bag": map_bag,
     }
 
 
