@@ -97,18 +97,35 @@ def scan_depth(render: RenderOutput, min_opacity: float = 0.5) -> torch.Tensor:
 # ----------------------------------------------------------------------------- torch twin
 
 
+def _transmittance(tau: torch.Tensor, samples: PackedSamples) -> torch.Tensor:
+    """T_j (S,) float64 from tau (S,) float64: segment-wise exclusive cumsum (global cumsum minus
+    each ray's start), no loops."""
+    incl = torch.cumsum(tau, 0)
+    excl = torch.cat([incl.new_zeros(1), incl[:-1]])  # (S,) sum of all earlier samples
+    first = samples.ray_offsets[:-1][samples.ray_indices]  # (S,) index of each sample's ray's first sample
+    return torch.exp(-(excl - excl[first]))
+
+
+def transmittance(sigmas: torch.Tensor, samples: PackedSamples) -> torch.Tensor:
+    """T_j = exp(-sum_{l<j} sigma_l delta_l) (S,) float64 of packed samples; no gradient.
+
+    For skipping samples that cannot matter (docs/method.md 3.1): every loss term and every
+    gradient reaches sample j through w_j = T_j alpha_j or through later samples' T, so samples
+    behind T_j < eps change renders and gradients by less than eps.
+    """
+    with torch.no_grad():
+        delta = (samples.t_ends.to(torch.float64) - samples.t_starts.to(torch.float64))  # (S,)
+        return _transmittance(sigmas.detach().to(torch.float64) * delta, samples)
+
+
 def _composite_torch(sigmas, rgbs, samples, n_rays, background, eps):
-    """Segment-wise exclusive cumsum of tau (global cumsum minus each ray's start), no loops."""
     ri = samples.ray_indices
     ts = samples.t_starts.to(torch.float64)
     te = samples.t_ends.to(torch.float64)
     delta = te - ts  # (S,)
     tm = (ts + te) * 0.5
     tau = sigmas.to(torch.float64) * delta
-    incl = torch.cumsum(tau, 0)
-    excl = torch.cat([incl.new_zeros(1), incl[:-1]])  # (S,) sum of all earlier samples
-    first = samples.ray_offsets[:-1][ri]  # (S,) index of each sample's ray's first sample
-    trans = torch.exp(-(excl - excl[first]))  # (S,) T_j
+    trans = _transmittance(tau, samples)  # (S,) T_j
     w = trans * -torch.expm1(-tau)
     if eps > 0:
         w = torch.where(trans >= eps, w, torch.zeros_like(w))

@@ -77,6 +77,14 @@ class PackedSamples:
             )
         return PackedSamples(ray_indices, t_starts, t_ends, offsets)
 
+    def select(self, keep: torch.Tensor) -> PackedSamples:
+        """The samples where keep (S,) bool is True, still packed by ray (rays keep their index;
+        a ray may end up with none)."""
+        counts = torch.zeros(self.n_rays, dtype=torch.int64, device=keep.device).index_add_(
+            0, self.ray_indices, keep.to(torch.int64)
+        )  # (R,) kept samples per ray
+        return PackedSamples.from_counts(counts, self.t_starts[keep], self.t_ends[keep])
+
     @staticmethod
     def empty(n_rays: int, device: torch.device | str = "cpu") -> PackedSamples:
         z = torch.zeros(0, device=device)

@@ -107,7 +107,7 @@ class Mapper(MapViews):
         self.grid = build_grid(config, box, self.device)
         self.model = SceneModel(
             self.field, self.grid, config.march.step_size, config.march.near, config.march.max_samples,
-            config.min_opacity, config.march.backend,
+            config.min_opacity, config.march.backend, config.march.min_transmittance,
         )
         fused = self.device.type == "cpu" or self.device.type == "cuda"
         self.optimizer = torch.optim.Adam(

@@ -14,7 +14,7 @@ import torch
 from virus_nerf.data.ethz import Recording
 from virus_nerf.field.field import NerfField
 from virus_nerf.grid.base import OccupancyGrid
-from virus_nerf.render.compositing import RenderOutput, composite, scan_depth
+from virus_nerf.render.compositing import RenderOutput, composite, scan_depth, transmittance
 from virus_nerf.render.marching import march_rays
 from virus_nerf.render.samples import PackedSamples
 from virus_nerf.scene_box import SceneBox
@@ -50,17 +50,18 @@ def fit_scene_box(recording: Recording, margin: float = 0.1) -> SceneBox:
 @dataclass
 class RenderStats:
     n_rays: int
-    n_samples: int
+    n_samples: int  # marched samples (each at least through the density pass)
     positions: torch.Tensor | None = None  # (S, 3) sample points (for a forward-pass NeRF-Update)
     sigma: torch.Tensor | None = None  # (S,) 1/m at those points, detached
-    samples: PackedSamples | None = None  # the marched intervals (for losses on the weights)
+    samples: PackedSamples | None = None  # the rendered intervals (for losses on the weights)
+    n_trained: int = 0  # samples rendered with gradients (below n_samples when hidden ones are skipped)
 
 
 class SceneModel:
     """Renders colour, depth and opacity of rays through the field, marching in occupied cells."""
 
     def __init__(self, field: NerfField, grid: OccupancyGrid, step_size: float, near: float, max_samples: int,
-                 min_opacity: float = 0.5, backend: str = "auto"):
+                 min_opacity: float = 0.5, backend: str = "auto", min_transmittance: float = 0.0):
         self.field = field
         self.grid = grid
         self.step_size = step_size
@@ -68,6 +69,8 @@ class SceneModel:
         self.max_samples = max_samples
         self.min_opacity = min_opacity
         self.backend = backend  # marching and compositing kernels (render.marching.resolve_backend)
+        # training: samples behind transmittance < this skip the gradient pass (0 = render all)
+        self.min_transmittance = min_transmittance
 
     @property
     def device(self) -> torch.device:
@@ -100,11 +103,32 @@ class SceneModel:
         positions = samples.positions(origins, directions)  # (S, 3)
         dirs = directions[samples.ray_indices]  # (S, 3)
         rgb_mask = None if rgb_rays is None else rgb_rays[samples.ray_indices]  # (S,)
+        if self.min_transmittance > 0 and torch.is_grad_enabled():
+            return self._render_visible(origins.shape[0], samples, positions, dirs, rgb_mask)
         sigma, rgb = self.field(positions, dirs, rgb_mask)
         out = composite(sigma, rgb, samples, n_rays=origins.shape[0], background=None, backend=self.backend)
         stats = RenderStats(
-            n_rays=origins.shape[0], n_samples=int(samples.ray_indices.shape[0]),
-            positions=positions.detach(), sigma=sigma.detach(), samples=samples,
+            n_rays=origins.shape[0], n_samples=samples.n_samples, positions=positions.detach(),
+            sigma=sigma.detach(), samples=samples, n_trained=samples.n_samples,
+        )
+        return out, stats
+
+    def _render_visible(self, n_rays: int, samples: PackedSamples, positions: torch.Tensor, dirs: torch.Tensor,
+                        rgb_mask: torch.Tensor | None) -> tuple[RenderOutput, RenderStats]:
+        """Two passes: densities of all S samples without gradients, then the full field with
+        gradients only on the samples still visible (T_j >= min_transmittance; a prefix of each
+        ray). Behind a surface nothing reaches a loss (compositing.transmittance), so the
+        colour MLP and both backward passes skip those samples (docs/method.md 10)."""
+        with torch.no_grad():
+            sigma_all = self.field.density(positions)  # (S,)
+        keep = transmittance(sigma_all, samples) >= self.min_transmittance  # (S,) bool
+        visible = samples.select(keep)
+        sub_mask = None if rgb_mask is None else rgb_mask[keep]
+        sigma, rgb = self.field(positions[keep], dirs[keep], sub_mask)  # (V,), (V, 3)
+        out = composite(sigma, rgb, visible, n_rays=n_rays, background=None, backend=self.backend)
+        stats = RenderStats(
+            n_rays=n_rays, n_samples=samples.n_samples, positions=positions.detach(), sigma=sigma_all,
+            samples=visible, n_trained=visible.n_samples,
         )
         return out, stats
 
@@ -116,6 +140,7 @@ class SceneModel:
         d_all = torch.as_tensor(np.asarray(directions, dtype=np.float32), device=self.device)
         for start in range(0, len(origins), chunk):
             o, d = o_all[start : start + chunk], d_all[start : start + chunk]
-            r, _ = self.render(o, d, generator=None)
+            no_colour = torch.zeros(o.shape[0], dtype=torch.bool, device=self.device)  # scans need depth only
+            r, _ = self.render(o, d, generator=None, rgb_rays=no_colour)
             out[start : start + len(o)] = scan_depth(r, self.min_opacity).double().cpu().numpy()
         return out
