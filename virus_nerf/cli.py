@@ -14,12 +14,14 @@ from virus_nerf.errors import one_line
 
 def _commands() -> dict:
     """Subcommand name -> function; imports are light (torch is imported inside the commands)."""
+    from virus_nerf.data.bags.command import import_bag
     from virus_nerf.evaluation.command import sensors
     from virus_nerf.experiments.ablation import ablation
     from virus_nerf.experiments.demo import demo
     from virus_nerf.experiments.online import online
     from virus_nerf.experiments.tune import tune
     from virus_nerf.exports.command import export
+    from virus_nerf.mapping.command import map_bag
     from virus_nerf.sim.command import simulate
     from virus_nerf.trainer.command import evaluate, train
 
@@ -33,6 +35,8 @@ def _commands() -> dict:
         "online": online,
         "tune": tune,
         "export": export,
+        "import-bag": import_bag,
+        "map-bag": map_bag,
     }
 
 

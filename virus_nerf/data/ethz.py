@@ -18,6 +18,7 @@ from typing import Literal
 import numpy as np
 
 from virus_nerf.data.csvtable import check_sorted_times, read_numeric_csv
+from virus_nerf.data.frame import SyncFrame
 from virus_nerf.data.images import check_depth_header, image_size, read_depth, read_rgb
 from virus_nerf.data.pcd import read_pcd_xyz
 from virus_nerf.data.split import make_split, read_split, read_split_ratios
@@ -66,6 +67,14 @@ class SensorStack:
     def depth(self, i: int) -> np.ndarray:
         """(H, W) float32 z-depth in metres, NaN where invalid."""
         return read_depth(self.depth_paths[i], self.intrinsics)
+
+    def frame(self, i: int, with_depth: bool = False) -> SyncFrame:
+        """Sample i as a SyncFrame (the image read now; the depth image only if asked)."""
+        return SyncFrame(
+            time=float(self.times[i]), stack_id=self.stack_id, rgb=self.image(i),
+            cam_to_world=self.cam_to_world[i].copy(), uss_range=float(self.uss_range[i]),
+            irs_range=self.irs_range[i].copy(), depth=self.depth(i) if with_depth else None,
+        )
 
 
 @dataclass
@@ -126,6 +135,13 @@ class Recording:
     def duration(self) -> float:
         t = np.concatenate([s.times for s in self.stacks.values()])
         return float(t.max() - t.min())
+
+    def frame_order(self, labels: tuple[str, ...] | None = None) -> list[tuple[int, int]]:
+        """(stack id, sample index) of every sample with a split label in `labels` (None: all),
+        in time order (ties: lower stack id first): the order a drive delivers them."""
+        entries = [(float(st.times[i]), s, int(i)) for s, st in sorted(self.stacks.items())
+                   for i in (range(len(st)) if labels is None else np.flatnonzero(np.isin(st.split, labels)))]
+        return [(s, i) for _, s, i in sorted(entries)]
 
 
 def read_intrinsics(path: Path) -> dict[int, Intrinsics]:

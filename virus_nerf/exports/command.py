@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.errors import UsageError
-from virus_nerf.exports.maps import MAX_PIXELS, OccupancyMap2D, raster_shape, scan_occupancy
+from virus_nerf.exports.maps import MAX_PIXELS, OccupancyMap2D, raster_shape
 
 KINDS = ("map", "prob", "grid3d", "esdf", "scans", "cloud", "images")
 DEFAULT_KINDS = ("map", "prob", "grid3d", "esdf", "scans")  # cloud and images render many camera rays
@@ -180,28 +180,17 @@ def camera_height(recording) -> float:
 
 def _write_png(path: Path, image: np.ndarray) -> None:
     """8-bit grey/RGB or 16-bit grey (uint16) PNG, atomically."""
-    from PIL import Image
+    from virus_nerf.exports.maps import write_png
 
-    from virus_nerf.utils.io import atomic_path
-
-    with atomic_path(path) as tmp:
-        Image.fromarray(np.ascontiguousarray(image)).save(tmp, format="PNG")
+    write_png(path, image)
 
 
 def _render_map(trainer, resolution: float, n_rays: int, max_poses: int) -> OccupancyMap2D:
     """360 deg model scans from up to `max_poses` camera positions -> occupancy raster."""
-    from virus_nerf.evaluation.scans import horizontal_directions
+    from virus_nerf.exports.views import scan_map
 
     recording = trainer.recording
     lo, hi = np.asarray(trainer.box.lo[:2]), np.asarray(trainer.box.hi[:2])
     positions = np.concatenate([s.cam_to_world[:, :3, 3] for s in recording.stacks.values()])
     positions = positions[np.linspace(0, len(positions) - 1, min(max_poses, len(positions))).astype(int)]
-    dirs = horizontal_directions(n_rays)
-    origins_all, dirs_all, ranges_all = [], [], []
-    for p in positions:
-        origins = np.broadcast_to(p, dirs.shape).copy()
-        ranges_all.append(trainer.model.ranges(origins, dirs))
-        origins_all.append(origins[:, :2])
-        dirs_all.append(dirs[:, :2])
-    return scan_occupancy(np.concatenate(origins_all), np.concatenate(dirs_all), np.concatenate(ranges_all),
-                          lo, hi, resolution)
+    return scan_map(trainer.model, positions, lo, hi, resolution, n_rays)

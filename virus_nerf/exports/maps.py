@@ -147,3 +147,13 @@ def write_map_server(m: OccupancyMap2D, folder: Path, name: str = "map") -> tupl
     write_pgm(pgm, m.image)
     write_text_atomic(yaml, map_yaml(pgm.name, m.resolution, m.origin, m.mode))
     return pgm, yaml
+
+
+def write_png(path: Path, image: np.ndarray) -> None:
+    """8-bit grey/RGB or 16-bit grey (uint16) PNG, atomically."""
+    from PIL import Image
+
+    from virus_nerf.utils.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(image)).save(tmp, format="PNG")

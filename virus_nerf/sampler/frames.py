@@ -3,11 +3,16 @@
 Images are decoded once at the training resolution; a 10-minute two-camera recording at
 640x480 is ~5.5 GB of uint8, so above `mmap_above_bytes` the store lives in a .npy file
 under the run folder and the OS pages it in and out (docs/method.md 3.6: train within 8 GB of RAM).
+
+A store also grows: `FrameStore.empty` and `append` / `append_rows` add frames one at a time
+(mapping while driving, `trainer.mapper.Mapper`). Its arrays stay exactly F rows long (views of
+buffers whose capacity doubles), so the sampler and the sensor rays read a growing store like a
+fixed one, and frames not yet appended cannot be drawn.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -65,9 +70,70 @@ class FrameStore:
     irs_range: np.ndarray  # (F, 8, 8) m z-depth, NaN = invalid
     intrinsics: dict[int, Intrinsics]  # per stack, at training resolution
     footprints: dict[int, StackFootprints]
+    _capacity: dict[str, np.ndarray] | None = field(default=None, repr=False)  # buffers behind the views
 
     def __len__(self) -> int:
         return len(self.stack_ids)
+
+    @staticmethod
+    def empty(intrinsics: dict[int, Intrinsics], with_depth: bool = False) -> FrameStore:
+        """A store without frames for stacks with these (training-resolution) intrinsics."""
+        sizes = {(i.width, i.height) for i in intrinsics.values()}
+        if len(sizes) != 1:
+            raise ValueError(f"all stacks must share one image size, got {sizes}")
+        width, height = sizes.pop()
+        return FrameStore(
+            stack_ids=np.zeros(0, dtype=np.int64), rows=np.zeros(0, dtype=np.int64), times=np.zeros(0),
+            cam_to_world=np.zeros((0, 4, 4)), images=np.zeros((0, height, width, 3), dtype=np.uint8),
+            depths_mm=np.zeros((0, height, width), dtype=np.uint16) if with_depth else None,
+            uss_range=np.zeros(0), irs_range=np.zeros((0, 8, 8)), intrinsics=dict(intrinsics),
+            footprints={s: StackFootprints.of(intr) for s, intr in intrinsics.items()},
+        )
+
+    def append(self, stack_id: int, row: int, time: float, cam_to_world: np.ndarray, image: np.ndarray,
+               depth_mm: np.ndarray | None, uss_range: float, irs_range: np.ndarray) -> int:
+        """Add one frame at training resolution (image (H, W, 3) uint8, depth_mm (H, W) uint16 or
+        None = invalid everywhere, irs_range (8, 8) m); returns its row. Amortised O(1)."""
+        if stack_id not in self.footprints:
+            raise ValueError(f"stack {stack_id} is not one of the store's stacks {sorted(self.footprints)}")
+        if image.shape != self.images.shape[1:]:
+            raise ValueError(f"image shape {image.shape}: expected {self.images.shape[1:]}")
+        f = len(self)
+        self._grow(f + 1)
+        self.stack_ids[f], self.rows[f], self.times[f] = stack_id, row, time
+        self.cam_to_world[f] = cam_to_world
+        self.images[f] = image
+        if self.depths_mm is not None:
+            self.depths_mm[f] = 0 if depth_mm is None else depth_mm
+        self.uss_range[f] = uss_range
+        self.irs_range[f] = irs_range
+        return f
+
+    def append_rows(self, other: FrameStore, rows: np.ndarray) -> None:
+        """Copy frames `rows` of `other` (same stacks and image size) to the end, in that order."""
+        for r in np.asarray(rows, dtype=np.int64):
+            depth = None if other.depths_mm is None else other.depths_mm[r]
+            self.append(int(other.stack_ids[r]), int(other.rows[r]), float(other.times[r]), other.cam_to_world[r],
+                        other.images[r], depth, float(other.uss_range[r]), other.irs_range[r])
+
+    _ARRAYS = ("stack_ids", "rows", "times", "cam_to_world", "images", "depths_mm", "uss_range", "irs_range")
+
+    def _grow(self, n: int) -> None:
+        """Make every array n rows long (views of buffers, reallocated at twice the size when full)."""
+        buffers = self._capacity
+        if buffers is None or len(buffers["times"]) < n:
+            cap = max(16, 2 * n)
+            fresh = {}
+            for name in self._ARRAYS:
+                arr = getattr(self, name)
+                if arr is None:
+                    continue
+                buf = np.zeros((cap,) + arr.shape[1:], dtype=arr.dtype)
+                buf[: len(arr)] = arr
+                fresh[name] = buf
+            self._capacity = buffers = fresh
+        for name, buf in buffers.items():
+            setattr(self, name, buf[:n])
 
     @property
     def height(self) -> int:
@@ -78,7 +144,7 @@ class FrameStore:
         return self.images.shape[2]
 
 
-def _resize_rgb(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+def resize_rgb(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     from PIL import Image
 
     if (img.shape[1], img.shape[0]) == size:
@@ -86,7 +152,7 @@ def _resize_rgb(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return np.asarray(Image.fromarray(img).resize(size, Image.Resampling.BOX))
 
 
-def _resize_depth_mm(depth_m: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+def resize_depth_mm(depth_m: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Nearest-neighbour resize (never mixes valid and invalid pixels) -> uint16 mm, 0 invalid."""
     h, w = depth_m.shape
     ys = ((np.arange(size[1]) + 0.5) * h / size[1]).astype(int)
@@ -115,9 +181,9 @@ def _decode(recording: Recording, entries: list[tuple[int, int]], size: tuple[in
     for f in iterator:
         s, i = entries[f]
         stack = recording.stacks[s]
-        images[f] = _resize_rgb(stack.image(i), (width, height))
+        images[f] = resize_rgb(stack.image(i), (width, height))
         if depths is not None:
-            depths[f] = _resize_depth_mm(stack.depth(i), (width, height))
+            depths[f] = resize_depth_mm(stack.depth(i), (width, height))
     return images, depths
 
 

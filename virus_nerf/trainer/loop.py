@@ -1,4 +1,9 @@
-"""The training loop (docs/method.md 3.6): sample rays, render, losses, Adam, grid updates, evaluation.
+"""The training loop (docs/method.md 3.6) of one run folder, driving a `Mapper`.
+
+The Mapper (trainer/mapper.py) owns the model and one training step (sample rays, render,
+losses, Adam, grid updates); the Trainer owns the run: which frames the Mapper has (offline:
+every training frame before the first step; online: each frame once the training clock times
+the playback speed passes its timestamp), the budget, evaluations, logs and checkpoints.
 
 Reproducible: one seed drives the ray sampler (numpy Generator) and the marcher jitter and
 grid updates (torch Generator); both states go into the checkpoint, so a resumed run continues
@@ -9,7 +14,6 @@ a --max-time bound depends on the machine's speed, as any time budget does.
 from __future__ import annotations
 
 import dataclasses
-import math
 import sys
 import time
 from dataclasses import dataclass
@@ -21,18 +25,13 @@ import torch
 from virus_nerf.config_io import to_dict
 from virus_nerf.data.ethz import Recording
 from virus_nerf.evaluation.evaluate import EvaluationResult, build_ground_truth, evaluate
-from virus_nerf.field.field import NerfField
-from virus_nerf.grid.base import GridSpec, GridUpdateBatch, OccupancyGrid
-from virus_nerf.grid.ngp import NgpGrid
-from virus_nerf.grid.virus import VirusGrid
-from virus_nerf.losses import LossTerms, distortion_loss, total_loss
-from virus_nerf.render.marching import ray_box_interval
-from virus_nerf.sampler.batch import BatchSampler, RayBatch
-from virus_nerf.sampler.frames import build_frame_store
-from virus_nerf.sampler.sensor_rays import irs_zone_rays, uss_cone_rays
+from virus_nerf.losses import LossTerms
+from virus_nerf.sampler.batch import BatchSampler
+from virus_nerf.sampler.frames import FrameStore, build_frame_store
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.trainer.config import TrainConfig
-from virus_nerf.trainer.model import SceneModel, fit_scene_box
+from virus_nerf.trainer.mapper import Mapper, build_grid, resolve_device
+from virus_nerf.trainer.model import fit_scene_box
 from virus_nerf.trainer.run_folder import (
     CHECKPOINT,
     METRICS_VS_TIME,
@@ -43,19 +42,7 @@ from virus_nerf.trainer.train_log import Every, LogRow, TrainLog, psnr_db
 from virus_nerf.utils.clock import since_process_start
 from virus_nerf.utils.io import atomic_path
 
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
-def build_grid(config: TrainConfig, box: SceneBox, device: torch.device) -> OccupancyGrid:
-    if config.grid == "ngp":
-        cfg = config.ngp_grid
-        return NgpGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, step_size=config.march.step_size, device=device)
-    cfg = config.virus_grid
-    return VirusGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, device=device)
+__all__ = ["Trainer", "TrainSummary", "build_grid", "resolve_device"]
 
 
 @dataclass
@@ -83,79 +70,110 @@ class Trainer:
         self.config = config
         self.run_dir = Path(run_dir)
         self.quiet = (not sys.stderr.isatty()) if quiet is None else quiet
-        self.device = resolve_device(config.device)
-        torch.manual_seed(config.seed)
-        self.box = fit_scene_box(recording)
-        field_gen = torch.Generator().manual_seed(config.seed)
-        self.field = NerfField(self.box, config.field, generator=field_gen).to(self.device)
-        self.grid = build_grid(config, self.box, self.device)
-        self.model = SceneModel(
-            self.field, self.grid, config.march.step_size, config.march.near, config.march.max_samples,
-            config.min_opacity, config.march.backend, config.march.min_transmittance,
-        )
-        fused = self.device.type == "cpu" or self.device.type == "cuda"
-        self.optimizer = torch.optim.Adam(
-            self.field.parameters(), lr=config.optim.lr, eps=config.optim.eps, betas=config.optim.betas, fused=fused
-        )
-        self._sampler: BatchSampler | None = None
-        self.rng = np.random.default_rng(config.seed)
-        self.generator = torch.Generator(device="cpu").manual_seed(config.seed + 1)
-        self.step = 0
-        self.seconds = 0.0
-        self.samples = 0
+        box = fit_scene_box(recording)
+        self.mapper = Mapper(config, {s: st.intrinsics for s, st in recording.stacks.items()}, box)
+        self._source: FrameStore | None = None  # every training frame, decoded on first use
+        self._added: np.ndarray | None = None  # (F,) bool: source rows the mapper has
         self._gt = None
         self.eval_history: list[EvalPoint] = []
         self._prepared = False
         self.startup_s: float | None = None  # process start -> first step (set by prepare)
         self.grid_init_s = 0.0
 
+    # the model and the training state live in the mapper
+    box = property(lambda self: self.mapper.box)
+    field = property(lambda self: self.mapper.field)
+    grid = property(lambda self: self.mapper.grid)
+    model = property(lambda self: self.mapper.model)
+    optimizer = property(lambda self: self.mapper.optimizer)
+    rng = property(lambda self: self.mapper.rng)
+    generator = property(lambda self: self.mapper.generator)
+
     @property
-    def sampler(self) -> BatchSampler:
-        """Training frames decoded on first use (evaluating a checkpoint needs none)."""
-        if self._sampler is None:
+    def device(self) -> torch.device:
+        return self.mapper.device
+
+    @device.setter
+    def device(self, value: torch.device) -> None:
+        self.mapper.device = value
+
+    @property
+    def step(self) -> int:
+        return self.mapper.step
+
+    @step.setter
+    def step(self, value: int) -> None:
+        self.mapper.step = value
+
+    @property
+    def seconds(self) -> float:
+        """The training clock (steps and grid updates; start-up and evaluations excluded)."""
+        return self.mapper.seconds
+
+    @seconds.setter
+    def seconds(self, value: float) -> None:
+        self.mapper.seconds = value
+
+    @property
+    def samples(self) -> int:
+        return self.mapper.samples
+
+    @samples.setter
+    def samples(self, value: int) -> None:
+        self.mapper.samples = value
+
+    @property
+    def store(self) -> FrameStore:
+        """Every training frame of the recording, decoded on first use (evaluating a checkpoint
+        needs none); online, the mapper gets them one by one as the clock passes them."""
+        if self._source is None:
             store = build_frame_store(
                 self.recording, ("train",), self.config.image_scale, with_depth="rgbd" in self.config.sensors,
                 cache_dir=self.run_dir / "cache", progress=not self.quiet,
             )
             if len(store) == 0:
                 raise ValueError(f"{self.recording.room_dir}: no frames labelled 'train' in the split")
-            self._sampler = BatchSampler(store, self.config.sensors, self.config.shares)
-        return self._sampler
+            self._source = store
+            self._added = np.zeros(len(store), dtype=bool)
+        return self._source
 
     @property
-    def store(self):
-        return self.sampler.store
+    def sampler(self) -> BatchSampler:
+        """The mapper's sampler, over the frames it has now."""
+        self._sync_frames()
+        return self.mapper.sampler
+
+    def _sync_frames(self) -> None:
+        """Hand the mapper the frames available now (offline: all at once, without a copy;
+        online: the ones the clock has newly passed, in time order)."""
+        store = self.store
+        if self.mapper.frames == len(store):
+            return  # every frame is there (offline from the start, online once the drive is over)
+        avail = self.available_frames()
+        new = avail[~self._added[avail]]
+        if new.size == 0:
+            return
+        if new.size == len(store) and self.mapper.frames == 0 and not self.config.online:
+            self.mapper.add_store(store)
+        else:
+            self.mapper.add_store(store, new[np.lexsort((new, store.times[new]))])
+        self._added[new] = True
 
     def prepare(self) -> None:
         """One-off start-up before the first step: decode frames, give the grid its prior.
 
         Runs outside the training clock (a cold start must not eat a --max-time budget). The
-        VIRUS grid's sensor prior uses the frames available at this moment only (online: the
-        first one), and only on a fresh run: a resumed grid comes from its checkpoint.
+        VIRUS grid's sensor prior uses the frames available at this moment (online: the first
+        one); later frames get theirs when they arrive. A resumed grid comes from its checkpoint
+        and already holds the prior of the frames it had.
         """
         if self._prepared:
             return
-        _ = self.sampler
-        want = self.grid.prior_request
-        if self.step == 0 and want is not None:
-            t0 = time.perf_counter()
-            frames = self.available_frames()
-            sensors = self.config.sensors
-            depth = irs_zone_rays(self.store, frames, want.zone_samples).valid() if "irs" in sensors else None
-            free = uss_cone_rays(self.store, frames).valid() if want.uss_free and "uss" in sensors else None
-            self.grid.initialise(depth, free)
-            self.grid_init_s = time.perf_counter() - t0
-        self._warm_kernels()
+        self._sync_frames()
+        self.mapper.prepare()
+        self.grid_init_s = self.mapper.prior_s
         self._prepared = True
         self.startup_s = since_process_start()
-
-    def _warm_kernels(self) -> None:
-        """Load (or compile) the marching, field and compositing kernels on a few rays, so the
-        first timed step is an ordinary one. Draws no random numbers and leaves no gradient."""
-        rays = self.sampler._rays(np.zeros(8, dtype=np.int64), np.arange(8, dtype=np.int64)).to(self.device)
-        out, _ = self.model.render(rays.origins, rays.directions, generator=None)
-        (out.rgb.sum() + out.depth.sum()).backward()
-        self.optimizer.zero_grad(set_to_none=True)
 
     @property
     def t0(self) -> float:
@@ -189,7 +207,7 @@ class Trainer:
         return min(1.0, max(parts))
 
     def available_frames(self) -> np.ndarray:
-        """Frame rows the trainer may use now; online, only frames the clock has passed."""
+        """Source frame rows the run may use now; online, only frames the clock has passed."""
         if not self.config.online:
             return np.arange(len(self.store))
         clock = self.t0 + self.seconds * self.config.playback_speed
@@ -198,66 +216,10 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> LossTerms:
+        """One step of the mapper on the frames available now."""
         self.prepare()
-        c = self.config
-        lr = c.optim.lr * c.optim.lr_decay_to ** self._progress()
-        for g in self.optimizer.param_groups:
-            g["lr"] = lr
-        batch = self.sampler.sample(self.rng, c.batch_size, self.available_frames()).to(self.device)
-        sensors = c.sensors
-        rgb_rays = None
-        if c.density_only_depth_rays:
-            has_depth = torch.zeros(len(batch), dtype=torch.bool, device=self.device)
-            if "irs" in sensors:
-                has_depth |= torch.isfinite(batch.irs_range)
-            if "rgbd" in sensors:
-                has_depth |= torch.isfinite(batch.rgbd_range)
-            rgb_rays = ~has_depth
-        out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator, rgb_rays=rgb_rays)
-        terms = total_loss(
-            c.weights,
-            pred_rgb=out.rgb,
-            target_rgb=batch.rgb,
-            pred_depth=out.depth,
-            irs_depth=batch.irs_range if "irs" in sensors else None,
-            uss_range=batch.uss_range if "uss" in sensors else None,
-            rgbd_depth=batch.rgbd_range if "rgbd" in sensors else None,
-            rgb_mask=rgb_rays,
-        )
-        if c.weights.distortion > 0:
-            smp = stats.samples
-            ld = distortion_loss(out.weights, smp.t_starts, smp.t_ends, smp.ray_offsets)
-            terms = dataclasses.replace(terms, total=terms.total + c.weights.distortion * ld, distortion=ld)
-        self.optimizer.zero_grad(set_to_none=True)
-        terms.total.backward()
-        self.optimizer.step()
-        self.step += 1
-        self.samples += stats.n_samples
-        self._last_samples_per_ray = stats.n_samples / max(1, stats.n_rays)
-        if self.step % self.grid.update_interval == 0:
-            self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator)
-        return terms
-
-    def _grid_batch(self, batch: RayBatch, stats) -> GridUpdateBatch:
-        """Candidates for one grid update; the grid draws its own share of each at random.
-
-        Depth-Update: every ray with an IRS range. NeRF-Update: every ray of the batch (the whole
-        image, not only the sensor footprints), each to the box exit; plus the forward pass's
-        samples and densities for a grid that reuses them.
-        """
-        has_irs = torch.isfinite(batch.irs_range).nonzero().squeeze(1)
-        _, t_exit = ray_box_interval(batch.origins, batch.directions, self.grid.spec, 0.0, math.inf)
-        far = t_exit.clamp(min=0.0).to(batch.origins.dtype)  # (B,) distance to the box exit
-        return GridUpdateBatch(
-            depth_origins=batch.origins[has_irs],
-            depth_directions=batch.directions[has_irs],
-            depth_ranges=batch.irs_range[has_irs],
-            nerf_origins=batch.origins,
-            nerf_directions=batch.directions,
-            nerf_far=far,
-            forward_points=stats.positions,
-            forward_sigma=stats.sigma,
-        )
+        self._sync_frames()
+        return self.mapper.train_step(self._progress())
 
     # ------------------------------------------------------------------ evaluation
     def evaluate(self, with_sensors: bool = True) -> EvaluationResult | None:
@@ -285,19 +247,8 @@ class Trainer:
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict:
-        return {
-            "field": self.field.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "grid": self.grid.state_dict(),
-            "step": self.step,
-            "seconds": self.seconds,
-            "samples": self.samples,
-            "numpy_rng": self.rng.bit_generator.state,
-            "torch_generator": self.generator.get_state(),
-            "eval_history": [dataclasses.asdict(p) for p in self.eval_history],
-            "box": self.box.to_dict(),
-            "config": to_dict(self.config),
-        }
+        return {**self.mapper.state(), "eval_history": [dataclasses.asdict(p) for p in self.eval_history],
+                "config": to_dict(self.config)}
 
     def save_checkpoint(self) -> None:
         with atomic_path(self.run_dir / CHECKPOINT) as tmp:
@@ -319,14 +270,7 @@ class Trainer:
                     "(was the recording or its map changed?)",
                     field="box",
                 )
-        self.field.load_state_dict(state["field"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.grid.load_state_dict(state["grid"])
-        self.step = int(state["step"])
-        self.seconds = float(state["seconds"])
-        self.samples = int(state["samples"])
-        self.rng.bit_generator.state = state["numpy_rng"]
-        self.generator.set_state(state["torch_generator"])
+        self.mapper.load_state(state)
         self.eval_history = [EvalPoint(**e) for e in state.get("eval_history", [])]
 
     # ------------------------------------------------------------------ the loop
@@ -357,8 +301,10 @@ class Trainer:
 
     def _timed_step(self) -> LossTerms:
         """One training step on the training clock."""
+        self.prepare()
+        self._sync_frames()  # the frames arrive off the clock; their grid prior is on it
         t_start = time.perf_counter()
-        terms = self.train_step()
+        terms = self.mapper.train_step(self._progress())
         self.seconds += time.perf_counter() - t_start
         return terms
 
@@ -378,7 +324,7 @@ class Trainer:
             uss=t["uss"],
             rgbd=t["rgbd"],
             psnr=psnr_db(t["colour"]),
-            samples_per_ray=round(self._last_samples_per_ray, 2),
+            samples_per_ray=round(self.mapper.last_samples_per_ray, 2),
             occupied=round(self.grid.occupancy_share(), 4),
             frames=len(self.available_frames()),
         )

@@ -1,0 +1,113 @@
+"""Known answers for import-bag's message decoding, timestamp matching, poses and topics file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace as NS
+
+import numpy as np
+import pytest
+
+from virus_nerf.data.bags import messages as m
+from virus_nerf.data.bags.odometry import PoseTrack, Transform, horizontal_planes, tf_track
+from virus_nerf.data.bags.sync import match_nearest, match_stack, thin_to_rate
+from virus_nerf.data.bags.topics import default_topics, read_topics
+from virus_nerf.errors import ConfigError, DataFormatError
+from virus_nerf.evaluation.trajectory import trajectory_error
+from virus_nerf.sensors.geometry import pose_matrix
+
+WHERE = m.Where(Path("x.bag"), "/t", 0)
+
+
+def test_bgr8_with_row_padding_becomes_rgb():
+    px = np.array([[[1, 2, 3], [4, 5, 6]]], dtype=np.uint8)  # 1 x 2 BGR
+    data = np.concatenate([px.reshape(-1), [99, 99]]).astype(np.uint8)  # step 8 = 6 + 2 padding
+    msg = NS(encoding="bgr8", height=1, width=2, step=8, is_bigendian=0, data=data)
+    assert m.decode_color(msg, m.IMAGE, WHERE).tolist() == [[[3, 2, 1], [6, 5, 4]]]
+
+
+def test_depth_16uc1_big_endian_and_32fc1_metres():
+    d = np.array([[1000, 65535]], dtype=">u2")
+    msg = NS(encoding="16UC1", height=1, width=2, step=4, is_bigendian=1, data=d.view(np.uint8).reshape(-1))
+    assert m.decode_depth(msg, m.IMAGE, WHERE).tolist() == [[1000, 65535]]
+    f = np.array([[1.2344, np.nan, -1.0]], dtype="<f4")
+    msg = NS(encoding="32FC1", height=1, width=3, step=12, is_bigendian=0, data=f.view(np.uint8).reshape(-1))
+    assert m.decode_depth(msg, m.IMAGE, WHERE).tolist() == [[1234, 0, 0]]  # m -> mm, invalid -> 0
+    with pytest.raises(DataFormatError, match="encoding 'rgb8'"):
+        m.decode_depth(NS(encoding="rgb8"), m.IMAGE, WHERE)
+
+
+def test_pointcloud2_with_intensity_field_and_nan_points():
+    rec = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("i", "<f4"), ("ring", "<u2"), ("pad", "u1", 2)])
+    rec["x"], rec["y"], rec["z"] = [1, np.nan, 3], [2, 0, 4], [3, 0, 5]
+    fields = [NS(name=n, offset=o, datatype=7) for n, o in (("x", 0), ("y", 4), ("z", 8), ("intensity", 12))]
+    msg = NS(fields=fields, is_bigendian=False, width=3, height=1, point_step=20, data=rec.view(np.uint8).reshape(-1))
+    assert m.decode_cloud(msg, WHERE).tolist() == [[1, 2, 3], [3, 4, 5]]
+
+
+def test_uss_range_and_custom_fields():
+    assert m.decode_uss_us(NS(meas=3752), m.USS_TYPE, WHERE) == 3752.0
+    assert m.decode_uss_us(NS(range=0.75, max_range=4.0), m.RANGE, WHERE) == pytest.approx(3750.0)
+    assert m.decode_uss_us(NS(range=float("inf"), max_range=4.0), m.RANGE, WHERE) == 50000.0
+    with pytest.raises(DataFormatError, match="no field 'meas'"):
+        m.decode_uss_us(NS(distance=1), m.USS_TYPE, WHERE)
+    assert m.normalise_type("sensors/uss") == m.USS_TYPE and m.normalise_type("sensors/TOF") == m.TOF_TYPE
+
+
+def test_nearest_matching_with_tolerance_and_thinning():
+    idx = match_nearest(np.array([0.0, 1.0, 2.0, 5.0]), np.array([2.04, 0.9, 0.05]), 0.1)
+    assert idx.tolist() == [2, 1, 0, -1]  # any input order; 5.0 has nothing within 0.1 s
+    assert thin_to_rate(np.arange(0, 1.01, 0.1), 4.0).tolist() == [1, 0, 0, 1, 0, 0, 1, 0, 0, 1, 0]
+    mt = match_stack(1, np.array([0.0, 0.2, 0.4]), {"uss": (np.array([0.0, 0.41]), 0.05)},
+                     np.array([True, True, False]), 0.0)
+    assert mt.color_index.tolist() == [0] and mt.dropped_frames == {"no uss within 0.05 s": 1, "no pose": 1}
+
+
+def test_pose_track_interpolates_and_tf_chain_composes():
+    track = PoseTrack(np.array([0.0, 1.0]), np.stack([np.eye(4), pose_matrix(np.array([2.0, 0, 0]),
+                                                                               np.array([0, 0, np.sin(0.5), np.cos(0.5)]))]))
+    p, ok = track.at(np.array([0.5, 1.05, 2.0]), 0.1)
+    assert ok.tolist() == [True, True, False]
+    assert np.allclose(p[0, :3, 3], [1, 0, 0]) and np.isclose(np.arctan2(p[0, 1, 0], p[0, 0, 0]), 0.5)
+    base_lidar = pose_matrix(np.array([0.1, 0, 0.5]), np.array([0, 0, 0, 1.0]))
+    trs = [Transform(0.0, "base_link", "rslidar", base_lidar, True)]
+    trs += [Transform(t, "odom", "base_link", pose_matrix(np.array([t, 0, 0]), np.array([0, 0, 0, 1.0])), False)
+            for t in (0.0, 1.0)]
+    out = tf_track(trs, "odom", "rslidar", "x.bag")
+    assert np.allclose(out.poses[:, :3, 3], [[0.1, 0, 0.5], [1.1, 0, 0.5]])
+    with pytest.raises(DataFormatError, match="--tf-parent 'map'"):
+        tf_track(trs, "map", "rslidar", "x.bag")
+
+
+def test_floor_found_in_a_scan():
+    rng = np.random.default_rng(0)
+    floor = np.c_[rng.uniform(-3, 3, (400, 2)), np.full(400, -0.71)]
+    wall = np.c_[np.full(300, 4.0), rng.uniform(-3, 3, 300), rng.uniform(-0.7, 1.8, 300)]
+    lo, hi = horizontal_planes(np.r_[floor, wall])
+    assert lo == pytest.approx(-0.71, abs=0.011) and hi == np.inf
+
+
+def test_ate_ignores_a_rigid_offset():
+    rng = np.random.default_rng(1)
+    ref = pose_matrix(rng.normal(size=(20, 3)), rng.normal(size=(20, 4)))
+    moved = pose_matrix(np.array([1.0, 2, 3]), np.array([0, 0, np.sin(0.3), np.cos(0.3)])) @ ref
+    err = trajectory_error(moved, ref)
+    assert err.median_m < 1e-9 and err.median_deg < 1e-5
+
+
+def test_topics_file_defaults_and_errors(tmp_path):
+    cfg = default_topics()
+    assert cfg.stacks[1].uss == "/USS1" and cfg.lidar.topic == "/rslidar_points"
+    f = tmp_path / "t.toml"
+    f.write_text("[sync]\nuss_tolerance_s = 0.05\n")
+    got = read_topics(f)
+    assert got.sync.uss_tolerance_s == 0.05 and got.stacks == cfg.stacks  # stacks default to ETHZ
+    f.write_text("[stacks.1]\ncolor = '/c'\ncamera_in_lidar = { translation = [0, 0], rotation_xyzw = [0, 0, 0, 1] }\n")
+    with pytest.raises(ConfigError, match=r"stacks.1.camera_in_lidar.translation.*list of 3"):
+        read_topics(f)
+    f.write_text("[sync]\nuss_tolerance_s = -1\n")
+    with pytest.raises(ConfigError, match="sync.uss_tolerance_s"):
+        read_topics(f)
+    f.write_text("[sync\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        read_topics(f)

@@ -1,0 +1,273 @@
+"""Mapping while driving (issue 12): the Mapper on frames added one by one, its snapshots, its
+input checks, the real-time replay and `map-bag`."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+
+import numpy as np
+import pytest
+import torch
+from helpers import run_cli, tiny_train_config
+
+from virus_nerf.data.ethz import load_recording
+from virus_nerf.data.frame import SyncFrame
+from virus_nerf.errors import OutputExistsError, UsageError
+from virus_nerf.grid.virus import VirusGridConfig
+from virus_nerf.sampler.frames import FrameStore
+from virus_nerf.scene_box import SceneBox
+from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.trainer.config import MarchConfig
+from virus_nerf.trainer.mapper import Mapper
+
+INTR = Intrinsics(fx=20.0, fy=20.0, cx=16.0, cy=12.0, width=32, height=24)
+BOX = SceneBox((-3.0, -3.0, -1.0), (3.0, 3.0, 2.0))
+
+
+def _frame(t: float = 0.0, stack: int = 1, **changes) -> SyncFrame:
+    pose = np.eye(4)
+    pose[:3, :3] = [[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]]  # looking along +x, level
+    pose[:3, 3] = (0.1 * t, 0.0, 0.5)
+    rgb = np.full((INTR.height, INTR.width, 3), 120, dtype=np.uint8)
+    base = SyncFrame(time=t, stack_id=stack, rgb=rgb, cam_to_world=pose, uss_range=1.5,
+                     irs_range=np.full((8, 8), 2.0))
+    return dataclasses.replace(base, **changes)
+
+
+def _mapper(**changes) -> Mapper:
+    return Mapper(tiny_train_config(**changes), {1: INTR, 3: INTR}, BOX)
+
+
+def test_frame_store_grows_without_losing_frames():
+    store = FrameStore.empty({1: INTR, 3: INTR})
+    images = []
+    for k in range(40):  # past several reallocations (capacity 16, 34, 70)
+        img = np.full((INTR.height, INTR.width, 3), k, dtype=np.uint8)
+        images.append(img)
+        assert store.append(1 + 2 * (k % 2), k, float(k), np.eye(4), img, None, float(k), np.full((8, 8), k)) == k
+    assert len(store) == 40 and store.images.shape == (40, INTR.height, INTR.width, 3)
+    assert np.array_equal(store.images, np.stack(images))
+    assert np.array_equal(store.times, np.arange(40.0)) and np.array_equal(store.stack_ids[:3], [1, 3, 1])
+    with pytest.raises(ValueError, match="stack 2 is not one of"):
+        store.append(2, 0, 0.0, np.eye(4), images[0], None, 1.0, np.zeros((8, 8)))
+
+
+def test_frames_not_added_are_never_sampled_and_each_gets_the_prior_once():
+    mapper = _mapper()
+    seen = []
+    sample = mapper.sampler.sample
+
+    def recording_sample(rng, n, frames=None):
+        batch = sample(rng, n, frames)
+        seen.append((mapper.frames, batch))
+        return batch
+
+    mapper.sampler.sample = recording_sample
+    for k in range(3):
+        mapper.add_frame(_frame(float(k)))
+        report = mapper.train(600.0, steps=2)
+        assert report.steps == 2 and report.frames == k + 1 and np.isfinite(report.loss)
+        assert mapper.state()["prior_frames"] == k + 1  # the new frame's sensor prior is in the grid
+    for n_added, batch in seen:
+        assert int(batch.frames.max()) < n_added
+        # every ray starts at the camera of one of the frames added so far
+        xs = np.round(batch.origins[:, 0].numpy() / 0.1).astype(int)
+        assert set(xs.tolist()) <= set(range(n_added))
+    assert mapper.train(0.0).steps == 0
+
+
+def test_bad_frames_and_arguments_give_one_line_errors(tmp_path):
+    mapper = _mapper()
+    with pytest.raises(UsageError, match=r"Mapper.train: no frames yet"):
+        mapper.train(1.0)
+    cases = [
+        (dict(rgb=np.zeros((10, 10, 3), np.uint8)), r"SyncFrame.rgb \(stack 1\): got a uint8 array of shape \(10, 10, 3\); "
+                                                     r"expected uint8 of shape \(24, 32, 3\)"),
+        (dict(rgb=np.zeros((24, 32, 3), np.float32)), r"got a float32 array"),
+        (dict(stack_id=2), r"SyncFrame.stack_id 2: unknown stack; expected one of \[1, 3\]"),
+        (dict(irs_range=np.zeros(64)), r"SyncFrame.irs_range \(stack 1\): shape \(64,\); expected \(8, 8\)"),
+        (dict(cam_to_world=np.eye(4) * 2), r"SyncFrame.cam_to_world .*expected a finite \(4, 4\) rigid transform"),
+        (dict(uss_range=-1.0), r"SyncFrame.uss_range \(stack 1\) -1.0: expected a range >= 0 m or NaN"),
+        (dict(depth=np.zeros((3, 3))), r"SyncFrame.depth \(stack 1\): shape \(3, 3\); expected \(24, 32\)"),
+        (dict(time=float("nan")), r"SyncFrame.time nan: expected a finite number"),
+    ]
+    for changes, message in cases:
+        with pytest.raises(UsageError, match=message) as exc:
+            mapper.add_frame(_frame(**changes))
+        assert "\n" not in str(exc.value)
+    assert mapper.frames == 0, "a refused frame is not added"
+    mapper.add_frame(_frame(uss_range=float("nan")))  # no echo is fine
+    for seconds in (-1.0, float("inf"), "1"):
+        with pytest.raises(UsageError, match=r"Mapper.train seconds .*: expected a finite number >= 0"):
+            mapper.train(seconds)
+    with pytest.raises(UsageError, match=r"Mapper.scans poses of shape \(2, 2\)"):
+        mapper.scans(np.zeros((2, 2)))
+    with pytest.raises(UsageError, match=r"Mapper.map2d resolution 0: expected a positive number"):
+        mapper.map2d(resolution=0)
+    with pytest.raises(UsageError, match=r"Mapper intrinsics"):
+        Mapper(tiny_train_config(), {}, BOX)
+
+
+def test_snapshots_are_written_whole_and_never_overwritten(tmp_path, monkeypatch):
+    mapper = _mapper()
+    mapper.add_frame(_frame(0.0))
+    mapper.train(600.0, steps=2)
+    scans = mapper.scans(np.stack([_frame(0.0).cam_to_world, _frame(1.0).cam_to_world]), n_rays=16)
+    assert [s.name for s in scans] == ["NeRF", "NeRF"] and np.allclose(scans[1].origin, (0.1, 0.0))
+    info = mapper.snapshot(tmp_path / "s1", n_rays=16, max_poses=2, with_state=True)
+    names = sorted(p.name for p in (tmp_path / "s1").iterdir())
+    assert names == ["map.pgm", "map.png", "map.yaml", "mapper.pt", "prob.pgm", "prob.png", "prob.yaml",
+                     "snapshot.json"]
+    assert (tmp_path / "s1" / "map.pgm").read_bytes().startswith(b"P5\n120 120\n255\n")  # 6 m / 0.05 m
+    assert "image: map.pgm" in (tmp_path / "s1" / "map.yaml").read_text()
+    doc = json.loads((tmp_path / "s1" / "snapshot.json").read_text())
+    assert doc["frames"] == 1 and doc["steps"] == 2 == info.steps and 0.0 <= doc["map_known"] <= 1.0
+    before = {p.name: p.read_bytes() for p in (tmp_path / "s1").iterdir()}
+    with pytest.raises(OutputExistsError):
+        mapper.snapshot(tmp_path / "s1")
+    assert before == {p.name: p.read_bytes() for p in (tmp_path / "s1").iterdir()}
+
+    import virus_nerf.exports.maps as maps
+
+    def broken_png(path, image):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(maps, "write_png", broken_png)
+    with pytest.raises(OSError, match="disk full"):
+        mapper.snapshot(tmp_path / "s2")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s1"], "no half-written snapshot or temporary left"
+
+
+def test_mapper_on_a_drive_improves_the_map(tiny_office):
+    """Frames of the simulated office arrive six at a time with 16 steps between: the NeRF's
+    zone-3 accuracy against the LiDAR map (the evaluation's own metric) gets better."""
+    from virus_nerf.evaluation.evaluate import build_ground_truth, evaluate
+
+    rec = load_recording(tiny_office, "office")
+    cfg = tiny_train_config(max_steps=80, batch_size=512, march=MarchConfig(step_size=0.04, max_samples=64),
+                            virus_grid=VirusGridConfig(warmup_steps=40, update_interval=4, rays_per_update=256))
+    cfg.evaluation = dataclasses.replace(cfg.evaluation, n_rays=128, sensors=())
+    mapper = Mapper.for_recording(rec, cfg)
+    gts = build_ground_truth(rec, cfg.evaluation)
+
+    def zone3_accuracy() -> float:
+        result = evaluate(rec, {"NeRF": mapper.model}, cfg.evaluation, ground_truth=gts)
+        return result.metrics["NeRF"].zones["zone3"].acc_mean
+
+    order = rec.frame_order(("train",))
+    start = zone3_accuracy()
+    for k in range(0, len(order), 6):
+        for s, i in order[k:k + 6]:
+            mapper.add_frame(rec.stacks[s].frame(i))
+        mapper.train(600.0, steps=16)
+    mapper.train(600.0, steps=80 - mapper.step)
+    assert mapper.frames == len(order) and mapper.step == 80
+    end = zone3_accuracy()
+    assert end < start - 0.05, (start, end)
+    m = mapper.map2d(resolution=0.1, n_rays=64, max_poses=4)
+    assert (m.image == 0).any() and (m.image == 254).any(), "the map has occupied and free cells"
+
+
+def test_online_trainer_gives_the_mapper_only_frames_the_clock_passed(tiny_office, tmp_path):
+    from virus_nerf.trainer.loop import Trainer
+
+    rec = load_recording(tiny_office, "office")
+    trainer = Trainer(rec, tiny_train_config(online=True, max_steps=None, max_time=5.0), tmp_path, quiet=True)
+    trainer.train_step()
+    assert trainer.mapper.frames == len(trainer.available_frames()) == 1
+    times = np.sort(trainer.store.times)
+    trainer.seconds = (times[5] - times[0]) / trainer.config.playback_speed + 1e-6
+    trainer.train_step()
+    assert trainer.mapper.frames == len(trainer.available_frames()) >= 6
+    assert np.all(np.diff(trainer.mapper.store.times) >= 0), "frames arrive in time order"
+
+
+def test_replay_and_map_bag_write_snapshots_with_progress_lines(tiny_office, tmp_path, capsys):
+    """map-bag on a real ROS 1 bag of the simulated office (imported with LiDAR odometry): the 3 s
+    drive at playback x1 gives snapshots every 0.4 s, each a complete folder with one progress line."""
+    pytest.importorskip("rosbags")
+    pytest.importorskip("kiss_icp")
+    from virus_nerf.data.bags.writer import write_bag
+
+    bag = write_bag(tiny_office, tmp_path / "drive.bag", ros_version=1)
+    cfg = tmp_path / "cfg.json"
+    from virus_nerf.config_io import to_dict
+
+    cfg.write_text(json.dumps(to_dict(tiny_train_config())))
+    out = tmp_path / "out"
+    code, stdout, stderr = run_cli(["map-bag", bag, "--out", out, "--playback", "1", "--snapshot-every", "0.4",
+                                    "--config", cfg, "--n-rays", "32", "--max-poses", "3"])
+    assert code == 0, stderr
+    assert (out / "recording" / "import_report.json").is_file()
+    lines = [ln for ln in stdout.splitlines() if ln.startswith(("snapshot", "final map"))]
+    snaps = sorted(p for p in (out / "snapshots").iterdir() if p.is_dir())
+    assert len(snaps) >= 1 and len(lines) == len(snaps) + 1
+    for k, (line, folder) in enumerate(zip(lines, snaps, strict=False), start=1):
+        assert folder.name.startswith(f"{k:04d}_") and line.startswith(f"snapshot {k} at ") and str(folder) in line
+        assert {"map.pgm", "map.yaml", "map.png", "snapshot.json"} <= {p.name for p in folder.iterdir()}
+    n_frames = sum(len(s) for s in load_recording(out / "recording", "drive").stacks.values())
+    final = json.loads((out / "map" / "snapshot.json").read_text())
+    assert final["frames"] == n_frames and final["steps"] > 0 and lines[-1].startswith("final map")
+    assert (out / "map" / "mapper.pt").is_file() and not list(out.glob(".*"))
+    # never overwritten: map-bag refuses OUT, replay refuses OUT/snapshots
+    code, _, stderr = run_cli(["map-bag", bag, "--out", out])
+    assert code == 2 and "already exists" in stderr
+    from virus_nerf.mapping.replay import replay
+
+    with pytest.raises(OutputExistsError):
+        replay(out / "recording", out, 2.0, 0.4)
+
+
+def test_map_bag_without_the_ros_extra_is_one_clear_line(tmp_path, monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: None if n == "rosbags" else real(n, *a))
+    bag = tmp_path / "drive.bag"
+    bag.write_bytes(b"")
+    code, _, stderr = run_cli(["map-bag", bag, "--out", tmp_path / "out"])
+    assert code == 2 and not (tmp_path / "out").exists()
+    assert stderr.startswith("virus-nerf: error: ") and "pip install 'virus-nerf[ros]'" in stderr
+    assert stderr.count("\n") == 1
+    for argv, message in ((["map-bag", tmp_path / "none.bag", "--out", tmp_path / "o"], "BAG"),
+                          (["map-bag", bag, "--out", tmp_path / "o", "--playback", "0"], "--playback 0.0"),
+                          (["map-bag", bag, "--out", tmp_path / "o", "--snapshot-every", "0"], "--snapshot-every 0.0")):
+        code, _, stderr = run_cli(argv)
+        assert code == 2 and message in stderr, stderr
+
+
+def test_mapper_state_round_trip_continues_identically():
+    a = _mapper()
+    a.add_frame(_frame(0.0))
+    a.add_frame(_frame(1.0))
+    a.train(600.0, steps=3)
+    buffer = io.BytesIO()
+    torch.save(a.state(), buffer)  # as a checkpoint file: state() holds the live tensors
+    buffer.seek(0)
+    c = _mapper()
+    c.load_state(torch.load(buffer, weights_only=False))
+    c.add_frame(_frame(0.0))
+    c.add_frame(_frame(1.0))
+    for m in (a, c):
+        m.train(600.0, steps=2)
+    assert c.state()["prior_frames"] == 2
+    for x, y in zip(a.field.parameters(), c.field.parameters(), strict=True):
+        assert np.array_equal(x.detach().numpy(), y.detach().numpy())
+    assert np.array_equal(a.grid.logodds.numpy(), c.grid.logodds.numpy())
+
+
+def test_rgbd_frames_with_and_without_depth_and_an_instant_ngp_snapshot(tmp_path):
+    rgbd = _mapper(sensors=("camera", "rgbd"))
+    rgbd.add_frame(_frame(0.0, depth=np.full((INTR.height, INTR.width), 1.5, dtype=np.float32)))
+    rgbd.add_frame(_frame(1.0))  # no depth image: every pixel invalid
+    assert rgbd.store.depths_mm[0].min() == 1500 and rgbd.store.depths_mm[1].max() == 0
+    assert rgbd.train(600.0, steps=1).steps == 1
+    ngp = _mapper(grid="ngp")
+    ngp.add_frame(_frame(0.0))
+    ngp.train(600.0, steps=1)
+    assert ngp.probability_map() is None
+    ngp.snapshot(tmp_path / "ngp", n_rays=8, max_poses=1)
+    assert sorted(p.name for p in (tmp_path / "ngp").iterdir()) == ["map.pgm", "map.png", "map.yaml",
+                                                                    "snapshot.json"]

@@ -1,0 +1,114 @@
+"""`import_bag`: a ROS 1/2 bag -> a recording in the ETHZ layout (docs/method.md 4) that
+`virus_nerf.data.ethz.load_recording` reads.
+
+Two passes over the bag keep memory bounded: the first reads every stamp, the small sensors
+(USS, IRS, camera info, tf) and the LiDAR scans (written at once as filtered PCDs); poses and the
+per-stack matching follow; the second pass decodes and writes only the colour and depth frames
+that became samples. Everything is built in a temporary folder renamed into place at the end,
+so a failure leaves nothing behind and an existing folder is never touched.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+from pathlib import Path
+from typing import Literal
+
+from virus_nerf.data.bags.odometry import KissIcpSettings, csv_track
+from virus_nerf.data.bags.reader import BagReader
+from virus_nerf.data.bags.report import REPORT_NAME, ImportReport
+from virus_nerf.data.bags.stages import ImportRun, Plan
+from virus_nerf.data.bags.topics import TopicsConfig, default_topics, read_topics
+from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError
+from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.utils.io import new_output_dir, write_json_atomic
+
+__all__ = ["ImportReport", "import_bag", "require_ros_extra", "room_name"]
+
+PoseMode = Literal["lidar-odometry", "tf", "csv"]
+ROS_EXTRA = "pip install 'virus-nerf[ros]'"
+
+
+def require_ros_extra(poses: str = "lidar-odometry") -> None:
+    """One-line error when the optional ROS dependencies are missing."""
+    needed = ["rosbags"] + (["kiss_icp"] if poses == "lidar-odometry" else [])
+    missing = [n for n in needed if importlib.util.find_spec(n) is None]
+    if missing:
+        raise UsageError(f"import-bag needs {' and '.join(missing)} (not installed): {ROS_EXTRA}")
+
+
+def room_name(bag: Path) -> str:
+    stem = bag.name.removesuffix(".bag") if bag.is_file() else bag.name
+    return re.sub(r"[^A-Za-z0-9_-]", "_", stem) or "room"
+
+
+def import_bag(bag: str | Path, out: str | Path, topics: str | Path | TopicsConfig | None = None,
+               poses: PoseMode = "lidar-odometry", poses_file: str | Path | None = None,
+               tf_parent: str = "odom", tf_child: str | None = None, room: str | None = None,
+               kiss: KissIcpSettings | None = None) -> ImportReport:
+    """Import `bag` into the new ETHZ data folder `out` (room `room`, default the bag's name).
+
+    poses: 'lidar-odometry' (KISS-ICP on the LiDAR topic), 'tf' (frame `tf_child`, default the
+    LiDAR's frame, in `tf_parent` from /tf and /tf_static) or 'csv' (`poses_file`: LiDAR poses
+    as time,x,y,z,qx,qy,qz,qw or TUM). Raises DataFormatError / UsageError / OutputExistsError
+    (one line) before or while reading; `out` then does not exist.
+    """
+    if poses not in ("lidar-odometry", "tf", "csv"):
+        raise UsageError(f"--poses {poses!r}: expected lidar-odometry, tf or csv")
+    require_ros_extra(poses)
+    bag, out = Path(bag), Path(out)
+    if out.exists():
+        raise OutputExistsError(out)
+    cfg = topics if isinstance(topics, TopicsConfig) else read_topics(topics) if topics else default_topics()
+    if poses == "csv" and poses_file is None:
+        raise UsageError("--poses csv needs --poses-file FILE (time,x,y,z,qx,qy,qz,qw or TUM)")
+    csv_poses = csv_track(poses_file) if poses == "csv" else None
+    room = room or room_name(bag)
+    if not re.fullmatch(r"[A-Za-z0-9_-]+", room):
+        raise UsageError(f"--room {room!r}: expected letters, digits, '_' or '-'")
+    with BagReader(bag) as reader:
+        plan = _plan(reader, cfg, poses)
+        with new_output_dir(out) as root:
+            report = ImportRun(reader, cfg, plan, root, room).run(poses, csv_poses, tf_parent, tf_child, kiss)
+            report.data_dir = str(out)
+            write_json_atomic(root / REPORT_NAME, report.as_dict())
+    return report
+
+
+def _plan(reader: BagReader, cfg: TopicsConfig, poses: str) -> Plan:
+    """Check every named topic against the bag before anything is written."""
+    roles: dict[tuple[int | None, str], str] = {}
+    where = f"topics file {cfg.source}" if cfg.source else "default ETHZ topics"
+    for s, st in cfg.stacks.items():
+        for role, topic in st.roles().items():
+            reader.require(topic, role, f"stacks.{s}.{role} of the {where}")
+            roles[(s, role)] = topic
+    bag_topics = reader.topics
+    if cfg.lidar.topic and cfg.lidar.topic in bag_topics:
+        reader.require(cfg.lidar.topic, "lidar", f"lidar.topic of the {where}")
+        roles[(None, "lidar")] = cfg.lidar.topic
+    elif poses == "lidar-odometry":
+        raise DataFormatError(reader.path, f"--poses lidar-odometry needs a LiDAR: no topic {cfg.lidar.topic} "
+                              f"(lidar.topic of the {where}); name it in a topics file or use --poses tf or csv")
+    if poses == "tf":
+        found = [t for t in cfg.tf_topics if t in bag_topics]
+        if not found:
+            raise DataFormatError(reader.path, f"--poses tf: none of the tf topics {list(cfg.tf_topics)} is in the bag")
+        for k, t in enumerate(found):
+            reader.require(t, "tf", "tf_topics")
+            roles[(None, f"tf{k}")] = t
+    intrinsics: dict[int, Intrinsics] = {}
+    need_csv = [s for s, st in cfg.stacks.items() if not st.camera_info]
+    if need_csv:
+        if cfg.intrinsics_csv is None:
+            raise DataFormatError(cfg.source or reader.path, f"stack {need_csv[0]} has no camera_info topic; "
+                                  "name one or give intrinsics_csv (cam_id,fx,fy,cx,cy[,width,height])")
+        from virus_nerf.data.ethz import read_intrinsics
+
+        table = read_intrinsics(cfg.intrinsics_csv)
+        for s in need_csv:
+            if s not in table:
+                raise DataFormatError(cfg.intrinsics_csv, f"no row for CAM{s}", field="cam_id")
+            intrinsics[s] = table[s]
+    return Plan(roles, intrinsics)

@@ -1,0 +1,2 @@
+"""Mapping while driving: replaying a recording (or a bag) through a `trainer.mapper.Mapper` in real
+time, with map snapshots on the way (`virus-nerf map-bag`)."""

@@ -1,0 +1,152 @@
+"""Replay of a recording through a `Mapper` in real time (mapping while driving, issue 12).
+
+A wall clock, scaled by the playback speed, runs through the recording: every frame is added to
+the mapper once the clock passes its timestamp (read and decoded then, as a robot receives it),
+and the mapper trains continuously in between. Every `snapshot_every` seconds of wall time the
+current map is written to OUT/snapshots/NNNN_<seconds>s/ (map.pgm/.yaml/.png, prob.* for the
+VIRUS grid, snapshot.json) with one progress line; when the last frame has arrived, the final
+map goes to OUT/map/ with the mapper's state (mapper.pt). Every folder appears complete (built
+under a temporary name and renamed) and none is ever overwritten.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError, require_number
+
+SNAPSHOTS = "snapshots"
+FINAL = "map"
+
+
+@dataclass(frozen=True)
+class ReplayReport:
+    """What a replay did; `snapshots` in the order written."""
+
+    snapshots: tuple[Path, ...]
+    final: Path
+    frames: int
+    steps: int
+    train_s: float  # training clock
+    wall_s: float  # wall time from the first frame to the final map
+
+
+def find_room(recording_dir: Path, room: str | None = None) -> tuple[Path, str]:
+    """An ETHZ folder -> (data folder, room): DATA (holding camera_intrinsics.CSV and one room, or
+    `room`) or DATA/ROOM itself."""
+    d = Path(recording_dir)
+    if not d.is_dir():
+        raise UsageError(f"recording {d}: no such folder; expected an ETHZ recording (camera_intrinsics.CSV, ROOM/)")
+    if room is None and (d / "measurements").is_dir():
+        return d.parent, d.name
+    if not (d / "camera_intrinsics.CSV").is_file():
+        raise DataFormatError(d / "camera_intrinsics.CSV", "missing; expected an ETHZ recording folder")
+    if room is not None:
+        return d, room
+    rooms = sorted(p.name for p in d.iterdir() if (p / "measurements").is_dir())
+    if len(rooms) != 1:
+        raise UsageError(f"recording {d}: holds {len(rooms)} rooms {rooms}; expected exactly one (or name the room)")
+    return d, rooms[0]
+
+
+def replay(
+    recording_dir: Path,
+    out: Path,
+    playback: float = 1.0,
+    snapshot_every: float = 10.0,
+    config=None,
+    *,
+    room: str | None = None,
+    poses: Literal["auto", "optimised", "odometry"] = "auto",
+    frames: Literal["all", "train"] = "all",
+    resolution: float = 0.05,
+    n_rays: int = 360,
+    max_poses: int = 30,
+    train_slice: float = 0.25,
+    log: Callable[[str], None] = print,
+) -> ReplayReport:
+    """Replay an ETHZ recording through a Mapper in real time; snapshots into OUT (see module doc).
+
+    OUT may exist (map-bag imports the bag into OUT/recording first) but OUT/snapshots and
+    OUT/map must not. config: a TrainConfig (default TrainConfig()); its learning rate decays
+    over the drive's wall duration. poses: the recording's pose files, "auto" = the optimised
+    ones where present, else odometry. frames: every frame, or only the split's 'train' ones.
+    """
+    from virus_nerf.data.ethz import load_recording
+    from virus_nerf.trainer.config import TrainConfig
+    from virus_nerf.trainer.mapper import Mapper
+    from virus_nerf.utils.io import write_json_atomic
+
+    require_number("--playback", playback, 0.0)
+    require_number("--snapshot-every", snapshot_every, 0.0)
+    require_number("--resolution", resolution, 0.0)
+    if poses not in ("auto", "optimised", "odometry"):
+        raise UsageError(f"--poses {poses!r}: expected auto, optimised or odometry")
+    if frames not in ("all", "train"):
+        raise UsageError(f"--frames {frames!r}: expected all or train")
+    out = Path(out)
+    for p in (out / SNAPSHOTS, out / FINAL):
+        if p.exists():
+            raise OutputExistsError(p)
+    data, room = find_room(recording_dir, room)
+    if poses == "auto":
+        poses = "optimised" if any((data / room / "poses").glob("poses_cam_balm_sync*.csv")) else "odometry"
+    recording = load_recording(data, room, poses=poses)
+    order = recording.frame_order(None if frames == "all" else ("train",))
+    if not order:
+        raise DataFormatError(data / room / "split", f"no frames to replay (frames={frames})")
+    times = [float(recording.stacks[s].times[i]) for s, i in order]
+    drive_s = times[-1] - times[0]
+    cfg = config if config is not None else TrainConfig()
+    cfg = dataclasses.replace(cfg, max_steps=None, max_time=max(drive_s / playback, 1e-3))  # lr decay horizon
+    mapper = Mapper.for_recording(recording, cfg)
+    with_depth = "rgbd" in cfg.sensors
+
+    (out / SNAPSHOTS).mkdir(parents=True)
+    from virus_nerf.config_io import to_dict
+
+    write_json_atomic(out / SNAPSHOTS / "config.json", to_dict(cfg))
+    written: list[Path] = []
+    # start-up (kernels loaded, the first frame's prior) before the drive's clock starts, as a
+    # robot starts its mapper before it drives off
+    s, i = order[0]
+    mapper.add_frame(recording.stacks[s].frame(i, with_depth=with_depth))
+    mapper.prepare()
+    start = time.monotonic()
+    next_frame, next_snapshot = 1, snapshot_every
+    while True:
+        now = time.monotonic() - start
+        while next_frame < len(order) and (times[next_frame] - times[0]) / playback <= now:
+            s, i = order[next_frame]
+            mapper.add_frame(recording.stacks[s].frame(i, with_depth=with_depth))
+            next_frame += 1
+        if next_frame == len(order):
+            break
+        if now >= next_snapshot:
+            folder = out / SNAPSHOTS / f"{len(written) + 1:04d}_{now:.1f}s"
+            info = mapper.snapshot(folder, resolution, n_rays, max_poses)
+            written.append(folder)
+            log(_progress_line(f"snapshot {len(written)}", now, times[next_frame - 1] - times[0], drive_s, info,
+                               folder))
+            next_snapshot = (math.floor(now / snapshot_every) + 1) * snapshot_every  # skip any missed
+        wait_frame = (times[next_frame] - times[0]) / playback - now
+        budget = min(train_slice, wait_frame, next_snapshot - now)
+        if budget > 0:
+            mapper.train(budget)
+    wall_s = time.monotonic() - start
+    info = mapper.snapshot(out / FINAL, resolution, n_rays, max_poses, with_state=True)
+    log(_progress_line("final map", wall_s, drive_s, drive_s, info, out / FINAL))
+    return ReplayReport(tuple(written), out / FINAL, mapper.frames, mapper.step, mapper.seconds, wall_s)
+
+
+def _progress_line(what: str, now: float, drive_t: float, drive_s: float, info, folder: Path) -> str:
+    loss = "-" if info.loss is None else f"{info.loss:.4f}"
+    return (f"{what} at {now:.1f} s (drive {drive_t:.1f}/{drive_s:.1f} s): {info.frames} frames, {info.steps} steps, "
+            f"loss {loss}, map {info.map_known:.1%} known, {info.map_occupied:.1%} of it occupied, "
+            f"grid {info.grid_occupied:.1%} occupied -> {folder}")

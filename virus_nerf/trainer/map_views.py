@@ -1,0 +1,140 @@
+"""What a `Mapper` (trainer/mapper.py) answers about its current map: NeRF 360 deg scans, the 2D
+occupancy map, the VIRUS grid's probability map, and snapshots of them as map_server files.
+
+A mixin so that the training engine and the queries read apart; it uses the mapper's `model`,
+`field`, `grid`, `box`, `store`, `step`, `seconds` and `last_loss`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from virus_nerf.errors import UsageError
+from virus_nerf.grid.virus import VirusGrid
+
+
+@dataclass(frozen=True)
+class SnapshotInfo:
+    """snapshot.json of a `Mapper.snapshot` folder."""
+
+    frames: int
+    steps: int
+    seconds: float  # training clock
+    last_frame_time: float | None  # s, recording time of the newest frame
+    loss: float | None
+    map_occupied: float  # share of the map's known pixels that are occupied
+    map_known: float  # share of the map's pixels that are known (free or occupied)
+    grid_occupied: float  # share of the occupancy grid's cells the marcher samples
+
+
+
+class MapViews:
+    """Queries of the current map (mixed into `Mapper`)."""
+
+    def scans(self, poses: np.ndarray, n_rays: int = 512) -> list:
+        """NeRF 360 deg horizontal scans (evaluation.scans.Scan2D, world x, y in metres) from each
+        pose's position: poses (N, 4, 4) camera-to-world, (4, 4), or positions (N, 3)."""
+        from virus_nerf.evaluation.scans import (
+            FieldOfView,
+            Scan2D,
+            horizontal_directions,
+            points_from_ranges,
+        )
+
+        positions = _positions(poses)
+        dirs = horizontal_directions(n_rays)
+        out = []
+        self.field.eval()
+        try:
+            for p in positions:
+                origins = np.broadcast_to(p, dirs.shape).copy()
+                r = self.model.ranges(origins, dirs)
+                out.append(Scan2D("NeRF", points_from_ranges(p[:2], dirs, r), p[:2], FieldOfView.full(p[:2])))
+        finally:
+            self.field.train()
+        return out
+
+    def map2d(self, resolution: float = 0.05, n_rays: int = 360, max_poses: int = 30):
+        """The current 2D occupancy map (exports.maps.OccupancyMap2D, trinary, over the box's x, y):
+        NeRF scans from up to `max_poses` camera positions of the frames added so far (evenly
+        spread), cells a scan passed free, end cells occupied, the rest unknown."""
+        from virus_nerf.exports.views import scan_map
+
+        for name, v, lo in (("resolution", resolution, 0.0), ("n_rays", n_rays, 0), ("max_poses", max_poses, 0)):
+            if isinstance(v, bool) or not isinstance(v, int | float) or not v > lo or not math.isfinite(v):
+                raise UsageError(f"Mapper.map2d {name} {v!r}: expected a positive number")
+        pos = self.store.cam_to_world[:, :3, 3]
+        pos = pos[np.unique(np.linspace(0, len(pos) - 1, min(max_poses, len(pos))).round().astype(int))]
+        lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
+        self.field.eval()
+        try:
+            return scan_map(self.model, pos if len(pos) else np.zeros((0, 3)), lo, hi, resolution, int(n_rays))
+        finally:
+            self.field.train()
+
+    def probability_map(self, resolution: float = 0.05, band: float = 0.1):
+        """The VIRUS grid's occupancy probability at camera height (`mode: scale` OccupancyMap2D;
+        exports.maps.probability_slice); None for the Instant-NGP grid."""
+        from virus_nerf.exports.maps import probability_slice, scale_map
+
+        if not isinstance(self.grid, VirusGrid):
+            return None
+        lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
+        p = probability_slice(self.grid.probability.numpy(), self.box.lo, self.box.hi, self.camera_height(), band,
+                              lo, hi, resolution)
+        return scale_map(p, lo, resolution)
+
+    def camera_height(self) -> float:
+        """Median height (m) of stack 1's cameras (all stacks' without stack 1) so far."""
+        z = self.store.cam_to_world[:, 2, 3]
+        main = self.store.stack_ids == 1
+        z = z[main] if main.any() else z
+        return float(np.median(z)) if len(z) else float(self.box.center[2])
+
+    def snapshot(self, folder: Path, resolution: float = 0.05, n_rays: int = 360, max_poses: int = 30,
+                 with_state: bool = False) -> SnapshotInfo:
+        """Write the current map into the new folder `folder` (refused if it exists; built under a
+        temporary name and renamed): map.pgm/.yaml/.png (map2d), prob.pgm/.yaml/.png (VIRUS grid),
+        snapshot.json and, with `with_state`, mapper.pt (`state()`)."""
+        from virus_nerf.exports.maps import FREE, OCCUPIED, write_map_server, write_png
+        from virus_nerf.utils.io import new_output_dir, write_json_atomic
+
+        folder = Path(folder)
+        with new_output_dir(folder) as tmp:
+            m = self.map2d(resolution, n_rays, max_poses)
+            write_map_server(m, tmp, "map")
+            write_png(tmp / "map.png", m.image)
+            prob = self.probability_map(resolution)
+            if prob is not None:
+                write_map_server(prob, tmp, "prob")
+                write_png(tmp / "prob.png", prob.image)
+            occupied, known = int((m.image == OCCUPIED).sum()), int(np.isin(m.image, (OCCUPIED, FREE)).sum())
+            info = SnapshotInfo(
+                frames=self.frames, steps=self.step, seconds=round(self.seconds, 3),
+                last_frame_time=float(self.store.times.max()) if self.frames else None, loss=self.last_loss,
+                map_occupied=occupied / known if known else 0.0, map_known=known / m.image.size,
+                grid_occupied=round(self.grid.occupancy_share(), 4),
+            )
+            write_json_atomic(tmp / "snapshot.json", dataclasses.asdict(info))
+            if with_state:
+                torch.save(self.state(), tmp / "mapper.pt")
+        return info
+
+
+def _positions(poses) -> np.ndarray:
+    """(N, 4, 4) or (4, 4) poses, or (N, 3) positions -> (N, 3) float64 positions."""
+    p = np.asarray(poses, dtype=np.float64)
+    if p.shape == (4, 4):
+        p = p[None]
+    if p.ndim == 3 and p.shape[1:] == (4, 4):
+        p = p[:, :3, 3]
+    if p.ndim != 2 or p.shape[1] != 3 or not np.isfinite(p).all():
+        raise UsageError(f"Mapper.scans poses of shape {np.shape(poses)}: expected finite (N, 4, 4) camera-to-world "
+                         "poses or (N, 3) positions in metres")
+    return p

@@ -1,0 +1,340 @@
+"""Mapping while driving: a VIRUS-NeRF whose frame set grows as the robot drives (issue 12).
+
+`Mapper` is the training engine (docs/method.md 3.6) without a run folder: field, occupancy grid,
+optimiser, seeded random streams and a growing `FrameStore`. Frames are added one at a time;
+`train(seconds)` trains on the frames added so far; the current 2D map and scans can be queried
+at any time. The VIRUS grid's sensor prior (docs/method.md 3.4) is applied to every frame once,
+at the first step after it was added. `Trainer` (trainer/loop.py) drives one Mapper for
+`virus-nerf train` (offline: every frame added before the first step; `--online`: each frame
+when the training clock, scaled by the playback speed, passes its timestamp); `virus-nerf
+map-bag` replays a recording through one in real time (mapping/replay.py).
+
+Example, in a ROS node or a script (metres, seconds, RGB; OpenCV camera axes)::
+
+    from virus_nerf.data.frame import SyncFrame, check_frame
+    from virus_nerf.scene_box import SceneBox
+    from virus_nerf.sensors.camera import Intrinsics
+    from virus_nerf.trainer.config import TrainConfig
+    from virus_nerf.trainer.mapper import Mapper
+
+    intr = Intrinsics(fx=386.0, fy=386.0, cx=320.0, cy=240.0, width=640, height=480)
+    mapper = Mapper(TrainConfig(), {1: intr, 3: intr}, SceneBox((-5, -5, -1), (5, 5, 2)))
+    # on every synchronised set of messages:
+    mapper.add_frame(SyncFrame(time=t, stack_id=1, rgb=rgb, cam_to_world=pose,
+                               uss_range=uss_m, irs_range=zones_8x8_m))
+    # between messages, e.g. in a timer:
+    report = mapper.train(0.5)            # TrainSlice(steps, seconds, loss, frames, ...)
+    grid_map = mapper.map2d()             # exports.maps.OccupancyMap2D (write_map_server)
+    scans = mapper.scans(poses)           # [evaluation.scans.Scan2D] at (N, 4, 4) poses
+    mapper.snapshot(Path("maps/0001"))    # map.pgm/.yaml/.png (+ prob.*) and snapshot.json
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from virus_nerf.data.frame import SyncFrame, check_frame
+from virus_nerf.errors import UsageError
+from virus_nerf.field.field import NerfField
+from virus_nerf.grid.base import GridSpec, GridUpdateBatch, OccupancyGrid
+from virus_nerf.grid.ngp import NgpGrid
+from virus_nerf.grid.virus import VirusGrid
+from virus_nerf.losses import LossTerms, distortion_loss, total_loss
+from virus_nerf.render.marching import ray_box_interval
+from virus_nerf.sampler.batch import BatchSampler, RayBatch
+from virus_nerf.sampler.frames import FrameStore, resize_depth_mm, resize_rgb
+from virus_nerf.sampler.sensor_rays import irs_zone_rays, uss_cone_rays
+from virus_nerf.scene_box import SceneBox
+from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.trainer.config import TrainConfig
+from virus_nerf.trainer.map_views import MapViews
+from virus_nerf.trainer.model import SceneModel, fit_scene_box
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def build_grid(config: TrainConfig, box: SceneBox, device: torch.device) -> OccupancyGrid:
+    if config.grid == "ngp":
+        cfg = config.ngp_grid
+        return NgpGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, step_size=config.march.step_size, device=device)
+    cfg = config.virus_grid
+    return VirusGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, device=device)
+
+
+@dataclass(frozen=True)
+class TrainSlice:
+    """What one `Mapper.train` call did."""
+
+    steps: int  # training steps in this slice
+    seconds: float  # training clock spent in this slice (steps and grid updates)
+    loss: float | None  # weighted total loss of the slice's last step (None: no step)
+    frames: int  # frames the slice trained on
+    total_steps: int  # steps since the mapper was made
+    total_seconds: float  # training clock since the mapper was made
+
+
+class Mapper(MapViews):
+    """A VIRUS-NeRF (or Instant-NGP) map trained on frames as they arrive.
+
+    config: the training configuration (its max_steps/max_time only shape the learning-rate
+    decay; `train` decides how long to train). intrinsics: stack id -> camera intrinsics at the
+    frames' full resolution (frames are resized by config.image_scale). box: the scene box in
+    metres, the field's and grid's frame (fixed for the mapper's life: the room's extent, e.g.
+    from a floor plan or a previous map).
+    """
+
+    def __init__(self, config: TrainConfig, intrinsics: Mapping[int, Intrinsics], box: SceneBox):
+        if not intrinsics:
+            raise UsageError("Mapper intrinsics {}: expected at least one stack id -> Intrinsics")
+        self.config = config
+        self.intrinsics = dict(intrinsics)
+        self.box = box
+        self.device = resolve_device(config.device)
+        torch.manual_seed(config.seed)
+        field_gen = torch.Generator().manual_seed(config.seed)
+        self.field = NerfField(box, config.field, generator=field_gen).to(self.device)
+        self.grid = build_grid(config, box, self.device)
+        self.model = SceneModel(
+            self.field, self.grid, config.march.step_size, config.march.near, config.march.max_samples,
+            config.min_opacity, config.march.backend, config.march.min_transmittance,
+        )
+        fused = self.device.type == "cpu" or self.device.type == "cuda"
+        self.optimizer = torch.optim.Adam(
+            self.field.parameters(), lr=config.optim.lr, eps=config.optim.eps, betas=config.optim.betas, fused=fused
+        )
+        self.rng = np.random.default_rng(config.seed)
+        self.generator = torch.Generator(device="cpu").manual_seed(config.seed + 1)
+        self.step = 0
+        self.seconds = 0.0  # training clock: timed steps only
+        self.samples = 0
+        self.last_loss: float | None = None
+        self.last_samples_per_ray = 0.0
+        self.prior_s = 0.0  # seconds spent on the grid's sensor prior in `prepare`
+        self._sampler: BatchSampler | None = None
+        self._prior_done = 0  # frames (store rows 0..n-1) whose sensor prior the grid has had
+        self._prior_skip = False  # an old checkpoint without the count: frames present count as done
+        self._warm = False
+
+    @classmethod
+    def for_recording(cls, recording, config: TrainConfig) -> Mapper:
+        """A mapper for a recording's stacks and scene box (trainer.model.fit_scene_box), no frames."""
+        return cls(config, {s: st.intrinsics for s, st in recording.stacks.items()}, fit_scene_box(recording))
+
+    # ------------------------------------------------------------------ frames
+    @property
+    def sampler(self) -> BatchSampler:
+        if self._sampler is None:
+            scaled = {s: i.scaled(self.config.image_scale) for s, i in self.intrinsics.items()}
+            store = FrameStore.empty(scaled, with_depth="rgbd" in self.config.sensors)
+            self._sampler = BatchSampler(store, self.config.sensors, self.config.shares)
+        return self._sampler
+
+    @property
+    def store(self) -> FrameStore:
+        """The frames added so far at training resolution (row = order of arrival)."""
+        return self.sampler.store
+
+    @property
+    def frames(self) -> int:
+        return len(self.store)
+
+    def add_frame(self, frame: SyncFrame) -> int:
+        """Add one synchronised frame (checked: stack, image shapes, pose, ranges); returns its row."""
+        check_frame(frame, self.intrinsics)
+        small = self.store.intrinsics[frame.stack_id]
+        size = (small.width, small.height)
+        depth = None
+        if self.store.depths_mm is not None and frame.depth is not None:
+            depth = resize_depth_mm(np.asarray(frame.depth, dtype=np.float32), size)
+        return self.store.append(frame.stack_id, self.frames, float(frame.time), np.asarray(frame.cam_to_world),
+                                 resize_rgb(frame.rgb, size), depth, float(frame.uss_range),
+                                 np.asarray(frame.irs_range, dtype=np.float64))
+
+    def add_store(self, store: FrameStore, rows: np.ndarray | None = None) -> None:
+        """Add frames already decoded at training resolution: `rows` of `store` in that order, or
+        all of them (taken over without a copy when the mapper has none yet)."""
+        if store.intrinsics != self.store.intrinsics:
+            raise ValueError(f"store intrinsics {store.intrinsics} differ from the mapper's {self.store.intrinsics}")
+        if rows is None and self.frames == 0:
+            self._sampler = BatchSampler(store, self.config.sensors, self.config.shares)
+            return
+        self.store.append_rows(store, np.arange(len(store)) if rows is None else rows)
+
+    def _apply_pending_prior(self) -> None:
+        """The grid's sensor prior (VIRUS: Depth-Update along every IRS zone, optional USS free
+        space) for the frames added since the last call; each frame is used once."""
+        n = self.frames
+        want = self.grid.prior_request
+        if self._prior_skip:
+            self._prior_done, self._prior_skip = n, False
+        if n > self._prior_done and want is not None:
+            frames = np.arange(self._prior_done, n)
+            sensors = self.config.sensors
+            depth = irs_zone_rays(self.store, frames, want.zone_samples).valid() if "irs" in sensors else None
+            free = uss_cone_rays(self.store, frames).valid() if want.uss_free and "uss" in sensors else None
+            self.grid.initialise(depth, free)
+        self._prior_done = n
+
+    # ------------------------------------------------------------------ training
+    def prepare(self) -> None:
+        """Start-up before the first step: the prior of the frames present, kernels loaded."""
+        if self.frames == 0:
+            raise UsageError("Mapper.train: no frames yet; expected add_frame (at least one frame) first")
+        t0 = time.perf_counter()
+        self._apply_pending_prior()
+        self.prior_s += time.perf_counter() - t0
+        if not self._warm:
+            self._warm_kernels()
+            self._warm = True
+
+    def _warm_kernels(self) -> None:
+        """Load (or compile) the marching, field and compositing kernels on a few rays, so the
+        first timed step is an ordinary one. Draws no random numbers and leaves no gradient."""
+        rays = self.sampler._rays(np.zeros(8, dtype=np.int64), np.arange(8, dtype=np.int64)).to(self.device)
+        out, _ = self.model.render(rays.origins, rays.directions, generator=None)
+        (out.rgb.sum() + out.depth.sum()).backward()
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def progress(self) -> float:
+        """Share of the config's budget (max_steps / max_time) used: drives the lr decay."""
+        c = self.config
+        parts = [0.0]
+        if c.max_steps is not None:
+            parts.append(self.step / c.max_steps)
+        if c.max_time is not None:
+            parts.append(self.seconds / c.max_time)
+        return min(1.0, max(parts))
+
+    def train_step(self, progress: float | None = None) -> LossTerms:
+        """One step on every frame added so far (the prior of new frames first); `progress` in
+        [0, 1] sets the learning rate lr * lr_decay_to ** progress (default `self.progress()`)."""
+        if not self._warm:
+            self.prepare()
+        self._apply_pending_prior()
+        c = self.config
+        lr = c.optim.lr * c.optim.lr_decay_to ** (self.progress() if progress is None else progress)
+        for g in self.optimizer.param_groups:
+            g["lr"] = lr
+        batch = self.sampler.sample(self.rng, c.batch_size, np.arange(self.frames)).to(self.device)
+        sensors = c.sensors
+        rgb_rays = None
+        if c.density_only_depth_rays:
+            has_depth = torch.zeros(len(batch), dtype=torch.bool, device=self.device)
+            if "irs" in sensors:
+                has_depth |= torch.isfinite(batch.irs_range)
+            if "rgbd" in sensors:
+                has_depth |= torch.isfinite(batch.rgbd_range)
+            rgb_rays = ~has_depth
+        out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator, rgb_rays=rgb_rays)
+        terms = total_loss(
+            c.weights,
+            pred_rgb=out.rgb,
+            target_rgb=batch.rgb,
+            pred_depth=out.depth,
+            irs_depth=batch.irs_range if "irs" in sensors else None,
+            uss_range=batch.uss_range if "uss" in sensors else None,
+            rgbd_depth=batch.rgbd_range if "rgbd" in sensors else None,
+            rgb_mask=rgb_rays,
+        )
+        if c.weights.distortion > 0:
+            smp = stats.samples
+            ld = distortion_loss(out.weights, smp.t_starts, smp.t_ends, smp.ray_offsets)
+            terms = dataclasses.replace(terms, total=terms.total + c.weights.distortion * ld, distortion=ld)
+        self.optimizer.zero_grad(set_to_none=True)
+        terms.total.backward()
+        self.optimizer.step()
+        self.step += 1
+        self.samples += stats.n_samples
+        self.last_samples_per_ray = stats.n_samples / max(1, stats.n_rays)
+        if self.step % self.grid.update_interval == 0:
+            self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator)
+        return terms
+
+    def _grid_batch(self, batch: RayBatch, stats) -> GridUpdateBatch:
+        """Candidates for one grid update; the grid draws its own share of each at random.
+
+        Depth-Update: every ray with an IRS range. NeRF-Update: every ray of the batch (the whole
+        image, not only the sensor footprints), each to the box exit; plus the forward pass's
+        samples and densities for a grid that reuses them.
+        """
+        has_irs = torch.isfinite(batch.irs_range).nonzero().squeeze(1)
+        _, t_exit = ray_box_interval(batch.origins, batch.directions, self.grid.spec, 0.0, math.inf)
+        far = t_exit.clamp(min=0.0).to(batch.origins.dtype)  # (B,) distance to the box exit
+        return GridUpdateBatch(
+            depth_origins=batch.origins[has_irs],
+            depth_directions=batch.directions[has_irs],
+            depth_ranges=batch.irs_range[has_irs],
+            nerf_origins=batch.origins,
+            nerf_directions=batch.directions,
+            nerf_far=far,
+            forward_points=stats.positions,
+            forward_sigma=stats.sigma,
+        )
+
+    def timed_step(self, progress: float | None = None) -> LossTerms:
+        """`train_step` on the training clock."""
+        t_start = time.perf_counter()
+        terms = self.train_step(progress)
+        self.seconds += time.perf_counter() - t_start
+        self.last_loss = float(terms.total.detach())
+        return terms
+
+    def train(self, seconds: float, steps: int | None = None) -> TrainSlice:
+        """Train on the frames added so far for `seconds` of training clock (and at most `steps`
+        steps); the one-off start-up of the first call (kernel loading) is not counted."""
+        if isinstance(seconds, bool) or not isinstance(seconds, int | float) or not math.isfinite(seconds) \
+                or seconds < 0:
+            raise UsageError(f"Mapper.train seconds {seconds!r}: expected a finite number >= 0")
+        if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 0):
+            raise UsageError(f"Mapper.train steps {steps!r}: expected an integer >= 0 or None")
+        self.prepare()
+        step0, clock0 = self.step, self.seconds
+        loss = None
+        while self.seconds - clock0 < seconds and (steps is None or self.step - step0 < steps):
+            loss = float(self.timed_step().total.detach())
+        return TrainSlice(steps=self.step - step0, seconds=self.seconds - clock0, loss=loss, frames=self.frames,
+                          total_steps=self.step, total_seconds=self.seconds)
+
+    # ------------------------------------------------------------------ state
+    def state(self) -> dict:
+        """Everything to continue training (not the frames): the live tensors, so write it out
+        (torch.save) before training on."""
+        return {
+            "field": self.field.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "grid": self.grid.state_dict(),
+            "step": self.step,
+            "seconds": self.seconds,
+            "samples": self.samples,
+            "numpy_rng": self.rng.bit_generator.state,
+            "torch_generator": self.generator.get_state(),
+            "box": self.box.to_dict(),
+            "prior_frames": self._prior_done,
+        }
+
+    def load_state(self, state: dict) -> None:
+        """Continue from `state()` (read on the CPU). The frames are not in it: add them again in
+        the same order; the first `prior_frames` of them do not get the sensor prior again."""
+        self.field.load_state_dict(state["field"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.grid.load_state_dict(state["grid"])
+        self.step = int(state["step"])
+        self.seconds = float(state["seconds"])
+        self.samples = int(state["samples"])
+        self.rng.bit_generator.state = state["numpy_rng"]
+        self.generator.set_state(state["torch_generator"])
+        if "prior_frames" in state:
+            self._prior_done, self._prior_skip = int(state["prior_frames"]), False
+        else:  # written before the count existed: the grid had the prior of every frame present
+            self._prior_done, self._prior_skip = 0, True
