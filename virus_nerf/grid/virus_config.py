@@ -36,10 +36,11 @@ class VirusGridConfig:
     init_uss_free: bool = False  # also free-space evidence in front of every USS echo (its cone)
     # NeRF-Update densities: "forward" (default, the paper's speed-up) reuses the densities of
     # the training forward pass: no extra network pass, and only cells the marcher sampled get
-    # evidence, so cells nothing renders through are not raised by haze (office 60 s: 0.197 /
-    # 0.254 m at 11.1 steps/s against 0.217 / 0.258 at 9.2; common area 180 s: 0.635 / 0.964
-    # against 0.679 / 1.075; README, time to map). "resample" draws nerf_points_per_ray points
-    # along rays of the batch and evaluates the density MLP there.
+    # evidence, so cells nothing renders through are not raised by haze (measured with the
+    # earlier defaults: office 60 s: 0.197 / 0.254 m at 11.1 steps/s against 0.217 / 0.258 at
+    # 9.2; common area 180 s: 0.635 / 0.964 against 0.679 / 1.075; README, time to map).
+    # "resample" draws nerf_points_per_ray points along rays of the batch and evaluates the
+    # density MLP there.
     nerf_update_source: Literal["resample", "forward"] = "forward"
     # Depth-Update (IRS, MURIEL model; sensor_model docstring)
     std_per_m: float = 0.0066  # range noise grows 0.66 cm per metre ...
@@ -93,7 +94,7 @@ class VirusGridConfig:
 
     @property
     def sigma_threshold_max(self) -> float:
-        """sigma_T_max (1/m): -ln(1 - alpha) / step, 1.005 /m by default."""
+        """sigma_T_max (1/m): -ln(1 - alpha) / step, 4.48 /m by default (paper.json: 1.005)."""
         return -math.log(1.0 - self.threshold_alpha) / self.threshold_step
 
     @property
