@@ -68,7 +68,9 @@ def test_visible_pass_matches_full_render():
     """eps = 1e-6 on a uniform 20 /m fog (every sample near the cut-off, the worst case for the
     gradients): renders and gradients agree to 1e-3 (the error shrinks in proportion to eps)."""
     full_out, full_stats, full_grads = _render_and_grads(_model(0.0))
-    vis_out, vis_stats, vis_grads = _render_and_grads(_model(1e-6))
+    two_pass = _model(1e-6)
+    two_pass.visible_share = 0.0  # as after a step that found most samples hidden
+    vis_out, vis_stats, vis_grads = _render_and_grads(two_pass)
     assert full_stats.n_samples == vis_stats.n_samples  # the same marched samples
     assert vis_stats.n_trained < 0.5 * vis_stats.n_samples  # most of them hidden and skipped
     assert full_stats.n_trained == full_stats.n_samples
@@ -88,3 +90,21 @@ def test_without_gradients_every_sample_is_rendered():
     with torch.no_grad():
         out, stats = model.render(torch.zeros(8, 3), torch.tensor([[1.0, 0.0, 0.0]] * 8))
     assert stats.n_trained == stats.n_samples
+
+
+def test_one_pass_path_trains_every_density_and_skips_hidden_colour():
+    """While most samples are visible (visible_share above TWO_PASS_BELOW) a step takes one pass:
+    every density with gradients, colour only where T >= eps; renders and gradients again match
+    the full render (here exactly for the density path up to the hidden colours' < eps weight)."""
+    full_out, _, full_grads = _render_and_grads(_model(0.0))
+    model = _model(1e-6)
+    assert model.visible_share == 1.0  # a new model starts on the one-pass path
+    out, stats, grads = _render_and_grads(model)
+    assert stats.n_trained == stats.n_samples  # every density trained
+    assert model.visible_share < 0.5  # measured: the next step takes the two-pass path
+    for a, b in ((full_out.rgb, out.rgb), (full_out.depth, out.depth), (full_out.opacity, out.opacity)):
+        assert torch.allclose(a, b, atol=1e-3)
+    for a, b in zip(full_grads, grads, strict=True):
+        assert (a - b).norm() <= 1e-3 * a.norm()
+    _, stats2, _ = _render_and_grads(model)
+    assert stats2.n_trained < stats2.n_samples  # two-pass now

@@ -201,6 +201,20 @@ class NerfField(nn.Module):
             rgb = rgb.index_copy(0, idx[sub], self._rgb(h[sub], dirs[idx[sub]]))
         return sigma, rgb
 
+    def geometry(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """World points (N, 3) m -> sigma (N,) 1/m (0 outside the box), the geometry features
+        h (M, G) of the M points inside the box and their rows idx (M,) in `points`; with
+        `colour(h[rows], dirs)` the colour can then be asked for a subset only."""
+        x, inside = self.normalise(points)
+        idx = inside.nonzero().squeeze(1)  # (M,)
+        h = self._geo(x[idx])  # (M, G)
+        sigma = x.new_zeros(x.shape[0]).index_copy(0, idx, self._sigma(h))
+        return sigma, h, idx
+
+    def colour(self, h: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        """Geometry features (M, G) and unit view directions (M, 3) -> rgb (M, 3) in (0, 1)."""
+        return self._rgb(h, dirs)
+
     def _rgb(self, h: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         d = sh_encode(dirs.to(torch.float32))  # (M, 16)
         return torch.sigmoid(self.color_mlp(torch.cat([d, h], dim=-1)))  # (M, 3)

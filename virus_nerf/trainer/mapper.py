@@ -321,6 +321,7 @@ class Mapper(MapViews):
             "torch_generator": self.generator.get_state(),
             "box": self.box.to_dict(),
             "prior_frames": self._prior_done,
+            "visible_share": self.model.visible_share,  # picks the next step's render path
         }
 
     def load_state(self, state: dict) -> None:
@@ -334,6 +335,7 @@ class Mapper(MapViews):
         self.samples = int(state["samples"])
         self.rng.bit_generator.state = state["numpy_rng"]
         self.generator.set_state(state["torch_generator"])
+        self.model.visible_share = float(state.get("visible_share", 1.0))
         if "prior_frames" in state:
             self._prior_done, self._prior_skip = int(state["prior_frames"]), False
         else:  # written before the count existed: the grid had the prior of every frame present
