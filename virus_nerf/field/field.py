@@ -167,11 +167,7 @@ class NerfField(nn.Module):
         x, inside = self.normalise(points)
         if bool(inside.all()):
             return self._sigma(self._geo(x))
-        idx = inside.nonzero().squeeze(1)  # (M,)
-        sigma = x.new_zeros(x.shape[0])
-        if idx.numel() == 0:
-            return sigma
-        return sigma.index_copy(0, idx, self._sigma(self._geo(x[idx])))
+        return self._geometry(x, inside)[0]
 
     def forward(
         self, points: torch.Tensor, dirs: torch.Tensor, rgb_mask: torch.Tensor | None = None
@@ -186,34 +182,36 @@ class NerfField(nn.Module):
         x, inside = self.normalise(points)
         if rgb_mask is None and bool(inside.all()):
             return self._sigma_rgb(x, dirs)
-        keep = inside if rgb_mask is None else inside & rgb_mask
-        idx = inside.nonzero().squeeze(1)  # (M,)
-        sigma = x.new_zeros(x.shape[0])
-        rgb = x.new_zeros(x.shape[0], 3)
-        if idx.numel() == 0:
-            return sigma, rgb
-        h = self._geo(x[idx])  # (M, G)
-        sigma = sigma.index_copy(0, idx, self._sigma(h))
-        if rgb_mask is None:
-            return sigma, rgb.index_copy(0, idx, self._rgb(h, dirs[idx]))
-        sub = keep[idx].nonzero().squeeze(1)  # rows of h that need colour
-        if sub.numel():
-            rgb = rgb.index_copy(0, idx[sub], self._rgb(h[sub], dirs[idx[sub]]))
-        return sigma, rgb
+        sigma, h, idx = self._geometry(x, inside)
+        return sigma, self.colour_at(h, idx, dirs, rgb_mask)
 
     def geometry(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """World points (N, 3) m -> sigma (N,) 1/m (0 outside the box), the geometry features
-        h (M, G) of the M points inside the box and their rows idx (M,) in `points`; with
-        `colour(h[rows], dirs)` the colour can then be asked for a subset only."""
-        x, inside = self.normalise(points)
-        idx = inside.nonzero().squeeze(1)  # (M,)
-        h = self._geo(x[idx])  # (M, G)
-        sigma = x.new_zeros(x.shape[0]).index_copy(0, idx, self._sigma(h))
-        return sigma, h, idx
+        h (M, G) of the M points inside the box and their rows idx (M,) in `points`; `colour_at`
+        then runs the colour MLP where it is needed (e.g. once the transmittance is known)."""
+        return self._geometry(*self.normalise(points))
 
-    def colour(self, h: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-        """Geometry features (M, G) and unit view directions (M, 3) -> rgb (M, 3) in (0, 1)."""
-        return self._rgb(h, dirs)
+    def _geometry(self, x: torch.Tensor, inside: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Box coordinates (N, 3) and inside mask (N,) -> (sigma (N,), h (M, G), idx (M,))."""
+        idx = inside.nonzero().squeeze(1)  # (M,)
+        sigma = x.new_zeros(x.shape[0])
+        if idx.numel() == 0:
+            return sigma, x.new_zeros(0, self.config.geo_feat_dim), idx
+        h = self._geo(x[idx])  # (M, G)
+        return sigma.index_copy(0, idx, self._sigma(h)), h, idx
+
+    def colour_at(self, h: torch.Tensor, idx: torch.Tensor, dirs: torch.Tensor,
+                  mask: torch.Tensor | None = None) -> torch.Tensor:
+        """rgb (N, 3) for the N rows of `dirs` from `geometry`'s h (M, G) and idx (M,): the colour
+        MLP runs on the rows inside the box where mask (N,) bool is True (all of them without a
+        mask); rgb is 0 elsewhere, with no gradient."""
+        rgb = h.new_zeros(dirs.shape[0], 3)
+        if mask is None:
+            return rgb.index_copy(0, idx, self._rgb(h, dirs[idx])) if idx.numel() else rgb
+        sub = mask[idx].nonzero().squeeze(1)  # rows of h that need colour
+        if sub.numel():
+            rgb = rgb.index_copy(0, idx[sub], self._rgb(h[sub], dirs[idx[sub]]))
+        return rgb
 
     def _rgb(self, h: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         d = sh_encode(dirs.to(torch.float32))  # (M, 16)

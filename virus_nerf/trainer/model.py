@@ -152,12 +152,7 @@ class SceneModel:
         sigma, h, idx = self.field.geometry(positions)  # (S,), (M, G), (M,)
         keep = transmittance(sigma, samples) >= self.min_transmittance  # (S,) bool
         self.visible_share = float(keep.float().mean()) if keep.numel() else 1.0
-        if rgb_mask is not None:
-            keep = keep & rgb_mask
-        rows = keep[idx].nonzero().squeeze(1)  # rows of h that need colour
-        rgb = sigma.new_zeros(sigma.shape[0], 3)
-        if rows.numel():
-            rgb = rgb.index_copy(0, idx[rows], self.field.colour(h[rows], dirs[idx[rows]]))
+        rgb = self.field.colour_at(h, idx, dirs, keep if rgb_mask is None else keep & rgb_mask)  # (S, 3)
         out = composite(sigma, rgb, samples, n_rays=n_rays, background=None, backend=self.backend)
         stats = RenderStats(
             n_rays=n_rays, n_samples=samples.n_samples, positions=positions.detach(), sigma=sigma.detach(),
