@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,7 +29,7 @@ from virus_nerf.sampler.batch import BatchSampler
 from virus_nerf.sampler.frames import FrameStore, build_frame_store
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.trainer.config import TrainConfig
-from virus_nerf.trainer.mapper import Mapper, build_grid, resolve_device
+from virus_nerf.trainer.mapper import Mapper, budget_share, build_grid, resolve_device
 from virus_nerf.trainer.model import fit_scene_box
 from virus_nerf.trainer.run_folder import (
     CHECKPOINT,
@@ -199,12 +198,8 @@ class Trainer:
         return self.max_time is not None and self.seconds >= self.max_time
 
     def _progress(self) -> float:
-        parts = []
-        if self.config.max_steps is not None:
-            parts.append(self.step / self.config.max_steps)
-        if self.max_time is not None:
-            parts.append(self.seconds / self.max_time)
-        return min(1.0, max(parts))
+        """The mapper's budget share, with the online run's time budget (duration / speed)."""
+        return budget_share(self.step, self.seconds, self.config.max_steps, self.max_time)
 
     def available_frames(self) -> np.ndarray:
         """Source frame rows the run may use now; online, only frames the clock has passed."""
@@ -303,10 +298,7 @@ class Trainer:
         """One training step on the training clock."""
         self.prepare()
         self._sync_frames()  # the frames arrive off the clock; their grid prior is on it
-        t_start = time.perf_counter()
-        terms = self.mapper.train_step(self._progress())
-        self.seconds += time.perf_counter() - t_start
-        return terms
+        return self.mapper.timed_step(self._progress())
 
     def _evaluate_during_training(self, log: TrainLog) -> None:
         result = self.evaluate(with_sensors=False)

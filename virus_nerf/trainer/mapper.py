@@ -58,6 +58,16 @@ from virus_nerf.trainer.map_views import MapViews
 from virus_nerf.trainer.model import SceneModel, fit_scene_box
 
 
+def budget_share(step: int, seconds: float, max_steps: int | None, max_time: float | None) -> float:
+    """Share in [0, 1] of a step and/or time budget used (the larger of the two)."""
+    parts = [0.0]
+    if max_steps is not None:
+        parts.append(step / max_steps)
+    if max_time is not None:
+        parts.append(seconds / max_time)
+    return min(1.0, max(parts))
+
+
 def resolve_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -208,13 +218,7 @@ class Mapper(MapViews):
 
     def progress(self) -> float:
         """Share of the config's budget (max_steps / max_time) used: drives the lr decay."""
-        c = self.config
-        parts = [0.0]
-        if c.max_steps is not None:
-            parts.append(self.step / c.max_steps)
-        if c.max_time is not None:
-            parts.append(self.seconds / c.max_time)
-        return min(1.0, max(parts))
+        return budget_share(self.step, self.seconds, self.config.max_steps, self.config.max_time)
 
     def train_step(self, progress: float | None = None) -> LossTerms:
         """One step on every frame added so far (the prior of new frames first); `progress` in
