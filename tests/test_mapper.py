@@ -59,8 +59,8 @@ def test_frames_not_added_are_never_sampled_and_each_gets_the_prior_once():
     seen = []
     sample = mapper.sampler.sample
 
-    def recording_sample(rng, n, frames=None):
-        batch = sample(rng, n, frames)
+    def recording_sample(rng, n, frames=None, frame_p=None):
+        batch = sample(rng, n, frames, frame_p)
         seen.append((mapper.frames, batch))
         return batch
 
@@ -271,3 +271,45 @@ def test_rgbd_frames_with_and_without_depth_and_an_instant_ngp_snapshot(tmp_path
     ngp.snapshot(tmp_path / "ngp", n_rays=8, max_poses=1)
     assert sorted(p.name for p in (tmp_path / "ngp").iterdir()) == ["map.pgm", "map.png", "map.yaml",
                                                                     "snapshot.json"]
+
+
+def test_newest_frames_get_their_share_of_the_batch_only_while_driving():
+    # share 0.5 over the last 5 s: with frames at t = 0..9 and one at t = 20, the frame at 20 is
+    # the only recent one, so it gets 0.5 + 0.5 / 11 of the rays (hand-computed: 0.5455)
+    recent = dataclasses.replace(tiny_train_config().recent, share=0.5, window=5.0)
+    mapper = _mapper(recent=recent)
+    for k in range(10):
+        mapper.add_frame(_frame(float(k)))
+    mapper.train(600.0, steps=1)
+    assert mapper._frame_odds() is None  # every frame was there at the first step: offline, uniform
+    mapper.add_frame(_frame(20.0))
+    odds = mapper._frame_odds()
+    np.testing.assert_allclose(odds, [0.5 / 11] * 10 + [0.5 + 0.5 / 11])
+    batch = mapper.sampler.sample(np.random.default_rng(0), 20000, np.arange(11), odds)
+    assert abs(float((batch.frames == 10).float().mean()) - (0.5 + 0.5 / 11)) < 0.015
+    assert mapper.train(600.0, steps=2).steps == 2
+    again = Mapper(mapper.config, mapper.intrinsics, mapper.box)
+    again.load_state(mapper.state())  # a resumed mapper knows the frames it started with
+    for k in range(10):
+        again.add_frame(_frame(float(k)))
+    assert again._frame_odds() is None
+    again.add_frame(_frame(20.0))
+    np.testing.assert_allclose(again._frame_odds(), odds)
+
+
+def test_learning_rate_decays_offline_and_stays_while_driving():
+    # tiny config: max_steps 5, so step k (counted before it runs) uses lr * decay ** (k / 5)
+    optim = dataclasses.replace(tiny_train_config().optim, lr=0.01, lr_decay_to=0.1, lr_decay_driving=0.5)
+    offline, driving = _mapper(optim=optim), _mapper(optim=optim)
+    for k in range(3):
+        offline.add_frame(_frame(float(k)))
+    offline.train(600.0, steps=3)
+    assert not offline.driving
+    assert offline.optimizer.param_groups[0]["lr"] == pytest.approx(0.01 * 0.1 ** (2 / 5))
+    driving.add_frame(_frame(0.0))
+    driving.train(600.0, steps=1)
+    assert not driving.driving
+    driving.add_frame(_frame(1.0))
+    driving.train(600.0, steps=2)
+    assert driving.driving
+    assert driving.optimizer.param_groups[0]["lr"] == pytest.approx(0.01 * 0.5 ** (2 / 5))

@@ -86,3 +86,12 @@ def test_rgbd_range_matches_depth_map(store):
     ok = mm > 0
     np.testing.assert_allclose(rng[ok], mm[ok] / 1000.0 / fp.dirs_cam[ok, 2], rtol=1e-5)
     assert np.isnan(rng[~ok]).all()
+
+
+def test_recent_frame_odds_by_hand():
+    from virus_nerf.sampler.batch import recent_frame_odds
+
+    # window 2 s from the newest (t = 10): frames at 8.5 and 10 are recent
+    odds = recent_frame_odds(np.array([0.0, 3.0, 7.9, 8.5, 10.0]), share=0.6, window=2.0)
+    np.testing.assert_allclose(odds, [0.08, 0.08, 0.08, 0.08 + 0.3, 0.08 + 0.3])
+    np.testing.assert_allclose(recent_frame_odds(np.array([1.0, 2.0]), 0.0, 5.0), [0.5, 0.5])

@@ -54,7 +54,7 @@ def online(
     duration: float | None = None,
     playback_speed: float = 0.5,
     eval_interval: float | None = None,
-    workers: int = 2,
+    workers: int = 1,
     gt: str = "map",
 ) -> None:
     """Offline vs online training on a simulated office; writes OUT/online.{png,json,md}.
@@ -73,7 +73,9 @@ def online(
         playback_speed: Online: recording seconds per training second (below 1 for slow machines);
             the online run trains for duration / playback_speed seconds, the offline run as long.
         eval_interval: Seconds of training between evaluations (default: 1/10 of the run).
-        workers: Trainings in parallel.
+        workers: Trainings in parallel (default 1: the online run is timed against the
+            wall clock, so each training gets the whole machine; two at once on a 2-core machine
+            halve the steps of both and the online run falls behind its frames).
         gt: Ground truth of the evaluations, one or more of map, exact, paper, comma-separated
             (default map); the curves use the first.
     """

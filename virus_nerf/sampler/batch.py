@@ -45,6 +45,14 @@ class RayBatch:
         return RayBatch(**{k: v.to(device) for k, v in self.__dict__.items()})
 
 
+def recent_frame_odds(times: np.ndarray, share: float, window: float) -> np.ndarray:
+    """(N,) odds of each frame for one ray: `share` spread evenly over the frames within `window`
+    seconds of the newest one (times (N,) in seconds), the rest evenly over all N frames."""
+    n = len(times)
+    recent = times >= times.max() - window  # (N,) bool, the newest frame included
+    return np.full(n, (1.0 - share) / n) + np.where(recent, share / recent.sum(), 0.0)
+
+
 class BatchSampler:
     """Draws RayBatches from a FrameStore with a numpy Generator (seeded, resumable)."""
 
@@ -59,19 +67,27 @@ class BatchSampler:
         if self.share_irs + self.share_uss > 1:
             raise ValueError("batch shares of IRS and USS rays must add up to at most 1")
 
-    def sample(self, rng: np.random.Generator, n_rays: int, frames: np.ndarray | None = None) -> RayBatch:
-        """Draw n_rays rays from the given frame rows (default: all frames of the store)."""
+    def sample(self, rng: np.random.Generator, n_rays: int, frames: np.ndarray | None = None,
+               frame_p: np.ndarray | None = None) -> RayBatch:
+        """Draw n_rays rays from the given frame rows (default: all frames of the store), each
+        ray's frame uniformly or, with `frame_p` ((len(frames),) summing to 1), with those odds."""
         store = self.store
         if frames is None:
             frames = np.arange(len(store))
         if len(frames) == 0:
             raise ValueError("no frames available to sample rays from")
+        if frame_p is not None and len(frame_p) != len(frames):
+            raise ValueError(f"frame_p has {len(frame_p)} entries for {len(frames)} frames")
         n_irs = int(round(self.share_irs * n_rays))
         n_uss = int(round(self.share_uss * n_rays))
         kind = np.zeros(n_rays, dtype=np.int8)  # 0 random, 1 uss cone, 2 irs zone
         kind[:n_uss] = 1
         kind[n_uss : n_uss + n_irs] = 2
-        f = frames[rng.integers(0, len(frames), size=n_rays)]
+        if frame_p is None:
+            f = frames[rng.integers(0, len(frames), size=n_rays)]
+        else:
+            f = frames[np.minimum(np.searchsorted(np.cumsum(frame_p), rng.random(n_rays) * frame_p.sum(),
+                                                  side="right"), len(frames) - 1)]
         pix = np.empty(n_rays, dtype=np.int64)
         u01 = rng.random(n_rays)
         zone_pick = rng.random((n_rays, IRS_ZONE_COUNT))

@@ -39,6 +39,25 @@ class OptimConfig:
     eps: float = 1e-15
     betas: tuple[float, float] = (0.9, 0.99)
     lr_decay_to: float = 0.1  # exponential decay to this fraction of lr at max_steps/max_time
+    # the same while mapping while driving (frames added after the first step: --online,
+    # map-bag): 1 = a constant lr, since new frames keep arriving and a decayed lr leaves the
+    # last part of the drive half-trained (README, "Mapping while driving")
+    lr_decay_driving: float = 1.0
+
+
+@dataclass
+class RecentFrames:
+    """Mapping while driving: a share of every batch from the newest frames.
+
+    Once frames arrive after training has begun (`--online`, `map-bag`, `Mapper.add_frame`
+    between `train` calls), `share` of each batch's rays come from the frames of the last
+    `window` seconds of recording time and the rest from all frames; a frame just driven past
+    otherwise gets 1/N of the rays. Offline (every frame present at the first step) it does
+    nothing. share 0 samples all frames alike.
+    """
+
+    share: float = 0.5
+    window: float = 5.0  # seconds of recording time
 
 
 @dataclass
@@ -64,6 +83,7 @@ class TrainConfig:
     march: MarchConfig = dc_field(default_factory=MarchConfig)
     optim: OptimConfig = dc_field(default_factory=OptimConfig)
     shares: BatchShares = dc_field(default_factory=BatchShares)
+    recent: RecentFrames = dc_field(default_factory=RecentFrames)
     weights: LossWeights = dc_field(default_factory=LossWeights)
     ngp_grid: NgpGridConfig = dc_field(default_factory=NgpGridConfig)
     virus_grid: VirusGridConfig = dc_field(default_factory=VirusGridConfig)
@@ -144,6 +164,7 @@ class TrainConfig:
         number("optim.lr", 0.0)
         number("optim.eps", 0.0)
         number("optim.lr_decay_to", 0.0)
+        number("optim.lr_decay_driving", 0.0)
         integer("virus_grid.update_interval", 1)
         integer("ngp_grid.update_interval", 1)
         integer("evaluation.n_rays", 1)
@@ -166,6 +187,8 @@ class TrainConfig:
         for i, beta in enumerate(self.optim.betas):
             if not (isinstance(beta, numbers.Real) and not isinstance(beta, bool) and 0.0 <= beta < 1.0):
                 raise bad(f"optim.betas[{i}]", beta, "a number in [0, 1)")
+        number("recent.share", 0.0, 1.0, lo_open=False)
+        number("recent.window", 0.0)
         number("shares.irs", 0.0, 1.0, lo_open=False)
         number("shares.uss", 0.0, 1.0, lo_open=False)
         if self.shares.irs + self.shares.uss > 1.0:

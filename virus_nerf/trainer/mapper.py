@@ -48,7 +48,7 @@ from virus_nerf.grid.ngp import NgpGrid
 from virus_nerf.grid.virus import VirusGrid
 from virus_nerf.losses import LossTerms, distortion_loss, total_loss
 from virus_nerf.render.marching import ray_box_interval
-from virus_nerf.sampler.batch import BatchSampler, RayBatch
+from virus_nerf.sampler.batch import BatchSampler, RayBatch, recent_frame_odds
 from virus_nerf.sampler.frames import FrameStore, resize_depth_mm, resize_rgb
 from virus_nerf.sampler.sensor_rays import irs_zone_rays, uss_cone_rays
 from virus_nerf.scene_box import SceneBox
@@ -135,6 +135,7 @@ class Mapper(MapViews):
         self._prior_done = 0  # frames (store rows 0..n-1) whose sensor prior the grid has had
         self._prior_skip = False  # an old checkpoint without the count: frames present count as done
         self._warm = False
+        self._frames_at_start: int | None = None  # frames present at the first step
 
     @classmethod
     def for_recording(cls, recording, config: TrainConfig) -> Mapper:
@@ -226,11 +227,14 @@ class Mapper(MapViews):
         if not self._warm:
             self.prepare()
         self._apply_pending_prior()
+        if self._frames_at_start is None:
+            self._frames_at_start = self.frames
         c = self.config
-        lr = c.optim.lr * c.optim.lr_decay_to ** (self.progress() if progress is None else progress)
+        decay = c.optim.lr_decay_driving if self.driving else c.optim.lr_decay_to
+        lr = c.optim.lr * decay ** (self.progress() if progress is None else progress)
         for g in self.optimizer.param_groups:
             g["lr"] = lr
-        batch = self.sampler.sample(self.rng, c.batch_size, np.arange(self.frames)).to(self.device)
+        batch = self.sampler.sample(self.rng, c.batch_size, np.arange(self.frames), self._frame_odds()).to(self.device)
         sensors = c.sensors
         rgb_rays = None
         if c.density_only_depth_rays:
@@ -264,6 +268,21 @@ class Mapper(MapViews):
         if self.step % self.grid.update_interval == 0:
             self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator)
         return terms
+
+    @property
+    def driving(self) -> bool:
+        """True once frames were added after the first training step (mapping while driving):
+        the batch then favours the newest frames (config.recent) and the learning rate decays
+        to optim.lr_decay_driving instead of optim.lr_decay_to."""
+        return self._frames_at_start is not None and self.frames > self._frames_at_start
+
+    def _frame_odds(self) -> np.ndarray | None:
+        """Per-frame odds of the next batch: None (uniform) offline, config.recent's share on
+        the newest frames while driving."""
+        share = self.config.recent.share
+        if share <= 0.0 or not self.driving:
+            return None
+        return recent_frame_odds(self.store.times, share, self.config.recent.window)
 
     def _grid_batch(self, batch: RayBatch, stats) -> GridUpdateBatch:
         """Candidates for one grid update; the grid draws its own share of each at random.
@@ -325,6 +344,7 @@ class Mapper(MapViews):
             "torch_generator": self.generator.get_state(),
             "box": self.box.to_dict(),
             "prior_frames": self._prior_done,
+            "frames_at_start": self._frames_at_start,
             "visible_share": self.model.visible_share,  # picks the next step's render path
         }
 
@@ -340,6 +360,7 @@ class Mapper(MapViews):
         self.rng.bit_generator.state = state["numpy_rng"]
         self.generator.set_state(state["torch_generator"])
         self.model.visible_share = float(state.get("visible_share", 1.0))
+        self._frames_at_start = state.get("frames_at_start")
         if "prior_frames" in state:
             self._prior_done, self._prior_skip = int(state["prior_frames"]), False
         else:  # written before the count existed: the grid had the prior of every frame present
