@@ -86,8 +86,7 @@ class BatchSampler:
         if frame_p is None:
             f = frames[rng.integers(0, len(frames), size=n_rays)]
         else:
-            f = frames[np.minimum(np.searchsorted(np.cumsum(frame_p), rng.random(n_rays) * frame_p.sum(),
-                                                  side="right"), len(frames) - 1)]
+            f = rng.choice(frames, size=n_rays, p=frame_p)
         pix = np.empty(n_rays, dtype=np.int64)
         u01 = rng.random(n_rays)
         zone_pick = rng.random((n_rays, IRS_ZONE_COUNT))
