@@ -44,6 +44,12 @@ from virus_nerf.utils.io import atomic_path
 __all__ = ["Trainer", "TrainSummary", "build_grid", "resolve_device"]
 
 
+def _in_mapper(name: str, doc: str) -> property:
+    """A Trainer attribute that is the mapper's attribute `name` (read and write)."""
+    return property(lambda self: getattr(self.mapper, name),
+                    lambda self, value: setattr(self.mapper, name, value), doc=doc)
+
+
 @dataclass
 class TrainSummary:
     steps: int
@@ -88,38 +94,11 @@ class Trainer:
     rng = property(lambda self: self.mapper.rng)
     generator = property(lambda self: self.mapper.generator)
 
-    @property
-    def device(self) -> torch.device:
-        return self.mapper.device
-
-    @device.setter
-    def device(self, value: torch.device) -> None:
-        self.mapper.device = value
-
-    @property
-    def step(self) -> int:
-        return self.mapper.step
-
-    @step.setter
-    def step(self, value: int) -> None:
-        self.mapper.step = value
-
-    @property
-    def seconds(self) -> float:
-        """The training clock (steps and grid updates; start-up and evaluations excluded)."""
-        return self.mapper.seconds
-
-    @seconds.setter
-    def seconds(self, value: float) -> None:
-        self.mapper.seconds = value
-
-    @property
-    def samples(self) -> int:
-        return self.mapper.samples
-
-    @samples.setter
-    def samples(self, value: int) -> None:
-        self.mapper.samples = value
+    # read and written by resume, benchmarks and tests: the mapper's own attributes
+    device = _in_mapper("device", "torch.device the mapper trains on")
+    step = _in_mapper("step", "training steps so far")
+    seconds = _in_mapper("seconds", "the training clock (steps and grid updates; start-up and evaluations excluded)")
+    samples = _in_mapper("samples", "samples marched and rendered so far, summed over steps")
 
     @property
     def store(self) -> FrameStore:
