@@ -200,7 +200,8 @@ def main() -> None:
                         f"every protocol of {args.gt!r} under points[].by_gt (docs/method.md 6.7)",
         "zone": "zone3 (0-100 m)",
         "mode": ("separate" if args.separate else "curve") + (" (steps)" if args.steps else ""),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "unset")},
         "train_seed": args.train_seed,
         "scenes": {},
     }

@@ -19,7 +19,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import virus_nerf  # noqa: F401  (sets OMP_WAIT_POLICY before torch loads)
 from virus_nerf.cli import _keep_large_allocations
 
 

@@ -36,6 +36,8 @@ class LocalExecutor:
     def __init__(self, workers: int, threads: int | None = None) -> None:
         self.workers = max(1, workers)
         self.threads = threads or max(1, (os.cpu_count() or 2) // self.workers)
+        # more threads than cores in all: the runs' OpenMP threads must sleep, not spin, while waiting
+        self.shared_cpu = self.workers * self.threads > (os.cpu_count() or 2)
         self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=self.workers)
 
     def describe(self) -> str:
@@ -43,7 +45,7 @@ class LocalExecutor:
 
     def submit(self, spec: RunSpec):
         """A future (done(), result() -> RunResult)."""
-        return self._pool.submit(execute_run, spec, self.threads)
+        return self._pool.submit(execute_run, spec, self.threads, shared_cpu=self.shared_cpu)
 
     def as_completed(self, futures: list) -> Iterator:
         return concurrent.futures.as_completed(futures)
