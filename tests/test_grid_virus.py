@@ -222,6 +222,24 @@ def test_untouched_cells_empty_after_warmup_counted_in_steps():
         assert torch.allclose(grid.logodds, torch.tensor(L_PRIOR, dtype=torch.float32), atol=1e-6)
 
 
+def test_the_warmup_lasts_warmup_steps_driving_while_frames_keep_arriving():
+    # 0.55 -> 0.49 over 100 steps offline, over 300 while driving; untouched cells only
+    cfg = _config(max_resolution=8, update_interval=10, warmup_steps=100, warmup_steps_driving=300)
+    g = torch.Generator().manual_seed(0)
+    l_init, l_prior = math.log(0.55 / 0.45), math.log(0.49 / 0.51)
+    offline, driving = VirusGrid(CUBE, cfg), VirusGrid(CUBE, cfg)
+    driving.driving = True
+    for grid in (offline, driving):
+        grid.update(60, None, None, g)
+    assert torch.allclose(offline.logodds, torch.tensor(l_init + 0.6 * (l_prior - l_init)), atol=1e-6)
+    assert torch.allclose(driving.logodds, torch.tensor(l_init + 0.2 * (l_prior - l_init)), atol=1e-6)
+    driving.update(150, None, None, g)
+    assert driving.occupied.all(), "still marched halfway through the driving warm-up"
+    driving.driving = False  # the switch moves every cell to the offline schedule's offset
+    driving.update(150, None, None, g)
+    assert torch.allclose(driving.logodds, torch.tensor(l_prior), atol=1e-6)
+
+
 def test_evidence_holds_a_cell_up_through_the_warmup():
     cfg = _config(max_resolution=40, warmup_steps=256)
     grid = VirusGrid(BAR, cfg)

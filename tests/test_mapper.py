@@ -288,6 +288,9 @@ def test_newest_frames_get_their_share_of_the_batch_only_while_driving():
     batch = mapper.sampler.sample(np.random.default_rng(0), 20000, np.arange(11), odds)
     assert abs(float((batch.frames == 10).float().mean()) - (0.5 + 0.5 / 11)) < 0.015
     assert mapper.train(600.0, steps=2).steps == 2
+    assert not mapper.grid.driving
+    mapper.train(600.0, steps=mapper.grid.update_interval)  # a grid update while driving
+    assert mapper.grid.driving  # its warm-up now runs over virus_grid.warmup_steps_driving
     again = Mapper(mapper.config, mapper.intrinsics, mapper.box)
     again.load_state(mapper.state())  # a resumed mapper knows the frames it started with
     for k in range(10):

@@ -143,6 +143,8 @@ class OccupancyGrid(ABC):
 
     spec: GridSpec
     config: object  # the grid's own config dataclass
+    # set by the trainer: frames keep arriving (mapping while driving); a grid may schedule by it
+    driving: bool = False
 
     @property
     def update_interval(self) -> int:

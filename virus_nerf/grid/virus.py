@@ -149,9 +149,12 @@ class VirusGrid(OccupancyGrid):
         self._n_updates += 1
 
     def _apply_warmup(self, step: int) -> None:
-        """Move every cell to the warm-up offset of `step` (a function of steps, not updates)."""
+        """Move every cell to the warm-up offset of `step` (a function of steps, not updates);
+        over `warmup_steps_driving` steps instead while `driving` (the offset is applied as a
+        difference, so a switch moves every cell by the same amount and keeps its evidence)."""
         c = self.config
-        target = (c.logodds_prior - c.logodds_init) * min(step, c.warmup_steps) / c.warmup_steps
+        length = c.warmup_steps_driving if self.driving else c.warmup_steps
+        target = (c.logodds_prior - c.logodds_init) * min(step, length) / length
         delta = target - self._decay_applied
         if delta != 0.0:
             # numpy in place (single-threaded): torch's intra-op threads cost ~30 ms here on a

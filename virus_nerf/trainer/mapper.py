@@ -266,6 +266,7 @@ class Mapper(MapViews):
         self.samples += stats.n_samples
         self.last_samples_per_ray = stats.n_samples / max(1, stats.n_rays)
         if self.step % self.grid.update_interval == 0:
+            self.grid.driving = self.driving
             self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator)
         return terms
 
