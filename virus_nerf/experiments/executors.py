@@ -34,10 +34,11 @@ class LocalExecutor:
     """`workers` runs at a time on this machine, each a subprocess with `threads` threads."""
 
     def __init__(self, workers: int, threads: int | None = None) -> None:
+        cores = os.cpu_count() or 2
         self.workers = max(1, workers)
-        self.threads = threads or max(1, (os.cpu_count() or 2) // self.workers)
+        self.threads = threads or max(1, cores // self.workers)
         # more threads than cores in all: the runs' OpenMP threads must sleep, not spin, while waiting
-        self.shared_cpu = self.workers * self.threads > (os.cpu_count() or 2)
+        self.shared_cpu = self.workers * self.threads > cores
         self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=self.workers)
 
     def describe(self) -> str:

@@ -273,8 +273,9 @@ class Mapper(MapViews):
     @property
     def driving(self) -> bool:
         """True once frames were added after the first training step (mapping while driving):
-        the batch then favours the newest frames (config.recent) and the learning rate decays
-        to optim.lr_decay_driving instead of optim.lr_decay_to."""
+        the batch then favours the newest frames (config.recent), the learning rate decays to
+        optim.lr_decay_driving instead of optim.lr_decay_to, and the grid is told (its warm-up:
+        virus_grid.warmup_steps_driving)."""
         return self._frames_at_start is not None and self.frames > self._frames_at_start
 
     def _frame_odds(self) -> np.ndarray | None:
