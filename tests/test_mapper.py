@@ -316,3 +316,48 @@ def test_learning_rate_decays_offline_and_stays_while_driving():
     driving.train(600.0, steps=2)
     assert driving.driving
     assert driving.optimizer.param_groups[0]["lr"] == pytest.approx(0.01 * 0.5 ** (2 / 5))
+
+
+def test_rays_for_step_keeps_the_sample_budget_by_hand():
+    from virus_nerf.trainer.mapper import rays_for_step
+
+    assert rays_for_step(2048, None, 177.0) == 2048  # no budget: always the batch
+    assert rays_for_step(2048, 65536, 0.0) == 2048  # first step: nothing measured yet
+    assert rays_for_step(2048, 65536, 16.0) == 2048  # 2048 x 16 = 32768 samples, under the cap
+    assert rays_for_step(2048, 65536, 32.0) == 2048  # exactly the cap
+    assert rays_for_step(2048, 65536, 64.0) == 1024  # 65536 / 64
+    assert rays_for_step(2048, 65536, 100.0) == 655  # floor(65536 / 100)
+    assert rays_for_step(2048, 65536, 1000.0) == 256  # never below batch / 8
+    assert rays_for_step(4, 10, 1000.0) == 1  # and never below one ray
+
+
+def test_a_sample_budget_shrinks_long_ray_steps_and_resumes_identically():
+    """With max_samples_per_step each step takes cap / (last step's samples per ray) rays (at
+    most the batch); the measure travels in the state, so a resumed mapper takes the same."""
+    a = _mapper(max_samples_per_step=640)  # 128 rays x 5 samples
+    a.add_frame(_frame(0.0))
+    taken = []
+    sample = a.sampler.sample
+
+    def recording_sample(rng, n, frames=None, frame_p=None):
+        taken.append((n, a.last_samples_per_ray))
+        return sample(rng, n, frames, frame_p)
+
+    a.sampler.sample = recording_sample
+    a.train(600.0, steps=3)
+    assert taken[0] == (128, 0.0)
+    assert any(spr > 5.0 for _, spr in taken[1:])  # the budget did bite on this scene
+    for n, spr in taken[1:]:
+        assert n == (128 if spr <= 0 else max(16, min(128, int(640 // spr))))
+    assert a.rays == sum(n for n, _ in taken)
+    buffer = io.BytesIO()
+    torch.save(a.state(), buffer)
+    buffer.seek(0)
+    c = _mapper(max_samples_per_step=640)
+    c.load_state(torch.load(buffer, weights_only=False))
+    c.add_frame(_frame(0.0))
+    assert c.last_samples_per_ray == a.last_samples_per_ray and c.rays == a.rays
+    for m in (a, c):
+        m.train(600.0, steps=2)
+    for x, y in zip(a.field.parameters(), c.field.parameters(), strict=True):
+        assert np.array_equal(x.detach().numpy(), y.detach().numpy())

@@ -66,7 +66,15 @@ class TrainConfig:
     sensors: tuple[str, ...] = ("camera", "uss", "irs")
     max_steps: int | None = None  # stop after this many steps (None: no step limit)
     max_time: float | None = 120.0  # seconds of training, evaluation excluded (None: no limit)
-    batch_size: int = 2048  # rays per step
+    batch_size: int = 2048  # rays per step (at most, with max_samples_per_step)
+    # cap on a step's samples: while rays are long (the grid's warm-up, a large room, the first
+    # frames online) a step takes fewer rays, min(batch_size, cap / the last step's samples per
+    # ray), at least batch_size / 8 (Instant-NGP's fixed sample budget per step). None: always
+    # batch_size rays. max_samples_per_step_driving replaces it while mapping while driving
+    # (frames arrive after the first step). Both off by default: a lever, not yet measured
+    # (e.g. 65536, Instant-NGP's budget per step)
+    max_samples_per_step: int | None = None
+    max_samples_per_step_driving: int | None = None
     seed: int = 0
     online: bool = False  # frames become available as the training clock passes their time
     playback_speed: float = 1.0  # online: recording seconds per training second
@@ -144,6 +152,8 @@ class TrainConfig:
         if self.max_steps is None and self.max_time is None:
             raise ValueError("max_steps and max_time are both None: set max_steps or max_time (or both)")
         integer("batch_size", 1)
+        integer("max_samples_per_step", 1, optional=True)
+        integer("max_samples_per_step_driving", 1, optional=True)
         integer("seed", 0, 2**32 - 1)
         flag("online")
         flag("odometry_poses")

@@ -68,6 +68,18 @@ def budget_share(step: int, seconds: float, max_steps: int | None, max_time: flo
     return min(1.0, max(parts))
 
 
+def rays_for_step(batch_size: int, max_samples: int | None, last_samples_per_ray: float) -> int:
+    """Rays of the next step under a sample budget (TrainConfig.max_samples_per_step).
+
+    min(batch_size, max_samples / last_samples_per_ray), never below batch_size // 8 (at least
+    1); batch_size without a budget or before the first step (no samples per ray measured yet).
+    """
+    if max_samples is None or last_samples_per_ray <= 0.0:
+        return batch_size
+    floor = max(1, batch_size // 8)
+    return int(min(batch_size, max(floor, max_samples // max(1.0, last_samples_per_ray))))
+
+
 def resolve_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -128,6 +140,7 @@ class Mapper(MapViews):
         self.step = 0
         self.seconds = 0.0  # training clock: timed steps only
         self.samples = 0
+        self.rays = 0  # rays rendered, summed over steps
         self.last_loss: float | None = None
         self.last_samples_per_ray = 0.0
         self.prior_s = 0.0  # seconds spent on the grid's sensor prior in `prepare`
@@ -234,7 +247,9 @@ class Mapper(MapViews):
         lr = c.optim.lr * decay ** (self.progress() if progress is None else progress)
         for g in self.optimizer.param_groups:
             g["lr"] = lr
-        batch = self.sampler.sample(self.rng, c.batch_size, np.arange(self.frames), self._frame_odds()).to(self.device)
+        cap = c.max_samples_per_step_driving if self.driving else c.max_samples_per_step
+        n_rays = rays_for_step(c.batch_size, cap, self.last_samples_per_ray)
+        batch = self.sampler.sample(self.rng, n_rays, np.arange(self.frames), self._frame_odds()).to(self.device)
         sensors = c.sensors
         rgb_rays = None
         if c.density_only_depth_rays:
@@ -264,6 +279,7 @@ class Mapper(MapViews):
         self.optimizer.step()
         self.step += 1
         self.samples += stats.n_samples
+        self.rays += stats.n_rays
         self.last_samples_per_ray = stats.n_samples / max(1, stats.n_rays)
         if self.step % self.grid.update_interval == 0:
             self.grid.driving = self.driving
@@ -274,7 +290,8 @@ class Mapper(MapViews):
     def driving(self) -> bool:
         """True once frames were added after the first training step (mapping while driving):
         the batch then favours the newest frames (config.recent), the learning rate decays to
-        optim.lr_decay_driving instead of optim.lr_decay_to, and the grid is told (its warm-up:
+        optim.lr_decay_driving instead of optim.lr_decay_to, a step's samples are capped by
+        max_samples_per_step_driving, and the grid is told (its warm-up:
         virus_grid.warmup_steps_driving)."""
         return self._frames_at_start is not None and self.frames > self._frames_at_start
 
@@ -342,6 +359,8 @@ class Mapper(MapViews):
             "step": self.step,
             "seconds": self.seconds,
             "samples": self.samples,
+            "rays": self.rays,
+            "last_samples_per_ray": self.last_samples_per_ray,  # sets the next step's ray count
             "numpy_rng": self.rng.bit_generator.state,
             "torch_generator": self.generator.get_state(),
             "box": self.box.to_dict(),
@@ -359,6 +378,8 @@ class Mapper(MapViews):
         self.step = int(state["step"])
         self.seconds = float(state["seconds"])
         self.samples = int(state["samples"])
+        self.rays = int(state.get("rays", self.step * self.config.batch_size))
+        self.last_samples_per_ray = float(state.get("last_samples_per_ray", 0.0))
         self.rng.bit_generator.state = state["numpy_rng"]
         self.generator.set_state(state["torch_generator"])
         self.model.visible_share = float(state.get("visible_share", 1.0))
