@@ -67,10 +67,10 @@ class TrainConfig:
     max_steps: int | None = None  # stop after this many steps (None: no step limit)
     max_time: float | None = 120.0  # seconds of training, evaluation excluded (None: no limit)
     batch_size: int = 2048  # rays per step (at most, with max_samples_per_step)
-    # cap on a step's samples: while rays are long (the grid's warm-up, a large room, the first
-    # frames online) a step takes fewer rays, min(batch_size, cap / the last step's samples per
-    # ray), at least batch_size / 8 (Instant-NGP's fixed sample budget per step). None: always
-    # batch_size rays. max_samples_per_step_driving replaces it while mapping while driving
+    # cap on a step's samples, like Instant-NGP's fixed sample budget per step: while rays are
+    # long (the grid's warm-up, a large room, the first frames online) a step takes fewer rays,
+    # min(batch_size, cap / the last step's samples per ray), at least batch_size / 8. None:
+    # always batch_size rays. max_samples_per_step_driving replaces it while mapping while driving
     # (frames arrive after the first step). Both off by default: a lever, not yet measured
     # (e.g. 65536, Instant-NGP's budget per step)
     max_samples_per_step: int | None = None
