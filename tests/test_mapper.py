@@ -361,3 +361,26 @@ def test_a_sample_budget_shrinks_long_ray_steps_and_resumes_identically():
         m.train(600.0, steps=2)
     for x, y in zip(a.field.parameters(), c.field.parameters(), strict=True):
         assert np.array_equal(x.detach().numpy(), y.detach().numpy())
+
+
+def test_the_driving_sample_budget_bites_only_once_frames_arrive_after_training_began():
+    """max_samples_per_step_driving caps a step only while driving: before the second frame
+    arrives every step takes the whole batch, afterwards cap / (last samples per ray) rays."""
+    m = _mapper(max_samples_per_step=None, max_samples_per_step_driving=640)  # 128 rays x 5 samples
+    m.add_frame(_frame(0.0))
+    taken = []
+    sample = m.sampler.sample
+
+    def recording_sample(rng, n, frames=None, frame_p=None):
+        taken.append((n, m.last_samples_per_ray, m.driving))
+        return sample(rng, n, frames, frame_p)
+
+    m.sampler.sample = recording_sample
+    m.train(600.0, steps=2)
+    m.add_frame(_frame(1.0))
+    m.train(600.0, steps=3)
+    assert [d for _, _, d in taken] == [False, False, True, True, True]
+    assert [n for n, _, _ in taken[:2]] == [128, 128]  # offline: no budget
+    assert any(spr > 5.0 for _, spr, _ in taken[2:])  # the budget did bite on this scene
+    for n, spr, _ in taken[2:]:
+        assert n == max(16, min(128, int(640 // spr)))
