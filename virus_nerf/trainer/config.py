@@ -74,7 +74,8 @@ class TrainConfig:
     # (frames arrive after the first step): 32768 (2048 rays x 16 samples) nearly doubles the steps
     # of a 40 s drive at playback x1 (the grid stays in its warm-up all drive, 16-67 samples per
     # ray) and gave 0.172 +- 0.043 m against 0.209 +- 0.023 without it (5 seeds, README
-    # "Mapping while driving"). Offline it stays off (not measured there)
+    # "Mapping while driving"). Offline it stays off: more steps but worse maps there (README,
+    # "Time to map": the step-counted grid warm-up ends before the field knows the room)
     max_samples_per_step: int | None = None
     max_samples_per_step_driving: int | None = 32768
     seed: int = 0
