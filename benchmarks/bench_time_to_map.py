@@ -100,7 +100,7 @@ def child(args: argparse.Namespace) -> None:
             by_gt = {gt: {k: getattr(m["NeRF"].zones["zone3"], k) for k in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier")}
                      for gt, m in (result.by_gt or {}).items()}
             d_steps, d_samples = trainer.step - last_steps, trainer.samples - last_samples
-            rays = getattr(trainer.mapper, "rays", trainer.step * cfg.batch_size)  # a step may take fewer rays
+            rays = trainer.mapper.rays  # a step may take fewer rays than the batch
             d_rays = rays - last_rays
             points.append({
                 "checkpoint_s": cp, "wall_s": round(wall, 2), "steps": trainer.step,

@@ -331,25 +331,32 @@ def test_rays_for_step_keeps_the_sample_budget_by_hand():
     assert rays_for_step(4, 10, 1000.0) == 1  # and never below one ray
 
 
+def _record_ray_counts(mapper: Mapper) -> list[tuple[int, float, bool]]:
+    """Wraps the mapper's sampler: the list grows by (rays asked for, last step's samples per
+    ray, driving) at every step."""
+    taken: list[tuple[int, float, bool]] = []
+    sample = mapper.sampler.sample
+
+    def recording_sample(rng, n, frames=None, frame_p=None):
+        taken.append((n, mapper.last_samples_per_ray, mapper.driving))
+        return sample(rng, n, frames, frame_p)
+
+    mapper.sampler.sample = recording_sample
+    return taken
+
+
 def test_a_sample_budget_shrinks_long_ray_steps_and_resumes_identically():
     """With max_samples_per_step each step takes cap / (last step's samples per ray) rays (at
     most the batch); the measure travels in the state, so a resumed mapper takes the same."""
     a = _mapper(max_samples_per_step=640)  # 128 rays x 5 samples
     a.add_frame(_frame(0.0))
-    taken = []
-    sample = a.sampler.sample
-
-    def recording_sample(rng, n, frames=None, frame_p=None):
-        taken.append((n, a.last_samples_per_ray))
-        return sample(rng, n, frames, frame_p)
-
-    a.sampler.sample = recording_sample
+    taken = _record_ray_counts(a)
     a.train(600.0, steps=3)
-    assert taken[0] == (128, 0.0)
-    assert any(spr > 5.0 for _, spr in taken[1:])  # the budget did bite on this scene
-    for n, spr in taken[1:]:
+    assert taken[0] == (128, 0.0, False)
+    assert any(spr > 5.0 for _, spr, _ in taken[1:])  # the budget did bite on this scene
+    for n, spr, _ in taken[1:]:
         assert n == (128 if spr <= 0 else max(16, min(128, int(640 // spr))))
-    assert a.rays == sum(n for n, _ in taken)
+    assert a.rays == sum(n for n, _, _ in taken)
     buffer = io.BytesIO()
     torch.save(a.state(), buffer)
     buffer.seek(0)
@@ -368,14 +375,7 @@ def test_the_driving_sample_budget_bites_only_once_frames_arrive_after_training_
     arrives every step takes the whole batch, afterwards cap / (last samples per ray) rays."""
     m = _mapper(max_samples_per_step=None, max_samples_per_step_driving=640)  # 128 rays x 5 samples
     m.add_frame(_frame(0.0))
-    taken = []
-    sample = m.sampler.sample
-
-    def recording_sample(rng, n, frames=None, frame_p=None):
-        taken.append((n, m.last_samples_per_ray, m.driving))
-        return sample(rng, n, frames, frame_p)
-
-    m.sampler.sample = recording_sample
+    taken = _record_ray_counts(m)
     m.train(600.0, steps=2)
     m.add_frame(_frame(1.0))
     m.train(600.0, steps=3)
