@@ -120,6 +120,13 @@ def child(args: argparse.Namespace) -> None:
                       "eval_s": round(eval_s, 1), "points": points}))
 
 
+def _gpu_name() -> str | None:
+    """The GPU the children train on (they use CUDA when there is one), None on a CPU-only machine."""
+    import torch
+
+    return torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+
+
 def ensure_data(root: Path, scene: str, seed: int) -> Path:
     data = root / f"{scene}{seed}"
     if not data.exists():
@@ -204,7 +211,7 @@ def main() -> None:
         "zone": "zone3 (0-100 m)",
         "mode": ("separate" if args.separate else "curve") + (" (steps)" if args.steps else ""),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "unset")},
+                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "unset"), "gpu": _gpu_name()},
         "train_seed": args.train_seed,
         "scenes": {},
     }

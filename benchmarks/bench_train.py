@@ -42,10 +42,13 @@ def measure(recording, field_name: str, batch: int, grid: str, steps: int, warm:
         _ = trainer.sampler  # decode frames before timing
         for _ in range(warm):
             trainer.train_step()
+        sync = torch.cuda.synchronize if trainer.mapper.device.type == "cuda" else (lambda: None)
+        sync()  # on a GPU, time finished work, not queued kernels
         s0, n0 = trainer.step, trainer.samples
         t0 = time.perf_counter()
         for _ in range(steps):
             trainer.train_step()
+        sync()
         dt = time.perf_counter() - t0
         n = trainer.samples - n0
         return {
@@ -54,6 +57,7 @@ def measure(recording, field_name: str, batch: int, grid: str, steps: int, warm:
             "samples_per_ray": round(n / (steps * batch), 1),
             "occupied_share": round(trainer.grid.occupancy_share(), 4),
             "torch_threads": torch.get_num_threads(),
+            "device": str(trainer.mapper.device),
         }
 
 
@@ -90,7 +94,10 @@ def main() -> None:
                 v, n = results[key]["virus"]["steps_per_s"], results[key]["ngp"]["steps_per_s"]
                 results[key]["virus_over_ngp"] = round(v / n, 3) if n else None
                 print(key, json.dumps(results[key]), file=sys.stderr, flush=True)
-    print(json.dumps({"benchmark": "train_step", "machine": platform.machine(), "cpus": os.cpu_count(),
+    import torch
+
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    print(json.dumps({"benchmark": "train_step", "machine": platform.machine(), "cpus": os.cpu_count(), "gpu": gpu,
                       "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "results": results}, indent=2))
 
 

@@ -239,14 +239,14 @@ def test_map_bag_without_the_ros_extra_is_one_clear_line(tmp_path, monkeypatch):
 
 
 def test_mapper_state_round_trip_continues_identically():
-    a = _mapper()
+    a = _mapper(device="cpu")  # bit-for-bit is the CPU promise (CUDA adds with atomics, in no fixed order)
     a.add_frame(_frame(0.0))
     a.add_frame(_frame(1.0))
     a.train(600.0, steps=3)
     buffer = io.BytesIO()
     torch.save(a.state(), buffer)  # as a checkpoint file: state() holds the live tensors
     buffer.seek(0)
-    c = _mapper()
+    c = _mapper(device="cpu")
     c.load_state(torch.load(buffer, weights_only=False))
     c.add_frame(_frame(0.0))
     c.add_frame(_frame(1.0))
@@ -348,7 +348,7 @@ def _record_ray_counts(mapper: Mapper) -> list[tuple[int, float, bool]]:
 def test_a_sample_budget_shrinks_long_ray_steps_and_resumes_identically():
     """With max_samples_per_step each step takes cap / (last step's samples per ray) rays (at
     most the batch); the measure travels in the state, so a resumed mapper takes the same."""
-    a = _mapper(max_samples_per_step=640)  # 128 rays x 5 samples
+    a = _mapper(max_samples_per_step=640, device="cpu")  # 128 rays x 5 samples; bit-for-bit: CPU
     a.add_frame(_frame(0.0))
     taken = _record_ray_counts(a)
     a.train(600.0, steps=3)
@@ -360,7 +360,7 @@ def test_a_sample_budget_shrinks_long_ray_steps_and_resumes_identically():
     buffer = io.BytesIO()
     torch.save(a.state(), buffer)
     buffer.seek(0)
-    c = _mapper(max_samples_per_step=640)
+    c = _mapper(max_samples_per_step=640, device="cpu")
     c.load_state(torch.load(buffer, weights_only=False))
     c.add_frame(_frame(0.0))
     assert c.last_samples_per_ray == a.last_samples_per_ray and c.rays == a.rays

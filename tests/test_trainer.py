@@ -50,7 +50,7 @@ def test_loss_falls(tiny_office, tmp_path):
 
 def test_same_seed_same_parameters_and_resume_is_exact(tiny_office, tmp_path):
     rec = load_recording(tiny_office, "office")
-    cfg = small_config(max_steps=20)
+    cfg = small_config(max_steps=20, device="cpu")  # the CPU promise; CUDA's atomic adds have no fixed order
     a = Trainer(rec, cfg, tmp_path / "a", quiet=True)
     (tmp_path / "a").mkdir()
     a.fit()
@@ -152,7 +152,7 @@ class _WallField(torch.nn.Module):
         self.unused = torch.nn.Parameter(torch.zeros(1))  # SceneModel reads the device from it
 
     def forward(self, positions, dirs, rgb_mask=None):
-        sigma = torch.where(positions[:, 0] >= self.x_wall, torch.tensor(1e4), torch.tensor(0.0))
+        sigma = torch.where(positions[:, 0] >= self.x_wall, 1e4, 0.0)
         return sigma, torch.zeros_like(positions)
 
 
@@ -163,7 +163,7 @@ def test_scene_model_ranges_find_a_known_wall(tiny_office, tmp_path):
     cfg = small_config()
     trainer = Trainer(rec, cfg, tmp_path, quiet=True)  # grid before any update: every cell occupied
     origin = rec.stacks[1].cam_to_world[0, :3, 3]
-    trainer.model.field = _WallField(float(origin[0]) + 1.0)
+    trainer.model.field = _WallField(float(origin[0]) + 1.0).to(trainer.device)
     origins = np.tile(origin, (8, 1))
     dirs = np.array([[1.0, 0.0, 0.0]] * 4 + [[-1.0, 0.0, 0.0]] * 4)
     r = trainer.model.ranges(origins, dirs)
@@ -231,9 +231,12 @@ def test_resume_after_a_crash_cuts_the_log_back_to_the_checkpoint(tiny_office, t
     assert (run / "train_log.csv").read_text().count("\n7,1.0,") == 0
 
 
-def test_torch_backends_train_like_the_numba_kernels(tiny_office, tmp_path):
+@pytest.mark.parametrize("twin_device", ["cpu", pytest.param(
+    "cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU"))])
+def test_torch_backends_train_like_the_numba_kernels(tiny_office, tmp_path, twin_device):
     """The path a GPU takes (PyTorch marching, compositing and hash encoding) runs the trainer and
-    matches the fused numba kernels step for step within float rounding."""
+    matches the fused numba kernels (CPU) step for step within float rounding, on the CPU and,
+    where there is one, on a CUDA GPU."""
     from virus_nerf.field.field import FieldConfig
 
     rec = load_recording(tiny_office, "office")
@@ -241,12 +244,12 @@ def test_torch_backends_train_like_the_numba_kernels(tiny_office, tmp_path):
     # lr-sized step whose sign is the rounding's: such entries may differ by a few lr between the
     # backends; everything else must agree within float rounding.
     runs = {}
-    for backend in ("numba", "torch"):
+    for backend, device in (("numba", "cpu"), ("torch", twin_device)):
         cfg = small_config(max_steps=5, march=MarchConfig(step_size=0.06, max_samples=64, backend=backend),
-                           field=dataclasses.replace(FieldConfig.cpu_default(), backend=backend))
+                           field=dataclasses.replace(FieldConfig.cpu_default(), backend=backend), device=device)
         trainer = Trainer(rec, cfg, tmp_path / backend, quiet=True)
         losses = [trainer.train_step().as_floats()["total"] for _ in range(5)]
-        runs[backend] = (losses, params(trainer), trainer.samples)
+        runs[backend] = (losses, [p.cpu() for p in params(trainer)], trainer.samples)
     (ln, pn, sn), (lt, pt, st) = runs["numba"], runs["torch"]
     assert sn == st, "both marchers place the same samples"
     np.testing.assert_allclose(lt, ln, rtol=1e-4)
@@ -261,9 +264,9 @@ def test_density_only_depth_rays_skip_the_colour_network(tiny_office, tmp_path):
     rec = load_recording(tiny_office, "office")
     trainer = Trainer(rec, small_config(density_only_depth_rays=True), tmp_path, quiet=True)
     pts = torch.tensor([[1.0, 1.0, 1.0], [1.5, 1.0, 1.2], [2.0, 2.0, 0.5]]) + torch.tensor(trainer.box.lo)
-    dirs = torch.tensor([[1.0, 0.0, 0.0]] * 3)
+    pts, dirs = pts.to(trainer.device), torch.tensor([[1.0, 0.0, 0.0]] * 3, device=trainer.device)
     sigma_all, rgb_all = trainer.field(pts, dirs)
-    sigma, rgb = trainer.field(pts, dirs, torch.tensor([True, False, True]))
+    sigma, rgb = trainer.field(pts, dirs, torch.tensor([True, False, True], device=trainer.device))
     assert torch.equal(sigma, sigma_all)
     assert torch.equal(rgb[[0, 2]], rgb_all[[0, 2]]) and torch.all(rgb[1] == 0)
     terms = trainer.train_step()
