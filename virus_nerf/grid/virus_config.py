@@ -15,9 +15,9 @@ def _logit(p: float) -> float:
 class VirusGridConfig:
     """VIRUS grid parameters; every length in metres, rates per metre, densities in 1/m.
 
-    update_interval, rays_per_update, std_per_m, false_rate and zeta come from the tuning study
-    (see LossWeights); threshold_alpha (0.15; the study gave 0.0438) and warmup_steps (1000; the
-    study gave 330) from the time-to-map benchmark; configs/paper.json restores the earlier values
+    warmup_steps, update_interval, rays_per_update, std_per_m, false_rate and zeta come from the
+    tuning study (see LossWeights); threshold_alpha from the time-to-map benchmark (0.15, above
+    the study's range; the study gave 0.0438); configs/paper.json restores the earlier values
     (128, 16, 1024, 0.03, 0.3, 0.25, 0.01).
     """
 
@@ -26,15 +26,14 @@ class VirusGridConfig:
     logodds_max: float = 4.0  # clamp (p ~ 0.982)
     init_probability: float = 0.55  # slightly above 0.5: everything is marched at first
     prior_probability: float = 0.49  # where unsupported cells end after the warm-up (empty)
-    # training steps (not updates) of the decay init -> prior. 1000 (the study gave 330): cells
-    # without evidence stay marched ~3x longer, so the field sees the far room before the grid
-    # prunes it; time to map, 180 s, common area: better in 3 of 3 pairs (acc -0.015..-0.025 m,
-    # cov -0.03..-0.12 m), office at 60 s within noise (README, "Time to map")
-    warmup_steps: int = 1000
-    # while mapping while driving (frames keep arriving; a step budget of its own): a cell first
-    # seen after the warm-up can only come back through the IRS (online office drive, 5 seeds:
-    # 0.186 +- 0.019 m with 660 against 0.229 +- 0.041 with 330; README "Mapping while driving").
-    # Only 330 and 660 were compared online; the offline 1000 was not measured while driving.
+    # training steps (not updates) of the decay init -> prior. 1000 was better in 180 s
+    # two-thread runs of the common area (3 of 3 pairs) but a run must finish its warm-up: in
+    # Table I's 75 s single-thread runs (~190-600 steps) it never did, and they got slower and
+    # worse (common area row 8 0.658 against 0.560 m; README, "Time to map"), so it stays 330
+    warmup_steps: int = 330
+    # while mapping while driving (frames keep arriving): a cell first seen after the warm-up can
+    # only come back through the IRS, so the warm-up lasts longer (online office drive, 5 seeds:
+    # 0.186 +- 0.019 m with 660 against 0.229 +- 0.041 with 330; README "Mapping while driving")
     warmup_steps_driving: int = 660
     update_interval: int = 21  # training steps between grid updates (the trainer calls update)
     rays_per_update: int = 438  # rays per update, both kinds together (paper: ~1k)
