@@ -150,11 +150,16 @@ class VirusGrid(OccupancyGrid):
 
     def _apply_warmup(self, step: int) -> None:
         """Move every cell to the warm-up offset of `step` (a function of steps, not updates);
-        over `warmup_steps_driving` steps instead while `driving` (the offset is applied as a
+        over `warmup_steps_driving` steps instead while `driving`, or over `warmup_budget_share` of
+        the run's budget when that is set and the run has one (the offset is applied as a
         difference, so a switch moves every cell by the same amount and keeps its evidence)."""
         c = self.config
-        length = c.warmup_steps_driving if self.driving else c.warmup_steps
-        target = (c.logodds_prior - c.logodds_init) * min(step, length) / length
+        if c.warmup_budget_share is not None and self.budget_progress is not None and not self.driving:
+            done = min(1.0, self.budget_progress / c.warmup_budget_share)
+        else:
+            length = c.warmup_steps_driving if self.driving else c.warmup_steps
+            done = min(step, length) / length
+        target = (c.logodds_prior - c.logodds_init) * done
         delta = target - self._decay_applied
         if delta != 0.0:
             # numpy in place (single-threaded): torch's intra-op threads cost ~30 ms here on a

@@ -35,6 +35,10 @@ class VirusGridConfig:
     # only come back through the IRS, so the warm-up lasts longer (online office drive, 5 seeds:
     # 0.186 +- 0.019 m with 660 against 0.229 +- 0.041 with 330; README "Mapping while driving")
     warmup_steps_driving: int = 660
+    # Option (off): end the warm-up at this share of the run's own budget (max_steps / max_time,
+    # the larger share used, as the learning-rate decay) instead of after warmup_steps, so a short
+    # and a long run both finish it; runs without a budget and driving runs count steps.
+    warmup_budget_share: float | None = None
     update_interval: int = 21  # training steps between grid updates (the trainer calls update)
     rays_per_update: int = 438  # rays per update, both kinds together (paper: ~1k)
     depth_share: float = 0.5  # share of rays_per_update for the Depth-Update (rest: NeRF)
@@ -81,6 +85,7 @@ class VirusGridConfig:
             "prior_probability": 0.0 < self.prior_probability < 0.5,
             "warmup_steps": self.warmup_steps >= 1,
             "warmup_steps_driving": self.warmup_steps_driving >= 1,
+            "warmup_budget_share": self.warmup_budget_share is None or 0.0 < self.warmup_budget_share <= 1.0,
             "update_interval": self.update_interval >= 1,
             "rays_per_update": self.rays_per_update >= 0,
             "depth_share": 0.0 <= self.depth_share <= 1.0,

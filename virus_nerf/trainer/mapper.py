@@ -244,7 +244,8 @@ class Mapper(MapViews):
             self._frames_at_start = self.frames
         c = self.config
         decay = c.optim.lr_decay_driving if self.driving else c.optim.lr_decay_to
-        lr = c.optim.lr * decay ** (self.progress() if progress is None else progress)
+        progress = self.progress() if progress is None else progress
+        lr = c.optim.lr * decay ** progress
         for g in self.optimizer.param_groups:
             g["lr"] = lr
         cap = c.max_samples_per_step_driving if self.driving else c.max_samples_per_step
@@ -283,6 +284,8 @@ class Mapper(MapViews):
         self.last_samples_per_ray = stats.n_samples / max(1, stats.n_rays)
         if self.step % self.grid.update_interval == 0:
             self.grid.driving = self.driving
+            has_budget = c.max_steps is not None or c.max_time is not None
+            self.grid.budget_progress = progress if has_budget else None
             self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator)
         return terms
 
