@@ -120,7 +120,7 @@ def child(args: argparse.Namespace) -> None:
                       "eval_s": round(eval_s, 1), "points": points}))
 
 
-def _gpu_name() -> str | None:
+def gpu_name() -> str | None:
     """The GPU the children train on (they use CUDA when there is one), None on a CPU-only machine."""
     import torch
 
@@ -211,7 +211,7 @@ def main() -> None:
         "zone": "zone3 (0-100 m)",
         "mode": ("separate" if args.separate else "curve") + (" (steps)" if args.steps else ""),
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "unset"), "gpu": _gpu_name()},
+                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "unset"), "gpu": gpu_name()},
         "train_seed": args.train_seed,
         "scenes": {},
     }

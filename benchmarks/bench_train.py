@@ -42,7 +42,7 @@ def measure(recording, field_name: str, batch: int, grid: str, steps: int, warm:
         _ = trainer.sampler  # decode frames before timing
         for _ in range(warm):
             trainer.train_step()
-        sync = torch.cuda.synchronize if trainer.mapper.device.type == "cuda" else (lambda: None)
+        sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
         sync()  # on a GPU, time finished work, not queued kernels
         s0, n0 = trainer.step, trainer.samples
         t0 = time.perf_counter()
@@ -57,7 +57,7 @@ def measure(recording, field_name: str, batch: int, grid: str, steps: int, warm:
             "samples_per_ray": round(n / (steps * batch), 1),
             "occupied_share": round(trainer.grid.occupancy_share(), 4),
             "torch_threads": torch.get_num_threads(),
-            "device": str(trainer.mapper.device),
+            "device": str(trainer.device),
         }
 
 
@@ -94,10 +94,9 @@ def main() -> None:
                 v, n = results[key]["virus"]["steps_per_s"], results[key]["ngp"]["steps_per_s"]
                 results[key]["virus_over_ngp"] = round(v / n, 3) if n else None
                 print(key, json.dumps(results[key]), file=sys.stderr, flush=True)
-    import torch
+    from bench_time_to_map import gpu_name  # this folder is the script's sys.path[0]
 
-    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
-    print(json.dumps({"benchmark": "train_step", "machine": platform.machine(), "cpus": os.cpu_count(), "gpu": gpu,
+    print(json.dumps({"benchmark": "train_step", "machine": platform.machine(), "cpus": os.cpu_count(), "gpu": gpu_name(),
                       "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "results": results}, indent=2))
 
 

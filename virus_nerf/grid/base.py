@@ -145,7 +145,7 @@ class OccupancyGrid(ABC):
     config: object  # the grid's own config dataclass
     # set by the trainer: frames keep arriving (mapping while driving); a grid may schedule by it
     driving: bool = False
-    # set by the trainer: share in [0, 1] of the run's step/time budget used, None without a budget
+    # set by the trainer: share in [0, 1] of the run's step/time budget used (None until it does)
     budget_progress: float | None = None
 
     @property

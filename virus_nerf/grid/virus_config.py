@@ -37,7 +37,7 @@ class VirusGridConfig:
     warmup_steps_driving: int = 660
     # Option (off): end the warm-up at this share of the run's own budget (max_steps / max_time,
     # the larger share used, as the learning-rate decay) instead of after warmup_steps, so a short
-    # and a long run both finish it; runs without a budget and driving runs count steps.
+    # and a long run both finish it; driving runs count steps (warmup_steps_driving).
     warmup_budget_share: float | None = None
     update_interval: int = 21  # training steps between grid updates (the trainer calls update)
     rays_per_update: int = 438  # rays per update, both kinds together (paper: ~1k)

@@ -284,8 +284,7 @@ class Mapper(MapViews):
         self.last_samples_per_ray = stats.n_samples / max(1, stats.n_rays)
         if self.step % self.grid.update_interval == 0:
             self.grid.driving = self.driving
-            has_budget = c.max_steps is not None or c.max_time is not None
-            self.grid.budget_progress = progress if has_budget else None
+            self.grid.budget_progress = progress  # every TrainConfig has a step or time budget
             self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator)
         return terms
 
