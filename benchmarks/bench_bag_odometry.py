@@ -21,7 +21,7 @@ from pathlib import Path
 from virus_nerf.data.bags.odometry import KissIcpSettings, kiss_icp_track
 from virus_nerf.data.ethz import load_recording
 from virus_nerf.evaluation.trajectory import frame_points, rigid_fit, trajectory_error
-from virus_nerf.sim.rig import camera_in_lidar
+from virus_nerf.sensors.rig import camera_in_lidar
 
 VARIANTS = {
     "kiss_defaults": KissIcpSettings.library_defaults(),

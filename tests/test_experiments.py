@@ -56,7 +56,7 @@ def test_ablation_aggregates_mean_and_std(tmp_path):
             run.mkdir(parents=True)
             (run / "metrics.json").write_text(json.dumps(fake_metrics(acc, 2 * acc, sps)))
     records = abl.aggregate(tmp_path, ("office",), seeds=2)
-    assert len(records) == 8
+    assert len(records) == 9  # Table I's eight rows and row 9 (the stereo sensor)
     r8 = next(r for r in records if r["row"] == 8)
     # sample std (ddof 1) of 0.1 and 0.3: sqrt(((0.1)^2 + (0.1)^2) / 1) = 0.1414
     assert r8["runs"] == 2 and r8["acc_mean"] == pytest.approx(0.2) and r8["acc_mean_std"] == pytest.approx(0.02**0.5)
@@ -65,7 +65,7 @@ def test_ablation_aggregates_mean_and_std(tmp_path):
     assert r1["runs"] == 0 and r1["acc_mean"] is None
     assert abl.grid_speed(records) == {"office": pytest.approx(1.5)}
     md = abl.table_markdown(records)
-    assert "0.200 ± 0.141" in md and md.count("\n") == 9
+    assert "0.200 ± 0.141" in md and md.count("\n") == 10
     abl.plot_rows(records, tmp_path / "ablation.png")
     from PIL import Image
 
@@ -96,7 +96,7 @@ def test_demo_end_to_end(tmp_path: Path):
     report = (out / "report.md").read_text()
     assert "| NeRF | zone3" in report and "| LiDAR | zone3" in report
     doc = json.loads((out / "metrics.json").read_text())
-    assert doc["train"]["grid"] == "virus" and doc["train"]["sensors"] == ["camera", "uss", "irs"]
+    assert doc["train"]["grid"] == "virus" and doc["train"]["sensors"] == ["camera", "uss", "irs", "stereo"]
     for image in ("metrics_bars.png",):
         assert (out / "run" / "plots" / image).is_file()
     from virus_nerf.errors import OutputExistsError

@@ -258,6 +258,21 @@ def test_mapper_state_round_trip_continues_identically():
     assert np.array_equal(a.grid.logodds.numpy(), c.grid.logodds.numpy())
 
 
+def test_a_resumed_mapper_keeps_the_restored_render_path_statistic():
+    """The start-up kernel warm-up renders 8 rays; it must not replace the visible share restored
+    from a checkpoint, which picks the next step's render path (issue 30: a resume from step 52
+    of a 200-step run differed from the uninterrupted run)."""
+    a = _mapper(device="cpu")
+    a.add_frame(_frame(0.0))
+    state = a.state()
+    state["visible_share"] = 0.123
+    c = _mapper(device="cpu")
+    c.load_state(state)
+    c.add_frame(_frame(0.0))
+    c.prepare()
+    assert c.model.visible_share == 0.123
+
+
 def test_rgbd_frames_with_and_without_depth_and_an_instant_ngp_snapshot(tmp_path):
     rgbd = _mapper(sensors=("camera", "rgbd"))
     rgbd.add_frame(_frame(0.0, depth=np.full((INTR.height, INTR.width), 1.5, dtype=np.float32)))
@@ -319,7 +334,7 @@ def test_learning_rate_decays_offline_and_stays_while_driving():
 
 
 def test_rays_for_step_keeps_the_sample_budget_by_hand():
-    from virus_nerf.trainer.mapper import rays_for_step
+    from virus_nerf.trainer.schedule import rays_for_step
 
     assert rays_for_step(2048, None, 177.0) == 2048  # no budget: always the batch
     assert rays_for_step(2048, 65536, 0.0) == 2048  # first step: nothing measured yet

@@ -119,7 +119,7 @@ def test_same_seed_same_files_other_seed_other_room(sim_root, tmp_path):
     from PIL import Image
 
     from virus_nerf.data.ethz import read_intrinsics
-    from virus_nerf.sim.rig import CAMERA_INTRINSICS
+    from virus_nerf.sensors.rig import CAMERA_INTRINSICS
 
     with Image.open(other / "office/measurements/CAM1_color_image_raw/img0.png") as im:
         assert im.size == (160, 120)

@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from virus_nerf.data.voxel_map import VoxelMap
 from virus_nerf.sensors import irs
 from virus_nerf.sensors.geometry import invert_pose
-from virus_nerf.sim.rig import CAMERA_INTRINSICS, camera_in_lidar
+from virus_nerf.sensors.rig import CAMERA_INTRINSICS, camera_in_lidar
 from virus_nerf.sim.scene import Box, Material, Scene, SceneObject
 from virus_nerf.sim.sensors import (
     IrsModel,
     LidarModel,
     UssModel,
-    VoxelMap,
     format_bench_table,
     irs_row_mm,
     uss_bench_comparison,
@@ -67,6 +67,17 @@ def test_uss_first_echo_and_grazing_floor():
     # only a smooth floor 0.6 m below: rays hit it at >= 72 deg incidence -> no echo
     floor = Scene([SceneObject("floor", "floor", (Box((0, 0, -0.65), (40, 40, 0.1)),), Material((0.5,) * 3))])
     assert np.isnan([m.measure(floor, LOOK_X, rng) for _ in range(20)]).all()
+
+
+def test_uss_reach_is_the_datasheet_range_on_the_axis():
+    """URM37 V5.0: 2-800 cm (datasheet, docs/uss-range.md): a wall 7.5 m ahead echoes, one at
+    8.5 m does not; the reach shrinks to 2 m at the cone's edge (8 m * (1 - 0.75))."""
+    rng = np.random.default_rng(0)
+    m = UssModel(dropout=0.0)
+    assert m.max_range == 8.0 and m.max_range * (1 - m.edge_loss) == pytest.approx(2.0)
+    r = [m.measure(wall_at(7.5), LOOK_X, rng) for _ in range(10)]
+    assert np.isfinite(r).all() and np.mean(r) == pytest.approx(7.5 + m.bias0 + m.bias_per_m * 7.5, abs=0.1)
+    assert np.isnan([m.measure(wall_at(8.5), LOOK_X, rng) for _ in range(10)]).all()
 
 
 def test_uss_model_matches_the_bench(uss_bench_dir):

@@ -83,3 +83,25 @@ def test_no_file_over_400_lines_outside_kernel_modules():
     long = {str(p.relative_to(PACKAGE)): n for p in PACKAGE.rglob("*.py")
             if (n := len(p.read_text().splitlines())) > MAX_LINES and str(p.relative_to(PACKAGE)) not in KERNEL_MODULES}
     assert not long, f"files over {MAX_LINES} lines: {long}"
+
+
+def test_public_api_resolves():
+    """`from virus_nerf import Mapper, ...` (the README's robot example) works for every name."""
+    import virus_nerf
+
+    for name in virus_nerf.__all__:
+        assert getattr(virus_nerf, name).__name__ == name
+
+
+# folder-level import cycles still open (issue 27: one map-extraction module for `export` and the
+# Mapper's snapshots will remove it); any other cycle between folders fails
+KNOWN_FOLDER_CYCLES = {frozenset({"exports", "trainer"})}
+
+
+def test_no_import_circle_between_folders():
+    """A folder (package) that imports another must not be imported by it, directly: the layout
+    shows the data flow (data -> sensors -> stereo -> sampler -> grid -> ...)."""
+    edges = {(m.split(".")[1], d.split(".")[1]) for m, deps in _graph().items() for d in deps
+             if m.count(".") >= 2 and d.count(".") >= 2}
+    cycles = {frozenset((a, b)) for a, b in edges if a != b and (b, a) in edges}
+    assert cycles <= KNOWN_FOLDER_CYCLES, f"import circles between folders: {sorted(map(sorted, cycles - KNOWN_FOLDER_CYCLES))}"

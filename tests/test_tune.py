@@ -214,8 +214,8 @@ def test_tune_errors_are_one_line(tmp_path, extra, names, fragment):
 
 
 def test_ablation_rows_flag_is_checked(tmp_path):
-    code, _, err = run_cli(["ablation", "--out", str(tmp_path / "abl"), "--rows", "2,9"])
-    assert code == 2 and "--rows '2,9': '9' is not a row" in err, err
+    code, _, err = run_cli(["ablation", "--out", str(tmp_path / "abl"), "--rows", "2,10"])
+    assert code == 2 and "--rows '2,10': '10' is not a row" in err, err
     assert not (tmp_path / "abl").exists()
 
 

@@ -1,4 +1,4 @@
-"""`virus-nerf ablation`: the eight rows of the paper's Table I on simulated rooms (docs/method.md 8).
+"""`virus-nerf ablation`: the eight rows of the paper's Table I on simulated rooms (docs/method.md 8), and row 9 (row 8 with the stereo sensor).
 
 Each (row, scene, seed) is one training process with the same time budget; finished runs are
 not redone, interrupted ones resume. The table gives mean +- std over seeds of zone 3 NND
@@ -32,7 +32,8 @@ class AblationRow:
     def label(self) -> str:
         grid = "Instant-NGP" if self.grid == "ngp" else "VIRUS"
         sensors = {"camera": "CAM", "camera,uss,irs": "CAM, USS, IRS", "camera,uss": "CAM, USS",
-                   "camera,irs": "CAM, IRS", "camera,rgbd": "RGB-D"}[self.sensors]
+                   "camera,irs": "CAM, IRS", "camera,rgbd": "RGB-D",
+                   "camera,uss,irs,stereo": "CAM, USS, IRS, camera stereo"}[self.sensors]
         return f"{grid}: {sensors}{', odometry poses' if self.odometry else ''}"
 
     def args(self) -> tuple[str, ...]:
@@ -48,6 +49,9 @@ ROWS = (
     AblationRow(6, "virus", "camera,rgbd"),
     AblationRow(7, "virus", "camera,uss,irs", odometry=True),
     AblationRow(8, "virus", "camera,uss,irs"),
+    # beyond the paper: row 8 plus depth triangulated from the cameras (docs/method.md 3.7), the
+    # default sensors of this repository
+    AblationRow(9, "virus", "camera,uss,irs,stereo"),
 )
 
 # Table I of the paper: (acc mean, cov mean, acc inlier, cov inlier), zone 3, mean of 10 runs
@@ -72,8 +76,10 @@ class Profile:
     duration: float
 
 
+WAREHOUSE_DRIVE_S = 140.0  # seconds of drive in the warehouse (one loop)
 PROFILES = {
     "full": Profile(("office", "common"), 3, 75.0, 60.0),
+    # (--scenes warehouse: a 140 s drive, its loop takes 135 s; the paper has no figure for it)
     "quick": Profile(("office",), 1, 15.0, 12.0),
 }
 
@@ -91,7 +97,7 @@ def run_zone3(metrics: RunMetrics, gt: str, run: Path) -> ZoneMetrics:
 
 
 def select_rows(rows: str | None) -> tuple[AblationRow, ...]:
-    """`--rows 3,8` -> those rows of Table I (all eight when None)."""
+    """`--rows 3,8` -> those rows of Table I (all nine when None)."""
     from virus_nerf.errors import UsageError
 
     if rows is None:
@@ -124,7 +130,7 @@ def aggregate(out: Path, scenes: tuple[str, ...], seeds: int, gt: str = "map",
                 vals = [getattr(b, key) for b in blocks]
                 rec[key], rec[key + "_std"] = mean_std(vals)
             rec["steps_per_s"], rec["steps_per_s_std"] = mean_std([m.train.get("steps_per_s") for m in docs])
-            for k, v in zip(KEYS, PAPER[(row.number, scene)], strict=True):
+            for k, v in zip(KEYS, PAPER.get((row.number, scene), (None,) * len(KEYS)), strict=True):
                 rec["paper_" + k] = v
             records.append(rec)
     return records
@@ -152,10 +158,14 @@ def table_markdown(records: list[dict]) -> str:
             f"| {r['row']} | {r['label']} | {r['scene']} | {_runs(r)} | {_fmt(r['acc_mean'], r['acc_mean_std'])} | "
             f"{_fmt(r['cov_mean'], r['cov_mean_std'])} | {_fmt(r['acc_inlier'], r['acc_inlier_std'])} | "
             f"{_fmt(r['cov_inlier'], r['cov_inlier_std'])} | {_fmt(r['steps_per_s'], r['steps_per_s_std'])} | "
-            f"{r['paper_acc_mean']:.3f} / {r['paper_cov_mean']:.3f} | "
-            f"{r['paper_acc_inlier']:.3f} / {r['paper_cov_inlier']:.3f} |"
+            f"{_pair(r['paper_acc_mean'], r['paper_cov_mean'])} | {_pair(r['paper_acc_inlier'], r['paper_cov_inlier'])} |"
         )
     return "\n".join(lines)
+
+
+def _pair(a: float | None, b: float | None) -> str:
+    """A paper figure pair, '-' for a room the paper has none for (the warehouse)."""
+    return "-" if a is None or b is None else f"{a:.3f} / {b:.3f}"
 
 
 def grid_speed(records: list[dict]) -> dict[str, float | None]:
@@ -187,7 +197,7 @@ def plot_rows(records: list[dict], path: Path) -> Path:
                 vals = [r[f"{kind}_{key}"] if r[f"{kind}_{key}"] is not None else math.nan for r in recs]
                 errs = [r[f"{kind}_{key}_std"] or 0.0 for r in recs]
                 ax.bar(x + (k - 0.5) * 0.38, vals, 0.38, yerr=errs, color=colour, label=kind, capsize=2)
-                paper = [r[f"paper_{kind}_{key}"] for r in recs]
+                paper = [math.nan if r[f"paper_{kind}_{key}"] is None else r[f"paper_{kind}_{key}"] for r in recs]
                 ax.scatter(x + (k - 0.5) * 0.38, paper, color="k", marker="_", s=120, zorder=3,
                            label="paper" if k == 0 else None)
             ax.set_xticks(x, [str(r["row"]) for r in recs])
@@ -235,8 +245,9 @@ def ablation(
         train_time: Seconds of training per run (default 75; quick 15); not with --max-steps alone.
         max_steps: Training steps per run instead of a time budget (bit-reproducible on CPU);
             with --train-time too, whichever comes first.
-        scenes: Scenes to run (default office and common; quick office).
-        rows: Table I rows to run, comma-separated (default all eight, e.g. 3,8).
+        scenes: Scenes to run (default office and common; quick office; warehouse: a 140 s drive,
+            no paper figure).
+        rows: Table I rows to run, comma-separated (default all nine: Table I and row 9, e.g. 3,8).
         config: JSON config every run starts from (`train --config`); the row's grid and
             sensors, the seed and the budget are set on top.
         scheduler: Dask scheduler address (tcp://HOST:8786) to send the runs to, or 'local' for a
@@ -263,9 +274,11 @@ def ablation(
         require_int("--max-steps", max_steps, 1)
     if threads_per_run is not None:
         require_int("--threads-per-run", threads_per_run, 1, 1024)
+    from virus_nerf.sim.rooms import ROOM_NAMES
+
     for scene in scenes or ():
-        if scene not in ("office", "common"):
-            raise UsageError(f"--scenes {scene!r}: expected 'office' and/or 'common'")
+        if scene not in ROOM_NAMES:
+            raise UsageError(f"--scenes {scene!r}: expected a comma-separated subset of {','.join(ROOM_NAMES)}")
     chosen = select_rows(rows)
     if config is not None:
         from virus_nerf.config_io import load_json_config
@@ -287,9 +300,10 @@ def ablation(
     out.mkdir(parents=True, exist_ok=True)
     for scene in scenes:
         data = out / "data" / scene
+        duration = WAREHOUSE_DRIVE_S if scene == "warehouse" else prof.duration
         if not (data / scene).is_dir():
-            print(f"simulating {scene} ({prof.duration:.0f} s drive) -> {data}")
-            simulate(scene=scene, out=data, seed=0, duration=prof.duration, resolution_scale=0.5)
+            print(f"simulating {scene} ({duration:.0f} s drive) -> {data}")
+            simulate(scene=scene, out=data, seed=0, duration=duration, resolution_scale=0.5)
     base = ("--config", str(config)) if config is not None else ()
     specs = [
         RunSpec(

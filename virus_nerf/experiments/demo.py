@@ -57,7 +57,7 @@ def demo(
         base, seed=seed, max_time=train_time, image_scale=1.0, eval_interval=max(10.0, train_time / 8),
         evaluation=dataclasses.replace(base.evaluation, gt=protocols),
     )
-    print(f"[2/3] training VIRUS-NeRF (camera, USS, IRS; VIRUS grid) for {train_time:.0f} s")
+    print(f"[2/3] training VIRUS-NeRF (cameras with their triangulated depth, USS, IRS; VIRUS grid) for {train_time:.0f} s")
     doc = run_training(data, "office", out / "run", cfg, quiet=True if quiet else None)
     print("[3/3] writing the report")
     copy_file_atomic(out / "run" / "metrics.json", out / "metrics.json")

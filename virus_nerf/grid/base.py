@@ -100,6 +100,11 @@ class SensorRays:
     def __len__(self) -> int:
         return int(self.ranges.shape[0])
 
+    def concat(self, other: SensorRays) -> SensorRays:
+        """These rays, then `other`'s."""
+        return SensorRays(torch.cat([self.origins, other.origins]), torch.cat([self.directions, other.directions]),
+                          torch.cat([self.ranges, other.ranges]))
+
     def valid(self) -> SensorRays:
         """Only the rays with a finite, positive range."""
         keep = torch.isfinite(self.ranges) & (self.ranges > 0)
@@ -129,10 +134,13 @@ class GridUpdateBatch:
 @dataclass(frozen=True)
 class SensorPriorRequest:
     """What a grid wants before the first step: every training IRS zone as `zone_samples`^2
-    rays, and the USS cones as free-space rays when `uss_free`."""
+    rays, the USS cones as free-space rays when `uss_free`, and the stereo sensor's targets:
+    "depth" as Depth-Update rays, "free" as free-space rays ending two standard deviations
+    before the point, "off" not at all."""
 
     zone_samples: int
     uss_free: bool
+    stereo: str = "off"
 
 
 class OccupancyGrid(ABC):

@@ -82,7 +82,9 @@ class VirusGrid(OccupancyGrid):
     @property
     def prior_request(self) -> SensorPriorRequest | None:
         c = self.config
-        return SensorPriorRequest(c.init_zone_samples, c.init_uss_free) if c.init == "sensors" else None
+        if c.init != "sensors":
+            return None
+        return SensorPriorRequest(c.init_zone_samples, c.init_uss_free, c.init_stereo)
 
     @property
     def logodds(self) -> torch.Tensor:

@@ -47,6 +47,10 @@ class VirusGridConfig:
     init: Literal["sensors", "none"] = "sensors"
     init_zone_samples: int = 3  # rays per IRS zone and axis in that pass (3 -> 9 rays per zone)
     init_uss_free: bool = False  # also free-space evidence in front of every USS echo (its cone)
+    # the stereo sensor's triangulated points in that pass (when it is trained): "free" = free
+    # space along each target's ray up to two standard deviations before the point, "depth" = a
+    # Depth-Update with the IRS model, "off" = none (docs/method.md 3.7)
+    init_stereo: Literal["off", "free", "depth"] = "off"
     # NeRF-Update densities: "forward" (default, the paper's speed-up) reuses the densities of
     # the training forward pass: no extra network pass, and only cells the marcher sampled get
     # evidence, so cells nothing renders through are not raised by haze (measured with the
@@ -91,6 +95,7 @@ class VirusGridConfig:
             "depth_share": 0.0 <= self.depth_share <= 1.0,
             "init": self.init in ("sensors", "none"),
             "init_zone_samples": self.init_zone_samples >= 1,
+            "init_stereo": self.init_stereo in ("off", "free", "depth"),
             "nerf_update_source": self.nerf_update_source in ("resample", "forward"),
             "std_per_m": self.std_per_m >= 0.0,
             "std_floor": self.std_floor > 0.0,

@@ -6,8 +6,11 @@ from virus_nerf.losses.terms import (
     colour_loss,
     depth_loss,
     distortion_loss,
+    free_space_loss,
+    line_of_sight_terms,
     total_loss,
     uss_loss,
+    weighted_depth_loss,
 )
 
-__all__ = ["LossTerms", "LossWeights", "colour_loss", "depth_loss", "distortion_loss", "total_loss", "uss_loss"]
+__all__ = ["LossTerms", "LossWeights", "colour_loss", "depth_loss", "distortion_loss", "free_space_loss", "line_of_sight_terms", "total_loss", "uss_loss", "weighted_depth_loss"]

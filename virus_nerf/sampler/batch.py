@@ -13,17 +13,21 @@ import numpy as np
 import torch
 
 from virus_nerf.sampler.frames import FrameStore
+from virus_nerf.sensors.camera import pixel_directions
 from virus_nerf.sensors.irs import IRS_ZONE_COUNT
+from virus_nerf.stereo.depth import StereoDepth
 
-SENSORS = ("camera", "uss", "irs", "rgbd")
+SENSORS = ("camera", "uss", "irs", "rgbd", "stereo")
 
 
 @dataclass(frozen=True)
 class BatchShares:
-    """Shares of the batch drawn from IRS-zone and USS-cone pixels; the rest are random pixels."""
+    """Shares of the batch drawn from IRS-zone pixels, USS-cone pixels and tracked pixels with a
+    triangulated depth (the `stereo` sensor); the rest are random pixels."""
 
     irs: float = 0.4
     uss: float = 0.4
+    stereo: float = 0.1
 
 
 @dataclass
@@ -37,12 +41,14 @@ class RayBatch:
     uss_range: torch.Tensor  # (B,) echo range (radial) for rays inside the USS cone
     rgbd_range: torch.Tensor  # (B,) distance along the ray from the RGB-D depth
     frames: torch.Tensor  # (B,) int64 frame rows in the FrameStore
+    stereo_range: torch.Tensor | None = None  # (B,) distance to a triangulated point (stereo sensor)
+    stereo_sigma: torch.Tensor | None = None  # (B,) its standard deviation, m
 
     def __len__(self) -> int:
         return self.origins.shape[0]
 
     def to(self, device: torch.device) -> RayBatch:
-        return RayBatch(**{k: v.to(device) for k, v in self.__dict__.items()})
+        return RayBatch(**{k: None if v is None else v.to(device) for k, v in self.__dict__.items()})
 
 
 def recent_frame_odds(times: np.ndarray, share: float, window: float) -> np.ndarray:
@@ -56,7 +62,8 @@ def recent_frame_odds(times: np.ndarray, share: float, window: float) -> np.ndar
 class BatchSampler:
     """Draws RayBatches from a FrameStore with a numpy Generator (seeded, resumable)."""
 
-    def __init__(self, store: FrameStore, sensors: tuple[str, ...], shares: BatchShares = BatchShares()):
+    def __init__(self, store: FrameStore, sensors: tuple[str, ...], shares: BatchShares = BatchShares(),
+                 stereo: StereoDepth | None = None):
         unknown = set(sensors) - set(SENSORS)
         if unknown:
             raise ValueError(f"unknown sensors {sorted(unknown)}; expected a subset of {SENSORS}")
@@ -64,8 +71,11 @@ class BatchSampler:
         self.sensors = tuple(sensors)
         self.share_irs = shares.irs if "irs" in sensors else 0.0
         self.share_uss = shares.uss if "uss" in sensors else 0.0
-        if self.share_irs + self.share_uss > 1:
-            raise ValueError("batch shares of IRS and USS rays must add up to at most 1")
+        self.share_stereo = shares.stereo if "stereo" in sensors else 0.0
+        if self.share_irs + self.share_uss + self.share_stereo > 1:
+            raise ValueError("batch shares of IRS, USS and stereo rays must add up to at most 1")
+        # triangulated depth targets of the store's frames (rows as in the store); None: none yet
+        self.stereo = stereo
 
     def sample(self, rng: np.random.Generator, n_rays: int, frames: np.ndarray | None = None,
                frame_p: np.ndarray | None = None) -> RayBatch:
@@ -80,9 +90,12 @@ class BatchSampler:
             raise ValueError(f"frame_p has {len(frame_p)} entries for {len(frames)} frames")
         n_irs = int(round(self.share_irs * n_rays))
         n_uss = int(round(self.share_uss * n_rays))
-        kind = np.zeros(n_rays, dtype=np.int8)  # 0 random, 1 uss cone, 2 irs zone
+        # stereo rays are drawn only once there are targets: the share stays random pixels before
+        n_stereo = int(round(self.share_stereo * n_rays)) if self.stereo is not None and len(self.stereo) else 0
+        kind = np.zeros(n_rays, dtype=np.int8)  # 0 random, 1 uss cone, 2 irs zone, 3 stereo target
         kind[:n_uss] = 1
         kind[n_uss : n_uss + n_irs] = 2
+        kind[n_uss + n_irs : n_uss + n_irs + n_stereo] = 3
         if frame_p is None:
             f = frames[rng.integers(0, len(frames), size=n_rays)]
         else:
@@ -105,11 +118,29 @@ class BatchSampler:
                 zone = np.argmax(zone_pick[sel] * weights, axis=1)
                 start, count = fp.zone_start[zone], np.diff(fp.zone_start)[zone]
                 pix[sel] = fp.zone_pixels[start + np.minimum((u01[sel] * count).astype(np.int64), count - 1)]
-        return self._rays(f, pix)
+        target = np.full(n_rays, -1, dtype=np.int64)  # stereo target index per ray, -1 none
+        sel = np.flatnonzero(kind == 3)
+        if sel.size:
+            start, count = self.stereo.frame_slices(f[sel])
+            has = count > 0  # a frame without targets gives a random pixel of that frame instead
+            target[sel[has]] = start[has] + np.minimum((u01[sel[has]] * count[has]).astype(np.int64), count[has] - 1)
+            loose = sel[~has]
+            pix[loose] = np.minimum((u01[loose] * hw).astype(np.int64), hw - 1)
+        return self._rays(f, pix, target)
 
-    def _rays(self, f: np.ndarray, pix: np.ndarray) -> RayBatch:
+    def _rays(self, f: np.ndarray, pix: np.ndarray, target: np.ndarray | None = None) -> RayBatch:
+        """Rays of pixels `pix` (N,) of frames `f` (N,); rays with a stereo `target` index (>= 0)
+        go through that target's sub-pixel position instead (their colour: the pixel it is in)."""
         store = self.store
         n = len(f)
+        stereo_range = stereo_sigma = None
+        if target is not None and (target >= 0).any():
+            has = target >= 0
+            uv = self.stereo.uv[target[has]].astype(np.float64)  # (k, 2) training-image pixels
+            col = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, store.width - 1)
+            row = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, store.height - 1)
+            pix = pix.copy()
+            pix[has] = row * store.width + col
         dirs_cam = np.empty((n, 3), dtype=np.float64)
         irs_range = np.full(n, np.nan)
         uss_range = np.full(n, np.nan)
@@ -128,6 +159,18 @@ class BatchSampler:
         if "rgbd" in self.sensors and store.depths_mm is not None:
             mm = store.depths_mm.reshape(len(store), -1)[f, pix].astype(np.float64)
             rgbd_range = np.where(mm > 0, mm / 1000.0, np.nan) / dirs_cam[:, 2]
+        if target is not None and "stereo" in self.sensors:
+            stereo_range, stereo_sigma = np.full(n, np.nan), np.full(n, np.nan)
+            has = np.flatnonzero(target >= 0)
+            if has.size:
+                for s, intr in store.intrinsics.items():
+                    sel = has[store.stack_ids[f[has]] == s]
+                    uv = self.stereo.uv[target[sel]]
+                    dirs_cam[sel] = pixel_directions(intr, uv[:, 0], uv[:, 1])
+                stereo_range[has] = self.stereo.ranges[target[has]]
+                stereo_sigma[has] = self.stereo.sigmas[target[has]]
+            stereo_range = torch.from_numpy(stereo_range.astype(np.float32))
+            stereo_sigma = torch.from_numpy(stereo_sigma.astype(np.float32))
         pose = store.cam_to_world[f]  # (n, 4, 4)
         dirs = np.einsum("nij,nj->ni", pose[:, :3, :3], dirs_cam)
         v, u = np.divmod(pix, store.width)
@@ -140,4 +183,6 @@ class BatchSampler:
             uss_range=torch.from_numpy(uss_range.astype(np.float32)),
             rgbd_range=torch.from_numpy(rgbd_range.astype(np.float32)),
             frames=torch.from_numpy(f.astype(np.int64)),
+            stereo_range=stereo_range,
+            stereo_sigma=stereo_sigma,
         )

@@ -21,16 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from virus_nerf.utils.cache import cache_root
+
 FORMAT_VERSION = 1  # bump when the decoding (resize filter, depth encoding) changes
-
-
-def cache_root() -> Path | None:
-    """The cache folder, or None when disabled."""
-    env = os.environ.get("VIRUS_NERF_CACHE_DIR")
-    if env is not None:
-        return None if env.strip().lower() in ("", "off", "0", "none") else Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "virus-nerf"
 
 
 def frames_key(files: Sequence[Path], size: tuple[int, int], with_depth: bool) -> str:

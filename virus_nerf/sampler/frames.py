@@ -22,6 +22,7 @@ from virus_nerf.sampler import frame_cache
 from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics, pixel_directions
 from virus_nerf.sensors.irs import IRS_ZONE_COUNT
+from virus_nerf.stereo.build import FrameList
 
 
 @dataclass
@@ -134,6 +135,10 @@ class FrameStore:
             self._capacity = buffers = fresh
         for name, buf in buffers.items():
             setattr(self, name, buf[:n])
+
+    def frame_list(self) -> FrameList:
+        """Which recording frames the store holds, row by row (for the stereo pass)."""
+        return FrameList(self.stack_ids, self.rows, self.times, self.cam_to_world, dict(self.intrinsics))
 
     @property
     def height(self) -> int:

@@ -13,6 +13,8 @@ import torch
 from virus_nerf.grid.base import SensorRays
 from virus_nerf.sampler.frames import FrameStore
 from virus_nerf.sensors import irs, uss
+from virus_nerf.sensors.camera import pixel_directions
+from virus_nerf.stereo.depth import StereoDepth
 
 
 def _world_rays(store: FrameStore, frames: np.ndarray, dirs_cam: np.ndarray, ranges: np.ndarray) -> SensorRays:
@@ -39,6 +41,28 @@ def irs_zone_rays(store: FrameStore, frames: np.ndarray | None = None, samples_p
     z = store.irs_range[frames].reshape(len(frames), irs.IRS_ZONES * irs.IRS_ZONES)  # (F, 64)
     ranges = np.repeat(z, s2, axis=1) / dirs_cam[None, :, 2]  # (F, 64 s^2)
     return _world_rays(store, frames, dirs_cam, ranges)
+
+
+def stereo_target_rays(store: FrameStore, depth: StereoDepth, frames: np.ndarray,
+                       back_sigmas: float = 0.0) -> SensorRays:
+    """The stereo targets of store rows `frames` as world rays through their pixels, range = the
+    target's distance minus `back_sigmas` standard deviations (m)."""
+    start, count = depth.frame_slices(np.asarray(frames))
+    idx = np.concatenate([np.arange(s, s + c) for s, c in zip(start, count, strict=True)]) if len(start) \
+        else np.zeros(0, np.int64)
+    f = depth.frames[idx]
+    dirs_cam = np.zeros((len(idx), 3))
+    for s, intr in store.intrinsics.items():
+        sel = store.stack_ids[f] == s
+        dirs_cam[sel] = pixel_directions(intr, depth.uv[idx[sel], 0], depth.uv[idx[sel], 1])
+    pose = store.cam_to_world[f]  # (K, 4, 4)
+    dirs = np.einsum("kij,kj->ki", pose[:, :3, :3], dirs_cam)
+    ranges = depth.ranges[idx].astype(np.float64) - back_sigmas * depth.sigmas[idx]
+    return SensorRays(
+        origins=torch.from_numpy(np.ascontiguousarray(pose[:, :3, 3], dtype=np.float32)),
+        directions=torch.from_numpy(dirs.astype(np.float32)),
+        ranges=torch.from_numpy(ranges.astype(np.float32)),
+    )
 
 
 def uss_cone_rays(store: FrameStore, frames: np.ndarray | None = None, n_h: int = 12, n_v: int = 8) -> SensorRays:

@@ -9,19 +9,24 @@ from typing import Literal
 
 import numpy as np
 
+from virus_nerf.data import writer
 from virus_nerf.data.pcd import write_pcd_xyz
 from virus_nerf.data.split import DEFAULT_RATIOS, make_split, write_split
+from virus_nerf.data.voxel_map import VoxelMap
 from virus_nerf.sensors.irs import IRS_ZONE_COUNT
-from virus_nerf.sim import writer
-from virus_nerf.sim.rig import CAMERA_INTRINSICS, STACK_IDS, STACK_TIME_OFFSET_S, camera_in_lidar
-from virus_nerf.sim.rooms import Room, build_room
+from virus_nerf.sensors.rig import (
+    CAMERA_INTRINSICS,
+    STACK_IDS,
+    STACK_TIME_OFFSET_S,
+    camera_in_lidar,
+)
+from virus_nerf.sim.rooms import ROOM_NAMES, Room, build_room
 from virus_nerf.sim.sensors import (
     CameraModel,
     DepthModel,
     IrsModel,
     LidarModel,
     UssModel,
-    VoxelMap,
     irs_row_mm,
     render_camera,
 )
@@ -55,7 +60,7 @@ def _rng(seed: int, stream: str, index: int = 0) -> np.random.Generator:
 
 
 def simulate(
-    scene: Literal["office", "common"],
+    scene: Literal["office", "common", "warehouse"],
     out: Path,
     seed: int = 0,
     duration: float = 60.0,
@@ -68,7 +73,8 @@ def simulate(
     OUT must not exist (it is built under a temporary name and renamed when complete).
 
     Args:
-        scene: room preset, 'office' (~72 m^2) or 'common' (common area, ~216 m^2).
+        scene: room preset, 'office' (~72 m^2), 'common' (common area, ~216 m^2) or 'warehouse'
+            (32 x 16 m hall with rows of shelving racks, ~512 m^2; one drive loop takes ~135 s).
         out: output folder (must not exist).
         seed: random seed of the furniture placement and all sensor noise.
         duration: length of the drive in seconds, in (0, 3600].
@@ -79,8 +85,8 @@ def simulate(
     require_int("--seed", seed, 0, 2**32 - 1)
     require_number("--duration", duration, 0.0, 3600.0)
     require_number("--resolution-scale", resolution_scale, 0.0, 1.0)
-    if scene not in ("office", "common"):
-        raise UsageError(f"--scene {scene!r}: expected 'office' or 'common'")
+    if scene not in ROOM_NAMES:
+        raise UsageError(f"--scene {scene!r}: expected one of " + ", ".join(repr(n) for n in ROOM_NAMES))
     if Path(out).exists():
         raise OutputExistsError(out)
     simulate_dataset(scene, Path(out), seed=seed, duration=duration, resolution_scale=resolution_scale)

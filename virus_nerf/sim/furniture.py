@@ -1,5 +1,5 @@
 """Furniture of the simulated rooms (docs/method.md 5): desks, chairs, tables, couches, shelves,
-plants and pillars as primitives in a piece frame, with seeded procedural materials.
+plants, pillars and loaded pallets as primitives in a piece frame, with seeded procedural materials.
 
 `make_piece` builds one piece at the origin; `place` moves a primitive of it into the room.
 """
@@ -164,6 +164,19 @@ def make_piece(kind: str, mats: Materials, room_height: float) -> _Piece:
                       (r + 0.12, r + 0.12))
     if kind == "bin":
         return _Piece([("bin", [Cylinder((0, 0, 0.2), 0.16, 0.4)], mats.make(pattern="plain"))], (0.16, 0.16))
+    if kind == "pallet":  # a loaded pallet standing on the floor (warehouse): 1-2 layers of goods
+        w, d = (1.2, 0.8) if rng.random() < 0.7 else (1.2, 1.0)
+        goods: list[Primitive] = []
+        z = 0.144
+        for _ in range(int(rng.integers(1, 3))):
+            gw, gd, gh = w * rng.uniform(0.8, 1.0), d * rng.uniform(0.8, 1.0), rng.uniform(0.4, 0.8)
+            goods.append(Box((rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03), z + gh / 2), (gw, gd, gh)))
+            z += gh
+        return _Piece([("pallet", [Box((0, 0, 0.072), (w, d, 0.144))],
+                        mats.make(pattern="wood", base=np.array([0.68, 0.55, 0.38]), scale=0.2, smooth=False)),
+                       ("pallet_goods", goods, mats.make(pattern=str(rng.choice(["noise", "stripes", "checker"])),
+                                                         scale=rng.uniform(0.08, 0.3)))],
+                      (w / 2, d / 2))
     if kind == "pillar":
         return _Piece([("pillar", [Cylinder((0, 0, H / 2), 0.2, H - 0.002)], mats.make(pattern="noise",
                                                                                  base=np.array([0.8, 0.8, 0.78])))],

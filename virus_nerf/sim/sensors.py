@@ -8,7 +8,7 @@ the IRS and radial for the USS and LiDAR (as on the real robot, docs/method.md 4
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
@@ -200,8 +200,11 @@ class UssModel:
     67 deg, and a spread of ~0.02 m at 45-67 deg. `uss_bench_comparison` recomputes the table.
     """
 
-    max_range: float = 5.0
-    edge_loss: float = 0.6
+    # reach: 8 m on the axis, the URM37 V5.0 datasheet's 2-800 cm (and the authors' firmware
+    # header; 5 m was the older V3.2/V4.0 figure), 2 m at the cone's edge (8 * (1 - 0.75)), where
+    # the bench's first series loses targets at 2 m (docs/uss-range.md)
+    max_range: float = 8.0
+    edge_loss: float = 0.75
     bias0: float = -0.0230
     bias_per_m: float = -0.0003
     sigma0: float = 0.0
@@ -362,30 +365,3 @@ class LidarModel:
         r = t + self.sigma * rng.standard_normal(t.shape)
         keep = np.isfinite(t) & (r >= self.min_range) & (r <= self.max_range)
         return (self.dirs[keep] * r[keep, None]).astype(np.float32)
-
-
-@dataclass
-class VoxelMap:
-    """The global map as the real one is built: world points into voxels of `voxel` m, voxels
-    hit at least `min_hits` times kept, their centres returned (docs/method.md 4). Fed with the exact
-    poses: the real map shows no registration shell beyond what its 3 mm range noise and the
-    3 cm voxels explain (see LidarModel), so none is added."""
-
-    voxel: float = 0.03
-    min_hits: int = 2
-    _keys: list[np.ndarray] = field(default_factory=list)
-
-    def add(self, points_world: np.ndarray) -> None:
-        idx = np.floor(np.asarray(points_world, dtype=np.float64) / self.voxel).astype(np.int64)
-        idx += 1 << 20  # non-negative for packing (rooms are far below 30 km)
-        self._keys.append((idx[:, 0] << 42) | (idx[:, 1] << 21) | idx[:, 2])
-
-    def points(self) -> np.ndarray:
-        """(P, 3) float32 voxel centres, sorted by voxel key (deterministic)."""
-        if not self._keys:
-            return np.zeros((0, 3), dtype=np.float32)
-        keys, counts = np.unique(np.concatenate(self._keys), return_counts=True)
-        keys = keys[counts >= self.min_hits]
-        mask = (1 << 21) - 1
-        idx = np.stack([(keys >> 42) & mask, (keys >> 21) & mask, keys & mask], 1) - (1 << 20)
-        return ((idx + 0.5) * self.voxel).astype(np.float32)

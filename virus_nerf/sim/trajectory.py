@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from virus_nerf.sensors.geometry import matrix_to_quat, quat_to_matrix
+from virus_nerf.sensors.geometry import quat_to_matrix
 
 
 @dataclass(frozen=True)
@@ -163,11 +163,6 @@ def odometry_poses(traj: Trajectory, times: np.ndarray, drift: OdometryDrift,
     times = np.asarray(times, dtype=np.float64)
     return planar_pose(np.interp(times, traj.t, xo), np.interp(times, traj.t, yo),
                        np.interp(times, traj.t, yaw_o), np.interp(times, traj.t, zo))
-
-
-def poses_to_rows(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(K, 4, 4) -> translations (K, 3), quaternions (K, 4) x y z w (for the pose CSVs)."""
-    return poses[:, :3, 3].copy(), matrix_to_quat(poses[:, :3, :3])
 
 
 def rows_to_poses(xyz: np.ndarray, quat: np.ndarray) -> np.ndarray:

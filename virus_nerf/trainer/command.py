@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Literal
 
 from virus_nerf.errors import DataFormatError, UsageError, one_line, require_int, require_number
+from virus_nerf.sampler.batch import SENSORS
 from virus_nerf.trainer.config import check_device
 from virus_nerf.trainer.run_folder import (
     CHECKPOINT,
@@ -27,8 +28,6 @@ from virus_nerf.trainer.run_folder import (
     read_checkpoint_header,
 )
 from virus_nerf.utils.io import write_json_atomic
-
-SENSORS = ("camera", "uss", "irs", "rgbd")
 
 
 def _check_train_flags(
@@ -297,7 +296,7 @@ def train(
         data: Dataset folder in the ETHZ format (holds camera_intrinsics.CSV and ROOM/); required unless --resume.
         room: Room folder name inside DATA (e.g. office); required unless --resume.
         grid: Occupancy grid for ray marching: virus (Bayesian, default) or ngp (Instant-NGP).
-        sensors: Comma-separated sensors to train on: camera,uss,irs,rgbd (default camera,uss,irs).
+        sensors: Comma-separated sensors to train on: camera,uss,irs,rgbd,stereo (default camera,uss,irs,stereo).
         max_time: Seconds of training (evaluation excluded); default 120 unless --max-steps is given.
         max_steps: Training steps; alone, it makes the run bit-reproducible on CPU.
         batch_size: Rays per step (default 2048).

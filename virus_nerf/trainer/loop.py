@@ -29,14 +29,15 @@ from virus_nerf.sampler.batch import BatchSampler
 from virus_nerf.sampler.frames import FrameStore, build_frame_store
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.trainer.config import TrainConfig
-from virus_nerf.trainer.mapper import Mapper, budget_share, build_grid, resolve_device
-from virus_nerf.trainer.model import fit_scene_box
+from virus_nerf.trainer.mapper import Mapper
+from virus_nerf.trainer.model import build_grid, fit_scene_box, resolve_device
 from virus_nerf.trainer.run_folder import (
     CHECKPOINT,
     METRICS_VS_TIME,
     EvalPoint,
     write_eval_history,
 )
+from virus_nerf.trainer.schedule import budget_share
 from virus_nerf.trainer.train_log import Every, LogRow, TrainLog, psnr_db
 from virus_nerf.utils.clock import since_process_start
 from virus_nerf.utils.io import atomic_path
@@ -134,7 +135,13 @@ class Trainer:
         if new.size == len(store) and self.mapper.frames == 0 and not self.config.online:
             self.mapper.add_store(store)
         else:
-            self.mapper.add_store(store, new[np.lexsort((new, store.times[new]))])
+            first = self.mapper.frames
+            ordered = new[np.lexsort((new, store.times[new]))]
+            self.mapper.add_store(store, ordered)
+            if "stereo" in self.config.sensors:  # the tracker reads the recording's own images
+                for row, src in enumerate(ordered, start=first):
+                    stack = self.recording.stacks[int(store.stack_ids[src])]
+                    self.mapper.track_image(row, stack.image(int(store.rows[src])))
         self._added[new] = True
 
     def prepare(self) -> None:
@@ -148,6 +155,11 @@ class Trainer:
         if self._prepared:
             return
         self._sync_frames()
+        if "stereo" in self.config.sensors and not self.config.online:
+            from virus_nerf.stereo.build import stereo_depth
+
+            self.mapper.set_stereo(stereo_depth(self.recording, self.store.frame_list(), self.config.stereo,
+                                                progress=not self.quiet))
         self.mapper.prepare()
         self.grid_init_s = self.mapper.prior_s
         self._prepared = True

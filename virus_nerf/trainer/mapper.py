@@ -43,55 +43,19 @@ import torch
 from virus_nerf.data.frame import SyncFrame, check_frame
 from virus_nerf.errors import UsageError
 from virus_nerf.field.field import NerfField
-from virus_nerf.grid.base import GridSpec, GridUpdateBatch, OccupancyGrid
-from virus_nerf.grid.ngp import NgpGrid
-from virus_nerf.grid.virus import VirusGrid
-from virus_nerf.losses import LossTerms, distortion_loss, total_loss
+from virus_nerf.grid.base import GridUpdateBatch
+from virus_nerf.losses import LossTerms, distortion_loss, line_of_sight_terms, total_loss
 from virus_nerf.render.marching import ray_box_interval
 from virus_nerf.sampler.batch import BatchSampler, RayBatch, recent_frame_odds
 from virus_nerf.sampler.frames import FrameStore, resize_depth_mm, resize_rgb
-from virus_nerf.sampler.sensor_rays import irs_zone_rays, uss_cone_rays
+from virus_nerf.sampler.sensor_rays import irs_zone_rays, stereo_target_rays, uss_cone_rays
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.stereo.depth import StereoDepth, StereoFeed
 from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.map_views import MapViews
-from virus_nerf.trainer.model import SceneModel, fit_scene_box
-
-
-def budget_share(step: int, seconds: float, max_steps: int | None, max_time: float | None) -> float:
-    """Share in [0, 1] of a step and/or time budget used (the larger of the two)."""
-    parts = [0.0]
-    if max_steps is not None:
-        parts.append(step / max_steps)
-    if max_time is not None:
-        parts.append(seconds / max_time)
-    return min(1.0, max(parts))
-
-
-def rays_for_step(batch_size: int, max_samples: int | None, last_samples_per_ray: float) -> int:
-    """Rays of the next step under a sample budget (TrainConfig.max_samples_per_step).
-
-    min(batch_size, max_samples / last_samples_per_ray), never below batch_size // 8 (at least
-    1); batch_size without a budget or before the first step (no samples per ray measured yet).
-    """
-    if max_samples is None or last_samples_per_ray <= 0.0:
-        return batch_size
-    floor = max(1, batch_size // 8)
-    return int(min(batch_size, max(floor, max_samples // max(1.0, last_samples_per_ray))))
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
-def build_grid(config: TrainConfig, box: SceneBox, device: torch.device) -> OccupancyGrid:
-    if config.grid == "ngp":
-        cfg = config.ngp_grid
-        return NgpGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, step_size=config.march.step_size, device=device)
-    cfg = config.virus_grid
-    return VirusGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, device=device)
+from virus_nerf.trainer.model import SceneModel, build_grid, fit_scene_box, resolve_device
+from virus_nerf.trainer.schedule import budget_share, rays_for_step
 
 
 @dataclass(frozen=True)
@@ -149,6 +113,8 @@ class Mapper(MapViews):
         self._prior_skip = False  # an old checkpoint without the count: frames present count as done
         self._warm = False
         self._frames_at_start: int | None = None  # frames present at the first step
+        self.stereo: StereoDepth | None = None  # triangulated depth targets of the store's rows
+        self._stereo_feed: StereoFeed | None = None  # fed by track_image (mapping while driving)
 
     @classmethod
     def for_recording(cls, recording, config: TrainConfig) -> Mapper:
@@ -161,7 +127,7 @@ class Mapper(MapViews):
         if self._sampler is None:
             scaled = {s: i.scaled(self.config.image_scale) for s, i in self.intrinsics.items()}
             store = FrameStore.empty(scaled, with_depth="rgbd" in self.config.sensors)
-            self._sampler = BatchSampler(store, self.config.sensors, self.config.shares)
+            self._sampler = BatchSampler(store, self.config.sensors, self.config.shares, self.stereo)
         return self._sampler
 
     @property
@@ -181,9 +147,24 @@ class Mapper(MapViews):
         depth = None
         if self.store.depths_mm is not None and frame.depth is not None:
             depth = resize_depth_mm(np.asarray(frame.depth, dtype=np.float32), size)
-        return self.store.append(frame.stack_id, self.frames, float(frame.time), np.asarray(frame.cam_to_world),
-                                 resize_rgb(frame.rgb, size), depth, float(frame.uss_range),
-                                 np.asarray(frame.irs_range, dtype=np.float64))
+        row = self.store.append(frame.stack_id, self.frames, float(frame.time), np.asarray(frame.cam_to_world),
+                                resize_rgb(frame.rgb, size), depth, float(frame.uss_range),
+                                np.asarray(frame.irs_range, dtype=np.float64))
+        self.track_image(row, frame.rgb)
+        return row
+
+    def track_image(self, row: int, rgb: np.ndarray) -> None:
+        """Feed frame `row`'s full-resolution image (H, W, 3) uint8 to the stereo sensor's tracker
+        (frames in time order; nothing without the `stereo` sensor); new targets as tracks end."""
+        if "stereo" not in self.config.sensors:
+            return
+        if self._stereo_feed is None:
+            self._stereo_feed = StereoFeed(self.intrinsics, self.store.intrinsics, self.config.stereo)
+        store = self.store
+        depth = self._stereo_feed.add(row, int(store.stack_ids[row]), float(store.times[row]),
+                                      store.cam_to_world[row], rgb)
+        if depth is not None:
+            self.set_stereo(depth)
 
     def add_store(self, store: FrameStore, rows: np.ndarray | None = None) -> None:
         """Add frames already decoded at training resolution: `rows` of `store` in that order, or
@@ -191,9 +172,16 @@ class Mapper(MapViews):
         if store.intrinsics != self.store.intrinsics:
             raise ValueError(f"store intrinsics {store.intrinsics} differ from the mapper's {self.store.intrinsics}")
         if rows is None and self.frames == 0:
-            self._sampler = BatchSampler(store, self.config.sensors, self.config.shares)
+            self._sampler = BatchSampler(store, self.config.sensors, self.config.shares, self.stereo)
             return
         self.store.append_rows(store, np.arange(len(store)) if rows is None else rows)
+
+    def set_stereo(self, depth: StereoDepth | None) -> None:
+        """Triangulated depth targets (stereo.StereoDepth) for the frames added so far, rows in
+        the mapper's store order; used by the `stereo` sensor's share of each batch."""
+        self.stereo = depth
+        if self._sampler is not None:
+            self._sampler.stereo = depth
 
     def _apply_pending_prior(self) -> None:
         """The grid's sensor prior (VIRUS: Depth-Update along every IRS zone, optional USS free
@@ -207,6 +195,13 @@ class Mapper(MapViews):
             sensors = self.config.sensors
             depth = irs_zone_rays(self.store, frames, want.zone_samples).valid() if "irs" in sensors else None
             free = uss_cone_rays(self.store, frames).valid() if want.uss_free and "uss" in sensors else None
+            if want.stereo != "off" and "stereo" in sensors and self.stereo is not None:
+                back = 2.0 if want.stereo == "free" else 0.0
+                rays = stereo_target_rays(self.store, self.stereo, frames, back).valid()
+                if want.stereo == "free":
+                    free = rays if free is None else free.concat(rays)
+                else:
+                    depth = rays if depth is None else depth.concat(rays)
             self.grid.initialise(depth, free)
         self._prior_done = n
 
@@ -226,9 +221,11 @@ class Mapper(MapViews):
         """Load (or compile) the marching, field and compositing kernels on a few rays, so the
         first timed step is an ordinary one. Draws no random numbers and leaves no gradient."""
         rays = self.sampler._rays(np.zeros(8, dtype=np.int64), np.arange(8, dtype=np.int64)).to(self.device)
+        visible_share = self.model.visible_share  # the render path statistic (restored on resume) stays
         out, _ = self.model.render(rays.origins, rays.directions, generator=None)
         (out.rgb.sum() + out.depth.sum()).backward()
         self.optimizer.zero_grad(set_to_none=True)
+        self.model.visible_share = visible_share
 
     def progress(self) -> float:
         """Share of the config's budget (max_steps / max_time) used: drives the lr decay."""
@@ -270,11 +267,20 @@ class Mapper(MapViews):
             uss_range=batch.uss_range if "uss" in sensors else None,
             rgbd_depth=batch.rgbd_range if "rgbd" in sensors else None,
             rgb_mask=rgb_rays,
+            stereo_depth=batch.stereo_range if "stereo" in sensors else None,
+            stereo_sigma=batch.stereo_sigma if "stereo" in sensors else None,
         )
         if c.weights.distortion > 0:
             smp = stats.samples
             ld = distortion_loss(out.weights, smp.t_starts, smp.t_ends, smp.ray_offsets)
             terms = dataclasses.replace(terms, total=terms.total + c.weights.distortion * ld, distortion=ld)
+        if c.weights.free_uss > 0 or c.weights.free_depth > 0:
+            smp, s = stats.samples, sensors
+            free = line_of_sight_terms(
+                c.weights, out.weights, smp.t_ends, smp.ray_offsets,
+                uss_range=batch.uss_range if "uss" in s else None, irs_range=batch.irs_range if "irs" in s else None,
+                stereo_range=batch.stereo_range if "stereo" in s else None, stereo_sigma=batch.stereo_sigma)
+            terms = dataclasses.replace(terms, total=terms.total + free)
         self.optimizer.zero_grad(set_to_none=True)
         terms.total.backward()
         self.optimizer.step()

@@ -13,12 +13,15 @@ import torch
 
 from virus_nerf.data.ethz import Recording
 from virus_nerf.field.field import NerfField
-from virus_nerf.grid.base import OccupancyGrid
+from virus_nerf.grid.base import GridSpec, OccupancyGrid
+from virus_nerf.grid.ngp import NgpGrid
+from virus_nerf.grid.virus import VirusGrid
 from virus_nerf.render.compositing import RenderOutput, composite, scan_depth, transmittance
 from virus_nerf.render.marching import march_rays
 from virus_nerf.render.samples import PackedSamples
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.sensors import irs
+from virus_nerf.trainer.config import TrainConfig
 
 # Visible share of the marched samples under which a training step first finds the hidden ones
 # with a density-only pass (then trains the rest); above it one pass trains every density and
@@ -27,7 +30,7 @@ from virus_nerf.sensors import irs
 # costs ~22 % of a full pass and pays off below a ~0.6 visible share.
 TWO_PASS_BELOW = 0.6
 
-USS_MAX_RANGE_M = 5.0  # the URM37's useful range; bounds the box when there is no map
+USS_MAX_RANGE_M = 8.0  # the URM37 V5.0's range (datasheet, docs/uss-range.md); bounds the box when there is no map
 
 
 def fit_scene_box(recording: Recording, margin: float = 0.1) -> SceneBox:
@@ -172,3 +175,17 @@ class SceneModel:
             r, _ = self.render(o, d, generator=None, rgb_rays=no_colour)
             out[start : start + len(o)] = scan_depth(r, self.min_opacity).double().cpu().numpy()
         return out
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def build_grid(config: TrainConfig, box: SceneBox, device: torch.device) -> OccupancyGrid:
+    if config.grid == "ngp":
+        cfg = config.ngp_grid
+        return NgpGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, step_size=config.march.step_size, device=device)
+    cfg = config.virus_grid
+    return VirusGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, device=device)

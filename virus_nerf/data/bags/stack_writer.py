@@ -12,13 +12,13 @@ from collections import defaultdict
 
 import numpy as np
 
+from virus_nerf.data import writer
 from virus_nerf.data.bags import messages as m
 from virus_nerf.data.bags.odometry import PoseTrack
 from virus_nerf.data.bags.sync import StackMatch
 from virus_nerf.sensors import uss
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.sensors.irs import IRS_ZONE_COUNT
-from virus_nerf.sim import writer
 
 
 def write_frames(run, matches: dict[int, StackMatch], intrinsics: dict[int, Intrinsics]) -> None:

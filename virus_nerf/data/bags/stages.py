@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from virus_nerf.data import writer
 from virus_nerf.data.bags import messages as m
 from virus_nerf.data.bags.odometry import (
     KissIcpSettings,
@@ -33,11 +34,10 @@ from virus_nerf.data.bags.sync import StackMatch, TopicReport, match_nearest, ma
 from virus_nerf.data.bags.topics import TopicsConfig
 from virus_nerf.data.pcd import read_pcd_xyz, write_pcd_xyz
 from virus_nerf.data.split import DEFAULT_RATIOS, make_split, write_split
+from virus_nerf.data.voxel_map import VoxelMap
 from virus_nerf.errors import DataFormatError, UsageError
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.sensors.geometry import pose_matrix
-from virus_nerf.sim import writer
-from virus_nerf.sim.sensors import VoxelMap
 
 Key = tuple[int | None, str]  # (stack, role); stack None for the LiDAR and tf topics
 

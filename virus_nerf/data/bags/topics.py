@@ -1,6 +1,6 @@
 """The topics file of `import-bag`: which topics hold which sensor, the rig, sync tolerances.
 
-Defaults are the ETHZ robot as the simulator models it (virus_nerf/sim/rig.py): stacks 1 and 3,
+Defaults are the ETHZ robot as the simulator models it (virus_nerf/sensors/rig.py): stacks 1 and 3,
 their cameras in the LiDAR frame. USS and IRS share their camera's origin and axes in the ETHZ
 layout (docs/method.md 4), so the file has no USS/IRS extrinsics: mount them next to the camera,
 looking along its optical axis. A TOML file replaces the defaults (read with tomllib); every key
@@ -78,7 +78,7 @@ class TopicsConfig:
 
 def ethz_stack(s: int) -> StackTopics:
     """Topics of ETHZ stack s with the simulator's camera-in-LiDAR mounting."""
-    from virus_nerf.sim.rig import CAMERA_IN_LIDAR
+    from virus_nerf.sensors.rig import CAMERA_IN_LIDAR
 
     t, q = CAMERA_IN_LIDAR[s]
     return StackTopics(

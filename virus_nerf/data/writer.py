@@ -12,8 +12,8 @@ import numpy as np
 
 from virus_nerf.sensors import uss
 from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.sensors.geometry import matrix_to_quat
 from virus_nerf.sensors.irs import IRS_ZONE_COUNT
-from virus_nerf.sim.trajectory import poses_to_rows
 from virus_nerf.utils.io import atomic_path, write_text_atomic
 
 
@@ -33,7 +33,7 @@ def write_intrinsics(path: Path, intrinsics: dict[int, Intrinsics]) -> None:
 
 def write_poses(path: Path, times: np.ndarray, poses: np.ndarray) -> None:
     """time,x,y,z,qx,qy,qz,qw rows; poses (N, 4, 4) sensor-to-world."""
-    xyz, q = poses_to_rows(poses)
+    xyz, q = poses[:, :3, 3].copy(), matrix_to_quat(poses[:, :3, :3])  # x y z, quaternion x y z w
     lines = ["time,x,y,z,qx,qy,qz,qw"]
     for t, p, r in zip(times, xyz, q, strict=True):
         lines.append(f"{t:.6f}," + ",".join(f"{v:.9f}" for v in (*p, *r)))

@@ -1,0 +1,230 @@
+"""Sparse camera depth: triangulated tracks turned into depth targets on training pixels.
+
+The pipeline, frame by frame in time order (`StereoBuilder.add`), then once (`result`):
+1. track corners through each camera (tracking.StackTracker);
+2. follow every active track into the other camera's frame taken within `pair_max_dt`;
+3. triangulate each track with at least `min_views` views from the known poses, drop views that
+   reproject further than `max_reproj_px`, and triangulate again;
+4. keep points with a parallax of `min_parallax_deg`, a range in [min_range, max_range] and a
+   range uncertainty below `max_rel_sigma` of the range;
+5. every view of a kept point becomes a depth target along the ray through the pixel it was
+   tracked at: the distance from that camera to the point, and its standard deviation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.stereo import triangulation as tri
+from virus_nerf.stereo.tracking import StackTracker, TrackerConfig, Views, track_points
+
+
+@dataclass(frozen=True)
+class StereoConfig:
+    """Camera depth from tracks: tracking, triangulation and filters (metres, pixels of the
+    recording's images)."""
+
+    tracker: TrackerConfig = TrackerConfig()
+    pair_max_dt: float = 0.1  # s: two cameras' frames closer than this are matched
+    min_views: int = 4  # views per track (frames it was seen in)
+    sigma_px: float = 0.5  # pixel noise behind each point's covariance
+    max_reproj_px: float = 0.5  # a view further than this from its point's projection is dropped
+    min_parallax_deg: float = 1.0  # largest angle between a point's viewing rays
+    min_range: float = 0.3  # m from the camera
+    max_range: float = 12.0
+    max_rel_sigma: float = 0.03  # range standard deviation / range
+    # while driving (frames added one by one), the tracks that ended become targets every this
+    # many frames (10: about one second of two cameras at 4.8 Hz)
+    refresh_frames: int = 10
+
+    def __post_init__(self) -> None:
+        checks = {
+            "pair_max_dt": self.pair_max_dt >= 0.0, "min_views": self.min_views >= 2,
+            "sigma_px": self.sigma_px > 0.0, "max_reproj_px": self.max_reproj_px > 0.0,
+            "min_parallax_deg": self.min_parallax_deg >= 0.0,
+            "min_range/max_range": 0.0 <= self.min_range < self.max_range,
+            "max_rel_sigma": self.max_rel_sigma > 0.0, "refresh_frames": self.refresh_frames >= 1,
+        }
+        bad = [name for name, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(f"stereo: invalid value for {', '.join(bad)}: {self}")
+
+
+@dataclass
+class StereoDepth:
+    """Depth targets along the exact rays of tracked pixels, sorted by frame row.
+
+    Each target is a view of a triangulated point: the pixel it was tracked at (sub-pixel, in
+    the training image's pixel coordinates) and the distance from that frame's camera centre to
+    the point along the pixel's ray, with its standard deviation.
+    """
+
+    frames: np.ndarray  # (M,) int64 frame rows, ascending
+    uv: np.ndarray  # (M, 2) float32 pixel coordinates (u column, v row) at training resolution
+    ranges: np.ndarray  # (M,) float32 m along the ray through uv
+    sigmas: np.ndarray  # (M,) float32 m, standard deviation of the range
+    points: np.ndarray  # (N, 3) float32 world points behind them
+
+    @staticmethod
+    def empty() -> StereoDepth:
+        return StereoDepth(np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros(0, np.float32),
+                           np.zeros(0, np.float32), np.zeros((0, 3), np.float32))
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def frame_slices(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(start, count) (N,) of each frame row's targets in the arrays."""
+        frames = np.asarray(frames, np.int64)
+        lo = np.searchsorted(self.frames, frames, side="left")
+        hi = np.searchsorted(self.frames, frames, side="right")
+        return lo, hi - lo
+
+
+def _merge(parts: list[StereoDepth]) -> StereoDepth:
+    """One StereoDepth of several, sorted by frame (stable: each part keeps its order)."""
+    if not parts:
+        return StereoDepth.empty()
+    if len(parts) == 1:
+        return parts[0]
+    frames = np.concatenate([p.frames for p in parts])
+    order = np.argsort(frames, kind="stable")
+    return StereoDepth(frames=frames[order], uv=np.concatenate([p.uv for p in parts])[order],
+                       ranges=np.concatenate([p.ranges for p in parts])[order],
+                       sigmas=np.concatenate([p.sigmas for p in parts])[order],
+                       points=np.concatenate([p.points for p in parts]))
+
+
+class StereoFeed:
+    """A StereoBuilder fed frame by frame while driving: every `refresh_frames` frames, the
+    targets of the tracks that ended so far (None between refreshes)."""
+
+    def __init__(self, intrinsics: dict[int, Intrinsics], train_intrinsics: dict[int, Intrinsics],
+                 cfg: StereoConfig):
+        self.builder = StereoBuilder(intrinsics, train_intrinsics, cfg)
+        self.frames = 0
+
+    def add(self, frame: int, stack: int, time: float, cam_to_world: np.ndarray, rgb: np.ndarray) -> StereoDepth | None:
+        self.builder.add(frame, stack, time, cam_to_world, rgb)
+        self.frames += 1
+        return self.builder.flush() if self.frames % self.builder.cfg.refresh_frames == 0 else None
+
+
+class StereoBuilder:
+    """Feeds frames in time order into per-camera trackers and cross-camera matching."""
+
+    def __init__(self, intrinsics: dict[int, Intrinsics], train_intrinsics: dict[int, Intrinsics],
+                 cfg: StereoConfig = StereoConfig()):
+        self.cfg = cfg
+        self.intrinsics = dict(intrinsics)
+        self.train_intrinsics = dict(train_intrinsics)
+        self.views = Views()
+        self._next_id = [0]
+        self.trackers = {s: StackTracker(intr, cfg.tracker, self.views, self._next_id) for s, intr in intrinsics.items()}
+        self._last: dict[int, tuple[int, float]] = {}  # stack -> (frame row, time) of its newest frame
+        self.frame_stack: dict[int, int] = {}
+        self.frame_pose: dict[int, np.ndarray] = {}
+        self._parts: list[StereoDepth] = []  # targets of the tracks triangulated so far
+
+    def add(self, frame: int, stack: int, time: float, cam_to_world: np.ndarray, rgb: np.ndarray) -> None:
+        """One frame (store row `frame`, full-resolution RGB uint8) of camera `stack`."""
+        import cv2
+
+        gray = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+        pose = np.asarray(cam_to_world, dtype=np.float64)
+        self.frame_stack[frame], self.frame_pose[frame] = stack, pose
+        tracker = self.trackers[stack]
+        tracker.add(frame, gray, pose)
+        for other, (other_frame, other_time) in self._last.items():
+            if other == stack or abs(other_time - time) > self.cfg.pair_max_dt:
+                continue
+            peer = self.trackers[other]
+            if peer._gray is None:
+                continue
+            for src, dst, dst_frame in ((tracker, peer, other_frame), (peer, tracker, frame)):
+                uv, ok = track_points(src._gray, dst._gray, src.active_uv, src.k, dst.k, src._pose, dst._pose,
+                                      self.cfg.tracker)
+                self.views.add(src.active_ids[ok], dst_frame, uv[ok])
+        self._last[stack] = (frame, time)
+
+    def flush(self) -> StereoDepth:
+        """The targets of every track that has ended so far (no tracker follows it any more):
+        those tracks are triangulated now, once, and their views dropped; tracks still followed
+        wait for a later call. Returns all targets so far, sorted by frame."""
+        track, frame, uv = self.views.arrays()
+        open_ids = np.concatenate([t.active_ids for t in self.trackers.values()])
+        still_open = np.isin(track, open_ids)
+        self.views = Views()
+        self.views.add(track[still_open], frame[still_open], uv[still_open])
+        for t in self.trackers.values():
+            t.views = self.views
+        done = ~still_open
+        if done.any():
+            self._parts.append(self._triangulate(track[done], frame[done], uv[done]))
+        return _merge(self._parts)
+
+    def result(self) -> StereoDepth:
+        """Triangulate every track, followed or not (the end of a recording)."""
+        for t in self.trackers.values():
+            t.active_ids, t.active_uv = np.zeros(0, dtype=np.int64), np.zeros((0, 2))
+        return self.flush()
+
+    def _triangulate(self, track: np.ndarray, frame: np.ndarray, uv: np.ndarray) -> StereoDepth:
+        """Targets of the tracks among these views (track (V,), frame (V,), uv (V, 2) px)."""
+        if len(track) == 0:
+            return StereoDepth.empty()
+        # tracks with enough views, renumbered 0..T-1
+        counts = np.bincount(track)
+        keep = counts[track] >= self.cfg.min_views
+        track, frame, uv = track[keep], frame[keep], uv[keep]
+        if len(track) == 0:
+            return StereoDepth.empty()
+        ids, track = np.unique(track, return_inverse=True)
+        n_tracks = len(ids)
+        poses = np.stack([self.frame_pose[int(f)] for f in frame])  # (V, 4, 4)
+        stacks = np.array([self.frame_stack[int(f)] for f in frame])
+        k = np.stack([self.intrinsics[int(s)].matrix for s in stacks])  # (V, 3, 3)
+        world_to_cam = np.linalg.inv(poses)
+        centres = poses[:, :3, 3]
+        d_cam = np.stack([(uv[:, 0] - k[:, 0, 2]) / k[:, 0, 0], (uv[:, 1] - k[:, 1, 2]) / k[:, 1, 1],
+                          np.ones(len(uv))], axis=1)
+        rays = np.einsum("vij,vj->vi", poses[:, :3, :3], d_cam / np.linalg.norm(d_cam, axis=1, keepdims=True))
+        points = tri.midpoint(track, centres, rays, n_tracks)
+        for _ in range(2):  # drop views far from the point, then triangulate again
+            proj, p_cam = tri.project_views(points[track], world_to_cam, k)
+            err = np.linalg.norm(proj - uv, axis=1)
+            good = np.isfinite(err) & (err < self.cfg.max_reproj_px) & (p_cam[:, 2] > 0)
+            n_good = np.bincount(track[good], minlength=n_tracks)
+            good &= n_good[track] >= self.cfg.min_views
+            track_g, centres_g, rays_g = track[good], centres[good], rays[good]
+            points = tri.midpoint(track_g, centres_g, rays_g, n_tracks)
+            points[n_good < self.cfg.min_views] = np.nan
+        view_ok = good & np.isfinite(points[track]).all(axis=1)
+        track, frame, uv, poses, world_to_cam, k, centres, stacks = (
+            a[view_ok] for a in (track, frame, uv, poses, world_to_cam, k, centres, stacks))
+        if len(track) == 0:
+            return StereoDepth.empty()
+        cov = tri.covariance(track, points, world_to_cam, k, self.cfg.sigma_px, n_tracks)
+        parallax = tri.max_parallax_deg(track, points, centres, n_tracks)
+        offset = points[track] - centres  # (V, 3)
+        dist = np.linalg.norm(offset, axis=1)
+        u_dir = offset / dist[:, None]
+        with np.errstate(invalid="ignore"):
+            sigma = np.sqrt(np.einsum("vi,vij,vj->v", u_dir, cov[track], u_dir))
+        ok = (parallax[track] >= self.cfg.min_parallax_deg) & (dist >= self.cfg.min_range) & \
+             (dist <= self.cfg.max_range) & np.isfinite(sigma) & (sigma <= self.cfg.max_rel_sigma * dist)
+        # a point is kept whole or not at all: every view must pass the range and sigma tests
+        track_ok = np.bincount(track, weights=~ok, minlength=n_tracks) == 0
+        ok = track_ok[track]
+        track, frame, uv, stacks, sigma, dist = (a[ok] for a in (track, frame, uv, stacks, sigma, dist))
+        # each view -> a target along its own ray, in the training image's pixel coordinates
+        scale = np.array([self.train_intrinsics[int(st)].width / self.intrinsics[int(st)].width for st in stacks])
+        uv_train = (uv + 0.5) * scale[:, None] - 0.5
+        order = np.argsort(frame, kind="stable")
+        used = np.unique(track)
+        return StereoDepth(frames=frame[order], uv=uv_train[order].astype(np.float32),
+                           ranges=dist[order].astype(np.float32), sigmas=sigma[order].astype(np.float32),
+                           points=points[used].astype(np.float32))
