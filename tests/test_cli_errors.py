@@ -90,7 +90,7 @@ def test_train_argument_errors(tmp_path, extra, fragment):
         (["sensors", "--data", "{tmp}/d", "--room", "office", "--out", "{tmp}/m.json", "--n-rays", "0"], ["--n-rays 0"]),
         (["demo", "--out", "{tmp}/demo", "--train-time", "0"], ["--train-time 0.0: expected a number > 0"]),
         (["ablation", "--out", "{tmp}/abl", "--seeds", "0"], ["--seeds 0: expected an integer in [1, 1000]"]),
-        (["ablation", "--out", "{tmp}/abl", "--scenes", "kitchen"], ["--scenes 'kitchen': expected a comma-separated subset of office,common,warehouse"]),
+        (["ablation", "--out", "{tmp}/abl", "--scenes", "kitchen"], ["--scenes 'kitchen': expected one or more of office, common, warehouse (space-separated)"]),
         (["online", "--out", "{tmp}/onl", "--playback-speed", "0"], ["--playback-speed 0.0: expected a number > 0"]),
         (["sensors", "--data", "{tmp}/d", "--room", "office", "--out", "{tmp}/m.json", "--gt", "voxels"],
          ["--gt 'voxels': unknown protocol 'voxels'"]),

@@ -278,7 +278,7 @@ def ablation(
 
     for scene in scenes or ():
         if scene not in ROOM_NAMES:
-            raise UsageError(f"--scenes {scene!r}: expected a comma-separated subset of {','.join(ROOM_NAMES)}")
+            raise UsageError(f"--scenes {scene!r}: expected one or more of {', '.join(ROOM_NAMES)} (space-separated)")
     chosen = select_rows(rows)
     if config is not None:
         from virus_nerf.config_io import load_json_config
