@@ -10,7 +10,10 @@ import pytest
 
 from virus_nerf.sim.racks import RACK_KINDS
 from virus_nerf.sim.rooms import PRESETS, ROOM_NAMES, build_room
-from virus_nerf.sim.scene import Box, Cylinder
+from virus_nerf.sim.scene import (
+    Cylinder,
+    _prim_aabb,  # the scene's own axis-aligned box of a primitive
+)
 from virus_nerf.sim.trajectory import DrivePath
 
 SEEDS = (0, 1, 3)
@@ -25,16 +28,6 @@ def rooms():
 
 def _prims(room, kinds):
     return [p for o in room.scene.objects if o.kind in kinds for p in o.primitives]
-
-
-def _aabb(p):
-    if isinstance(p, Box):
-        hx, hy, hz = np.asarray(p.size) / 2
-        c, s = abs(np.cos(p.yaw)), abs(np.sin(p.yaw))
-        e = np.array([c * hx + s * hy, s * hx + c * hy, hz])
-    else:
-        e = np.array([p.radius, p.radius, p.height / 2])
-    return np.asarray(p.center) - e, np.asarray(p.center) + e
 
 
 def _footprint_distance(p, pts):
@@ -76,12 +69,12 @@ def test_rack_heights_depths_and_aisles(rooms):
         frames = [o for o in room.scene.objects if o.kind == "rack" and o.name.startswith("rack_frame")]
         assert len(frames) == room.placed["rack"]
         for o in frames:  # the uprights give a rack's height
-            top = max(_aabb(p)[1][2] for p in o.primitives) - zf
+            top = max(_prim_aabb(p)[1][2] for p in o.primitives) - zf
             assert 2.0 - 1e-9 <= top <= 4.0 + 1e-9, (seed, o.name, top)
-        assert max(_aabb(p)[1][2] for p in _prims(room, RACK_KINDS)) - zf <= 4.0 + 1e-9
+        assert max(_prim_aabb(p)[1][2] for p in _prims(room, RACK_KINDS)) - zf <= 4.0 + 1e-9
         # goods stay inside a rack's footprint and below its top
         for p in _prims(room, ("goods",)):
-            lo, hi = _aabb(p)
+            lo, hi = _prim_aabb(p)
             inside = [r for r in rows if r["y"] - r["depth"] / 2 - 1e-6 <= lo[1] and hi[1] <= r["y"] + r["depth"] / 2 + 1e-6]
             assert inside and hi[2] - zf <= inside[0]["height"] + 1e-9
         ys = np.array([r["y"] for r in rows])
@@ -112,7 +105,7 @@ def test_drive_corridor_is_free(rooms):
 
 def test_there_is_an_open_cross_aisle(rooms):
     for seed, room in rooms.items():
-        spans = sorted((_aabb(p)[0][0], _aabb(p)[1][0]) for p in _prims(room, RACK_KINDS))
+        spans = sorted((_prim_aabb(p)[0][0], _prim_aabb(p)[1][0]) for p in _prims(room, RACK_KINDS))
         first, last = spans[0][0], max(hi for _, hi in spans)
         gaps, reach = [], first
         for lo, hi in spans:

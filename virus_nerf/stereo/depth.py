@@ -142,10 +142,10 @@ class StereoBuilder:
             if other == stack or abs(other_time - time) > self.cfg.pair_max_dt:
                 continue
             peer = self.trackers[other]
-            if peer._gray is None:
+            if peer.last_gray is None:
                 continue
             for src, dst, dst_frame in ((tracker, peer, other_frame), (peer, tracker, frame)):
-                uv, ok = track_points(src._gray, dst._gray, src.active_uv, src.k, dst.k, src._pose, dst._pose,
+                uv, ok = track_points(src.last_gray, dst.last_gray, src.active_uv, src.k, dst.k, src.last_pose, dst.last_pose,
                                       self.cfg.tracker)
                 self.views.add(src.active_ids[ok], dst_frame, uv[ok])
         self._last[stack] = (frame, time)

@@ -121,16 +121,16 @@ class StackTracker:
         self.cfg = cfg
         self.views = views
         self._next_id = next_id  # shared counter: track ids are unique across trackers
-        self._gray: np.ndarray | None = None
-        self._pose: np.ndarray | None = None
+        self.last_gray: np.ndarray | None = None  # the newest frame (cross-camera matching reads it)
+        self.last_pose: np.ndarray | None = None
         self.active_ids = np.zeros(0, dtype=np.int64)  # tracks seen in the last frame
         self.active_uv = np.zeros((0, 2))
 
     def add(self, frame: int, gray: np.ndarray, cam_to_world: np.ndarray) -> None:
         """Continue the active tracks into this frame and start new ones where none are."""
         cv2 = _cv2()
-        if self._gray is not None and len(self.active_ids):
-            uv, ok = track_points(self._gray, gray, self.active_uv, self.k, self.k, self._pose, cam_to_world, self.cfg)
+        if self.last_gray is not None and len(self.active_ids):
+            uv, ok = track_points(self.last_gray, gray, self.active_uv, self.k, self.k, self.last_pose, cam_to_world, self.cfg)
             self.active_ids, self.active_uv = self.active_ids[ok], uv[ok]
             self.views.add(self.active_ids, frame, self.active_uv)
         room = self.cfg.max_corners - len(self.active_ids)
@@ -146,4 +146,4 @@ class StackTracker:
                 self.views.add(ids, frame, uv)
                 self.active_ids = np.concatenate([self.active_ids, ids])
                 self.active_uv = np.concatenate([self.active_uv, uv])
-        self._gray, self._pose = gray, np.asarray(cam_to_world, dtype=np.float64)
+        self.last_gray, self.last_pose = gray, np.asarray(cam_to_world, dtype=np.float64)
