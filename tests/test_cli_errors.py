@@ -171,7 +171,7 @@ def write_config(tmp_path: Path, doc) -> Path:
         ({"evaluation": {"zones": [{"name": "z", "lo": "0", "hi": 1}]}}, "key 'evaluation.zones[0].lo': expected a number"),
         ({"evaluation": {"gt": ["voxels"]}},
          "key 'evaluation.gt[0]': expected one of \"map\", \"exact\", \"paper\", got string \"voxels\""),
-        ({"evaluation": {"gt": []}}, "key 'evaluation': evaluation.gt (): expected distinct protocols"),
+        ({"evaluation": {"gt": ["map", "map"]}}, "key 'evaluation': evaluation.gt ('map', 'map'): expected distinct protocols"),
         ({"march": {"stepsize": 0.1}}, "key 'march': unknown key(s) ['stepsize'] (did you mean 'step_size'?)"),
         ({"bogus": 1}, "unknown key(s) ['bogus']"),
         ({"max_steps": 0}, "max_steps 0: expected an integer >= 1"),

@@ -300,9 +300,10 @@ def test_gt_flag_and_config_values():
     for bad, fragment in (("lidar", "unknown protocol 'lidar'"), ("map,map", "named twice"), ("", "unknown protocol ''")):
         with pytest.raises(UsageError, match=fragment):
             parse_gt_flag(bad)
-    for bad in ((), ("map", "map"), ("voxels",)):
+    for bad in (("map", "map"), ("voxels",), "map"):
         with pytest.raises(ValueError, match="evaluation.gt"):
             EvaluationConfig(gt=bad)
+    assert EvaluationConfig(gt=()).gt == ()  # no ground truth (--gt none, issue 29)
     assert PointGroundTruth.of(gt_scan(box_map(), horizontal_test_point(0.3, 0.0))).by_protocol.keys() == {"map"}
 
 

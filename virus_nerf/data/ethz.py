@@ -66,6 +66,10 @@ class SensorStack:
 
     def depth(self, i: int) -> np.ndarray:
         """(H, W) float32 z-depth in metres, NaN where invalid."""
+        if not self.depth_paths:
+            raise DataFormatError(self.image_paths[i].parent.with_name(f"CAM{self.stack_id}_aligned_depth_to_color_image_raw"),
+                                  "missing: this recording has no depth images; the rgbd sensor needs them "
+                                  "(train without rgbd in --sensors)")
         return read_depth(self.depth_paths[i], self.intrinsics)
 
     def frame(self, i: int, with_depth: bool = False) -> SyncFrame:
@@ -250,6 +254,18 @@ def _pose_file(poses_dir: Path, kind: str, stack: int, source: PoseSource) -> Pa
     return poses_dir / name
 
 
+def resolve_pose_source(room_dir: Path, wanted: PoseSource) -> tuple[PoseSource, str | None]:
+    """The pose source to read: `wanted`, or odometry when `wanted` is "optimised" and the room
+    has only odometry pose files (a robot without a LiDAR has no LiDAR-optimised poses); the
+    second value is a one-line note when the source was changed, else None."""
+    poses_dir = Path(room_dir) / "poses"
+    if wanted == "optimised" and not any(poses_dir.glob("poses_cam_balm_sync*.csv")) \
+            and any(poses_dir.glob("poses_cam_sync*.csv")):
+        return "odometry", (f"{poses_dir}: no optimised poses (poses_cam_balm_sync*.csv); using the odometry "
+                            "poses (poses_cam_sync*.csv)")
+    return wanted, None
+
+
 def available_stacks(room_dir: Path) -> list[int]:
     meas = room_dir / "measurements"
     if not meas.is_dir():
@@ -290,19 +306,24 @@ def load_recording(
         cam_path = _pose_file(room_dir / "poses", "cam", s, poses)
         lidar_path = _pose_file(room_dir / "poses", "lidar", s, poses)
         t_cam, cam_to_world = read_poses(cam_path)
-        t_lidar, lidar_to_world = read_poses(lidar_path)
+        if lidar_path.is_file():
+            t_lidar, lidar_to_world = read_poses(lidar_path)
+        else:  # a robot without a LiDAR: its LiDAR poses are unknown (NaN), never used for mapping
+            t_lidar, lidar_to_world = t_cam, np.full_like(cam_to_world, np.nan)
         _, uss_range = read_uss(meas / f"USS{s}.csv")
         _, irs_range = read_tof(meas / f"TOF{s}.csv")
         images = _numbered_files(meas / f"CAM{s}_color_image_raw", ".png")
-        depths = _numbered_files(meas / f"CAM{s}_aligned_depth_to_color_image_raw", ".npy")
+        depth_dir = meas / f"CAM{s}_aligned_depth_to_color_image_raw"
+        depths = _numbered_files(depth_dir, ".npy") if depth_dir.is_dir() else []  # no depth camera: none
         counts = {
             cam_path.name: len(t_cam),
             lidar_path.name: len(t_lidar),
             f"USS{s}.csv": len(uss_range),
             f"TOF{s}.csv": len(irs_range),
             f"CAM{s}_color_image_raw/": len(images),
-            f"CAM{s}_aligned_depth_to_color_image_raw/": len(depths),
         }
+        if depths:  # a robot without a depth camera has none
+            counts[f"CAM{s}_aligned_depth_to_color_image_raw/"] = len(depths)
         if len(set(counts.values())) != 1:
             raise DataFormatError(
                 room_dir, f"stack {s} files disagree in sample count (row i of each is one sample): {counts}"

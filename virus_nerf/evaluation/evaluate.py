@@ -55,23 +55,27 @@ SCENE_FILE = "scene.json"  # the simulator's exact scene, in the room folder
 
 
 def check_gt_protocols(protocols: object, name: str = "evaluation.gt") -> tuple[str, ...]:
-    """A non-empty tuple of distinct known protocols, or a ValueError naming `name`."""
-    ok = isinstance(protocols, tuple | list) and len(protocols) > 0 and all(p in GT_PROTOCOLS for p in protocols)
+    """A tuple of distinct known protocols, or a ValueError naming `name`. Empty = no ground
+    truth (`--gt none`: a robot without a LiDAR map trains and maps, nothing is scored)."""
+    ok = isinstance(protocols, tuple | list) and all(p in GT_PROTOCOLS for p in protocols)
     if not ok or len(set(protocols)) != len(protocols):  # type: ignore[arg-type]
         raise ValueError(f"{name} {protocols!r}: expected distinct protocols out of {', '.join(GT_PROTOCOLS)}")
     return tuple(protocols)  # type: ignore[arg-type]
 
 
 def parse_gt_flag(text: str, flag: str = "--gt") -> tuple[str, ...]:
-    """`--gt map,exact` -> ("map", "exact"); a one-line UsageError naming the flag otherwise."""
+    """`--gt map,exact` -> ("map", "exact"), `--gt none` -> (); a one-line UsageError naming the
+    flag otherwise."""
     from virus_nerf.errors import UsageError
 
+    if str(text).strip() == "none":
+        return ()
     names = tuple(s.strip() for s in str(text).split(","))
     unknown = [s for s in names if s not in GT_PROTOCOLS]
     if unknown or len(set(names)) != len(names):
         what = f"unknown protocol {unknown[0]!r}" if unknown else "a protocol named twice"
         raise UsageError(f"{flag} {text!r}: {what}; expected one or more of {','.join(GT_PROTOCOLS)}, "
-                         "comma-separated (e.g. map,exact)")
+                         "comma-separated (e.g. map,exact), or none")
     return names
 
 
@@ -88,7 +92,8 @@ class EvaluationConfig:
     inlier_m: float = INLIER_M
     zones: tuple[Zone, ...] = DEFAULT_ZONES
     sensors: tuple[str, ...] = SENSOR_NAMES  # which instantaneous sensors to score
-    gt: tuple[GtProtocol, ...] = ("map",)  # ground-truth protocols (docs/method.md 6.7); the first is the primary
+    gt: tuple[GtProtocol, ...] = ("map",)  # ground-truth protocols (docs/method.md 6.7); the first is the primary;
+    # () = none: nothing is scored (a recording without a LiDAR map)
 
     def __post_init__(self) -> None:
         check_gt_protocols(self.gt)
@@ -159,12 +164,14 @@ class EvaluationResult:
     gt: str = "map"  # the protocol of `metrics`
     by_gt: dict[str, dict[str, SensorMetrics]] = field(default_factory=dict)  # every protocol -> metrics
 
-    def document(self, train: Mapping[str, Any] | None = None) -> dict[str, Any]:
-        return metrics_document(self.metrics, self.config.zones, train, gt=self.gt, by_gt=self.by_gt or None)
+    def document(self, train: Mapping[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
+        """extra: safety, warnings (metrics_document)."""
+        return metrics_document(self.metrics, self.config.zones, train, gt=self.gt, by_gt=self.by_gt or None,
+                                **extra)
 
-    def write_json(self, path: str | Path, train: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    def write_json(self, path: str | Path, train: Mapping[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
         return write_metrics_json(path, self.metrics, self.config.zones, train, gt=self.gt,
-                                  by_gt=self.by_gt or None)
+                                  by_gt=self.by_gt or None, **extra)
 
     def table(self) -> str:
         """The metrics table of every protocol, each under a line naming its ground truth."""

@@ -186,13 +186,17 @@ def metrics_document(
     sensors: Mapping[str, SensorMetrics],
     zones: Sequence[Zone] = DEFAULT_ZONES,
     train: Mapping[str, Any] | None = None,
-    gt: str = DEFAULT_GT,
+    gt: str | None = DEFAULT_GT,
     by_gt: Mapping[str, Mapping[str, SensorMetrics]] | None = None,
+    safety: Mapping[str, Any] | None = None,
+    warnings: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """The metrics.json object of docs/method.md 7: gt, zones, sensors[, by_gt][, train].
+    """The metrics.json object of docs/method.md 7: gt, zones, sensors[, by_gt][, train][, safety][, warnings].
 
     `sensors` are the metrics under protocol `gt`; `by_gt` (every protocol asked -> metrics, `gt`
-    among them) is written only when it holds more than that one protocol.
+    among them) is written only when it holds more than that one protocol. gt None (with no
+    sensors) = a run without ground truth. `safety`: the exported map's planner-safety figures
+    (evaluation/safety.py); `warnings`: one line each on why the map may not be trusted.
     """
     doc: dict[str, Any] = {
         "gt": gt,
@@ -205,6 +209,10 @@ def metrics_document(
         doc["by_gt"] = {p: {"sensors": {n: m.to_json() for n, m in ms.items()}} for p, ms in by_gt.items()}
     if train is not None:
         doc["train"] = dict(train)
+    if safety is not None:
+        doc["safety"] = dict(safety)
+    if warnings:
+        doc["warnings"] = [str(w) for w in warnings]
     check_metrics_document(doc)
     return doc
 
@@ -229,10 +237,17 @@ def check_metrics_document(doc: Mapping[str, Any]) -> None:
 
     Documents written before the ground-truth protocols (no "gt", no "gt_unseen") are accepted.
     """
-    allowed = {"gt", "zones", "sensors", "by_gt", "train"}
+    allowed = {"gt", "zones", "sensors", "by_gt", "train", "safety", "warnings"}
     if set(doc) - allowed or not {"zones", "sensors"} <= set(doc):
-        raise ValueError(f"metrics document keys must be [gt,] zones, sensors[, by_gt][, train]; got {sorted(doc)}")
+        raise ValueError(f"metrics document keys must be [gt,] zones, sensors[, by_gt][, train][, safety]"
+                         f"[, warnings]; got {sorted(doc)}")
+    if not isinstance(doc.get("warnings", []), list) or not all(isinstance(w, str) for w in doc.get("warnings", [])):
+        raise ValueError(f"metrics document warnings must be a list of strings, got {doc.get('warnings')!r}")
     gt = doc.get("gt", DEFAULT_GT)
+    if gt is None:  # no ground truth: nothing scored
+        if doc["sensors"] or "by_gt" in doc:
+            raise ValueError("metrics document gt null (no ground truth) must have empty sensors and no by_gt")
+        return
     if gt not in GT_PROTOCOLS:
         raise ValueError(f"metrics document gt {gt!r}: expected one of {', '.join(GT_PROTOCOLS)}")
     zone_names = list(doc["zones"])
@@ -327,11 +342,13 @@ def write_metrics_json(
     sensors: Mapping[str, SensorMetrics],
     zones: Sequence[Zone] = DEFAULT_ZONES,
     train: Mapping[str, Any] | None = None,
-    gt: str = DEFAULT_GT,
+    gt: str | None = DEFAULT_GT,
     by_gt: Mapping[str, Mapping[str, SensorMetrics]] | None = None,
+    safety: Mapping[str, Any] | None = None,
+    warnings: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Write metrics.json atomically; returns the written object."""
-    doc = metrics_document(sensors, zones, train, gt=gt, by_gt=by_gt)
+    doc = metrics_document(sensors, zones, train, gt=gt, by_gt=by_gt, safety=safety, warnings=warnings)
     write_json_atomic(path, doc)
     return doc
 

@@ -21,6 +21,7 @@ from virus_nerf.trainer.config import check_device
 from virus_nerf.trainer.run_folder import (
     CHECKPOINT,
     CONFIG,
+    MAP_DIR,
     METRICS,
     METRICS_VS_TIME,
     RunInfo,
@@ -134,7 +135,7 @@ def check_recording_for_training(recording, cfg, eval_recording=None) -> None:
     if not any((s.split == "train").any() for s in recording.stacks.values()):
         raise DataFormatError(_split_file(recording), "no rows labelled 'train'; training needs at least one")
     ev = eval_recording or recording
-    if not make_test_points(ev):
+    if cfg.evaluation.gt and not make_test_points(ev):
         raise DataFormatError(
             _split_file(ev),
             f"no CAM{MAIN_STACK} rows labelled 'test'; the evaluation scores the test frames of stack {MAIN_STACK}",
@@ -158,20 +159,22 @@ def load_trained(run: Path, flag: str, *, poses: str | None = None, quiet: bool 
     poses: "optimised" (default: the true frame, in which the map is judged) or "odometry"
     (the frame an odometry-trained model was trained in, e.g. to render its own views).
     """
-    from virus_nerf.data.ethz import load_recording
+    from virus_nerf.data.ethz import load_recording, resolve_pose_source
     from virus_nerf.trainer.loop import Trainer
 
     cfg, info = open_run(run, flag)
     check_device(cfg)
     read_checkpoint_header(Path(run) / CHECKPOINT, cfg)
-    recording = load_recording(info.data, info.room, poses=poses or "optimised")
+    source, _ = resolve_pose_source(Path(info.data) / info.room, poses or "optimised")  # no LiDAR: odometry only
+    recording = load_recording(info.data, info.room, poses=source)
     trainer = Trainer(recording, cfg, run, quiet=quiet)
     trainer.load_checkpoint(Path(run) / CHECKPOINT)
     return trainer, cfg, info
 
 
 # ---------------------------------------------------------------------------- training
-def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = None, resume: bool = False) -> dict:
+def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = None, resume: bool = False,
+                 auto_gt: bool = False) -> dict:
     """Train, evaluate and write everything into the run folder; returns the metrics document.
 
     New run: OUT must not exist; the recording is checked first, then OUT appears with
@@ -180,9 +183,14 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     reached its budget and has its metrics.json is refused before any file is touched; one
     that reached its budget but stopped before its metrics only gets evaluated. The final
     results are written plots/ first, metrics.json last (metrics.json marks a finished run).
+
+    Without ground truth (evaluation.gt empty: `--gt none`, or `auto_gt` and a recording with
+    no LiDAR map) nothing is scored: the run writes its map to OUT/map/ (map.pgm/.yaml/.png,
+    prob.*, snapshot.json) and a metrics.json with gt null and no sensors, and says so in one line.
+    A recording with only odometry poses is trained on them (one line says so).
     """
     from virus_nerf.config_io import to_dict
-    from virus_nerf.data.ethz import load_recording
+    from virus_nerf.data.ethz import load_recording, resolve_pose_source
     from virus_nerf.errors import OutputExistsError
     from virus_nerf.trainer.loop import Trainer, TrainSummary
     from virus_nerf.trainer.report import write_run_plots
@@ -195,8 +203,18 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         raise OutputExistsError(out)
     check_device(cfg)
     seed_everything(cfg.seed)
-    recording = load_recording(data, room, poses="odometry" if cfg.odometry_poses else "optimised")
-    eval_recording = load_recording(data, room, poses="optimised") if cfg.odometry_poses else recording
+    source, note = resolve_pose_source(Path(data) / room, "odometry" if cfg.odometry_poses else "optimised")
+    if note:
+        print(f"note: {note}")
+    recording = load_recording(data, room, poses=source)
+    if auto_gt and cfg.evaluation.gt and recording.map_path is None \
+            and all(p in ("map", "paper") for p in cfg.evaluation.gt):
+        cfg = dataclasses.replace(cfg, evaluation=dataclasses.replace(cfg.evaluation, gt=()))
+        print(f"note: {recording.room_dir / 'maps'}: no LiDAR map (map_*.pcd); training without ground truth, "
+              "no metrics will be computed (as with --gt none)")
+    eval_source, _ = resolve_pose_source(Path(data) / room, "optimised")
+    need_eval_frame = cfg.odometry_poses and cfg.evaluation.gt and eval_source != source
+    eval_recording = load_recording(data, room, poses=eval_source) if need_eval_frame else recording
     check_recording_for_training(recording, cfg, eval_recording)
 
     if resume:
@@ -227,7 +245,9 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
             if not (out / CHECKPOINT).is_file():
                 shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
             raise
-    if cfg.odometry_poses:
+    if not cfg.evaluation.gt:
+        return _finish_without_ground_truth(trainer, out, cfg, summary, resume)
+    if eval_recording is not recording:
         # the map and test points are judged in the true (optimised) frame
         trainer.recording = eval_recording
         trainer._gt = None
@@ -240,6 +260,23 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         f"trained {summary.steps} steps in {summary.seconds:.1f} s "
         f"({summary.steps_per_s:.2f} steps/s, {summary.samples_per_s / 1e6:.3f} M samples/s); "
         f"results in {out}"
+    )
+    return doc
+
+
+def _finish_without_ground_truth(trainer, out: Path, cfg, summary, resume: bool) -> dict:
+    """A run with no ground truth: its map into OUT/map/, then metrics.json (gt null, the train
+    block; it marks the run finished as for a scored run) and one line that nothing was scored."""
+    from virus_nerf.evaluation.metrics import metrics_document
+    from virus_nerf.trainer.run_folder import train_summary_block
+    from virus_nerf.utils.io import write_json_atomic
+
+    info = trainer.mapper.snapshot(out / MAP_DIR, replace=resume)
+    doc = metrics_document({}, cfg.evaluation.zones, train_summary_block(cfg, summary), gt=None)
+    write_json_atomic(out / METRICS, doc)
+    print(
+        f"trained {summary.steps} steps in {summary.seconds:.1f} s; no ground truth (--gt none): no metrics "
+        f"computed; map ({info.map_known:.1%} known) in {out / MAP_DIR}"
     )
     return doc
 
@@ -312,7 +349,9 @@ def train(
         gt: Ground truth of the evaluation, one or more of map (default; LiDAR map slice as solid
             3 cm voxels), exact (the simulator's exact scene; simulated recordings only), paper (the
             authors' raster protocol), comma-separated; the first is the primary (metrics.json's
-            own, metric vs time), the others go to by_gt.
+            own, metric vs time), the others go to by_gt; or none (no ground truth: train and write
+            the map to OUT/map/, score nothing; also chosen, with a note, when the recording has no
+            LiDAR map and --gt is not given).
     """
     out = Path(out)
     if room is not None and (not room.strip() or "/" in room or "\\" in room or room in (".", "..")):
@@ -334,7 +373,7 @@ def train(
                          "(or --resume to continue the run in --out)")
     cfg = _resolve_config(config, grid, sensors, max_time, max_steps, batch_size, seed, online, odometry_poses,
                           playback_speed, image_scale, eval_interval, gt=gt)
-    run_training(data, room, out, cfg, quiet=True if quiet else None)
+    run_training(data, room, out, cfg, quiet=True if quiet else None, auto_gt=gt is None)
 
 
 def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: str | None = None) -> None:
@@ -366,6 +405,9 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
                                  gt=protocols if protocols is not None else ev.gt)
         cfg = dataclasses.replace(cfg, evaluation=ev)
         trainer.config = cfg
+    if not cfg.evaluation.gt:
+        raise UsageError(f"--run {run}: the run has no ground truth (evaluation.gt none) and --gt names none; "
+                         "give --gt map, exact or paper to score it")
     check_ground_truth_inputs(trainer.recording, cfg.evaluation.gt)
     result = _final_evaluation(trainer, run)
     summary = TrainSummary(trainer.step, trainer.seconds, trainer.samples)

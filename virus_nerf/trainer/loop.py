@@ -212,8 +212,11 @@ class Trainer:
         """Score the NeRF scan (and the instantaneous sensors) at the test points.
 
         Online, only test points the clock has reached count; None before the first one.
+        None without ground truth (evaluation.gt empty, `--gt none`).
         """
         cfg = self.config.evaluation
+        if not cfg.gt:
+            return None  # --gt none: no ground truth, nothing to score
         if self._gt is None:
             self._gt = build_ground_truth(self.recording, cfg)
         gts = self._gt

@@ -33,6 +33,7 @@ CHECKPOINT = "checkpoint.pt"
 METRICS = "metrics.json"
 METRICS_VS_TIME = "metrics_vs_time.csv"
 PLOTS = "plots"
+MAP_DIR = "map"  # a run without ground truth: its 2D maps (map.pgm/.yaml/.png, prob.*, snapshot.json)
 TENSORBOARD = "tensorboard"
 
 # Checkpoint entries the trainer reads back (Trainer.load_checkpoint).
