@@ -247,7 +247,7 @@ class LiveView:
         """Flush everything to the sinks and finish the .rrd; a second call does nothing."""
         if not self._closed:
             self._closed = True
-            self.rec.flush()
+            self.rec.flush(timeout_sec=10.0)  # a viewer gone away must not hang the mapper
             self.rec.disconnect()
 
     def __enter__(self) -> LiveView:
