@@ -4,6 +4,7 @@ input checks, the real-time replay and `map-bag`."""
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import io
 import json
 
@@ -197,8 +198,10 @@ def test_replay_and_map_bag_write_snapshots_with_progress_lines(tiny_office, tmp
 
     cfg.write_text(json.dumps(to_dict(tiny_train_config())))
     out = tmp_path / "out"
+    have_sinks = importlib.util.find_spec("rerun") and importlib.util.find_spec("mcap_ros2")
+    sinks = ["--rerun-save", tmp_path / "live.rrd", "--out-bag", tmp_path / "maps_bag"] if have_sinks else []
     code, stdout, stderr = run_cli(["map-bag", bag, "--out", out, "--playback", "1", "--snapshot-every", "0.4",
-                                    "--config", cfg, "--n-rays", "32", "--max-poses", "3"])
+                                    "--config", cfg, "--n-rays", "32", "--max-poses", "3", *sinks])
     assert code == 0, stderr
     assert (out / "recording" / "import_report.json").is_file()
     lines = [ln for ln in stdout.splitlines() if ln.startswith(("snapshot", "final map"))]
@@ -211,6 +214,8 @@ def test_replay_and_map_bag_write_snapshots_with_progress_lines(tiny_office, tmp
     final = json.loads((out / "map" / "snapshot.json").read_text())
     assert final["frames"] == n_frames and final["steps"] > 0 and lines[-1].startswith("final map")
     assert (out / "map" / "mapper.pt").is_file() and not list(out.glob(".*"))
+    if have_sinks:  # every snapshot's maps and every frame's pose went to the live view and the ROS bag
+        _check_map_bag_sinks(tmp_path / "live.rrd", tmp_path / "maps_bag", out, len(snaps), n_frames)
     # never overwritten: map-bag refuses OUT, replay refuses OUT/snapshots
     code, _, stderr = run_cli(["map-bag", bag, "--out", out])
     assert code == 2 and "already exists" in stderr
@@ -399,3 +404,30 @@ def test_the_driving_sample_budget_bites_only_once_frames_arrive_after_training_
     assert any(spr > 5.0 for _, spr, _ in taken[2:])  # the budget did bite on this scene
     for n, spr, _ in taken[2:]:
         assert n == max(16, min(128, int(640 // spr)))
+
+
+def _check_map_bag_sinks(rrd, bag_dir, out, n_snapshots: int, n_frames: int) -> None:
+    """The .rrd (read by rerun's own reader) and the MCAP (read by mcap + mcap_ros2) of a map-bag run."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    from PIL import Image
+    from rerun.chunk import RrdReader
+
+    rows: dict[str, int] = {}
+    for chunk in RrdReader(rrd).stream():
+        if "drive_time" in chunk.timeline_names:
+            rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+    assert rows["/map/trinary"] == n_snapshots + 1 and rows["/map/probability"] == n_snapshots + 1
+    assert rows["/world/camera_1/image"] + rows.get("/world/camera_3/image", 0) == n_frames
+    maps, tfs = [], 0
+    with open(bag_dir / f"{bag_dir.name}.mcap", "rb") as f:
+        for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            if channel.topic == "/map":
+                maps.append(msg)
+            tfs += channel.topic == "/tf"
+    assert len(maps) == n_snapshots + 1 and tfs == n_frames
+    final = np.asarray(Image.open(out / "map" / "map.pgm"))
+    expected = np.where(final == 0, 100, np.where(final == 254, 0, -1))[::-1]  # OccupancyGrid row 0 = smallest y
+    last = maps[-1]
+    assert (last.info.height, last.info.width) == final.shape
+    np.testing.assert_array_equal(np.asarray(last.data, dtype=np.int8).reshape(final.shape), expected)

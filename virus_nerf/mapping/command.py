@@ -9,6 +9,7 @@ seconds and the final map at the end.
 from __future__ import annotations
 
 import shutil
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Annotated
 
@@ -36,6 +37,10 @@ def map_bag(
     resolution: float = 0.05,
     n_rays: int = 360,
     max_poses: int = 30,
+    rerun: bool = False,
+    rerun_connect: str | None = None,
+    rerun_save: Path | None = None,
+    out_bag: Path | None = None,
 ) -> None:
     """Map a ROS bag while replaying it in real time: snapshots every few seconds, a final map.
 
@@ -54,6 +59,12 @@ def map_bag(
         resolution: Metres per map pixel.
         n_rays: Rays per 360 deg scan of the maps.
         max_poses: Camera positions scanned for each map (evenly over the frames so far).
+        rerun: Spawn a Rerun viewer and watch the mapping live (the live extra; docs/live-view.md).
+        rerun_connect: Send the live view to a running Rerun viewer at this URL instead
+            (e.g. rerun+http://192.168.1.7:9876/proxy).
+        rerun_save: Record the live view into this new .rrd file (play it later with `rerun FILE`).
+        out_bag: New folder for a rosbag2 (MCAP) of the maps as they grow (/map, /map_probability,
+            nav_msgs/OccupancyGrid) and the robot's /tf, for RViz 2 and Foxglove.
     """
     from virus_nerf.mapping.replay import replay
 
@@ -75,6 +86,15 @@ def map_bag(
         cfg = load_json_config(TrainConfig, config)
     if out.exists():
         raise OutputExistsError(out)
+    if rerun_save is not None and Path(rerun_save).suffix != ".rrd":
+        raise UsageError(f"--rerun-save {rerun_save}: expected a .rrd file name")
+    for path in (rerun_save, out_bag):
+        if path is not None and Path(path).exists():
+            raise OutputExistsError(path)
+    if rerun or rerun_connect or rerun_save:
+        from virus_nerf.mapping.live_view import _rerun
+
+        _rerun()  # the live extra's one-line message now, not after the import
     import_bag = _importer()
     out.mkdir(parents=True)
     try:
@@ -82,7 +102,18 @@ def map_bag(
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)  # nothing written yet but the partial import
         raise
-    report = replay(out / "recording", out, playback, snapshot_every, cfg, room=imported.room, resolution=resolution,
-                    n_rays=n_rays, max_poses=max_poses)
+    with ExitStack() as sinks:
+        live = ros_bag = None
+        if rerun or rerun_connect or rerun_save:
+            from virus_nerf.mapping.live_view import LiveView
+
+            live = sinks.enter_context(LiveView(spawn=rerun, connect=rerun_connect, save=rerun_save))
+        if out_bag is not None:
+            from virus_nerf.mapping.ros_maps import RosMapBag
+
+            ros_bag = sinks.enter_context(RosMapBag(out_bag))
+        report = replay(out / "recording", out, playback, snapshot_every, cfg, room=imported.room,
+                        resolution=resolution, n_rays=n_rays, max_poses=max_poses, live=live, ros_bag=ros_bag)
+    extra = "".join(f"; {what} {p}" for what, p in (("live view in", rerun_save), ("ROS maps in", out_bag)) if p)
     print(f"map-bag: {report.frames} frames, {report.steps} steps in {report.wall_s:.1f} s; "
-          f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}")
+          f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}{extra}")

@@ -70,6 +70,8 @@ def replay(
     max_poses: int = 30,
     train_slice: float = 0.25,
     log: Callable[[str], None] = print,
+    live=None,
+    ros_bag=None,
 ) -> ReplayReport:
     """Replay an ETHZ recording through a Mapper in real time; snapshots into OUT (see module doc).
 
@@ -77,6 +79,9 @@ def replay(
     OUT/map must not. config: a TrainConfig (default TrainConfig()); its learning rate decays
     over the drive's wall duration. poses: the recording's pose files, "auto" = the optimised
     ones where present, else odometry. frames: every frame, or only the split's 'train' ones.
+    live: a mapping.live_view.LiveView that gets every frame as it arrives and every snapshot's
+    maps; ros_bag: a mapping.ros_maps.RosMapBag that gets the robot's pose per frame (/tf) and
+    every snapshot's maps (/map, /map_probability), stamped with the recording's time.
     """
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.trainer.config import TrainConfig
@@ -115,22 +120,37 @@ def replay(
     written: list[Path] = []
     # start-up (kernels loaded, the first frame's prior) before the drive's clock starts, as a
     # robot starts its mapper before it drives off
-    s, i = order[0]
-    mapper.add_frame(recording.stacks[s].frame(i, with_depth=with_depth))
+    intrinsics = {sid: st.intrinsics for sid, st in recording.stacks.items()}
+    if live is not None:
+        live.start_time = times[0]  # the live view's drive_time 0 is the first frame
+
+    def add(k: int) -> None:
+        s, i = order[k]
+        frame = recording.stacks[s].frame(i, with_depth=with_depth)
+        mapper.add_frame(frame)
+        if live is not None:
+            live.log_frame(frame, intrinsics)
+        if ros_bag is not None:
+            ros_bag.write_pose(frame.time, frame.cam_to_world, frame.stack_id)
+
+    def snapshot(folder: Path, recording_time: float, with_state: bool = False):
+        maps = _publish(mapper, recording_time, resolution, n_rays, max_poses, live, ros_bag)
+        return mapper.snapshot(folder, resolution, n_rays, max_poses, with_state=with_state, maps=maps)
+
+    add(0)
     mapper.prepare()
     start = time.monotonic()
     next_frame, next_snapshot = 1, snapshot_every
     while True:
         now = time.monotonic() - start
         while next_frame < len(order) and (times[next_frame] - times[0]) / playback <= now:
-            s, i = order[next_frame]
-            mapper.add_frame(recording.stacks[s].frame(i, with_depth=with_depth))
+            add(next_frame)
             next_frame += 1
         if next_frame == len(order):
             break
         if now >= next_snapshot:
             folder = out / SNAPSHOTS / f"{len(written) + 1:04d}_{now:.1f}s"
-            info = mapper.snapshot(folder, resolution, n_rays, max_poses)
+            info = snapshot(folder, times[next_frame - 1])
             written.append(folder)
             log(_progress_line(f"snapshot {len(written)}", now, times[next_frame - 1] - times[0], drive_s, info,
                                folder))
@@ -140,9 +160,24 @@ def replay(
         if budget > 0:
             mapper.train(budget)
     wall_s = time.monotonic() - start
-    info = mapper.snapshot(out / FINAL, resolution, n_rays, max_poses, with_state=True)
+    info = snapshot(out / FINAL, times[-1], with_state=True)
     log(_progress_line("final map", wall_s, drive_s, drive_s, info, out / FINAL))
     return ReplayReport(tuple(written), out / FINAL, mapper.frames, mapper.step, mapper.seconds, wall_s)
+
+
+def _publish(mapper, recording_time: float, resolution: float, n_rays: int, max_poses: int, live, ros_bag):
+    """The current maps, computed once, sent to the live view and the ROS bag; None when there is
+    neither (the snapshot computes them itself)."""
+    if live is None and ros_bag is None:
+        return None
+    m, prob = mapper.map2d(resolution, n_rays, max_poses), mapper.probability_map(resolution)
+    if live is not None:
+        pose = mapper.store.cam_to_world[-1]  # (4, 4) the newest frame's camera
+        scan = mapper.scans(pose, n_rays)[0].points  # (N, 2) world x, y at its height
+        live.log_map(recording_time, m, prob, scan, scan_height=float(pose[2, 3]))
+    if ros_bag is not None:
+        ros_bag.write_maps(recording_time, m, prob)
+    return m, prob
 
 
 def _progress_line(what: str, now: float, drive_t: float, drive_s: float, info, folder: Path) -> str:

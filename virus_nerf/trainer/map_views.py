@@ -98,20 +98,21 @@ class MapViews:
         return float(np.median(z)) if len(z) else float(self.box.center[2])
 
     def snapshot(self, folder: Path, resolution: float = 0.05, n_rays: int = 360, max_poses: int = 30,
-                 with_state: bool = False, replace: bool = False) -> SnapshotInfo:
+                 with_state: bool = False, replace: bool = False, maps: tuple | None = None) -> SnapshotInfo:
         """Write the current map into the new folder `folder` (refused if it exists; built under a
         temporary name and renamed): map.pgm/.yaml/.png (map2d), prob.pgm/.yaml/.png (VIRUS grid),
         snapshot.json and, with `with_state`, mapper.pt (`state()`). `replace`: an existing folder
-        is replaced once the new one is complete (a resumed run's own map)."""
+        is replaced once the new one is complete (a resumed run's own map). `maps`: (map2d,
+        probability_map) already computed at these settings for this state (not recomputed)."""
         from virus_nerf.exports.maps import FREE, OCCUPIED, write_map_server, write_png
         from virus_nerf.utils.io import new_output_dir, write_json_atomic
 
         folder = Path(folder)
         with new_output_dir(folder, replace=replace) as tmp:
-            m = self.map2d(resolution, n_rays, max_poses)
+            m, prob = maps if maps is not None else (self.map2d(resolution, n_rays, max_poses),
+                                                     self.probability_map(resolution))
             write_map_server(m, tmp, "map")
             write_png(tmp / "map.png", m.image)
-            prob = self.probability_map(resolution)
             if prob is not None:
                 write_map_server(prob, tmp, "prob")
                 write_png(tmp / "prob.png", prob.image)
