@@ -211,8 +211,10 @@ def test_export_all_writes_every_format(exported):
     # the ESDF is the signed distance to the trinary map's occupied pixels
     d = np.load(exported / "esdf.npy")
     assert d.shape == a.shape
+    seen = ~np.isnan(d)  # NaN: no sensor looked there (exports/observed.py), and the map is unknown
+    assert (a[~seen] == 205).all() and seen.any()
     if (a == 0).any():
-        assert np.all(d[a == 0] < 0) and np.all(d[a != 0] > 0)
+        assert np.all(d[a == 0] < 0) and np.all(d[(a != 0) & seen] > 0)
     side = json.loads((exported / "grid.json").read_text())
     p3 = np.load(exported / "grid_probability.npy")
     np.testing.assert_allclose(p3, 1 / (1 + np.exp(-np.load(exported / "grid_logodds.npy"))), atol=1e-6)

@@ -98,7 +98,7 @@ def export(
 def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,
                 image_scale) -> list[str]:
     """Compute and write every requested kind into `folder`; returns a short line per kind."""
-    from virus_nerf.exports import clouds, esdf, grid3d, maps, views
+    from virus_nerf.exports import clouds, esdf, grid3d, maps, observed, views
     from virus_nerf.utils.io import write_json_atomic, write_text_atomic
 
     lo, hi = np.asarray(trainer.box.lo[:2], float), np.asarray(trainer.box.hi[:2], float)
@@ -108,14 +108,20 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
                          f"a {nx}x{ny} px map; expected at most {MAX_PIXELS // 1_000_000} M px (a coarser resolution)")
     summary: dict = {"kinds": list(kinds), "resolution": resolution, "origin": [float(lo[0]), float(lo[1]), 0.0]}
     done = []
+    seen = None
+    if {"map", "esdf", "prob"} & set(kinds):
+        seen = training_observed(trainer.recording, lo, (nx, ny), resolution)  # (nx, ny) [ix, iy]
+        summary["observed"] = round(observed.observed_share(seen), 4)
     if "map" in kinds or "esdf" in kinds:
         m = _render_map(trainer, resolution, n_rays, max_poses)
+        m.image = observed.apply_mask(m.image, seen, maps.UNKNOWN)  # free only where a sensor looked
         if "map" in kinds:
             maps.write_map_server(m, folder, "map")
             _write_png(folder / "map.png", m.image)
             done.append(f"map.pgm/.yaml ({m.image.shape[1]}x{m.image.shape[0]} px)")
         if "esdf" in kinds:
             d = esdf.signed_distance(m.image == maps.OCCUPIED, resolution)
+            d[~maps.to_image(seen)] = np.nan  # no sensor looked: no distance to claim
             esdf.write_esdf(esdf.DistanceField2D(d, resolution, m.origin), folder)
             done.append("esdf.npy/.yaml/.png")
     if "prob" in kinds or "grid3d" in kinds:
@@ -125,6 +131,7 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
         if "prob" in kinds:
             height = camera_height(trainer.recording)
             p_xy = maps.probability_slice(prob3, spec.box.lo, spec.box.hi, height, band, lo, hi, resolution)
+            p_xy[~seen] = 0.5  # no sensor looked: no knowledge, never free
             maps.write_map_server(maps.scale_map(p_xy, lo, resolution), folder, "prob")
             summary["prob_map"] = {"height": height, "band": band, "projection": "max over layers in the band"}
             done.append(f"prob.pgm/.yaml (scale, z {height:.2f} +- {band:g} m)")
@@ -168,6 +175,18 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
         done.append(f"images/ ({len(pose_set)} x {intr.width}x{intr.height} colour + depth)")
     write_json_atomic(folder / "export.json", summary)
     return done
+
+
+def training_observed(recording, lo: np.ndarray, shape: tuple[int, int], resolution: float) -> np.ndarray:
+    """(nx, ny) bool [ix, iy]: map pixels the training frames' sensors looked at (exports/observed.py)."""
+    from virus_nerf.exports.observed import camera_half_fov, observed_mask
+
+    poses, half = [], []
+    for stack in recording.stacks.values():
+        rows = stack.indices("train")
+        poses.append(stack.cam_to_world[rows])
+        half.append(np.full(len(rows), camera_half_fov(stack.intrinsics.width, stack.intrinsics.fx)))
+    return observed_mask(np.concatenate(poses), np.concatenate(half), lo, shape, resolution)
 
 
 def camera_height(recording) -> float:

@@ -3,7 +3,8 @@
 Signed, in metres, between pixel centres: outside obstacles the distance to the nearest
 occupied pixel (> 0), inside obstacles minus the distance to the nearest pixel that is not
 occupied (<= -resolution). Unknown pixels count as not occupied: the field says how far the
-known obstacles are, not where it is safe to drive (the map's unknown pixels say that). Written as
+known obstacles are, not where it is safe to drive (the map's unknown pixels say that); pixels
+no sensor looked at (exports/observed.py) are NaN: no distance is claimed there. Written as
 float32 `.npy` in image layout (row 0 = largest y, the map_server raster of `maps`), a map_server
 style YAML naming it, and a PNG preview.
 """
@@ -18,7 +19,7 @@ import numpy as np
 
 @dataclass
 class DistanceField2D:
-    distance: np.ndarray  # (H, W) float32 metres, row 0 = largest y; +inf where the map has no obstacle
+    distance: np.ndarray  # (H, W) float32 metres, row 0 = largest y; +inf where the map has no obstacle; NaN unobserved
     resolution: float  # metres per pixel
     origin: tuple[float, float]  # world (x, y) of the lower-left pixel corner
 
@@ -50,7 +51,7 @@ def write_esdf(field: DistanceField2D, folder: Path, name: str = "esdf", preview
         f"resolution: {field.resolution!r}\norigin: [{field.origin[0]:.6f}, {field.origin[1]:.6f}, 0.0]\n"
         "layout: rows top (largest y) to bottom, columns x increasing, as the map_server image\n",
     )
-    d = np.clip(np.nan_to_num(field.distance, posinf=preview_max), -preview_max, preview_max)
+    d = np.clip(np.nan_to_num(field.distance, nan=-preview_max, posinf=preview_max), -preview_max, preview_max)
     grey = np.rint((d + preview_max) / (2 * preview_max) * 255).astype(np.uint8)
     with atomic_path(folder / f"{name}.png") as tmp:
         Image.fromarray(grey).save(tmp, format="PNG")

@@ -253,15 +253,36 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         trainer._gt = None
     result = _final_evaluation(trainer, out)
     trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
+    safety = map_safety_of(trainer, cfg)
     write_run_plots(out, result, trainer.eval_history, replace=resume)  # plots first: metrics.json marks the end
-    doc = write_run_metrics(out, result, cfg, summary)
+    doc = write_run_metrics(out, result, cfg, summary, safety=safety)
     print(result.table())
+    if safety is not None:
+        from virus_nerf.evaluation.safety import safety_line
+
+        print(safety_line(safety))
     print(
         f"trained {summary.steps} steps in {summary.seconds:.1f} s "
         f"({summary.steps_per_s:.2f} steps/s, {summary.samples_per_s / 1e6:.3f} M samples/s); "
         f"results in {out}"
     )
     return doc
+
+
+def map_safety_of(trainer, cfg, resolution: float = 0.05) -> dict | None:
+    """metrics.json's "safety" block (evaluation/safety.py) of the mapper's 2D map (as its
+    snapshots write it) against the LiDAR map at camera height; None without a LiDAR map."""
+    from virus_nerf.evaluation.gt import height_slice
+    from virus_nerf.evaluation.safety import map_safety, safety_document
+    from virus_nerf.exports.observed import observed_share
+
+    recording, mapper = trainer.recording, trainer.mapper
+    if recording.map_path is None or not mapper.frames:
+        return None
+    m = mapper.map2d(resolution)
+    obstacles = height_slice(recording.lidar_map(), mapper.camera_height(), cfg.evaluation.height_band_m)
+    zones = map_safety(m.image, m.origin, resolution, obstacles, mapper.store.cam_to_world[:, :2, 3])
+    return safety_document(zones, observed_share(mapper.observed(resolution)), "map", resolution)
 
 
 def _finish_without_ground_truth(trainer, out: Path, cfg, summary, resume: bool) -> dict:

@@ -31,6 +31,7 @@ class SnapshotInfo:
     map_occupied: float  # share of the map's known pixels that are occupied
     map_known: float  # share of the map's pixels that are known (free or occupied)
     grid_occupied: float  # share of the occupancy grid's cells the marcher samples
+    observed: float = 0.0  # share of the map's pixels some sensor looked at (exports/observed.py)
 
 
 
@@ -63,7 +64,10 @@ class MapViews:
     def map2d(self, resolution: float = 0.05, n_rays: int = 360, max_poses: int = 30):
         """The current 2D occupancy map (exports.maps.OccupancyMap2D, trinary, over the box's x, y):
         NeRF scans from up to `max_poses` camera positions of the frames added so far (evenly
-        spread), cells a scan passed free, end cells occupied, the rest unknown."""
+        spread), cells a scan passed free, end cells occupied, the rest unknown; and unknown
+        wherever no sensor looked (`observed`), whatever the NeRF says there."""
+        from virus_nerf.exports.maps import UNKNOWN
+        from virus_nerf.exports.observed import apply_mask
         from virus_nerf.exports.views import scan_map
 
         for name, v, lo in (("resolution", resolution, 0.0), ("n_rays", n_rays, 0), ("max_poses", max_poses, 0)):
@@ -74,9 +78,26 @@ class MapViews:
         lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
         self.field.eval()
         try:
-            return scan_map(self.model, pos if len(pos) else np.zeros((0, 3)), lo, hi, resolution, int(n_rays))
+            m = scan_map(self.model, pos if len(pos) else np.zeros((0, 3)), lo, hi, resolution, int(n_rays))
         finally:
             self.field.train()
+        m.image = apply_mask(m.image, self.observed(resolution), UNKNOWN)  # free only where a sensor looked
+        return m
+
+    def observed(self, resolution: float = 0.05) -> np.ndarray:
+        """(nx, ny) bool [ix, iy] over the box's x, y raster: pixels inside some frame's camera
+        view wedge (exports/observed.py); outside it every map is unknown."""
+        from virus_nerf.exports.maps import raster_shape
+        from virus_nerf.exports.observed import camera_half_fov, observed_mask
+
+        key = (self.frames, float(resolution))
+        if getattr(self, "_observed_cache", (None,))[0] != key:
+            lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
+            half = np.array([camera_half_fov(self.intrinsics[int(s)].width, self.intrinsics[int(s)].fx)
+                             for s in self.store.stack_ids])
+            self._observed_cache = (key, observed_mask(self.store.cam_to_world, half, lo,
+                                                       raster_shape(lo, hi, resolution), resolution))
+        return self._observed_cache[1]
 
     def probability_map(self, resolution: float = 0.05, band: float = 0.1):
         """The VIRUS grid's occupancy probability at camera height (`mode: scale` OccupancyMap2D;
@@ -88,6 +109,7 @@ class MapViews:
         lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
         p = probability_slice(self.grid.probability.numpy(), self.box.lo, self.box.hi, self.camera_height(), band,
                               lo, hi, resolution)
+        p[~self.observed(resolution)] = 0.5  # no sensor looked: no knowledge, never free
         return scale_map(p, lo, resolution)
 
     def camera_height(self) -> float:
@@ -105,6 +127,7 @@ class MapViews:
         is replaced once the new one is complete (a resumed run's own map). `maps`: (map2d,
         probability_map) already computed at these settings for this state (not recomputed)."""
         from virus_nerf.exports.maps import FREE, OCCUPIED, write_map_server, write_png
+        from virus_nerf.exports.observed import observed_share
         from virus_nerf.utils.io import new_output_dir, write_json_atomic
 
         folder = Path(folder)
@@ -122,6 +145,7 @@ class MapViews:
                 last_frame_time=float(self.store.times.max()) if self.frames else None, loss=self.last_loss,
                 map_occupied=occupied / known if known else 0.0, map_known=known / m.image.size,
                 grid_occupied=round(self.grid.occupancy_share(), 4),
+                observed=round(observed_share(self.observed(resolution)), 4),
             )
             write_json_atomic(tmp / "snapshot.json", dataclasses.asdict(info))
             if with_state:

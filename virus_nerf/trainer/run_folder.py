@@ -136,9 +136,10 @@ def train_summary_block(config, summary) -> dict:
     }
 
 
-def write_run_metrics(run_dir: Path, result, config, summary) -> dict:
-    """RUN/metrics.json (atomic): the EvaluationResult with the train block of `summary`."""
-    return result.write_json(run_dir / METRICS, train=train_summary_block(config, summary))
+def write_run_metrics(run_dir: Path, result, config, summary, **extra) -> dict:
+    """RUN/metrics.json (atomic): the EvaluationResult with the train block of `summary`;
+    extra: safety, warnings (evaluation.metrics.metrics_document)."""
+    return result.write_json(run_dir / METRICS, train=train_summary_block(config, summary), **extra)
 
 
 # ---------------------------------------------------------------------------- opening a run

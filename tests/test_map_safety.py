@@ -1,0 +1,116 @@
+"""Maps a planner can trust (issue 29, item 6): pixels no sensor looked at stay unknown, and the
+safety figure counts real obstacles that a map marks free. Hand-computed cases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from virus_nerf.evaluation.safety import map_safety, obstacle_pixels, safety_document, safety_line
+from virus_nerf.exports.maps import FREE, OCCUPIED, UNKNOWN, to_image
+from virus_nerf.exports.observed import apply_mask, camera_half_fov, observed_mask, observed_share
+
+
+def camera_looking(x: float, y: float, yaw: float, z: float = 0.5) -> np.ndarray:
+    """(4, 4) camera-to-world, optical axis (camera z) horizontal along yaw, camera y down."""
+    fwd = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+    down = np.array([0.0, 0.0, -1.0])
+    right = np.cross(down, fwd)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, down, fwd, (x, y, z)
+    return pose
+
+
+def test_half_fov_of_a_pinhole():
+    assert camera_half_fov(640, 320.0) == pytest.approx(math.pi / 4)
+    assert camera_half_fov(848, 424.0 / math.tan(math.radians(30))) == pytest.approx(math.radians(30))
+
+
+def test_the_mask_is_the_wedge_of_the_camera_up_to_its_reach():
+    lo, res, shape = np.array([-2.0, -2.0]), 0.5, (8, 8)
+    half = math.radians(50.0)
+    mask = observed_mask(camera_looking(0.0, 0.0, 0.0)[None], np.array([half]), lo, shape, res, reach=2.0)
+    # pixel centres -1.75 .. 1.75: inside iff angle to +x <= 50 deg and distance <= 2 m (by atan2)
+    c = lo[0] + (np.arange(8) + 0.5) * res
+    x, y = np.meshgrid(c, c, indexing="ij")
+    expected = (np.abs(np.degrees(np.arctan2(y, x))) <= 50.0) & (np.hypot(x, y) <= 2.0)
+    np.testing.assert_array_equal(mask, expected)
+    assert mask[7, 4] and not mask[4, 5]  # (1.75, 0.25) seen; (0.25, 0.75) at 72 deg is not
+    assert not mask[7, 6]  # (1.75, 1.25) lies 2.15 m away
+    assert int(mask.sum()) == 16 and observed_share(mask) == pytest.approx(16 / 64)  # 2 + 4 + 6 + 4 per column
+    # a second camera looking the other way adds the mirror wedge; the same pose twice adds nothing
+    both = observed_mask(np.stack([camera_looking(0, 0, 0), camera_looking(0, 0, math.pi), camera_looking(0, 0, 0)]),
+                         np.full(3, half), lo, shape, res, reach=2.0)
+    np.testing.assert_array_equal(both, expected | expected[::-1, :])
+
+
+def test_unobserved_pixels_become_unknown_whatever_the_map_said():
+    mask = np.zeros((3, 2), dtype=bool)  # [ix, iy]: 3 columns, 2 rows
+    mask[0, 1] = mask[2, 0] = True
+    image = np.full((2, 3), FREE, dtype=np.uint8)
+    image[0, 0] = OCCUPIED
+    out = apply_mask(image, mask, UNKNOWN)
+    # image row 0 = iy 1: (ix 0, iy 1) kept occupied; row 1 = iy 0: (ix 2, iy 0) kept free
+    np.testing.assert_array_equal(out, [[OCCUPIED, UNKNOWN, UNKNOWN], [UNKNOWN, UNKNOWN, FREE]])
+    assert image[0, 1] == FREE  # the input is untouched
+    np.testing.assert_array_equal(to_image(mask), out != UNKNOWN)
+
+
+def test_obstacles_marked_free_counted_per_zone_with_the_inlier_tolerance():
+    res, origin = 0.1, (0.0, 0.0)
+    wall = np.column_stack([np.full(10, 0.55), 0.05 + 0.1 * np.arange(10)])  # column 5, every row
+    assert obstacle_pixels(wall, origin, res, (10, 10))[:, 5].all()
+    path = np.array([[-1.0, 0.5]])  # obstacle pixels lie 1.50-1.61 m from it
+    free = np.full((10, 10), FREE, dtype=np.uint8)
+
+    def zones(image):
+        return [(z.within_m, z.obstacles, z.marked_free) for z in map_safety(image, origin, res, wall, path)]
+
+    assert zones(free) == [(1.0, 0, 0), (2.0, 10, 10), (math.inf, 10, 10)]  # the wall is all free: 100 %
+    for column, missed in ((5, 0), (6, 0), (7, 10)):  # the wall drawn where it is, 10 cm off, 20 cm off
+        image = free.copy()
+        image[:, column] = OCCUPIED
+        assert zones(image)[2] == (math.inf, 10, missed), column
+    unknown = free.copy()
+    unknown[:, 4] = UNKNOWN  # unknown next to the wall: not free for sure
+    assert zones(unknown)[2] == (math.inf, 10, 0)
+    doc = safety_document(map_safety(free, origin, res, wall, path), 0.25, "map", res)
+    assert doc["zones"]["1m"] == {"obstacles": 0, "marked_free": 0, "free_share": None}
+    assert doc["zones"]["all"]["free_share"] == 1.0 and doc["observed"] == 0.25
+    assert "all 100.0%" in safety_line(doc) and "1m -" in safety_line(doc)
+
+
+def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share(tiny_office, tmp_path):
+    import json
+
+    from helpers import run_cli, tiny_train_config
+
+    from virus_nerf.config_io import to_dict
+
+    cfg = tmp_path / "small.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config())))
+    run = tmp_path / "run"
+    code, out, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", run, "--config", cfg,
+                              "--quiet"])
+    assert code == 0, err
+    safety = json.loads((run / "metrics.json").read_text())["safety"]
+    assert safety["gt"] == "map" and safety["resolution"] == 0.05 and 0.0 < safety["observed"] < 1.0
+    z = safety["zones"]
+    assert z["1m"]["obstacles"] <= z["2m"]["obstacles"] <= z["all"]["obstacles"] and z["all"]["obstacles"] > 100
+    for block in z.values():
+        assert 0 <= block["marked_free"] <= block["obstacles"]
+    assert "map safety (map ground truth)" in out
+    # export: the map, ESDF and probability map are unknown / NaN / 0.5 outside the observed wedges
+    code, _, err = run_cli(["export", "--run", run, "--out", tmp_path / "export", "--what", "map,esdf,prob"])
+    assert code == 0, err
+    summary = json.loads((tmp_path / "export" / "export.json").read_text())
+    from PIL import Image
+
+    image = np.asarray(Image.open(tmp_path / "export" / "map.pgm"))
+    esdf = np.load(tmp_path / "export" / "esdf.npy")
+    prob = np.asarray(Image.open(tmp_path / "export" / "prob.pgm"))
+    unseen = np.isnan(esdf)
+    assert summary["observed"] == pytest.approx(1.0 - unseen.mean(), abs=1e-4)
+    assert (image[unseen] == UNKNOWN).all() and (prob[unseen] == 128).all()  # p = 0.5 -> round(127.5)
