@@ -27,7 +27,7 @@ from virus_nerf.data.images import check_depth_header, image_size, read_depth, r
 from virus_nerf.data.pcd import read_pcd_xyz
 from virus_nerf.data.split import make_split, read_split, read_split_ratios
 from virus_nerf.data.split import write_split as write_split_file
-from virus_nerf.errors import DataFormatError
+from virus_nerf.errors import DataFormatError, UsageError
 from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics, image_side_problem, intrinsics_problem
 from virus_nerf.sensors.geometry import pose_matrix
@@ -111,7 +111,7 @@ class Recording:
         if self.map_path is None:
             raise DataFormatError(self.room_dir / "maps", "no map_*.pcd found; ground truth needs the LiDAR map")
         if self._map_cache is None:
-            self._map_cache = read_pcd_xyz(self.map_path)
+            self._map_cache = read_pcd_xyz(self.map_path, nonempty="the LiDAR map")
         return self._map_cache
 
     @cached_property
@@ -150,6 +150,22 @@ class Recording:
         entries = [(float(st.times[i]), s, int(i)) for s, st in sorted(self.stacks.items())
                    for i in (range(len(st)) if labels is None else np.flatnonzero(np.isin(st.split, labels)))]
         return [(s, i) for _, s, i in sorted(entries)]
+
+
+def common_image_size(intrinsics: dict[int, Intrinsics], *, source: Path | None = None,
+                      shown: dict[int, Intrinsics] | None = None) -> tuple[int, int]:
+    """The one (width, height) of every stack's `intrinsics`; stacks of different sizes are refused in
+    one line listing each stack's size (`shown`: the sizes to list, e.g. the recording's own where
+    `intrinsics` are scaled), a DataFormatError naming `source` if given, else a UsageError."""
+    sizes = {(i.width, i.height) for i in intrinsics.values()}
+    if len(sizes) == 1:
+        return sizes.pop()
+    listed = ", ".join(f"CAM{s} {i.width}x{i.height}" for s, i in sorted((shown or intrinsics).items()))
+    problem = (f"the stacks' images differ in size ({listed}); expected one image size for all stacks"
+               if sizes else "no sensor stacks; expected at least one")
+    if source is not None:
+        raise DataFormatError(source, problem)
+    raise UsageError(problem)
 
 
 def read_intrinsics(path: Path) -> dict[int, Intrinsics]:

@@ -7,14 +7,19 @@ a DataFormatError naming the file.
 
 from __future__ import annotations
 
+import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
 
-from virus_nerf.errors import DataFormatError
+from virus_nerf.errors import DataFormatError, one_line
 from virus_nerf.sensors.camera import Intrinsics
 
 DEPTH_INVALID_MM = (0, 65535)
+# What PIL raises on a damaged image file besides DecompressionBombError: OSError (unidentified,
+# truncated), and from deep inside its decoders SyntaxError, ValueError, EOFError, struct/zlib errors.
+IMAGE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, IndexError, struct.error, zlib.error)
 
 
 def read_rgb(path: Path, intr: Intrinsics) -> np.ndarray:
@@ -25,8 +30,10 @@ def read_rgb(path: Path, intr: Intrinsics) -> np.ndarray:
             arr = np.asarray(im.convert("RGB"))
     except FileNotFoundError:
         raise DataFormatError(path, "image file not found") from None
-    except OSError as exc:
-        raise DataFormatError(path, f"not a readable image: {exc}") from exc
+    except Image.DecompressionBombError as exc:
+        raise huge_image_error(path, exc) from None
+    except IMAGE_ERRORS as exc:
+        raise DataFormatError(path, f"not a readable image: {one_line(exc, 200)}") from None
     if arr.shape[:2] != (intr.height, intr.width):
         raise DataFormatError(
             path, f"image is {arr.shape[1]}x{arr.shape[0]}; the intrinsics expect {intr.width}x{intr.height}"
@@ -99,5 +106,31 @@ def image_size(path: Path) -> tuple[int, int]:
             return im.size
     except FileNotFoundError:
         raise DataFormatError(path, "image file not found") from None
-    except OSError as exc:
-        raise DataFormatError(path, f"not a readable image: {exc}") from exc
+    except Image.DecompressionBombError as exc:
+        raise huge_image_error(path, exc) from None
+    except IMAGE_ERRORS as exc:
+        raise DataFormatError(path, f"not a readable image: {one_line(exc, 200)}") from None
+
+
+def huge_image_error(path: Path, exc: Exception) -> DataFormatError:
+    """The error for an image whose header claims more pixels than PIL will decode (a corrupt
+    header, or a decompression bomb): names the size the header claims where it can be read."""
+    from PIL import Image
+
+    limit = 2 * (Image.MAX_IMAGE_PIXELS or 0)  # PIL refuses above twice its warning threshold
+    size = _png_header_size(path)
+    claim = f"{size[0]}x{size[1]} px ({size[0] * size[1] / 1e6:.0f} Mpx)" if size else one_line(exc, 120)
+    return DataFormatError(path, f"image header claims {claim}, beyond the {limit / 1e6:.0f} Mpx an image may "
+                                 "have; corrupt file?")
+
+
+def _png_header_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR chunk, or None if `path` is no PNG."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(24)
+    except OSError:
+        return None
+    if len(head) < 24 or not head.startswith(b"\x89PNG\r\n\x1a\n") or head[12:16] != b"IHDR":
+        return None
+    return struct.unpack(">II", head[16:24])
