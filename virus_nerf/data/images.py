@@ -8,6 +8,7 @@ a DataFormatError naming the file.
 from __future__ import annotations
 
 import struct
+import tokenize
 import zlib
 from pathlib import Path
 
@@ -20,6 +21,9 @@ DEPTH_INVALID_MM = (0, 65535)
 # What PIL raises on a damaged image file besides DecompressionBombError: OSError (unidentified,
 # truncated), and from deep inside its decoders SyntaxError, ValueError, EOFError, struct/zlib errors.
 IMAGE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, IndexError, struct.error, zlib.error)
+# What numpy raises on a damaged .npy header (it parses the header dict with ast.literal_eval) or body.
+NPY_ERRORS = (OSError, ValueError, EOFError, SyntaxError, TypeError, KeyError, OverflowError, MemoryError,
+              tokenize.TokenError)
 
 
 def read_rgb(path: Path, intr: Intrinsics) -> np.ndarray:
@@ -48,12 +52,15 @@ def read_depth(path: Path, intr: Intrinsics) -> np.ndarray:
     refused (a float map is usually in metres, and reading it as millimetres would shrink the
     scene 1000 times).
     """
+    shape, _ = _npy_header(path)  # the shape before the pixels: a corrupt header must not allocate
+    if shape != (intr.height, intr.width):
+        raise DataFormatError(path, f"depth map has shape {shape}; expected ({intr.height}, {intr.width})")
     try:
         raw = np.load(path, allow_pickle=False)
     except FileNotFoundError:
         raise DataFormatError(path, "depth file not found") from None
-    except (OSError, ValueError, EOFError) as exc:
-        raise DataFormatError(path, f"not a readable .npy depth map: {exc}") from exc
+    except NPY_ERRORS as exc:
+        raise DataFormatError(path, f"not a readable .npy depth map: {one_line(exc, 200)}") from None
     if not isinstance(raw, np.ndarray):
         raise DataFormatError(path, "not a .npy array; expected a uint16 depth map in millimetres")
     if raw.shape != (intr.height, intr.width):
@@ -78,16 +85,7 @@ def read_depth(path: Path, intr: Intrinsics) -> np.ndarray:
 
 def check_depth_header(path: Path, intr: Intrinsics) -> None:
     """Shape and type of a depth map from its .npy header alone (no pixels are read)."""
-    try:
-        with path.open("rb") as fh:
-            version = np.lib.format.read_magic(fh)
-            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
-                np.lib.format.read_array_header_2_0
-            shape, _, dtype = read_header(fh)
-    except FileNotFoundError:
-        raise DataFormatError(path, "depth file not found") from None
-    except (OSError, ValueError, EOFError) as exc:
-        raise DataFormatError(path, f"not a readable .npy depth map: {exc}") from exc
+    shape, dtype = _npy_header(path)
     if shape != (intr.height, intr.width):
         raise DataFormatError(path, f"depth map has shape {shape}; expected ({intr.height}, {intr.width})")
     if dtype.kind == "f":
@@ -96,6 +94,21 @@ def check_depth_header(path: Path, intr: Intrinsics) -> None:
         )
     if dtype.kind not in "ui":
         raise DataFormatError(path, f"depth map is {dtype}; expected uint16 millimetres")
+
+
+def _npy_header(path: Path) -> tuple[tuple, np.dtype]:
+    """(shape, dtype) from a .npy file's header; a damaged header is a DataFormatError."""
+    try:
+        with path.open("rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                np.lib.format.read_array_header_2_0
+            shape, _, dtype = read_header(fh)
+    except FileNotFoundError:
+        raise DataFormatError(path, "depth file not found") from None
+    except NPY_ERRORS as exc:
+        raise DataFormatError(path, f"not a readable .npy depth map: {one_line(exc, 200)}") from None
+    return shape, dtype
 
 
 def image_size(path: Path) -> tuple[int, int]:

@@ -28,7 +28,8 @@ def _bag_errors() -> tuple[type[BaseException], ...]:
     from rosbags.typesys import TypesysError
 
     return (AnyReaderError, Reader1Error, Reader2Error, SerdeError, TypesysError, sqlite3.Error,
-            struct.error, EOFError, UnicodeDecodeError, IndexError, KeyError, ValueError, AssertionError)
+            struct.error, EOFError, UnicodeDecodeError, IndexError, KeyError, ValueError, AssertionError,
+            MemoryError, OverflowError)  # a corrupt record length: rosbags asks for exabytes at once
 
 
 @dataclass(frozen=True)
@@ -91,6 +92,8 @@ class BagReader:
 
     def corrupt(self, exc: BaseException) -> DataFormatError:
         what = " ".join(str(exc).split()) or type(exc).__name__
+        if isinstance(exc, MemoryError):
+            what = "a record's length asks for more memory than there is (MemoryError)"
         return DataFormatError(self.path, f"cannot be read (truncated or corrupt bag?): {what}")
 
     @property
