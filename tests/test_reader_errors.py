@@ -510,3 +510,11 @@ def test_bare_mcap_file_is_read(sample_dir, tmp_path):
     with pytest.raises(DataFormatError, match=r"cut.mcap: cannot be read"):
         with BagReader(truncated):
             pass
+
+
+def test_pcd_header_without_data_line_is_refused(tmp_path):
+    p = tmp_path / "scan.pcd"
+    p.write_bytes(pcd_bytes(np.ones((3, 3)), data="ascii").replace(b"DATA ascii\n", b""))
+    with pytest.raises(DataFormatError, match=r"scan.pcd: not a readable PCD file: no DATA line in the header.s "
+                                              r"first 10 lines"):
+        read_pcd_xyz(p)

@@ -86,6 +86,9 @@ def _check_body_size(path: Path, raw: bytes) -> int | None:
         lines.append(line)
         if line.startswith("DATA") or len(lines) >= 10:
             break
+    if lines and not lines[-1].startswith("DATA"):  # pypcd4 would read on as binary_compressed
+        raise DataFormatError(path, "not a readable PCD file: no DATA line in the header's first 10 lines; "
+                                    "expected DATA ascii, binary or binary_compressed after POINTS")
     try:
         meta = MetaData.parse_header(lines)
         itemsize = meta.build_dtype().itemsize
