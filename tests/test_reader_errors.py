@@ -518,3 +518,21 @@ def test_pcd_header_without_data_line_is_refused(tmp_path):
     with pytest.raises(DataFormatError, match=r"scan.pcd: not a readable PCD file: no DATA line in the header.s "
                                               r"first 10 lines"):
         read_pcd_xyz(p)
+
+
+def test_bare_mcap_imports_and_the_report_says_the_ethz_stacks_were_used(sample_dir, tmp_path):
+    pytest.importorskip("rosbags")
+    from virus_nerf.data.bags.importer import import_bag
+    from virus_nerf.data.bags.writer import write_bag
+
+    folder = write_bag(sample_dir, tmp_path / "bag", ros_version=2, storage="mcap", lidar_topic=None)
+    bare = tmp_path / "office.mcap"
+    shutil.copyfile(next(folder.glob("*.mcap")), bare)
+    topics = tmp_path / "t.toml"
+    topics.write_text("[sync]\nuss_tolerance_s = 0.15\n[lidar]\ntopic = ''\n")
+    report = import_bag(bare, tmp_path / "out", topics=topics, poses="csv",
+                        poses_file=sample_dir / "office" / "poses" / "poses_lidar_balm_sync1.csv")
+    assert report.room == "office" and report.samples == {1: 5, 3: 5}
+    assert f"  note: {topics}: no [stacks] section: the ETHZ robot's stacks 1 and 3 are used" in report.summary()
+    rec = load_recording(tmp_path / "out", "office")
+    np.testing.assert_array_equal(rec.stacks[1].uss_range, load_recording(sample_dir, "office").stacks[1].uss_range)
