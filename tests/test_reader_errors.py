@@ -255,3 +255,284 @@ def test_float_depth_file_in_a_recording_is_refused_on_loading(sample_copy):
     np.save(depth, metres)
     with pytest.raises(DataFormatError, match=r"CAM3_aligned_depth_to_color_image_raw/img1.npy: depth map is float32"):
         load_recording(sample_copy, "office")
+
+
+# ------------------------------------------------------------------------------ bad input, round two (issue 30)
+LATIN1 = b"\xe9"  # 'é' in Latin-1: not UTF-8 on its own
+
+
+def test_non_utf8_byte_in_a_csv_header_names_file_and_row(tmp_path):
+    p = tmp_path / "USS1.csv"
+    p.write_bytes(b"time,m" + LATIN1 + b"as\n1,3752\n")
+    with pytest.raises(DataFormatError, match=r"USS1.csv, row 1: byte 0xe9 at column 7 is not UTF-8 text"):
+        read_numeric_csv(p, ("time", "meas"))
+
+
+def test_non_utf8_byte_in_a_numeric_cell_names_row_and_field(tmp_path):
+    p = tmp_path / "USS1.csv"
+    p.write_bytes(b"time,meas\n1,3752\n2,37" + LATIN1 + b"2\n")
+    with pytest.raises(DataFormatError, match=r"USS1.csv, row 3, field 'meas': value '37\\xe92' is not a number "
+                                              r"\(it holds bytes that are not UTF-8 text\)"):
+        read_numeric_csv(p, ("time", "meas"))
+
+
+def test_non_utf8_bytes_in_a_comment_column_and_a_bom_are_read(tmp_path):
+    p = tmp_path / "USS1.csv"
+    p.write_bytes(b"\xef\xbb\xbftime,meas,comment\n1,3752,caf" + LATIN1 + b"\n2,3751,ok\n")
+    table = read_numeric_csv(p, ("time", "meas"))
+    np.testing.assert_array_equal(table["meas"], [3752, 3751])
+
+
+def test_non_utf8_intrinsics_split_and_description(tmp_path):
+    from virus_nerf.data.ethz import read_intrinsics
+    from virus_nerf.data.split import read_split, read_split_ratios
+
+    p = tmp_path / "camera_intrinsics.CSV"
+    p.write_bytes(b"cam_id,fx,fy,cx,cy\nCAM1,388,388,320,240\nCAM" + LATIN1 + b",388,388,320,240\n")
+    with pytest.raises(DataFormatError, match=r"camera_intrinsics.CSV, row 3, field 'cam_id': cam_id 'CAM\\xe9' "
+                                              r"is not CAM<number>"):
+        read_intrinsics(p)
+    p = tmp_path / "split.csv"
+    p.write_bytes(b"CAM1\ntrain\ntr" + LATIN1 + b"in\n")
+    with pytest.raises(DataFormatError, match=r"split.csv, row 3, field 'CAM1': label 'tr\\xe9in' is not one of"):
+        read_split(p, {1: 2})
+    p = tmp_path / "split_description.csv"  # free text in 'info' may be Latin-1: read
+    p.write_bytes(b"train,val,test,keep_N_observations,info\n0.6,0.0,0.4,all,r" + LATIN1 + b"sum" + LATIN1 + b"\n")
+    assert read_split_ratios(p) == (0.6, 0.0, 0.4)
+
+
+def write_scene(tmp_path: Path, data: bytes) -> Path:
+    p = tmp_path / "scene.json"
+    p.write_bytes(data)
+    return p
+
+
+def test_scene_json_non_utf8_list_and_missing_extent(tmp_path):
+    from virus_nerf.sim.scene import Scene
+
+    ok = b'{"format": "virus-nerf-scene", "objects": [], "extent_lo": [0, 0, 0], "extent_hi": [1, 1, 1]}'
+    assert Scene.load(write_scene(tmp_path, ok)).extent_hi == (1, 1, 1)
+    with pytest.raises(DataFormatError, match=r"scene.json, row 2: byte 0xe9 at column 10 is not UTF-8 text"):
+        Scene.load(write_scene(tmp_path, b'{"format":\n "virus-n' + LATIN1 + b'rf-scene"}'))
+    with pytest.raises(DataFormatError, match=r"scene.json: expected a JSON object \(a virus-nerf scene\), got a list"):
+        Scene.load(write_scene(tmp_path, b"[1, 2]"))
+    with pytest.raises(DataFormatError, match=r"scene.json, field 'extent_lo': missing; expected the room's lower "
+                                              r"corner \[x, y, z\] in metres"):
+        Scene.load(write_scene(tmp_path, ok.replace(b'"extent_lo"', b'"extent_low"')))
+    with pytest.raises(DataFormatError, match=r"scene.json, field 'extent_hi': \['a', 1\] is not 3 finite numbers"):
+        Scene.load(write_scene(tmp_path, ok.replace(b"[1, 1, 1]", b'["a", 1]')))
+
+
+def pcd_bytes(points: np.ndarray, header_points: int | None = None, data: str = "binary") -> bytes:
+    n = len(points) if header_points is None else header_points
+    head = (f"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\n"
+            f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {data}\n").encode()
+    if data == "ascii":
+        return head + "".join(f"{x} {y} {z}\n" for x, y, z in points).encode()
+    return head + np.asarray(points, dtype=np.float32).tobytes()
+
+
+@pytest.fixture()
+def map_copy(sample_copy) -> Path:
+    return sample_copy / "office" / "maps" / "map_balm.pcd"
+
+
+def test_empty_map_is_refused_when_read(sample_copy, map_copy):
+    map_copy.write_bytes(pcd_bytes(np.zeros((0, 3))))
+    rec = load_recording(sample_copy, "office")
+    with pytest.raises(DataFormatError, match=r"map_balm.pcd: the LiDAR map has no points; expected the room's map"):
+        rec.lidar_map()
+
+
+def test_all_nan_map_is_refused(sample_copy, map_copy):
+    map_copy.write_bytes(pcd_bytes(np.full((5, 3), np.nan)))
+    with pytest.raises(DataFormatError, match=r"map_balm.pcd: the LiDAR map has no points \(all 5 points are NaN or "
+                                              r"infinite\)"):
+        load_recording(sample_copy, "office").lidar_map()
+
+
+def test_map_with_a_garbage_body_is_refused(sample_copy, map_copy):
+    rng = np.random.default_rng(0)
+    map_copy.write_bytes(pcd_bytes(np.zeros((1000, 3))).replace(bytes(12000), rng.bytes(12000)))
+    with pytest.raises(DataFormatError, match=r"map_balm.pcd: point 0 of 1000 \(.*\) lies beyond 10 km of the "
+                                              r"origin; expected metres \(a garbage body or wrong units\?\)"):
+        load_recording(sample_copy, "office").lidar_map()
+
+
+@pytest.mark.parametrize("data", ["binary", "ascii"])
+def test_truncated_pcd_is_refused(tmp_path, data):
+    p = tmp_path / "scan.pcd"
+    p.write_bytes(pcd_bytes(np.ones((7, 3)), header_points=10, data=data))
+    with pytest.raises(DataFormatError, match=r"scan.pcd: header says 10 points, body holds 7"):
+        read_pcd_xyz(p)
+    p.write_bytes(pcd_bytes(np.ones((7, 3)), header_points=10)[:-5])  # a partial last point as well
+    with pytest.raises(DataFormatError, match=r"scan.pcd: header says 10 points, body holds 6 \(and 7 bytes"):
+        read_pcd_xyz(p)
+
+
+def test_split_ratios_negative_or_all_zero(tmp_path):
+    from virus_nerf.data.split import read_split_ratios
+    from virus_nerf.errors import UsageError
+
+    p = write(tmp_path, "split_description.csv", "train,val,test\n0.6,-0.1,0.5\n")
+    with pytest.raises(DataFormatError, match=r"split_description.csv, row 2, field 'val': ratio -0.1 is negative; "
+                                              r"expected non-negative train,val,test ratios with a positive sum"):
+        read_split_ratios(p)
+    p = write(tmp_path, "split_description.csv", "train,val,test\n0,0,0\n")
+    with pytest.raises(DataFormatError, match=r"split_description.csv, row 2, field 'train/val/test': the ratios "
+                                              r"sum to 0"):
+        read_split_ratios(p)
+    p = write(tmp_path, "split_description.csv", "train,val,test\nnan,0,1\n")
+    with pytest.raises(DataFormatError, match=r"row 2, field 'train': ratio nan is not finite"):
+        read_split_ratios(p)
+    with pytest.raises(UsageError, match=r"split ratios \(0, 0, 0\): expected non-negative numbers with a positive"):
+        make_split(5, (0, 0, 0))
+
+
+def test_stacks_of_different_image_sizes_are_refused_in_one_line(sample_copy):
+    from PIL import Image
+
+    from virus_nerf.sampler.frames import FrameStore, build_frame_store
+    from virus_nerf.sensors.camera import Intrinsics
+
+    intr = sample_copy / "camera_intrinsics.CSV"
+    intr.write_text("cam_id,fx,fy,cx,cy,width,height\nCAM1,388,388,320,240,640,480\nCAM3,194,194,160,120,320,240\n")
+    meas = sample_copy / "office" / "measurements"
+    for k in range(5):
+        img = meas / "CAM3_color_image_raw" / f"img{k}.png"
+        with Image.open(img) as im:
+            im.resize((320, 240)).save(img)
+        np.save(meas / "CAM3_aligned_depth_to_color_image_raw" / f"img{k}.npy", np.zeros((240, 320), np.uint16))
+    rec = load_recording(sample_copy, "office")  # reading works: each stack agrees with its intrinsics
+    with pytest.raises(DataFormatError, match=r"camera_intrinsics.CSV: the stacks' images differ in size \(CAM1 "
+                                              r"640x480, CAM3 320x240\); expected one image size for all stacks"):
+        build_frame_store(rec, use_cache=False)
+    with pytest.raises(ValueError, match=r"CAM1 640x480, CAM3 320x240.*one image size"):
+        FrameStore.empty({1: Intrinsics(388, 388, 320, 240), 3: Intrinsics(194, 194, 160, 120, 320, 240)})
+
+
+@pytest.mark.parametrize("values, field, fragment", [
+    ("1e-9,1e-9,320,240", "fx", r"focal length 1e-09 px gives a 180.0 degree field of view over 640 px; expected "
+                                r"a field of view of 1 to 170 degrees \(fx from 28 to 36668 px\)"),
+    ("388,1e6,320,240", "fy", r"focal length 1e\+06 px gives a 0.0 degree field of view over 480 px"),
+    ("388,388,700,240", "cx", r"principal point 700 px lies outside the image \(0 to 640 px\)"),
+    ("388,388,320,-3", "cy", r"principal point -3 px lies outside the image \(0 to 480 px\)"),
+    ("388,388,320,240,640.7,480", "width", r"image width 640.7 px is not a whole number of pixels"),
+    ("388,388,320,240,640,1e9", "height", r"image height 1e\+09 px; expected a size from 1 to 100000 px"),
+])
+def test_implausible_intrinsics_are_refused(tmp_path, values, field, fragment):
+    from virus_nerf.data.ethz import read_intrinsics
+
+    header = "cam_id,fx,fy,cx,cy" + (",width,height" if values.count(",") == 5 else "")
+    p = write(tmp_path, "camera_intrinsics.CSV", f"{header}\nCAM1,{values}\n")
+    with pytest.raises(DataFormatError, match=rf"camera_intrinsics.CSV, row 2, field '{field}': {fragment}"):
+        read_intrinsics(p)
+
+
+def test_irs_reading_beyond_a_physical_bound_is_refused(tmp_path):
+    from virus_nerf.data.ethz import IRS_MAX_PLAUSIBLE_MM
+
+    assert IRS_MAX_PLAUSIBLE_MM == 100_000
+    header = "time," + ",".join(f"meas_{k}" for k in range(64)) + "\n"
+    ok = "1," + ",".join(["500"] * 64) + "\n"
+    bad = "2," + ",".join(["500"] * 10 + ["1e12"] + ["500"] * 53) + "\n"
+    p = write(tmp_path, "TOF1.csv", header + ok + bad)
+    with pytest.raises(DataFormatError, match=r"TOF1.csv, row 3, field 'meas_10': 1e\+12 mm \(1e\+09 m\) is beyond "
+                                              r"any IRS reading \(> 100000 mm = 100 m\); expected millimetres"):
+        read_tof(p)
+    p = write(tmp_path, "TOF1.csv", header + ok + bad.replace("1e12", "99999"))  # far but possible: kept
+    assert read_tof(p)[1].shape == (2, 8, 8)
+
+
+def png_header_only(width: int, height: int) -> bytes:
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0")) + chunk(b"IEND", b"")
+
+
+def test_png_claiming_a_huge_size_is_refused(sample_copy, tmp_path):
+    from virus_nerf.data.images import image_size, read_rgb
+    from virus_nerf.sensors.camera import Intrinsics
+
+    p = tmp_path / "img0.png"
+    p.write_bytes(png_header_only(30000, 30000))
+    expected = (r"img0.png: image header claims 30000x30000 px \(900 Mpx\), beyond the 179 Mpx an image may have; "
+                r"corrupt file\?")
+    with pytest.raises(DataFormatError, match=expected):
+        image_size(p)
+    with pytest.raises(DataFormatError, match=expected):
+        read_rgb(p, Intrinsics(388, 388, 320, 240))
+    (sample_copy / "office" / "measurements" / "CAM1_color_image_raw" / "img0.png").write_bytes(p.read_bytes())
+    with pytest.raises(DataFormatError, match=r"CAM1_color_image_raw/img0.png: image header claims 30000x30000"):
+        load_recording(sample_copy, "office")
+
+
+def test_topics_file_stack_id_superscript_and_missing_stacks(tmp_path):
+    from virus_nerf.data.bags.topics import read_topics
+    from virus_nerf.errors import ConfigError
+
+    f = tmp_path / "t.toml"
+    f.write_text('[stacks."\u00b9"]\ncolor = "/c"\n'
+                 "camera_in_lidar = { translation = [0, 0, 0], rotation_xyzw = [0, 0, 0, 1] }\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"t.toml, key 'stacks.\u00b9': stack id '\u00b9': expected a non-negative "
+                                          r"integer \(digits 0-9\)"):
+        read_topics(f)
+    f.write_text("[sync]\nuss_tolerance_s = 0.05\n")
+    cfg = read_topics(f)
+    assert sorted(cfg.stacks) == [1, 3]
+    assert cfg.notes == (f"{f}: no [stacks] section: the ETHZ robot's stacks 1 and 3 are used (/CAM1/color/image_raw, "
+                         "/CAM3/color/image_raw, ...)",)
+
+
+def test_bare_mcap_file_is_read(sample_dir, tmp_path):
+    pytest.importorskip("rosbags")
+    from virus_nerf.data.bags.reader import BagReader
+    from virus_nerf.data.bags.writer import write_bag
+
+    folder = write_bag(sample_dir, tmp_path / "bag", ros_version=2, storage="mcap", lidar_topic=None)
+    bare = tmp_path / "office.mcap"
+    shutil.copyfile(next(folder.glob("*.mcap")), bare)
+    with BagReader(bare) as reader:
+        assert reader.ros_version == 2
+        assert reader.topics["/USS1"].count == 5
+        assert [m.msg.meas for m in reader.iter_topic("/USS1")][0] == 3752
+    bare.with_suffix(".zip").write_bytes(b"x")
+    with pytest.raises(DataFormatError, match=r"office.zip: expected a ROS 1 .bag file, a ROS 2 bag folder "
+                                              r"\(metadata.yaml \+ .db3/.mcap\) or a single ROS 2 .mcap/.db3 file"):
+        BagReader(bare.with_suffix(".zip"))
+    truncated = tmp_path / "cut.mcap"
+    truncated.write_bytes(bare.read_bytes()[:300])
+    with pytest.raises(DataFormatError, match=r"cut.mcap: cannot be read"):
+        with BagReader(truncated):
+            pass
+
+
+def test_pcd_header_without_data_line_is_refused(tmp_path):
+    p = tmp_path / "scan.pcd"
+    p.write_bytes(pcd_bytes(np.ones((3, 3)), data="ascii").replace(b"DATA ascii\n", b""))
+    with pytest.raises(DataFormatError, match=r"scan.pcd: not a readable PCD file: no DATA line in the header.s "
+                                              r"first 10 lines"):
+        read_pcd_xyz(p)
+
+
+def test_bare_mcap_imports_and_the_report_says_the_ethz_stacks_were_used(sample_dir, tmp_path):
+    pytest.importorskip("rosbags")
+    from virus_nerf.data.bags.importer import import_bag
+    from virus_nerf.data.bags.writer import write_bag
+
+    folder = write_bag(sample_dir, tmp_path / "bag", ros_version=2, storage="mcap", lidar_topic=None)
+    bare = tmp_path / "office.mcap"
+    shutil.copyfile(next(folder.glob("*.mcap")), bare)
+    topics = tmp_path / "t.toml"
+    topics.write_text("[sync]\nuss_tolerance_s = 0.15\n[lidar]\ntopic = ''\n")
+    report = import_bag(bare, tmp_path / "out", topics=topics, poses="csv",
+                        poses_file=sample_dir / "office" / "poses" / "poses_lidar_balm_sync1.csv")
+    assert report.room == "office" and report.samples == {1: 5, 3: 5}
+    assert f"  note: {topics}: no [stacks] section: the ETHZ robot's stacks 1 and 3 are used" in report.summary()
+    rec = load_recording(tmp_path / "out", "office")
+    np.testing.assert_array_equal(rec.stacks[1].uss_range, load_recording(sample_dir, "office").stacks[1].uss_range)

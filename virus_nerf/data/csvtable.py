@@ -3,12 +3,50 @@
 from __future__ import annotations
 
 import csv
+import io
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from virus_nerf.errors import DataFormatError
+from virus_nerf.utils.textfile import (
+    BOM,
+    decode_lenient,
+    first_bad_byte,
+    has_bad_bytes,
+    not_a_number,
+    read_bytes,
+    utf8_error,
+)
+
+
+def read_csv_rows(path: str | Path, what: str = "file") -> list[list[str]]:
+    """All rows of a CSV file as strings (row k of the list = spreadsheet row k + 1).
+
+    Read as UTF-8 (a leading BOM dropped); bytes that are not UTF-8 are kept as surrogate escapes
+    so that free-text cells still read: callers refuse them where a value matters (see
+    virus_nerf.utils.textfile). A file the csv module cannot split is refused naming the row.
+    """
+    path = Path(path)
+    data = read_bytes(path, what)
+    reader = csv.reader(io.StringIO(decode_lenient(data), newline=""))
+    rows: list[list[str]] = []
+    try:
+        for row in reader:
+            rows.append(row)
+    except csv.Error as exc:
+        raise DataFormatError(path, f"not a readable CSV row: {exc}", row=reader.line_num) from None
+    return rows
+
+
+def refuse_bad_header(path: Path, header: list[str]) -> None:
+    """A header row that lacks what it needs because of bytes that are not UTF-8: say so."""
+    if any(has_bad_bytes(h) for h in header):
+        data = read_bytes(path).removeprefix(BOM)
+        bad = first_bad_byte(data)
+        if bad is not None:
+            raise utf8_error(path, data, bad)
 
 
 def read_numeric_csv(
@@ -24,40 +62,39 @@ def read_numeric_csv(
     path = Path(path)
     if not path.is_file():
         raise DataFormatError(path, "file not found")
-    with path.open(newline="") as fh:
-        reader = csv.reader(fh)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise DataFormatError(path, f"empty file; expected a header with {list(required)}") from None
-        missing = [c for c in required if c not in header]
-        if missing:
+    all_rows = read_csv_rows(path)
+    reader = iter(all_rows)
+    try:
+        header = [h.strip() for h in next(reader)]
+    except StopIteration:
+        raise DataFormatError(path, f"empty file; expected a header with {list(required)}") from None
+    missing = [c for c in required if c not in header]
+    if missing:
+        refuse_bad_header(path, header)
+        raise DataFormatError(
+            path,
+            f"header {header[:8]}{'...' if len(header) > 8 else ''} lacks column(s) {missing}; "
+            f"expected {list(required)[:8]}{'...' if len(required) > 8 else ''}",
+            row=1,
+        )
+    if not allow_extra and len(header) != len(required):
+        raise DataFormatError(path, f"expected exactly columns {list(required)}", row=1)
+    index = [header.index(c) for c in required]
+    rows: list[list[float]] = []
+    for row_no, row in enumerate(reader, start=2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) != len(header):
             raise DataFormatError(
-                path,
-                f"header {header[:8]}{'...' if len(header) > 8 else ''} lacks column(s) {missing}; "
-                f"expected {list(required)[:8]}{'...' if len(required) > 8 else ''}",
-                row=1,
+                path, f"has {len(row)} values; expected {len(header)} (one per header column)", row=row_no
             )
-        if not allow_extra and len(header) != len(required):
-            raise DataFormatError(path, f"expected exactly columns {list(required)}", row=1)
-        index = [header.index(c) for c in required]
-        rows: list[list[float]] = []
-        for row_no, row in enumerate(reader, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) != len(header):
-                raise DataFormatError(
-                    path, f"has {len(row)} values; expected {len(header)} (one per header column)", row=row_no
-                )
-            values = []
-            for col, i in zip(required, index, strict=True):
-                try:
-                    values.append(float(row[i]))
-                except ValueError:
-                    raise DataFormatError(
-                        path, f"value {row[i]!r} is not a number", row=row_no, field=col
-                    ) from None
-            rows.append(values)
+        values = []
+        for col, i in zip(required, index, strict=True):
+            try:
+                values.append(float(row[i]))
+            except ValueError:
+                raise DataFormatError(path, not_a_number(row[i]), row=row_no, field=col) from None
+        rows.append(values)
     data = np.array(rows, dtype=np.float64).reshape(len(rows), len(required))
     return {c: data[:, k] for k, c in enumerate(required)}
 

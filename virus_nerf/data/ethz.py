@@ -8,7 +8,6 @@ Nothing under DATA/ is ever written unless `write_split=True` is asked for.
 
 from __future__ import annotations
 
-import csv
 import re
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -17,16 +16,22 @@ from typing import Literal
 
 import numpy as np
 
-from virus_nerf.data.csvtable import check_sorted_times, read_numeric_csv
+from virus_nerf.data.csvtable import (
+    check_sorted_times,
+    read_csv_rows,
+    read_numeric_csv,
+    refuse_bad_header,
+)
 from virus_nerf.data.frame import SyncFrame
 from virus_nerf.data.images import check_depth_header, image_size, read_depth, read_rgb
 from virus_nerf.data.pcd import read_pcd_xyz
 from virus_nerf.data.split import make_split, read_split, read_split_ratios
 from virus_nerf.data.split import write_split as write_split_file
-from virus_nerf.errors import DataFormatError
+from virus_nerf.errors import DataFormatError, UsageError
 from virus_nerf.sensors import irs, uss
-from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.sensors.camera import Intrinsics, image_side_problem, intrinsics_problem
 from virus_nerf.sensors.geometry import pose_matrix
+from virus_nerf.utils.textfile import not_a_number, quoted
 
 PoseSource = Literal["optimised", "odometry"]
 POSE_COLUMNS = ("time", "x", "y", "z", "qx", "qy", "qz", "qw")
@@ -36,6 +41,9 @@ TOF_COLUMNS = ("time",) + tuple(f"meas_{k}" for k in range(irs.IRS_ZONE_COUNT))
 # real sample is unit to 2e-9); a quaternion further off is a column mix-up or garbage, which
 # normalising would silently turn into a wrong rotation.
 QUATERNION_NORM_TOLERANCE = 1e-3
+# An IRS zone reading (mm) beyond 100 m cannot be a distance (the VL53L5CX reaches 4 m): it is a
+# unit mix-up or garbage, and is refused naming the row and zone rather than read as free space.
+IRS_MAX_PLAUSIBLE_MM = 100_000
 
 
 @dataclass
@@ -107,7 +115,7 @@ class Recording:
         if self.map_path is None:
             raise DataFormatError(self.room_dir / "maps", "no map_*.pcd found; ground truth needs the LiDAR map")
         if self._map_cache is None:
-            self._map_cache = read_pcd_xyz(self.map_path)
+            self._map_cache = read_pcd_xyz(self.map_path, nonempty="the LiDAR map")
         return self._map_cache
 
     @cached_property
@@ -148,6 +156,22 @@ class Recording:
         return [(s, i) for _, s, i in sorted(entries)]
 
 
+def common_image_size(intrinsics: dict[int, Intrinsics], *, source: Path | None = None,
+                      shown: dict[int, Intrinsics] | None = None) -> tuple[int, int]:
+    """The one (width, height) of every stack's `intrinsics`; stacks of different sizes are refused in
+    one line listing each stack's size (`shown`: the sizes to list, e.g. the recording's own where
+    `intrinsics` are scaled), a DataFormatError naming `source` if given, else a UsageError."""
+    sizes = {(i.width, i.height) for i in intrinsics.values()}
+    if len(sizes) == 1:
+        return sizes.pop()
+    listed = ", ".join(f"CAM{s} {i.width}x{i.height}" for s, i in sorted((shown or intrinsics).items()))
+    problem = (f"the stacks' images differ in size ({listed}); expected one image size for all stacks"
+               if sizes else "no sensor stacks; expected at least one")
+    if source is not None:
+        raise DataFormatError(source, problem)
+    raise UsageError(problem)
+
+
 def read_intrinsics(path: Path) -> dict[int, Intrinsics]:
     """camera_intrinsics.CSV (cam_id,fx,fy,cx,cy[,width,height]) -> {stack id: Intrinsics}.
 
@@ -156,11 +180,11 @@ def read_intrinsics(path: Path) -> dict[int, Intrinsics]:
     """
     if not path.is_file():
         raise DataFormatError(path, "camera intrinsics file not found (expected cam_id,fx,fy,cx,cy)")
-    with path.open(newline="") as fh:
-        rows = list(csv.reader(fh))
+    rows = read_csv_rows(path, "camera intrinsics file")
     expected = ["cam_id", "fx", "fy", "cx", "cy"]
     header = [h.strip() for h in rows[0]] if rows else []
     if header not in (expected, expected + ["width", "height"]):
+        refuse_bad_header(path, header)
         raise DataFormatError(path, f"header must be {','.join(expected)} (optionally ,width,height)", row=1)
     out: dict[int, Intrinsics] = {}
     for row_no, row in enumerate(rows[1:], start=2):
@@ -168,21 +192,26 @@ def read_intrinsics(path: Path) -> dict[int, Intrinsics]:
             continue
         if len(row) != len(header):
             raise DataFormatError(path, f"has {len(row)} values; expected {len(header)}", row=row_no)
-        m = re.fullmatch(r"CAM(\d+)", row[0].strip())
+        m = re.fullmatch(r"CAM([0-9]+)", row[0].strip())
         if not m:
-            raise DataFormatError(path, f"cam_id {row[0]!r} is not CAM<number>", row=row_no, field="cam_id")
+            raise DataFormatError(path, f"cam_id {quoted(row[0])} is not CAM<number>", row=row_no, field="cam_id")
         values = []
         for name, text in zip(header[1:], row[1:], strict=True):
             try:
                 v = float(text)
             except ValueError:
-                raise DataFormatError(path, f"value {text!r} is not a number", row=row_no, field=name) from None
+                raise DataFormatError(path, not_a_number(text), row=row_no, field=name) from None
             if not np.isfinite(v) or (name in ("fx", "fy", "width", "height") and v <= 0):
                 raise DataFormatError(path, f"value {v} must be finite (and positive for focal lengths and sizes)",
                                       row=row_no, field=name)
+            if name in ("width", "height") and (problem := image_side_problem(v, name)):
+                raise DataFormatError(path, problem, row=row_no, field=name)
             values.append(v)
         fx, fy, cx, cy = values[:4]
         size = (int(values[4]), int(values[5])) if len(values) == 6 else (640, 480)
+        bad = intrinsics_problem(fx, fy, cx, cy, *size)
+        if bad:
+            raise DataFormatError(path, bad[1], row=row_no, field=bad[0])
         out[int(m.group(1))] = Intrinsics(fx, fy, cx, cy, width=size[0], height=size[1])
     return out
 
@@ -229,6 +258,12 @@ def read_tof(path: Path) -> tuple[np.ndarray, np.ndarray]:
     table = read_numeric_csv(path, TOF_COLUMNS)
     check_sorted_times(path, table["time"])
     mm = np.stack([table[f"meas_{k}"] for k in range(irs.IRS_ZONE_COUNT)], axis=1)
+    far = np.argwhere(np.abs(mm) > IRS_MAX_PLAUSIBLE_MM)  # (row, zone), row-major: the first row first
+    if far.size:
+        i, k = (int(v) for v in far[0])
+        raise DataFormatError(
+            path, f"{mm[i, k]:g} mm ({mm[i, k] / 1000:g} m) is beyond any IRS reading (> {IRS_MAX_PLAUSIBLE_MM} mm "
+                  f"= {IRS_MAX_PLAUSIBLE_MM // 1000} m); expected millimetres", row=i + 2, field=f"meas_{k}")
     metres = mm / 1000.0
     metres[~np.isfinite(mm) | (metres <= irs.IRS_MIN_VALID_M)] = np.nan
     return table["time"], irs.grid_from_measurements(metres)

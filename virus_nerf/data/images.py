@@ -7,14 +7,23 @@ a DataFormatError naming the file.
 
 from __future__ import annotations
 
+import struct
+import tokenize
+import zlib
 from pathlib import Path
 
 import numpy as np
 
-from virus_nerf.errors import DataFormatError
+from virus_nerf.errors import DataFormatError, one_line
 from virus_nerf.sensors.camera import Intrinsics
 
 DEPTH_INVALID_MM = (0, 65535)
+# What PIL raises on a damaged image file besides DecompressionBombError: OSError (unidentified,
+# truncated), and from deep inside its decoders SyntaxError, ValueError, EOFError, struct/zlib errors.
+IMAGE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, IndexError, struct.error, zlib.error)
+# What numpy raises on a damaged .npy header (it parses the header dict with ast.literal_eval) or body.
+NPY_ERRORS = (OSError, ValueError, EOFError, SyntaxError, TypeError, KeyError, OverflowError, MemoryError,
+              tokenize.TokenError)
 
 
 def read_rgb(path: Path, intr: Intrinsics) -> np.ndarray:
@@ -25,8 +34,10 @@ def read_rgb(path: Path, intr: Intrinsics) -> np.ndarray:
             arr = np.asarray(im.convert("RGB"))
     except FileNotFoundError:
         raise DataFormatError(path, "image file not found") from None
-    except OSError as exc:
-        raise DataFormatError(path, f"not a readable image: {exc}") from exc
+    except Image.DecompressionBombError as exc:
+        raise huge_image_error(path, exc) from None
+    except IMAGE_ERRORS as exc:
+        raise DataFormatError(path, f"not a readable image: {one_line(exc, 200)}") from None
     if arr.shape[:2] != (intr.height, intr.width):
         raise DataFormatError(
             path, f"image is {arr.shape[1]}x{arr.shape[0]}; the intrinsics expect {intr.width}x{intr.height}"
@@ -41,12 +52,15 @@ def read_depth(path: Path, intr: Intrinsics) -> np.ndarray:
     refused (a float map is usually in metres, and reading it as millimetres would shrink the
     scene 1000 times).
     """
+    shape, _ = _npy_header(path)  # the shape before the pixels: a corrupt header must not allocate
+    if shape != (intr.height, intr.width):
+        raise DataFormatError(path, f"depth map has shape {shape}; expected ({intr.height}, {intr.width})")
     try:
         raw = np.load(path, allow_pickle=False)
     except FileNotFoundError:
         raise DataFormatError(path, "depth file not found") from None
-    except (OSError, ValueError, EOFError) as exc:
-        raise DataFormatError(path, f"not a readable .npy depth map: {exc}") from exc
+    except NPY_ERRORS as exc:
+        raise DataFormatError(path, f"not a readable .npy depth map: {one_line(exc, 200)}") from None
     if not isinstance(raw, np.ndarray):
         raise DataFormatError(path, "not a .npy array; expected a uint16 depth map in millimetres")
     if raw.shape != (intr.height, intr.width):
@@ -71,16 +85,7 @@ def read_depth(path: Path, intr: Intrinsics) -> np.ndarray:
 
 def check_depth_header(path: Path, intr: Intrinsics) -> None:
     """Shape and type of a depth map from its .npy header alone (no pixels are read)."""
-    try:
-        with path.open("rb") as fh:
-            version = np.lib.format.read_magic(fh)
-            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
-                np.lib.format.read_array_header_2_0
-            shape, _, dtype = read_header(fh)
-    except FileNotFoundError:
-        raise DataFormatError(path, "depth file not found") from None
-    except (OSError, ValueError, EOFError) as exc:
-        raise DataFormatError(path, f"not a readable .npy depth map: {exc}") from exc
+    shape, dtype = _npy_header(path)
     if shape != (intr.height, intr.width):
         raise DataFormatError(path, f"depth map has shape {shape}; expected ({intr.height}, {intr.width})")
     if dtype.kind == "f":
@@ -91,6 +96,21 @@ def check_depth_header(path: Path, intr: Intrinsics) -> None:
         raise DataFormatError(path, f"depth map is {dtype}; expected uint16 millimetres")
 
 
+def _npy_header(path: Path) -> tuple[tuple, np.dtype]:
+    """(shape, dtype) from a .npy file's header; a damaged header is a DataFormatError."""
+    try:
+        with path.open("rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                np.lib.format.read_array_header_2_0
+            shape, _, dtype = read_header(fh)
+    except FileNotFoundError:
+        raise DataFormatError(path, "depth file not found") from None
+    except NPY_ERRORS as exc:
+        raise DataFormatError(path, f"not a readable .npy depth map: {one_line(exc, 200)}") from None
+    return shape, dtype
+
+
 def image_size(path: Path) -> tuple[int, int]:
     from PIL import Image
 
@@ -99,5 +119,31 @@ def image_size(path: Path) -> tuple[int, int]:
             return im.size
     except FileNotFoundError:
         raise DataFormatError(path, "image file not found") from None
-    except OSError as exc:
-        raise DataFormatError(path, f"not a readable image: {exc}") from exc
+    except Image.DecompressionBombError as exc:
+        raise huge_image_error(path, exc) from None
+    except IMAGE_ERRORS as exc:
+        raise DataFormatError(path, f"not a readable image: {one_line(exc, 200)}") from None
+
+
+def huge_image_error(path: Path, exc: Exception) -> DataFormatError:
+    """The error for an image whose header claims more pixels than PIL will decode (a corrupt
+    header, or a decompression bomb): names the size the header claims where it can be read."""
+    from PIL import Image
+
+    limit = 2 * (Image.MAX_IMAGE_PIXELS or 0)  # PIL refuses above twice its warning threshold
+    size = _png_header_size(path)
+    claim = f"{size[0]}x{size[1]} px ({size[0] * size[1] / 1e6:.0f} Mpx)" if size else one_line(exc, 120)
+    return DataFormatError(path, f"image header claims {claim}, beyond the {limit / 1e6:.0f} Mpx an image may "
+                                 "have; corrupt file?")
+
+
+def _png_header_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR chunk, or None if `path` is no PNG."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(24)
+    except OSError:
+        return None
+    if len(head) < 24 or not head.startswith(b"\x89PNG\r\n\x1a\n") or head[12:16] != b"IHDR":
+        return None
+    return struct.unpack(">II", head[16:24])

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import numpy as np
 
-from virus_nerf.errors import DataFormatError
+from virus_nerf.data.csvtable import read_csv_rows, refuse_bad_header
+from virus_nerf.errors import DataFormatError, UsageError
 from virus_nerf.utils.io import write_text_atomic
+from virus_nerf.utils.textfile import not_a_number, quoted
 
 LABELS = ("train", "val", "test", "skip")
 DEFAULT_RATIOS = (0.6, 0.0, 0.4)
@@ -22,8 +23,9 @@ def make_split(n: int, ratios: tuple[float, float, float] = DEFAULT_RATIOS) -> n
     """
     r_train, r_val, r_test = ratios
     total = r_train + r_val + r_test
-    if total <= 0 or min(ratios) < 0:
-        raise ValueError(f"split ratios must be non-negative with a positive sum, got {ratios}")
+    if not np.isfinite(total) or total <= 0 or min(ratios) < 0:
+        raise UsageError(f"split ratios ({', '.join(f'{r:g}' for r in ratios)}): expected non-negative numbers "
+                         "with a positive sum (train, val, test)")
     r_val, r_test = r_val / total, r_test / total
     r_held = r_val + r_test
     i = np.arange(n)
@@ -41,8 +43,7 @@ def read_split(path: Path, stacks: dict[int, int]) -> dict[int, np.ndarray]:
     """Read split.csv (columns CAM<id>) -> {stack id: (N,) labels}; N must match each stack."""
     if not path.is_file():
         raise DataFormatError(path, "split file not found")
-    with path.open(newline="") as fh:
-        rows = list(csv.reader(fh))
+    rows = read_csv_rows(path, "split file")
     if not rows:
         raise DataFormatError(path, "empty split file; expected header CAM1,CAM3")
     header = [h.strip() for h in rows[0]]
@@ -50,6 +51,7 @@ def read_split(path: Path, stacks: dict[int, int]) -> dict[int, np.ndarray]:
     for stack, n in stacks.items():
         col = f"CAM{stack}"
         if col not in header:
+            refuse_bad_header(path, header)
             raise DataFormatError(path, f"header {header} lacks column {col}", row=1)
         k = header.index(col)
         labels = []
@@ -60,7 +62,7 @@ def read_split(path: Path, stacks: dict[int, int]) -> dict[int, np.ndarray]:
             if value == "":
                 continue
             if value not in LABELS:
-                raise DataFormatError(path, f"label {value!r} is not one of {LABELS}", row=row_no, field=col)
+                raise DataFormatError(path, f"label {quoted(value)} is not one of {LABELS}", row=row_no, field=col)
             labels.append(value)
         if len(labels) != n:
             raise DataFormatError(
@@ -74,12 +76,35 @@ def read_split_ratios(path: Path) -> tuple[float, float, float]:
     """Ratios from split_description.csv (train,val,test columns) or the default."""
     if not path.is_file():
         return DEFAULT_RATIOS
-    with path.open(newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    try:
-        return (float(rows[0]["train"]), float(rows[0]["val"]), float(rows[0]["test"]))
-    except (IndexError, KeyError, ValueError) as exc:
-        raise DataFormatError(path, f"expected columns train,val,test with numbers: {exc}", row=2) from exc
+    rows = read_csv_rows(path, "split description")
+    header = [h.strip() for h in rows[0]] if rows else []
+    names = ("train", "val", "test")
+    missing = [c for c in names if c not in header]
+    if missing:
+        refuse_bad_header(path, header)
+        raise DataFormatError(path, f"header lacks column(s) {missing}; expected train,val,test "
+                                    "(other columns, e.g. a free-text info, may follow)", row=1)
+    if len(rows) < 2 or not any(c.strip() for c in rows[1]):
+        raise DataFormatError(path, "no ratios; expected one row of train,val,test numbers", row=2)
+    row = rows[1]
+    ratios = []
+    for name in names:
+        k = header.index(name)
+        text = row[k] if k < len(row) else ""
+        try:
+            r = float(text)
+        except ValueError:
+            raise DataFormatError(path, not_a_number(text), row=2, field=name) from None
+        if not np.isfinite(r):
+            raise DataFormatError(path, f"ratio {r:g} is not finite", row=2, field=name)
+        if r < 0:
+            raise DataFormatError(path, f"ratio {r:g} is negative; expected non-negative train,val,test ratios "
+                                        "with a positive sum", row=2, field=name)
+        ratios.append(r)
+    if sum(ratios) <= 0:
+        raise DataFormatError(path, "the ratios sum to 0; expected non-negative train,val,test ratios with a "
+                                    "positive sum", row=2, field="train/val/test")
+    return (ratios[0], ratios[1], ratios[2])
 
 
 def write_split(path: Path, splits: dict[int, np.ndarray]) -> None:

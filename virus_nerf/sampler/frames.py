@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from virus_nerf.data.ethz import Recording
+from virus_nerf.data.ethz import Recording, common_image_size
 from virus_nerf.sampler import frame_cache
 from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics, pixel_directions
@@ -79,10 +79,7 @@ class FrameStore:
     @staticmethod
     def empty(intrinsics: dict[int, Intrinsics], with_depth: bool = False) -> FrameStore:
         """A store without frames for stacks with these (training-resolution) intrinsics."""
-        sizes = {(i.width, i.height) for i in intrinsics.values()}
-        if len(sizes) != 1:
-            raise ValueError(f"all stacks must share one image size, got {sizes}")
-        width, height = sizes.pop()
+        width, height = common_image_size(intrinsics)
         return FrameStore(
             stack_ids=np.zeros(0, dtype=np.int64), rows=np.zeros(0, dtype=np.int64), times=np.zeros(0),
             cam_to_world=np.zeros((0, 4, 4)), images=np.zeros((0, height, width, 3), dtype=np.uint8),
@@ -212,10 +209,8 @@ def build_frame_store(
         (s, int(i)) for s, stack in sorted(recording.stacks.items()) for i in np.flatnonzero(np.isin(stack.split, labels))
     ]
     intrinsics = {s: st.intrinsics.scaled(image_scale) for s, st in recording.stacks.items()}
-    sizes = {(i.width, i.height) for i in intrinsics.values()}
-    if len(sizes) != 1:
-        raise ValueError(f"all stacks must share one image size, got {sizes}")
-    width, height = sizes.pop()
+    width, height = common_image_size(intrinsics, source=recording.root / "camera_intrinsics.CSV",
+                                      shown={s: st.intrinsics for s, st in recording.stacks.items()})
     n = len(entries)
     files = [recording.stacks[s].image_paths[i] for s, i in entries]
     if with_depth:

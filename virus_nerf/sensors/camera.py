@@ -36,6 +36,44 @@ class Intrinsics:
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
 
 
+# Plausible pinhole intrinsics (checked where intrinsics are read from a file): a field of view
+# 2 atan(size / (2 f)) of 1 to 170 degrees along each image axis, the principal point inside the
+# image, sides of a whole number of pixels up to 100000 px. Anything else is a unit mix-up
+# (metres, a normalised matrix) or garbage, and makes every ray degenerate.
+FOV_RANGE_DEG = (1.0, 170.0)
+MAX_IMAGE_SIDE_PX = 100_000
+
+
+def focal_range_px(size_px: float) -> tuple[float, float]:
+    """Focal lengths (px) that give a field of view within FOV_RANGE_DEG over `size_px` pixels."""
+    lo_deg, hi_deg = FOV_RANGE_DEG
+    return size_px / (2 * np.tan(np.radians(hi_deg) / 2)), size_px / (2 * np.tan(np.radians(lo_deg) / 2))
+
+
+def image_side_problem(value: float, name: str) -> str | None:
+    """Why `value` is no image width/height (name: 'width' or 'height'), or None."""
+    if value != int(value):
+        return f"image {name} {value:g} px is not a whole number of pixels"
+    if not 1 <= value <= MAX_IMAGE_SIDE_PX:
+        return f"image {name} {value:g} px; expected a size from 1 to {MAX_IMAGE_SIDE_PX} px"
+    return None
+
+
+def intrinsics_problem(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> tuple[str, str] | None:
+    """(field, problem) of the first implausible value of finite pinhole intrinsics, or None."""
+    for name, f, size in (("fx", fx, width), ("fy", fy, height)):
+        lo, hi = focal_range_px(size)
+        if not lo <= f <= hi:
+            fov = float(np.degrees(2 * np.arctan2(size, 2 * f))) if f > 0 else 180.0
+            return name, (f"focal length {f:g} px gives a {fov:.1f} degree field of view over {size} px; expected "
+                          f"a field of view of {FOV_RANGE_DEG[0]:g} to {FOV_RANGE_DEG[1]:g} degrees "
+                          f"({name} from {lo:.0f} to {hi:.0f} px)")
+    for name, c, size in (("cx", cx, width), ("cy", cy, height)):
+        if not 0 <= c <= size:
+            return name, f"principal point {c:g} px lies outside the image (0 to {size} px)"
+    return None
+
+
 def pixel_directions(intr: Intrinsics, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Camera-frame unit directions (N, 3) through pixel coordinates u (column), v (row)."""
     x = (np.asarray(u, dtype=np.float64) - intr.cx) / intr.fx

@@ -248,15 +248,20 @@ class Scene:
     @classmethod
     def load(cls, path: str | Path) -> Scene:
         """Read a scene.json written by `save`; errors name the object and field."""
+        from virus_nerf.utils.textfile import decode_strict, read_bytes
+
         path = Path(path)
         try:
-            data = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise DataFormatError(path, "scene file not found") from None
+            data = json.loads(decode_strict(path, read_bytes(path, "scene file")))
         except json.JSONDecodeError as exc:
             raise DataFormatError(path, f"not valid JSON: {exc}") from exc
+        if not isinstance(data, dict):
+            raise DataFormatError(path, f"expected a JSON object (a virus-nerf scene), got a {_json_kind(data)}")
         if data.get("format") != "virus-nerf-scene":
             raise DataFormatError(path, "not a virus-nerf scene (field 'format')", field="format")
+        extent = {k: _extent(path, data, k, corner) for k, corner in (("extent_lo", "lower"), ("extent_hi", "upper"))}
+        if not isinstance(data.get("objects", []), list):
+            raise DataFormatError(path, "expected a list of objects", field="objects")
         objects = []
         for i, o in enumerate(data.get("objects", [])):
             where = f"objects[{i}]"
@@ -281,8 +286,25 @@ class Scene:
                 objects.append(SceneObject(name=o["name"], kind=o["kind"], primitives=tuple(prims), material=mat))
             except (KeyError, TypeError, ValueError) as exc:
                 raise DataFormatError(path, f"bad object: {exc}", field=where) from exc
-        return cls(objects=objects, name=data.get("name", "room"), extent_lo=tuple(data["extent_lo"]),
-                   extent_hi=tuple(data["extent_hi"]), meta=data.get("meta", {}))
+        return cls(objects=objects, name=data.get("name", "room"), extent_lo=extent["extent_lo"],
+                   extent_hi=extent["extent_hi"], meta=data.get("meta", {}))
+
+
+def _json_kind(value) -> str:
+    return {list: "list", str: "string", bool: "boolean", type(None): "null"}.get(type(value), "number")
+
+
+def _extent(path: Path, data: dict, key: str, corner: str) -> tuple[float, float, float]:
+    """Field `key` of a scene document: the room's `corner` corner, 3 finite numbers (m)."""
+    if key not in data:
+        raise DataFormatError(path, f"missing; expected the room's {corner} corner [x, y, z] in metres", field=key)
+    value = data[key]
+    ok = isinstance(value, list) and len(value) == 3 and all(
+        isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v) for v in value)
+    if not ok:
+        raise DataFormatError(path, f"{value!r} is not 3 finite numbers; expected the room's {corner} corner "
+                                    "[x, y, z] in metres", field=key)
+    return tuple(value)
 
 
 def _jsonable(x):

@@ -23,7 +23,7 @@ def import_bag(
     """Import a ROS bag (ROS 1 .bag file or ROS 2 folder) into the ETHZ layout for train/sensors.
 
     Args:
-        bag: ROS 1 .bag file, or ROS 2 bag folder (metadata.yaml + .db3/.mcap).
+        bag: ROS 1 .bag file, ROS 2 bag folder (metadata.yaml + .db3/.mcap) or a single ROS 2 .mcap/.db3 file.
         out: New data folder (refused if it exists); train with --data OUT --room ROOM.
         topics: TOML topics file naming your robot's topics, mounting and sync tolerances (default: the ETHZ robot's).
         poses: lidar-odometry (KISS-ICP on the LiDAR scans), tf (--tf-parent/--tf-child from /tf, /tf_static) or csv (--poses-file).

@@ -39,7 +39,7 @@ def require_ros_extra(poses: str = "lidar-odometry") -> None:
 
 
 def room_name(bag: Path) -> str:
-    stem = bag.name.removesuffix(".bag") if bag.is_file() else bag.name
+    stem = bag.stem if bag.is_file() else bag.name  # office.bag, office.mcap (a bare ROS 2 file) -> office
     return re.sub(r"[^A-Za-z0-9_-]", "_", stem) or "room"
 
 

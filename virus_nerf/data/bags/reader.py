@@ -1,4 +1,5 @@
-"""Reading ROS 1 (.bag) and ROS 2 (folder with metadata.yaml + .db3/.mcap) bags with rosbags.
+"""Reading ROS 1 (.bag) and ROS 2 (folder with metadata.yaml + .db3/.mcap, or a bare .mcap/.db3
+file) bags with rosbags.
 
 `BagReader` opens either kind, checks that a topic exists and carries an accepted message type,
 and iterates one topic's messages deserialised, with their stamps. Every failure of rosbags
@@ -27,7 +28,8 @@ def _bag_errors() -> tuple[type[BaseException], ...]:
     from rosbags.typesys import TypesysError
 
     return (AnyReaderError, Reader1Error, Reader2Error, SerdeError, TypesysError, sqlite3.Error,
-            struct.error, EOFError, UnicodeDecodeError, IndexError, KeyError, ValueError, AssertionError)
+            struct.error, EOFError, UnicodeDecodeError, IndexError, KeyError, ValueError, AssertionError,
+            MemoryError, OverflowError)  # a corrupt record length: rosbags asks for exabytes at once
 
 
 @dataclass(frozen=True)
@@ -58,9 +60,12 @@ class BagReader:
                                       "(metadata.yaml + .db3/.mcap) or a ROS 1 .bag file")
             self.ros_version = 2
         elif self.path.is_file():
-            if self.path.suffix != ".bag":
-                raise DataFormatError(self.path, "expected a ROS 1 bag ending in .bag or a ROS 2 bag folder")
-            self.ros_version = 1
+            if self.path.suffix not in (".bag", ".mcap", ".db3"):
+                raise DataFormatError(self.path, "expected a ROS 1 .bag file, a ROS 2 bag folder (metadata.yaml + "
+                                      ".db3/.mcap) or a single ROS 2 .mcap/.db3 file")
+            # rosbags reads a ROS 2 storage file without its folder's metadata.yaml (rosbag2.Reader picks
+            # its McapReader / Sqlite3Reader by the suffix): rosbag2 may write single .mcap files.
+            self.ros_version = 1 if self.path.suffix == ".bag" else 2
         else:
             raise DataFormatError(self.path, "bag not found")
         self._reader = None
@@ -87,6 +92,8 @@ class BagReader:
 
     def corrupt(self, exc: BaseException) -> DataFormatError:
         what = " ".join(str(exc).split()) or type(exc).__name__
+        if isinstance(exc, MemoryError):
+            what = "a record's length asks for more memory than there is (MemoryError)"
         return DataFormatError(self.path, f"cannot be read (truncated or corrupt bag?): {what}")
 
     @property

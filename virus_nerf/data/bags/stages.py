@@ -57,7 +57,7 @@ class ImportRun:
         self.reader, self.cfg, self.plan, self.root, self.room = reader, cfg, plan, root, room
         self.room_dir = root / room
         self.reports: dict[str, TopicReport] = {}
-        self.notes: list[str] = []
+        self.notes: list[str] = list(cfg.notes)  # e.g. that the topics file named no stacks
         self.stamps: dict[Key, list[float]] = defaultdict(list)
         self.small: dict[Key, list] = defaultdict(list)  # uss: echo us; tof: (meas (64,), stds (64,))
         self.camera_info: dict[int, Intrinsics] = {}

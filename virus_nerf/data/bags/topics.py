@@ -74,6 +74,7 @@ class TopicsConfig:
     tf_topics: tuple[str, ...] = ("/tf", "/tf_static")
     intrinsics_csv: Path | None = None  # used for stacks without a camera_info topic
     source: Path | None = None  # the file read (None = built-in defaults)
+    notes: tuple[str, ...] = ()  # what the import report should say about the file (e.g. defaults used)
 
 
 def ethz_stack(s: int) -> StackTopics:
@@ -105,16 +106,20 @@ def read_topics(path: str | Path) -> TopicsConfig:
     r = _Reader(path)
     r.keys(doc, "", {"stacks", "lidar", "sync", "tf_topics", "intrinsics_csv"})
     stacks_doc = doc.get("stacks", None)
+    notes: tuple[str, ...] = ()
     if stacks_doc is None:
         stacks = default_topics().stacks
+        notes = (f"{path}: no [stacks] section: the ETHZ robot's stacks "
+                 f"{' and '.join(str(s) for s in sorted(stacks))} are used "
+                 f"({', '.join(stacks[s].color for s in sorted(stacks))}, ...)",)
     else:
         if not isinstance(stacks_doc, dict) or not stacks_doc:
             raise ConfigError("expected a table of stacks ([stacks.1], [stacks.3], ...)", file=path, key="stacks")
         stacks = {}
         for sid, table in stacks_doc.items():
             key = f"stacks.{sid}"
-            if not sid.isdigit() or int(sid) < 0:
-                raise ConfigError(f"stack id {sid!r}: expected a non-negative integer", file=path, key=key)
+            if not (sid.isascii() and sid.isdigit()):  # not '¹' or '٣', which isdigit() accepts and int() not
+                raise ConfigError(f"stack id {sid!r}: expected a non-negative integer (digits 0-9)", file=path, key=key)
             stacks[int(sid)] = r.stack(table, key)
     lidar = r.section(doc.get("lidar", {}), "lidar", LidarConfig, optional_str={"topic"})
     sync = r.section(doc.get("sync", {}), "sync", SyncConfig)
@@ -133,7 +138,7 @@ def read_topics(path: str | Path) -> TopicsConfig:
         raise ConfigError(f"{intr!r}: expected a path string", file=path, key="intrinsics_csv")
     intr_path = None if intr is None else (path.parent / intr if not Path(intr).is_absolute() else Path(intr))
     return TopicsConfig(stacks=stacks, lidar=lidar, sync=sync, tf_topics=tuple(tf),
-                        intrinsics_csv=intr_path, source=path)
+                        intrinsics_csv=intr_path, source=path, notes=notes)
 
 
 class _Reader:
