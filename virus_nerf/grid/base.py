@@ -34,6 +34,22 @@ class GridSpec:
         res = tuple(max(1, math.ceil(float(s) / cell - 1e-9)) for s in size)
         return GridSpec(box=box, resolution=res)  # type: ignore[arg-type]
 
+    @staticmethod
+    def from_cell(box: SceneBox, cell: float) -> GridSpec:
+        """Cells of `cell` metres (the box spans whole cells: grid/extent.py makes it so)."""
+        res = tuple(max(1, round(float(s) / cell)) for s in box.size)
+        return GridSpec(box=box, resolution=res)  # type: ignore[arg-type]
+
+    def grown(self, box: SceneBox) -> tuple[GridSpec, tuple[int, int, int]]:
+        """This grid's cells over a larger `box` whose sides lie whole cells further out: the new
+        spec and the offset (3,) in cells of the old cell (0, 0, 0) in the new grid."""
+        cell = self.cell_size
+        offset = np.rint((np.asarray(self.box.lo) - np.asarray(box.lo)) / cell).astype(int)
+        res = np.rint(np.asarray(box.size) / cell).astype(int)
+        if (offset < 0).any() or (offset + np.asarray(self.resolution) > res).any():
+            raise ValueError(f"GridSpec.grown: box {box} does not contain {self.box}")
+        return GridSpec(box=box, resolution=tuple(int(r) for r in res)), tuple(int(o) for o in offset)  # type: ignore[arg-type]
+
     @property
     def n_cells(self) -> int:
         rx, ry, rz = self.resolution
@@ -195,3 +211,18 @@ class OccupancyGrid(ABC):
 
     def occupancy_share(self) -> float:
         return float(self.occupied.float().mean())
+
+    def grow(self, box: SceneBox) -> None:
+        """Cover the larger `box` (grid/extent.py): every existing cell keeps its place and value,
+        the new cells start as cells nothing has updated yet."""
+        raise NotImplementedError(f"{type(self).__name__} cannot grow")
+
+
+def pad_cells(values: torch.Tensor, resolution: tuple[int, int, int], offset: tuple[int, int, int],
+              fill: float | bool) -> torch.Tensor:
+    """(rx, ry, rz) `values` placed at `offset` inside a new (RX, RY, RZ) tensor of `fill`."""
+    out = torch.full(resolution, fill, dtype=values.dtype, device=values.device)
+    ox, oy, oz = offset
+    rx, ry, rz = values.shape
+    out[ox : ox + rx, oy : oy + ry, oz : oz + rz] = values
+    return out

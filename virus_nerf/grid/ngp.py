@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from virus_nerf.grid.base import DensityFn, GridSpec, GridUpdateBatch, OccupancyGrid
+from virus_nerf.grid.base import DensityFn, GridSpec, GridUpdateBatch, OccupancyGrid, pad_cells
 from virus_nerf.scene_box import SceneBox
 
 
@@ -133,6 +133,14 @@ class NgpGrid(OccupancyGrid):
         self._occupied = self.values > self.threshold
         self.n_updates += 1
         self.last_n_evaluated = int(cells.shape[0])
+
+    def grow(self, box: SceneBox) -> None:
+        """Cover the larger `box` (grid/extent.py): cells keep their values; new cells start as
+        at construction (density 0, occupied until an update evaluates them)."""
+        spec, offset = self.spec.grown(box)
+        self.values = pad_cells(self.values, spec.resolution, offset, 0.0)
+        self._occupied = pad_cells(self._occupied, spec.resolution, offset, True)
+        self.spec = spec
 
     def state_dict(self) -> dict[str, torch.Tensor | int | float]:
         return {

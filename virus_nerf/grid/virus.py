@@ -30,6 +30,7 @@ from virus_nerf.grid.base import (
     OccupancyGrid,
     SensorPriorRequest,
     SensorRays,
+    pad_cells,
 )
 from virus_nerf.grid.sensor_model import (
     depth_update_kernel,
@@ -298,6 +299,18 @@ class VirusGrid(OccupancyGrid):
         )
         self.last_nerf_update = info
         return info
+
+    def grow(self, box: SceneBox) -> None:
+        """Cover the larger `box` (grid/extent.py): cells keep their values; new cells get the
+        value of a cell nothing updated (p_init moved by the warm-up so far)."""
+        spec, offset = self.spec.grown(box)
+        c = self.config
+        fill = float(np.clip(np.float32(c.logodds_init) + np.float32(self._decay_applied), c.logodds_min,
+                             c.logodds_max))
+        self._logodds = pad_cells(self._logodds, spec.resolution, offset, fill)
+        self.spec = spec
+        self._lo, self._size, self._res = spec_arrays(spec)
+        self._occupied = None
 
     # ------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, torch.Tensor | int | float]:

@@ -8,6 +8,7 @@ from typing import Literal
 
 from virus_nerf.evaluation.evaluate import EvaluationConfig
 from virus_nerf.field.field import FieldConfig
+from virus_nerf.grid.extent import ExtentConfig
 from virus_nerf.grid.ngp import NgpGridConfig
 from virus_nerf.grid.virus import VirusGridConfig
 from virus_nerf.losses import LossWeights
@@ -105,6 +106,9 @@ class TrainConfig:
     evaluation: EvaluationConfig = dc_field(default_factory=EvaluationConfig)
     # the stereo sensor: depth triangulated from the cameras' own tracks (docs/method.md 3.7)
     stereo: StereoConfig = dc_field(default_factory=StereoConfig)
+    # the map's extent: fitted to the room before the first step, or grown from the first frame
+    # as the robot drives (a room never seen; grid/extent.py, docs/extent.md)
+    extent: ExtentConfig = dc_field(default_factory=ExtentConfig)
 
     def __post_init__(self) -> None:
         """Types and ranges of every top-level knob (and the nested ones that would crash the

@@ -30,7 +30,7 @@ from virus_nerf.sampler.frames import FrameStore, build_frame_store
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.mapper import Mapper
-from virus_nerf.trainer.model import build_grid, fit_scene_box, resolve_device
+from virus_nerf.trainer.model import build_grid, resolve_device, start_box
 from virus_nerf.trainer.run_folder import (
     CHECKPOINT,
     METRICS_VS_TIME,
@@ -76,7 +76,7 @@ class Trainer:
         self.config = config
         self.run_dir = Path(run_dir)
         self.quiet = (not sys.stderr.isatty()) if quiet is None else quiet
-        box = fit_scene_box(recording)
+        box = start_box(recording, config)
         self.mapper = Mapper(config, {s: st.intrinsics for s, st in recording.stacks.items()}, box)
         self._source: FrameStore | None = None  # every training frame, decoded on first use
         self._added: np.ndarray | None = None  # (F,) bool: source rows the mapper has
@@ -247,7 +247,7 @@ class Trainer:
         # CPU first: the RNG states must stay CPU byte tensors (Generator.set_state refuses
         # others); load_state_dict copies the tensors onto the field's and optimiser's device
         state = torch.load(path, map_location="cpu", weights_only=False)
-        if "box" in state:
+        if "box" in state and self.config.extent.mode != "grow":  # a grown box is restored by the mapper
             saved = SceneBox.from_dict(state["box"])
             if not np.allclose(saved.lo, self.box.lo, atol=1e-6) or not np.allclose(saved.hi, self.box.hi, atol=1e-6):
                 from virus_nerf.errors import DataFormatError

@@ -43,7 +43,8 @@ import torch
 from virus_nerf.data.frame import SyncFrame, check_frame
 from virus_nerf.errors import UsageError
 from virus_nerf.field.field import NerfField
-from virus_nerf.grid.base import GridUpdateBatch
+from virus_nerf.grid.base import GridSpec, GridUpdateBatch
+from virus_nerf.grid.extent import field_config_for_frame, field_frame, inside_frame, needed_box
 from virus_nerf.losses import LossTerms, distortion_loss, line_of_sight_terms, total_loss
 from virus_nerf.render.marching import ray_box_interval
 from virus_nerf.sampler.batch import BatchSampler, RayBatch, recent_frame_odds
@@ -54,7 +55,7 @@ from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.stereo.depth import StereoDepth, StereoFeed
 from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.map_views import MapViews
-from virus_nerf.trainer.model import SceneModel, build_grid, fit_scene_box, resolve_device
+from virus_nerf.trainer.model import SceneModel, build_grid, resolve_device, start_box
 from virus_nerf.trainer.schedule import budget_share, rays_for_step
 
 
@@ -76,8 +77,9 @@ class Mapper(MapViews):
     config: the training configuration (its max_steps/max_time only shape the learning-rate
     decay; `train` decides how long to train). intrinsics: stack id -> camera intrinsics at the
     frames' full resolution (frames are resized by config.image_scale). box: the scene box in
-    metres, the field's and grid's frame (fixed for the mapper's life: the room's extent, e.g.
-    from a floor plan or a previous map).
+    metres: with `extent.mode` fitted the field's and grid's frame for the mapper's life (the
+    room's extent, e.g. from a floor plan or a previous map); with grow the box around the first
+    frame (grid/extent.py first_box), which grows as frames arrive (grid/extent.py).
     """
 
     def __init__(self, config: TrainConfig, intrinsics: Mapping[int, Intrinsics], box: SceneBox):
@@ -89,8 +91,14 @@ class Mapper(MapViews):
         self.device = resolve_device(config.device)
         torch.manual_seed(config.seed)
         field_gen = torch.Generator().manual_seed(config.seed)
-        self.field = NerfField(box, config.field, generator=field_gen).to(self.device)
-        self.grid = build_grid(config, box, self.device)
+        ext = config.extent
+        # grow: the field lives in a fixed cube around the first box, the grid's cells keep their
+        # size while the box grows (grid/extent.py); fitted: both span the given box
+        self.frame = field_frame(box, ext) if ext.mode == "grow" else box
+        field_cfg = field_config_for_frame(config.field, ext) if ext.mode == "grow" else config.field
+        self.field = NerfField(self.frame, field_cfg, generator=field_gen).to(self.device)
+        self.grid = build_grid(config, box, self.device, GridSpec.from_cell(box, ext.grid_cell_m)
+                               if ext.mode == "grow" else None)
         self.model = SceneModel(
             self.field, self.grid, config.march.step_size, config.march.near, config.march.max_samples,
             config.min_opacity, config.march.backend, config.march.min_transmittance,
@@ -118,8 +126,9 @@ class Mapper(MapViews):
 
     @classmethod
     def for_recording(cls, recording, config: TrainConfig) -> Mapper:
-        """A mapper for a recording's stacks and scene box (trainer.model.fit_scene_box), no frames."""
-        return cls(config, {s: st.intrinsics for s, st in recording.stacks.items()}, fit_scene_box(recording))
+        """A mapper for a recording's stacks and scene box, no frames: the box fitted to the room
+        (trainer.model.fit_scene_box), or with `extent.mode` grow the first frame's box."""
+        return cls(config, {s: st.intrinsics for s, st in recording.stacks.items()}, start_box(recording, config))
 
     # ------------------------------------------------------------------ frames
     @property
@@ -147,11 +156,31 @@ class Mapper(MapViews):
         depth = None
         if self.store.depths_mm is not None and frame.depth is not None:
             depth = resize_depth_mm(np.asarray(frame.depth, dtype=np.float32), size)
+        self._grow_for(np.asarray(frame.cam_to_world, dtype=np.float64)[None, :3, 3], np.array([frame.time]))
         row = self.store.append(frame.stack_id, self.frames, float(frame.time), np.asarray(frame.cam_to_world),
                                 resize_rgb(frame.rgb, size), depth, float(frame.uss_range),
                                 np.asarray(frame.irs_range, dtype=np.float64))
         self.track_image(row, frame.rgb)
         return row
+
+    def _grow_for(self, positions: np.ndarray, times: np.ndarray) -> None:
+        """With `extent.mode` grow: the box (and the grid) grown to hold every camera position
+        (K, 3) plus the reach; a position outside the field's frame is a one-line UsageError."""
+        ext = self.config.extent
+        if ext.mode != "grow" or not len(positions):
+            return
+        for p, t in zip(positions, times, strict=True):
+            if not inside_frame(p, self.frame):
+                raise UsageError(
+                    f"frame at time {float(t):.3f} s: camera at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m lies outside "
+                    f"the map's frame {self.frame.lo}..{self.frame.hi} (extent.frame_m {ext.frame_m:g} m around "
+                    "the first frame); expected a drive within it (a larger extent.frame_m maps a larger area)")
+        box = self.box
+        for corner in (positions.min(axis=0), positions.max(axis=0)):
+            box = needed_box(box, corner, ext, self.frame) or box
+        if box is not self.box:
+            self.grid.grow(box)
+            self.box = box
 
     def track_image(self, row: int, rgb: np.ndarray) -> None:
         """Feed frame `row`'s full-resolution image (H, W, 3) uint8 to the stereo sensor's tracker
@@ -171,10 +200,12 @@ class Mapper(MapViews):
         all of them (taken over without a copy when the mapper has none yet)."""
         if store.intrinsics != self.store.intrinsics:
             raise ValueError(f"store intrinsics {store.intrinsics} differ from the mapper's {self.store.intrinsics}")
+        picked = np.arange(len(store)) if rows is None else np.asarray(rows)
+        self._grow_for(store.cam_to_world[picked, :3, 3], store.times[picked])
         if rows is None and self.frames == 0:
             self._sampler = BatchSampler(store, self.config.sensors, self.config.shares, self.stereo)
             return
-        self.store.append_rows(store, np.arange(len(store)) if rows is None else rows)
+        self.store.append_rows(store, picked)
 
     def set_stereo(self, depth: StereoDepth | None) -> None:
         """Triangulated depth targets (stereo.StereoDepth) for the frames added so far, rows in
@@ -380,6 +411,11 @@ class Mapper(MapViews):
     def load_state(self, state: dict) -> None:
         """Continue from `state()` (read on the CPU). The frames are not in it: add them again in
         the same order; the first `prior_frames` of them do not get the sensor prior again."""
+        if self.config.extent.mode == "grow" and "box" in state:  # the box had grown: grow to it first
+            saved = SceneBox.from_dict(state["box"])
+            if not np.allclose(saved.lo, self.box.lo) or not np.allclose(saved.hi, self.box.hi):
+                self.grid.grow(saved)
+                self.box = saved
         self.field.load_state_dict(state["field"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.grid.load_state_dict(state["grid"])

@@ -183,9 +183,23 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def build_grid(config: TrainConfig, box: SceneBox, device: torch.device) -> OccupancyGrid:
+def start_box(recording: Recording, config: TrainConfig) -> SceneBox:
+    """The mapper's box before its first frame: fitted to the room (`extent.mode` fitted), or the
+    box around the recording's first training frame (grow: grid/extent.py)."""
+    if config.extent.mode != "grow":
+        return fit_scene_box(recording)
+    from virus_nerf.grid.extent import first_box
+
+    first = min(((float(st.times[i]), st.cam_to_world[i, :3, 3]) for st in recording.stacks.values()
+                 for i in st.indices("train")[:1]), key=lambda tp: tp[0])
+    return first_box(first[1], config.extent)
+
+
+def build_grid(config: TrainConfig, box: SceneBox, device: torch.device, spec: GridSpec | None = None) -> OccupancyGrid:
+    """The configured occupancy grid over `spec` (default: `box` with the grid's max_resolution)."""
     if config.grid == "ngp":
         cfg = config.ngp_grid
-        return NgpGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, step_size=config.march.step_size, device=device)
+        return NgpGrid(spec or GridSpec.from_box(box, cfg.max_resolution), cfg, step_size=config.march.step_size,
+                       device=device)
     cfg = config.virus_grid
-    return VirusGrid(GridSpec.from_box(box, cfg.max_resolution), cfg, device=device)
+    return VirusGrid(spec or GridSpec.from_box(box, cfg.max_resolution), cfg, device=device)

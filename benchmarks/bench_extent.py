@@ -1,0 +1,91 @@
+"""Unknown extent (issue 29, item 2): mapping while driving with the box grown from the first frame
+(`extent.mode` grow) against the box fitted in advance from the LiDAR map and the whole drive.
+
+Each run is `virus-nerf train --online` (frames released by the training clock at
+--playback-speed) in its own process, one at a time; the NeRF scans are scored at the end against
+the LiDAR map at camera height (zone 3, `map` ground truth). The peak resident memory of each run
+(its process's ru_maxrss) is reported beside the drive's length.
+
+    python benchmarks/bench_extent.py --scenes common,warehouse --sim-seeds 61,62,63 --out benchmarks/results/extent.json
+
+Rooms: the simulated rooms under benchmarks/.data (made by bench_time_to_map.py's `ensure_data`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from bench_time_to_map import DEFAULT_DATA, ensure_data  # noqa: E402
+
+MODES = {"fitted": {}, "grow": {"extent": {"mode": "grow"}}}
+
+
+def run_once(data: Path, room: str, mode: str, playback: float, seed: int, work: Path) -> dict:
+    """One online training; its zone-3 metrics, wall time and peak memory."""
+    cfg = work / f"{mode}.json"
+    cfg.write_text(json.dumps(MODES[mode]))
+    out = work / f"run_{room}_{mode}_{seed}"
+    cmd = [sys.executable, "-m", "virus_nerf.cli", "train", "--data", str(data), "--room", room, "--out", str(out),
+           "--online", "--playback-speed", str(playback), "--gt", "map", "--seed", str(seed), "--config", str(cfg),
+           "--quiet"]
+    start = time.monotonic()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.monotonic() - start
+    err = proc.stderr.read()
+    if status != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed: {err.strip()[-500:]}")
+    doc = json.loads((out / "metrics.json").read_text())
+    z3 = doc["sensors"]["NeRF"]["zone3"]
+    return {"acc_mean": z3["acc_mean"], "cov_mean": z3["cov_mean"], "wall_s": round(wall, 1),
+            "peak_rss_mb": round(usage.ru_maxrss / 1024, 1), "steps": doc["train"]["steps"],
+            "safety_all_free": doc.get("safety", {}).get("zones", {}).get("all", {}).get("free_share")}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", default="common,warehouse")
+    ap.add_argument("--sim-seeds", default="61,62,63")
+    ap.add_argument("--playback", type=float, default=1.0, help="recording seconds per training second")
+    ap.add_argument("--train-seed", type=int, default=0)
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for scene in args.scenes.split(","):
+            for sim_seed in (int(s) for s in args.sim_seeds.split(",")):
+                data = ensure_data(args.data, scene, sim_seed)
+                from virus_nerf.data.ethz import load_recording
+
+                drive_s = load_recording(data, scene).duration
+                for mode in MODES:
+                    r = run_once(data, scene, mode, args.playback, args.train_seed, Path(tmp))
+                    r.update(scene=scene, sim_seed=sim_seed, mode=mode, drive_s=round(drive_s, 1))
+                    results.append(r)
+                    print(json.dumps(r), flush=True)
+    summary = {}
+    for scene in args.scenes.split(","):
+        for mode in MODES:
+            rows = [r for r in results if r["scene"] == scene and r["mode"] == mode]
+            summary[f"{scene}/{mode}"] = {k: round(sum(r[k] for r in rows) / len(rows), 3)
+                                          for k in ("acc_mean", "cov_mean", "peak_rss_mb", "steps")}
+    doc = {"command": " ".join(sys.argv), "playback": args.playback, "gt": "map, zone3", "runs": results,
+           "mean": summary}
+    print(json.dumps(summary, indent=1))
+    if args.out:
+        args.out.write_text(json.dumps(doc, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
