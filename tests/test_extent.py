@@ -13,7 +13,13 @@ import torch
 
 from virus_nerf.errors import UsageError
 from virus_nerf.grid.base import GridSpec
-from virus_nerf.grid.extent import ExtentConfig, field_config_for_frame, field_frame, first_box, needed_box
+from virus_nerf.grid.extent import (
+    ExtentConfig,
+    field_config_for_frame,
+    field_frame,
+    first_box,
+    needed_box,
+)
 from virus_nerf.grid.ngp import NgpGrid
 from virus_nerf.grid.virus import VirusGrid, VirusGridConfig
 from virus_nerf.scene_box import SceneBox
