@@ -34,7 +34,7 @@ def run_once(data: Path, room: str, mode: str, playback: float, seed: int, work:
     """One online training; its zone-3 metrics, wall time and peak memory."""
     cfg = work / f"{mode}.json"
     cfg.write_text(json.dumps(MODES[mode]))
-    out = work / f"run_{room}_{mode}_{seed}"
+    out = work / f"run_{data.name}_{mode}_{seed}"
     cmd = [sys.executable, "-m", "virus_nerf.cli", "train", "--data", str(data), "--room", room, "--out", str(out),
            "--online", "--playback-speed", str(playback), "--gt", "map", "--seed", str(seed), "--config", str(cfg),
            "--quiet"]
