@@ -14,7 +14,9 @@ a --max-time bound depends on the machine's speed, as any time budget does.
 from __future__ import annotations
 
 import dataclasses
+import io
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -237,13 +239,32 @@ class Trainer:
                 "config": to_dict(self.config)}
 
     def save_checkpoint(self) -> None:
+        """checkpoint.pt, whole or not at all: serialised in memory, then written to a temporary
+        file renamed over the last one. A failed write (a full disk) raises an OSError naming
+        checkpoint.pt and leaves the last good checkpoint in place (torch.save straight to the
+        file reported a full disk as a RuntimeError `unexpected pos`)."""
+        buffer = io.BytesIO()
+        torch.save(self.state(), buffer)
         with atomic_path(self.run_dir / CHECKPOINT) as tmp:
-            torch.save(self.state(), tmp)
+            tmp.write_bytes(buffer.getbuffer())
 
     def load_checkpoint(self, path: Path) -> None:
+        """Continue from checkpoint.pt. A checkpoint whose tensors do not fit this run's model
+        (damaged, edited, another model) is a DataFormatError naming the file and the tensor."""
+        from virus_nerf.errors import DataFormatError, one_line
+        from virus_nerf.trainer.run_folder import _check_counters, check_state_shapes
+
         # CPU first: the RNG states must stay CPU byte tensors (Generator.set_state refuses
         # others); load_state_dict copies the tensors onto the field's and optimiser's device
         state = torch.load(path, map_location="cpu", weights_only=False)
+        if not isinstance(state, dict):
+            raise DataFormatError(path, f"not a virus-nerf checkpoint (holds a {type(state).__name__})")
+        try:
+            _check_counters(path, state)
+        except KeyError as exc:
+            raise DataFormatError(path, f"not a complete virus-nerf checkpoint: lacks {exc}") from None
+        check_state_shapes(path, "field", state["field"], self.field.state_dict())
+        check_state_shapes(path, "grid", state["grid"], self.grid.state_dict())
         if "box" in state:
             saved = SceneBox.from_dict(state["box"])
             if not np.allclose(saved.lo, self.box.lo, atol=1e-6) or not np.allclose(saved.hi, self.box.hi, atol=1e-6):
@@ -256,12 +277,19 @@ class Trainer:
                     "(was the recording or its map changed?)",
                     field="box",
                 )
-        self.mapper.load_state(state)
-        self.eval_history = [EvalPoint(**e) for e in state.get("eval_history", [])]
+        try:
+            self.mapper.load_state(state)
+            self.eval_history = [EvalPoint(**e) for e in state.get("eval_history", [])]
+        except (KeyError, ValueError, TypeError, RuntimeError) as exc:  # optimiser, RNG states, history
+            raise DataFormatError(path, f"does not fit this run's model ({type(exc).__name__}: "
+                                        f"{one_line(exc, 160)})") from None
 
     # ------------------------------------------------------------------ the loop
-    def fit(self) -> TrainSummary:
-        """Train until max_steps or max_time; logs, evaluations and checkpoints on the way."""
+    def fit(self, started: Callable[[], None] | None = None) -> TrainSummary:
+        """Train until max_steps or max_time; logs, evaluations and checkpoints on the way.
+
+        started: called once the first step of this call has succeeded (a resume writes its new
+        config.json then, so a resume that cannot start leaves the run as it was)."""
         c = self.config
         self.prepare()
         log = TrainLog(self.run_dir, self.step, c.max_steps, self.quiet)
@@ -270,6 +298,9 @@ class Trainer:
         try:
             while not self._done():
                 terms = self._timed_step()
+                if started is not None:
+                    started()
+                    started = None
                 if self.step % c.log_every == 0 or self._done():
                     log.write(self._log_row(terms))
                 log.advance()
