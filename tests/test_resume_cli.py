@@ -123,28 +123,28 @@ def test_resume_with_other_data_is_refused(run_copy, tmp_path):
 
 
 # ------------------------------------------------------------------------------ item 7: run folders
-@pytest.mark.parametrize("command", ["resume", "evaluate", "export"])
-@pytest.mark.parametrize(
-    "damage, fragment",
-    [
-        ("no-checkpoint", "checkpoint.pt: missing: the run has no checkpoint"),
-        ("text-step", "checkpoint.pt, field 'step': expected an integer >= 0, got 'abc'"),
-        ("wrong-shape-field", "checkpoint.pt, field 'field."),
-        ("garbage-checkpoint", "checkpoint.pt: not a readable checkpoint ("),
-        ("truncated-checkpoint", "checkpoint.pt: not a readable checkpoint ("),
-        ("foreign-checkpoint", "checkpoint.pt: not a complete virus-nerf checkpoint: lacks ['field'"),
-        ("no-run-json", "run.json: missing; "),
-        ("bad-run-json", "run.json, field 'data': expected a non-empty string"),
-        ("bad-config", "config.json, key 'batch_size': expected an integer, got string"),
-    ],
-)
+DAMAGES = [
+    ("no-checkpoint", "checkpoint.pt: missing: the run has no checkpoint"),
+    ("text-step", "checkpoint.pt, field 'step': expected an integer >= 0, got 'abc'"),
+    ("wrong-shape-field", "checkpoint.pt, field 'field."),
+    ("garbage-checkpoint", "checkpoint.pt: not a readable checkpoint ("),
+    ("truncated-checkpoint", "checkpoint.pt: not a readable checkpoint ("),
+    ("foreign-checkpoint", "checkpoint.pt: not a complete virus-nerf checkpoint: lacks ['field'"),
+    ("no-run-json", "run.json: missing; "),
+    ("bad-run-json", "run.json, field 'data': expected a non-empty string"),
+    ("bad-config", "config.json, key 'batch_size': expected an integer, got string"),
+]
+
+
+# --resume of a run without checkpoint trains it from step 0 (test_resume_without_a_checkpoint_...)
+@pytest.mark.parametrize("command, damage, fragment", [
+    (command, damage, fragment) for damage, fragment in DAMAGES for command in ("resume", "evaluate", "export")
+    if (command, damage) != ("resume", "no-checkpoint")])
 def test_damaged_run_folders_are_named(run_copy, tmp_path, command, damage, fragment):
     import torch
 
     ckpt = run_copy / "checkpoint.pt"
     if damage == "no-checkpoint":
-        if command == "resume":
-            pytest.skip("--resume trains a run without checkpoint from step 0 (test_resume_without_a_checkpoint...)")
         ckpt.unlink()
     elif damage in ("text-step", "wrong-shape-field"):
         state = torch.load(ckpt, map_location="cpu", weights_only=False)

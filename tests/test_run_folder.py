@@ -93,3 +93,30 @@ def test_every_fires_on_the_training_clock():
     assert Every.aligned(0.0, 5.0).next_at == math.inf  # period 0: never
     ckpt = Every.after(60.0, 12.5)
     assert ckpt.next_at == 72.5
+
+
+def test_a_full_disk_while_logging_names_train_log(tmp_path):
+    import errno
+
+    from virus_nerf.trainer.train_log import TrainLog
+
+    log = TrainLog(tmp_path, 0, 10, quiet=True)
+
+    class Full:
+        def __init__(self, f):
+            self._f = f
+
+        def write(self, s):
+            return self._f.write(s)
+
+        def flush(self):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def close(self):
+            self._f.close()
+
+    log._file = Full(log._file)
+    with pytest.raises(OSError, match="No space left") as info:
+        log.write(LogRow(1, 0.1, 0.1, 0.01, 0.0, 0.0, 0.0, 20.0, 12.5, 0.3, 7))
+    assert info.value.filename == str(tmp_path / "train_log.csv")
+    log.close()

@@ -181,11 +181,13 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     """Train, evaluate and write everything into the run folder; returns the metrics document.
 
     New run: OUT must not exist; the recording is checked first, then OUT appears with
-    config.json and run.json in one rename, and if the training fails before its first
-    checkpoint OUT is removed again. Resume: OUT holds a checkpoint; a run that already
-    reached its budget and has its metrics.json is refused before any file is touched; one
-    that reached its budget but stopped before its metrics only gets evaluated. The final
-    results are written plots/ first, metrics.json last (metrics.json marks a finished run).
+    config.json, run.json and its lock held in one rename, and if the training fails before its
+    first checkpoint OUT is removed again. Resume: under OUT's lock (run_folder.RunLock), from
+    OUT's checkpoint (none: from step 0); a run that already reached its budget and has its
+    metrics.json is refused before any file but the lock is touched; one that reached its
+    budget but stopped before its metrics only gets evaluated; `cfg` replaces config.json once
+    the first step worked. The final results are written plots/ first, metrics.json last
+    (metrics.json marks a finished run).
     """
     from virus_nerf.config_io import to_dict
     from virus_nerf.data.ethz import load_recording
@@ -223,7 +225,7 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
             lock.folder = out
             try:
                 trainer = Trainer(recording, cfg, out, quiet=quiet)
-                summary = _fit(trainer, cfg)
+                summary = trainer.fit()
             except BaseException:
                 if not (out / CHECKPOINT).is_file():
                     shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
@@ -283,22 +285,7 @@ def _resume(out: Path, recording, cfg, quiet):
         if to_dict(cfg) != _saved_config(out):
             write_json_atomic(out / CONFIG, to_dict(cfg))
 
-    return trainer, _fit(trainer, cfg, started)
-
-
-def _fit(trainer, cfg, started=None):
-    """trainer.fit(); a step that runs out of memory is a one-line error naming --batch-size."""
-    try:
-        return trainer.fit(started)
-    except MemoryError as exc:
-        raise UsageError(f"--batch-size {cfg.batch_size}: a training step ran out of memory "
-                         f"({one_line(exc, 120)}); expected a smaller --batch-size") from None
-    except RuntimeError as exc:
-        text = str(exc)
-        if "out of memory" not in text and "can't allocate memory" not in text:
-            raise
-        raise UsageError(f"--batch-size {cfg.batch_size}: a training step ran out of memory "
-                         f"({one_line(exc, 120)}); expected a smaller --batch-size") from None
+    return trainer, trainer.fit(started)
 
 
 # bytes a ray takes in a step before it is marched (the sampler's indices and draws, the
@@ -410,8 +397,11 @@ def train(
     checkpoint.pt, metrics.json (docs/method.md 7), metrics_vs_time.csv and plots/. Everything is
     checked before OUT is made; a training that fails before its first checkpoint removes OUT.
     --resume continues an interrupted run from its checkpoint (its data and room come from
-    OUT/run.json); a finished run (budget reached, metrics.json written) is refused untouched,
-    unless a larger --max-steps/--max-time is given, whose results then replace the old ones.
+    OUT/run.json; a run killed before its first checkpoint trains from step 0); a finished run
+    (budget reached, metrics.json written) is refused untouched, unless a larger
+    --max-steps/--max-time is given, whose results then replace the old ones. Flags given with
+    --resume reach config.json only once the resumed run has made its first step. One process
+    trains in OUT at a time (OUT/run.lock); a second is refused with the first one's pid.
 
     Args:
         out: New run folder (with --resume: the run to continue).

@@ -252,7 +252,7 @@ class Trainer:
         """Continue from checkpoint.pt. A checkpoint whose tensors do not fit this run's model
         (damaged, edited, another model) is a DataFormatError naming the file and the tensor."""
         from virus_nerf.errors import DataFormatError, one_line
-        from virus_nerf.trainer.run_folder import _check_counters, check_state_shapes
+        from virus_nerf.trainer.run_folder import check_counters, check_state_shapes
 
         # CPU first: the RNG states must stay CPU byte tensors (Generator.set_state refuses
         # others); load_state_dict copies the tensors onto the field's and optimiser's device
@@ -260,7 +260,7 @@ class Trainer:
         if not isinstance(state, dict):
             raise DataFormatError(path, f"not a virus-nerf checkpoint (holds a {type(state).__name__})")
         try:
-            _check_counters(path, state)
+            check_counters(path, state)
         except KeyError as exc:
             raise DataFormatError(path, f"not a complete virus-nerf checkpoint: lacks {exc}") from None
         check_state_shapes(path, "field", state["field"], self.field.state_dict())
@@ -297,7 +297,11 @@ class Trainer:
         checkpoints = Every.after(c.checkpoint_every, self.seconds)
         try:
             while not self._done():
-                terms = self._timed_step()
+                try:
+                    terms = self._timed_step()
+                except (MemoryError, RuntimeError) as exc:
+                    _raise_if_out_of_memory(exc, c.batch_size)
+                    raise
                 if started is not None:
                     started()
                     started = None
@@ -354,3 +358,14 @@ class Trainer:
         if log is not None:
             for k in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier"):
                 log.scalar(f"eval/zone3_{k}", getattr(point, k), self.step)
+
+
+def _raise_if_out_of_memory(exc: BaseException, batch_size: int) -> None:
+    """A training step that ran out of memory (numpy's MemoryError, torch's `can't allocate
+    memory` / CUDA `out of memory`) as a one-line UsageError naming --batch-size."""
+    from virus_nerf.errors import UsageError, one_line
+
+    text = str(exc)
+    if isinstance(exc, MemoryError) or "out of memory" in text or "can't allocate memory" in text:
+        raise UsageError(f"--batch-size {batch_size}: a training step ran out of memory ({one_line(exc, 120)}); "
+                         "expected a smaller --batch-size") from None

@@ -192,11 +192,11 @@ def read_checkpoint_header(path: Path, cfg) -> dict:
     saved = state.get("config")
     if isinstance(saved, dict):
         _check_same_shapes(path, saved, to_dict(cfg))
-    _check_counters(path, state)
+    check_counters(path, state)
     return {"step": int(state["step"]), "seconds": float(state["seconds"]), "config": saved}
 
 
-def _check_counters(path: Path, state: dict) -> None:
+def check_counters(path: Path, state: dict) -> None:
     """The step, clock and sample count of a checkpoint are numbers (a damaged or hand-edited
     file is named with its field, not a traceback)."""
     import math

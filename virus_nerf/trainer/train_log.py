@@ -133,7 +133,10 @@ class TrainLog:
 
     def close(self) -> None:
         self._bar.close()
-        self._file.close()
+        try:
+            self._file.close()
+        except OSError as exc:  # the last flush on a full disk: name the file
+            raise type(exc)(exc.errno, exc.strerror, str(self.path)) from exc
         if self._tb is not None:
             self._tb.close()
 
