@@ -67,3 +67,100 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(tiny_office, tmp_path):
         assert torch.equal(tensor, b["field"][key]), key
     assert torch.equal(a["grid"]["logodds"], b["grid"]["logodds"])
     assert not list(killed.glob(".checkpoint.pt.*")), "no orphaned temporary checkpoint"
+
+
+class _Killed(BaseException):
+    """Stands for a SIGKILL inside `Trainer.fit` (a BaseException, as a kill is caught by nothing)."""
+
+
+def _state_equal(a: dict, b: dict, where: str = "") -> None:
+    assert type(a) is type(b), where
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for k in a:
+            _state_equal(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, list | tuple):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _state_equal(x, y, f"{where}[{i}]")
+    elif isinstance(a, torch.Tensor):
+        assert a.dtype == b.dtype and torch.equal(a, b), where
+    else:
+        assert a == b, where
+
+
+def _log_without_clock(run: Path) -> list[list[str]]:
+    rows = [line.split(",") for line in (run / "train_log.csv").read_text().splitlines()]
+    return [r[:1] + r[2:] for r in rows]  # column 2 is the training clock (seconds): machine time
+
+
+def test_killed_at_every_checkpoint_equals_an_uninterrupted_run(tiny_office, tmp_path, monkeypatch):
+    """Kill the training after every checkpoint of a run that crosses the render-path switch
+    (visible share below 0.6 at about step 30), each time one step after the checkpoint (so the
+    log holds a row the resume must drop), and resume in a fresh Trainer from the file: the
+    field, optimiser, grid, RNGs, log and final metrics equal those of the uninterrupted run.
+
+    In-process (a fresh Trainer per resume reads only checkpoint.pt and the log, as a new process
+    does); the SIGKILL test above covers the process boundary once. About 15 s."""
+    from test_trainer import small_config
+
+    from virus_nerf.data.ethz import load_recording
+    from virus_nerf.trainer.loop import Trainer
+    from virus_nerf.trainer.model import TWO_PASS_BELOW
+
+    steps = 60
+    cfg = small_config(max_steps=steps, log_every=1, checkpoint_every=1e-9, eval_interval=0.0, device="cpu")
+    rec = load_recording(tiny_office, "office")
+
+    full = Trainer(rec, cfg, tmp_path / "full", quiet=True)
+    (tmp_path / "full").mkdir()
+    shares = []
+    real_step = Trainer._timed_step
+
+    def watched(self):
+        terms = real_step(self)
+        shares.append(self.model.visible_share)
+        return terms
+
+    monkeypatch.setattr(Trainer, "_timed_step", watched)
+    full.fit()
+    monkeypatch.setattr(Trainer, "_timed_step", real_step)
+    switch = next((i for i, s in enumerate(shares) if s < TWO_PASS_BELOW), steps)
+    assert shares[0] >= TWO_PASS_BELOW and switch < steps - 10, ("the run must cross the render-path switch", shares)
+
+    real_save = Trainer.save_checkpoint
+    plan = {"left": 0, "right_after": False}
+
+    def save_then_die(self):
+        if self.step < steps and plan["left"] == 0:
+            raise _Killed  # killed one step after the last checkpoint, before writing this one
+        plan["left"] -= 1
+        real_save(self)
+        if self.step < steps and plan["left"] == 0 and plan["right_after"]:
+            raise _Killed  # killed right after writing it
+
+    monkeypatch.setattr(Trainer, "save_checkpoint", save_then_die)
+    run = tmp_path / "killed"
+    run.mkdir()
+    resumed_at = []
+    while True:
+        t = Trainer(rec, cfg, run, quiet=True)
+        if (run / "checkpoint.pt").is_file():
+            t.load_checkpoint(run / "checkpoint.pt")
+            resumed_at.append(t.step)
+        # this "process" writes one checkpoint, then dies at once or one step later
+        plan.update(left=1, right_after=len(resumed_at) % 2 == 0)
+        try:
+            t.fit()
+            break
+        except _Killed:
+            pass
+    assert resumed_at == list(range(1, steps)), "resumed from the checkpoint of every step"
+    a = torch.load(tmp_path / "full" / "checkpoint.pt", map_location="cpu", weights_only=False)
+    b = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)
+    for key in ("seconds", "config"):  # the training clock is machine time
+        a.pop(key), b.pop(key)
+    _state_equal(a, b)
+    assert _log_without_clock(run) == _log_without_clock(tmp_path / "full"), "one row per step, the same values"
+    ra, rb = full.evaluate(with_sensors=False), t.evaluate(with_sensors=False)
+    assert ra.metrics["NeRF"].zones == rb.metrics["NeRF"].zones

@@ -123,25 +123,38 @@ def test_resume_with_other_data_is_refused(run_copy, tmp_path):
 
 
 # ------------------------------------------------------------------------------ item 7: run folders
-@pytest.mark.parametrize("command", ["resume", "evaluate", "export"])
-@pytest.mark.parametrize(
-    "damage, fragment",
-    [
-        ("no-checkpoint", "checkpoint.pt: missing: the run has no checkpoint"),
-        ("garbage-checkpoint", "checkpoint.pt: not a readable checkpoint ("),
-        ("truncated-checkpoint", "checkpoint.pt: not a readable checkpoint ("),
-        ("foreign-checkpoint", "checkpoint.pt: not a complete virus-nerf checkpoint: lacks ['field'"),
-        ("no-run-json", "run.json: missing; "),
-        ("bad-run-json", "run.json, field 'data': expected a non-empty string"),
-        ("bad-config", "config.json, key 'batch_size': expected an integer, got string"),
-    ],
-)
+DAMAGES = [
+    ("no-checkpoint", "checkpoint.pt: missing: the run has no checkpoint"),
+    ("text-step", "checkpoint.pt, field 'step': expected an integer >= 0, got 'abc'"),
+    ("wrong-shape-field", "checkpoint.pt, field 'field."),
+    ("garbage-checkpoint", "checkpoint.pt: not a readable checkpoint ("),
+    ("truncated-checkpoint", "checkpoint.pt: not a readable checkpoint ("),
+    ("foreign-checkpoint", "checkpoint.pt: not a complete virus-nerf checkpoint: lacks ['field'"),
+    ("no-run-json", "run.json: missing; "),
+    ("bad-run-json", "run.json, field 'data': expected a non-empty string"),
+    ("bad-config", "config.json, key 'batch_size': expected an integer, got string"),
+]
+
+
+# --resume of a run without checkpoint trains it from step 0 (test_resume_without_a_checkpoint_...)
+@pytest.mark.parametrize("command, damage, fragment", [
+    (command, damage, fragment) for damage, fragment in DAMAGES for command in ("resume", "evaluate", "export")
+    if (command, damage) != ("resume", "no-checkpoint")])
 def test_damaged_run_folders_are_named(run_copy, tmp_path, command, damage, fragment):
     import torch
 
     ckpt = run_copy / "checkpoint.pt"
     if damage == "no-checkpoint":
         ckpt.unlink()
+    elif damage in ("text-step", "wrong-shape-field"):
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        if damage == "text-step":
+            state["step"] = "abc"
+        else:
+            name = next(iter(state["field"]))
+            state["field"][name] = torch.zeros(3)
+            fragment += f"{name}': tensor of shape (3,)"
+        torch.save(state, ckpt)
     elif damage == "garbage-checkpoint":
         ckpt.write_bytes(b"\x00garbage" * 100)
     elif damage == "truncated-checkpoint":
@@ -355,3 +368,225 @@ def test_experiments_refuse_to_overwrite_their_summaries(tmp_path, monkeypatch, 
     code, _, err = run_cli([experiment, "--out", out, "--quick"])
     one_line_error(code, err, f"{out / summary}: output file already exists")
     assert snapshot(out) == before
+
+
+# ------------------------------------------------------------------------------ issue 30: run folders
+def _dead_pid() -> int:
+    import subprocess
+
+    proc = subprocess.Popen(["true"])
+    proc.wait()
+    return proc.pid
+
+
+def test_a_failed_resume_leaves_the_run_as_it_was(run_copy, monkeypatch):
+    """A batch whose rays cannot fit in memory is refused before any work; one that runs out of
+    memory in its first step is one line too, and config.json keeps the run's own settings, so
+    a plain --resume afterwards works (before: config.json got the new size and every later
+    --resume died in MemoryError)."""
+    from virus_nerf.trainer.loop import Trainer
+
+    (run_copy / "metrics.json").unlink()
+    before = snapshot(run_copy)
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--batch-size", "1000000000"])
+    one_line_error(code, err, "--batch-size 1000000000: a step would need at least 89.4 GiB for its rays alone",
+                   "expected at most")
+    assert snapshot(run_copy) == before
+
+    def out_of_memory(self):
+        raise MemoryError("Unable to allocate 7.45 GiB for an array with shape (1000000000,)")
+
+    monkeypatch.setattr(Trainer, "_timed_step", out_of_memory)
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--batch-size", "4096",
+                            "--quiet"])
+    one_line_error(code, err, "--batch-size 4096: a training step ran out of memory (Unable to allocate 7.45 GiB",
+                   "expected a smaller --batch-size")
+    after = snapshot(run_copy)
+    for name in ("config.json", "checkpoint.pt", "train_log.csv", "run.json"):
+        assert after[name] == before[name], name
+    monkeypatch.undo()
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet"])  # the budget of 5: evaluates
+    assert code == 0, err
+    assert json.loads((run_copy / "metrics.json").read_text())["train"]["steps"] == 5
+
+
+def test_resume_without_a_checkpoint_trains_from_step_0(run_copy):
+    """Killed before its first checkpoint: config.json and run.json say how to start; --resume
+    trains from step 0, keeps one log row per step and removes the plots folders of a killed
+    attempt (before: refused, and a new run was refused too because the folder exists)."""
+    for name in ("checkpoint.pt", "metrics.json", "metrics_vs_time.csv"):
+        (run_copy / name).unlink()
+    shutil.rmtree(run_copy / "plots")
+    stale = [run_copy / ".plots.partial-12345-abc", run_copy / ".plots.old-xyz"]
+    for p in stale:
+        p.mkdir()
+    with (run_copy / "train_log.csv").open("a", newline="") as fh:
+        fh.write("6,0.1,1")  # torn by the kill
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet"])
+    assert code == 0, err
+    assert "no checkpoint yet (stopped before the first one); training from step 0" in err
+    steps = [ln.split(",")[0] for ln in (run_copy / "train_log.csv").read_text().splitlines()[1:]]
+    assert steps == ["2", "4", "5"]
+    assert json.loads((run_copy / "metrics.json").read_text())["train"]["steps"] == 5
+    assert not [p for p in stale if p.exists()]
+
+
+def test_a_torn_log_row_is_dropped_and_a_damaged_one_named_on_resume(run_copy):
+    (run_copy / "metrics.json").unlink()
+    log = run_copy / "train_log.csv"
+    good = log.read_bytes()
+    log.write_bytes(good + b"8")  # the first character of a row, then the kill
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--quiet"])
+    assert code == 0, err
+    steps = [ln.split(",")[0] for ln in log.read_text().splitlines()[1:]]
+    assert steps == ["2", "4", "5", "6", "7"]  # before: "890" ... fused rows
+    (run_copy / "metrics.json").unlink()
+    lines = good.decode().split("\r\n")
+    lines[2] = "4,oops"
+    log.write_bytes("\r\n".join(lines).encode())
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "9", "--quiet"])
+    one_line_error(code, err, f"{log}, row 3: expected 11 comma-separated numbers")
+
+
+def test_the_run_is_locked_while_a_process_trains_in_it(run_copy):
+    """A second process on the same run folder (a --resume beside a running training or another
+    --resume) is refused with the holder's pid; the lock goes with the holder however it dies
+    (before: both ran and every log row appeared twice)."""
+    import signal
+    import subprocess
+    import sys
+
+    (run_copy / "metrics.json").unlink()
+    before = snapshot(run_copy)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom virus_nerf.trainer.run_folder import RunLock\n"
+         "RunLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(120)", str(run_copy)],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--quiet"])
+        one_line_error(code, err, f"--resume {run_copy}: the run is in use by another virus-nerf process "
+                                  f"(pid {holder.pid}); wait for it to end or stop it")
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    after = snapshot(run_copy)
+    after.pop("run.lock"), before.pop("run.lock")  # holds the pid of the last process that trained here
+    assert after == before
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet"])  # the kill released it
+    assert code == 0, err
+
+
+def test_a_full_disk_is_one_line_and_keeps_the_last_checkpoint(run_copy, monkeypatch):
+    """ENOSPC while writing a checkpoint (before: a RuntimeError `unexpected pos` traceback from
+    torch.save writing straight into the file): one line naming checkpoint.pt, saying nothing was
+    lost; the last good checkpoint stays and no temporary is left."""
+    import errno
+    import pathlib
+
+    (run_copy / "metrics.json").unlink()
+    ckpt = snapshot(run_copy)["checkpoint.pt"]
+    real = pathlib.Path.write_bytes
+
+    def full(self, data):
+        if self.name.startswith(".checkpoint.pt."):
+            real(self, bytes(data)[:1000])
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, data)
+
+    monkeypatch.setattr(pathlib.Path, "write_bytes", full)
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--quiet"])
+    one_line_error(code, err, f"{run_copy / 'checkpoint.pt'}: could not be written (No space left on device); "
+                              "nothing was lost")
+    assert snapshot(run_copy)["checkpoint.pt"] == ckpt
+    assert not list(run_copy.glob(".checkpoint.pt.*"))
+
+
+def test_a_full_disk_in_an_output_folder_names_the_final_path(tmp_path):
+    import errno
+
+    from virus_nerf.utils.io import new_output_dir, write_text_atomic
+
+    with pytest.raises(OSError) as info:
+        with new_output_dir(tmp_path / "map") as tmp:
+            raise OSError(errno.ENOSPC, "No space left on device", str(tmp / "map.pgm"))
+    assert info.value.filename == str(tmp_path / "map" / "map.pgm") and info.value.errno == errno.ENOSPC
+    assert list(tmp_path.iterdir()) == []
+
+    def fail(self, *a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self))
+
+    import pathlib
+
+    real = pathlib.Path.write_text
+    pathlib.Path.write_text = fail
+    try:
+        with pytest.raises(OSError) as info:
+            write_text_atomic(tmp_path / "a.json", "{}")
+    finally:
+        pathlib.Path.write_text = real
+    assert info.value.filename == str(tmp_path / "a.json")
+
+
+def test_stale_partial_folders_of_dead_processes_are_removed(tmp_path):
+    import os
+
+    from virus_nerf.utils.io import remove_stale_partials
+
+    dead, alive = _dead_pid(), os.getppid()
+    for name in (f".out.partial-{dead}-abc", f".out.old-{dead}-x", f".out.partial-{alive}-abc", ".out.partial-nopid",
+                 f".other.partial-{dead}-abc"):
+        (tmp_path / name).mkdir()
+    removed = remove_stale_partials(tmp_path / "out")
+    assert sorted(p.name for p in removed) == sorted([f".out.partial-{dead}-abc", f".out.old-{dead}-x"])
+    assert sorted(p.name for p in remove_stale_partials(tmp_path / "out", owned=True)) == \
+        sorted([f".out.partial-{alive}-abc", ".out.partial-nopid"])
+    assert [p.name for p in tmp_path.iterdir()] == [f".other.partial-{dead}-abc"]
+
+
+def test_evaluate_and_sensors_killed_before_their_metrics_finish_on_the_next_run(run_copy, tiny_office, tmp_path):
+    """Plots written, metrics.json not (killed between them): the next run evaluates again,
+    replaces the plots and writes metrics.json (before: refused, as the plots folder existed);
+    `.partial-<pid>-*` folders of dead attempts are removed, a live process's are kept."""
+    ev = run_copy / "evaluation"
+    ev.mkdir()
+    dead = _dead_pid()
+    (ev / "metrics_plots").mkdir()
+    (ev / "metrics_plots" / "half.png").write_bytes(b"from the killed attempt")
+    (ev / f".metrics_plots.partial-{dead}-abc").mkdir()
+    code, _, err = run_cli(["evaluate", "--run", run_copy, "--n-rays", "32"])
+    assert code == 0, err
+    assert (ev / "metrics.json").is_file() and (ev / "metrics_plots" / "metrics_bars.png").is_file()
+    assert not (ev / "metrics_plots" / "half.png").exists()
+    assert sorted(p.name for p in ev.iterdir()) == ["metrics.json", "metrics_plots"]
+    code, _, err = run_cli(["evaluate", "--run", run_copy])
+    one_line_error(code, err, "evaluation/metrics.json: output file already exists")
+
+    out = tmp_path / "sensors" / "metrics.json"
+    (tmp_path / "sensors" / "metrics_plots").mkdir(parents=True)
+    (tmp_path / "sensors" / f".metrics_plots.partial-{dead}-q").mkdir()
+    code, _, err = run_cli(["sensors", "--data", tiny_office, "--room", "office", "--out", out, "--n-rays", "32"])
+    assert code == 0, err
+    assert sorted(p.name for p in out.parent.iterdir()) == ["metrics.json", "metrics_plots"]
+    code, _, err = run_cli(["sensors", "--data", tiny_office, "--room", "office", "--out", out])
+    one_line_error(code, err, f"{out}: output file already exists")
+
+
+def test_a_new_run_removes_the_partial_folder_of_a_killed_start(tiny_office, tmp_path):
+    dead = _dead_pid()
+    partial = tmp_path / f".run.partial-{dead}-abc"
+    partial.mkdir()
+    (partial / "config.json").write_text("{}")
+    cfg = tmp_path / "small.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config(max_steps=2))))
+    code, _, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", tmp_path / "run",
+                            "--config", cfg, "--quiet"])
+    assert code == 0, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run", "small.json"]
+    assert (tmp_path / "run" / "run.lock").read_text().strip().isdigit()
+
+
+def test_a_bad_flag_value_points_at_the_commands_own_help(tmp_path):
+    code, _, err = run_cli(["train", "--data", tmp_path, "--room", "office", "--out", tmp_path / "r",
+                            "--max-time", "abc"])
+    one_line_error(code, err, "--max-time 'abc': expected a number (see virus-nerf train --help)")

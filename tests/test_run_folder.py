@@ -46,11 +46,45 @@ def test_log_row_fields_and_psnr():
     assert psnr_db(0.0) == pytest.approx(100.0)  # floored at 1e-10
 
 
+HEADER = ",".join(LogRow.FIELDS)
+
+
+def _row(step: int) -> str:
+    return ",".join([str(step)] + ["0.5"] * (len(LogRow.FIELDS) - 2) + ["3"])
+
+
+def _log(*lines: str, tail: str = "") -> str:
+    return "".join(ln + "\r\n" for ln in lines) + tail
+
+
 def test_truncate_log_keeps_rows_up_to_the_checkpoint(tmp_path):
     path = tmp_path / "train_log.csv"
-    path.write_text("step,loss\n5,1\n10,1\n15,1\n")
+    path.write_text(_log(HEADER, _row(5), _row(10), _row(15)), newline="")
     truncate_log(path, 10)
-    assert path.read_text() == "step,loss\n5,1\n10,1\n"
+    assert path.read_bytes().decode() == _log(HEADER, _row(5), _row(10))
+
+
+@pytest.mark.parametrize("tail", ["8", _row(12)[:-3], "\x00\x00garbage", "8,9"])
+def test_truncate_log_drops_a_torn_last_row(tmp_path, tail):
+    """A kill or a full disk tore the last row: without its newline it would fuse with the next
+    row written on resume (`8` + `90,...` = `890,...`); with one it is garbage. Dropped."""
+    path = tmp_path / "train_log.csv"
+    path.write_text(_log(HEADER, _row(5), tail=tail), newline="")
+    truncate_log(path, 10)
+    assert path.read_bytes().decode() == _log(HEADER, _row(5))
+    path.write_text(_log(HEADER, _row(5), tail) if tail else "", newline="")  # garbage with its newline
+    truncate_log(path, 10)
+    assert path.read_bytes().decode() == _log(HEADER, _row(5))
+
+
+def test_truncate_log_names_a_damaged_row_and_mends_a_torn_header(tmp_path):
+    path = tmp_path / "train_log.csv"
+    path.write_text(_log(HEADER, _row(5), "5,x,oops", _row(15)), newline="")
+    with pytest.raises(DataFormatError, match=r"train_log.csv, row 3: expected 11 comma-separated numbers"):
+        truncate_log(path, 20)
+    path.write_text("step,sec", newline="")  # killed while writing the header
+    truncate_log(path, 0)
+    assert path.read_bytes().decode() == _log(HEADER)
 
 
 def test_every_fires_on_the_training_clock():
@@ -59,3 +93,30 @@ def test_every_fires_on_the_training_clock():
     assert Every.aligned(0.0, 5.0).next_at == math.inf  # period 0: never
     ckpt = Every.after(60.0, 12.5)
     assert ckpt.next_at == 72.5
+
+
+def test_a_full_disk_while_logging_names_train_log(tmp_path):
+    import errno
+
+    from virus_nerf.trainer.train_log import TrainLog
+
+    log = TrainLog(tmp_path, 0, 10, quiet=True)
+
+    class Full:
+        def __init__(self, f):
+            self._f = f
+
+        def write(self, s):
+            return self._f.write(s)
+
+        def flush(self):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def close(self):
+            self._f.close()
+
+    log._file = Full(log._file)
+    with pytest.raises(OSError, match="No space left") as info:
+        log.write(LogRow(1, 0.1, 0.1, 0.01, 0.0, 0.0, 0.0, 20.0, 12.5, 0.3, 7))
+    assert info.value.filename == str(tmp_path / "train_log.csv")
+    log.close()

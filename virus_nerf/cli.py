@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import io
 import re
@@ -71,8 +72,9 @@ _ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 _BOX = "\u256d\u256e\u2570\u256f\u2502"  # rounded corners and the vertical bar
 
 
-def tyro_error_line(text: str) -> str:
-    """tyro's boxed parse-error report as one line naming the argument and what was expected."""
+def tyro_error_line(text: str, command: str | None = None) -> str:
+    """tyro's boxed parse-error report as one line naming the argument and what was expected;
+    `command` (the subcommand given) makes the help pointer `virus-nerf COMMAND --help`."""
     lines = [_ANSI.sub("", ln) for ln in text.splitlines()]
     title, sections, current = "", [], []
     for ln in lines:
@@ -124,6 +126,8 @@ def tyro_error_line(text: str) -> str:
         msg = "missing command: " + first[0].lower() + first[1:]
     else:
         msg = "; ".join(" ".join(sec) for sec in keep)
+    if helpref and command and helpref == "virus-nerf --help":
+        helpref = f"virus-nerf {command} --help"  # tyro names the top-level help for a subcommand's flag
     if helpref:
         msg += f" (see {helpref})"
     return one_line(msg)
@@ -134,14 +138,16 @@ def _parse(argv: list[str]):
     import tyro
 
     captured = io.StringIO()
+    commands = _commands()
+    command = next((a for a in argv if not a.startswith("-")), None)
     try:
         with contextlib.redirect_stderr(captured):
-            return tyro.extras.subcommand_cli_from_dict(_deferred(_commands()), prog="virus-nerf", args=argv)
+            return tyro.extras.subcommand_cli_from_dict(_deferred(commands), prog="virus-nerf", args=argv)
     except SystemExit as exc:
         if exc.code in (0, None):  # --help (printed to stdout)
             sys.stderr.write(captured.getvalue())
             raise
-        _fail(tyro_error_line(captured.getvalue()))
+        _fail(tyro_error_line(captured.getvalue(), command if command in commands else None))
 
 
 def _fail(message: str) -> NoReturn:
@@ -169,7 +175,16 @@ def main(argv: list[str] | None = None) -> None:
         # a path the user named cannot be read or written (permissions, a file where a folder
         # belongs, ...): the system's reason and the path, not a traceback
         where = f"{exc.filename}" + (f" -> {exc.filename2}" if exc.filename2 else "")
+        if exc.errno in _DISK_FULL:
+            # every output is written to a temporary name and renamed whole: what was there is intact
+            _fail(f"{where}: could not be written ({exc.strerror or 'no space left on device'}); nothing was lost "
+                  "(outputs are written whole under a temporary name, so every file written before is intact); "
+                  "free some space and run the command again (a training continues from its last checkpoint "
+                  "with --resume)")
         _fail(f"{where}: {exc.strerror or exc}")
+
+
+_DISK_FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
 
 
 if __name__ == "__main__":

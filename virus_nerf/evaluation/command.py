@@ -6,6 +6,7 @@ from pathlib import Path
 
 from virus_nerf.errors import OutputExistsError
 from virus_nerf.evaluation.plots import plots_dir_for, write_plots
+from virus_nerf.utils.io import remove_stale_partials
 
 
 def sensors(
@@ -20,8 +21,9 @@ def sensors(
     """Evaluate the instantaneous LiDAR, USS and IRS scans against the ground truth.
 
     Writes the metrics (docs/method.md 7 schema) to OUT and the plots to a folder beside it named
-    after OUT's stem (results/metrics.json -> results/metrics_plots/); refuses to overwrite
-    either. Prints a compact table of the metrics per sensor and distance zone, per protocol.
+    after OUT's stem (results/metrics.json -> results/metrics_plots/), plots first; refuses an
+    existing OUT. Plots without OUT are those of a run killed before its end: it is done again
+    and they are replaced once the new ones are complete. Prints a compact table of the metrics per sensor and distance zone, per protocol.
 
     Args:
         data: Dataset folder in the ETHZ format (holds camera_intrinsics.CSV and the room folders).
@@ -49,14 +51,17 @@ def sensors(
     protocols = parse_gt_flag(gt)
     out = Path(out)
     plot_dir = plots_dir_for(out)
-    for p in (out, plot_dir):
-        if p.exists():
-            raise OutputExistsError(p)
+    if out.exists():
+        raise OutputExistsError(out)
+    # plots without metrics.json: a run killed before its end, done again whole (the plots are
+    # replaced once the new ones are complete); `.<plots>.partial-<pid>-*` of dead attempts go
+    remove_stale_partials(plot_dir)
+    redo = plot_dir.exists()
     recording = load_recording(data, room, poses="odometry" if odometry_poses else "optimised")
     check_ground_truth_inputs(recording, protocols)
     config = EvaluationConfig(n_rays=n_rays, lidar_angle_range_deg=lidar_angle_range_deg, gt=protocols)
     result = evaluate(recording, None, config)
-    write_plots(result, plot_dir)
+    write_plots(result, plot_dir, replace=redo)
     if out.exists():
         raise OutputExistsError(out)
     result.write_json(out)

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
+import sys
 from pathlib import Path
 from typing import Literal
 
@@ -24,7 +26,11 @@ from virus_nerf.trainer.run_folder import (
     MAP_DIR,
     METRICS,
     METRICS_VS_TIME,
+    PLOTS,
+    RUN_INFO,
+    TRAIN_LOG,
     RunInfo,
+    RunLock,
     open_run,
     read_checkpoint_header,
 )
@@ -178,11 +184,13 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     """Train, evaluate and write everything into the run folder; returns the metrics document.
 
     New run: OUT must not exist; the recording is checked first, then OUT appears with
-    config.json and run.json in one rename, and if the training fails before its first
-    checkpoint OUT is removed again. Resume: OUT holds a checkpoint; a run that already
-    reached its budget and has its metrics.json is refused before any file is touched; one
-    that reached its budget but stopped before its metrics only gets evaluated. The final
-    results are written plots/ first, metrics.json last (metrics.json marks a finished run).
+    config.json, run.json and its lock held in one rename, and if the training fails before its
+    first checkpoint OUT is removed again. Resume: under OUT's lock (run_folder.RunLock), from
+    OUT's checkpoint (none: from step 0); a run that already reached its budget and has its
+    metrics.json is refused before any file but the lock is touched; one that reached its
+    budget but stopped before its metrics only gets evaluated; `cfg` replaces config.json once
+    the first step worked. The final results are written plots/ first, metrics.json last
+    (metrics.json marks a finished run).
 
     Without ground truth (evaluation.gt empty: `--gt none`, or `auto_gt` and a recording with
     no LiDAR map) nothing is scored: the run writes its map to OUT/map/ (map.pgm/.yaml/.png,
@@ -192,16 +200,19 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     from virus_nerf.config_io import to_dict
     from virus_nerf.data.ethz import load_recording, resolve_pose_source
     from virus_nerf.errors import OutputExistsError
-    from virus_nerf.trainer.loop import Trainer, TrainSummary
+    from virus_nerf.trainer.loop import Trainer
     from virus_nerf.trainer.report import write_run_plots
     from virus_nerf.trainer.run_folder import write_run_metrics
-    from virus_nerf.utils.io import new_output_dir, remove_stale_temps
+    from virus_nerf.utils.io import new_output_dir, remove_stale_partials
     from virus_nerf.utils.seeding import seed_everything
 
     out = Path(out)
+    if not resume:
+        remove_stale_partials(out)  # `.OUT.partial-<pid>-*` of a `train --out OUT` killed while starting
     if not resume and out.exists():
         raise OutputExistsError(out)
     check_device(cfg)
+    check_batch_memory(cfg)
     seed_everything(cfg.seed)
     source, note = resolve_pose_source(Path(data) / room, "odometry" if cfg.odometry_poses else "optimised")
     if note:
@@ -217,45 +228,43 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     eval_recording = load_recording(data, room, poses=eval_source) if need_eval_frame else recording
     check_recording_for_training(recording, cfg, eval_recording)
 
+    lock = RunLock(out, "--resume" if resume else "--out")
     if resume:
-        header = read_checkpoint_header(out / CHECKPOINT, cfg)
-        trainer = Trainer(recording, cfg, out, quiet=quiet)
-        trainer.load_checkpoint(out / CHECKPOINT)
-        finished = trainer._done()
-        if finished and (out / METRICS).is_file():
-            raise UsageError(
-                f"--resume {out}: the run is finished (step {header['step']}, {header['seconds']:.1f} s of training "
-                f"reached the budget {_budget(cfg)}) and has its metrics.json; nothing to resume "
-                "(give a larger --max-steps or --max-time to train on)"
-            )
-        for name in (CHECKPOINT, METRICS, METRICS_VS_TIME, CONFIG):
-            remove_stale_temps(out / name)  # left by a process killed while writing
-        if to_dict(cfg) != _saved_config(out):
-            write_json_atomic(out / CONFIG, to_dict(cfg))  # the budget given for this resume
-        # budget reached before the metrics were written: evaluate only (no step, no file rewritten)
-        summary = TrainSummary(trainer.step, trainer.seconds, trainer.samples) if finished else trainer.fit()
-    else:
-        with new_output_dir(out) as tmp:  # OUT appears with both files or not at all
-            write_json_atomic(tmp / CONFIG, to_dict(cfg))
-            RunInfo(data=str(Path(data).resolve()), room=room).write(tmp)
-        try:
-            trainer = Trainer(recording, cfg, out, quiet=quiet)
-            summary = trainer.fit()
-        except BaseException:
-            if not (out / CHECKPOINT).is_file():
-                shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
-            raise
-    if not cfg.evaluation.gt:
-        return _finish_without_ground_truth(trainer, out, cfg, summary, resume)
-    if eval_recording is not recording:
-        # the map and test points are judged in the true (optimised) frame
-        trainer.recording = eval_recording
-        trainer._gt = None
-    result = _final_evaluation(trainer, out)
-    trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
-    safety = map_safety_of(trainer, cfg)
-    write_run_plots(out, result, trainer.eval_history, replace=resume)  # plots first: metrics.json marks the end
-    doc = write_run_metrics(out, result, cfg, summary, safety=safety)
+        lock.acquire()  # one process trains in a run folder at a time (released when it dies)
+    try:
+        if resume:
+            trainer, summary = _resume(out, recording, cfg, quiet)
+        else:
+            with new_output_dir(out) as tmp:  # OUT appears with both files or not at all, and locked
+                write_json_atomic(tmp / CONFIG, to_dict(cfg))
+                RunInfo(data=str(Path(data).resolve()), room=room).write(tmp)
+                lock.folder = tmp
+                lock.acquire()  # the lock file's descriptor follows the folder's rename
+            lock.folder = out
+            try:
+                trainer = Trainer(recording, cfg, out, quiet=quiet)
+                summary = trainer.fit()
+            except BaseException:
+                if not (out / CHECKPOINT).is_file():
+                    shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
+                raise
+        if not cfg.evaluation.gt:
+            if resume and to_dict(cfg) != _saved_config(out):
+                write_json_atomic(out / CONFIG, to_dict(cfg))
+            return _finish_without_ground_truth(trainer, out, cfg, summary, resume)
+        if eval_recording is not recording:
+            # the map and test points are judged in the true (optimised) frame
+            trainer.recording = eval_recording
+            trainer._gt = None
+        result = _final_evaluation(trainer, out)
+        trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
+        safety = map_safety_of(trainer, cfg)
+        write_run_plots(out, result, trainer.eval_history, replace=resume)  # plots first: metrics.json marks the end
+        if resume and to_dict(cfg) != _saved_config(out):
+            write_json_atomic(out / CONFIG, to_dict(cfg))  # a finished run's resume: evaluated with it
+        doc = write_run_metrics(out, result, cfg, summary, safety=safety)
+    finally:
+        lock.release()
     print(result.table())
     if safety is not None:
         from virus_nerf.evaluation.safety import safety_line
@@ -267,6 +276,77 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         f"results in {out}"
     )
     return doc
+
+
+def _resume(out: Path, recording, cfg, quiet):
+    """The resumed Trainer (from checkpoint.pt, or from step 0 if the run was stopped before its
+    first checkpoint) and its TrainSummary after training on; called holding the run's lock."""
+    from virus_nerf.config_io import to_dict
+    from virus_nerf.trainer.loop import Trainer, TrainSummary
+    from virus_nerf.trainer.train_log import truncate_log
+    from virus_nerf.utils.io import remove_stale_partials, remove_stale_temps
+
+    for name in (CHECKPOINT, METRICS, METRICS_VS_TIME, CONFIG, RUN_INFO, TRAIN_LOG):
+        remove_stale_temps(out / name)  # left by a process killed while writing (the lock proves it)
+    remove_stale_partials(out / PLOTS, owned=True)
+    trainer = Trainer(recording, cfg, out, quiet=quiet)
+    if (out / CHECKPOINT).is_file():
+        header = read_checkpoint_header(out / CHECKPOINT, cfg)
+        trainer.load_checkpoint(out / CHECKPOINT)
+        finished = trainer._done()
+        if finished and (out / METRICS).is_file():
+            raise UsageError(
+                f"--resume {out}: the run is finished (step {header['step']}, {header['seconds']:.1f} s of training "
+                f"reached the budget {_budget(cfg)}) and has its metrics.json; nothing to resume "
+                "(give a larger --max-steps or --max-time to train on)"
+            )
+    else:  # stopped before its first checkpoint: its config.json and run.json say how to start it
+        print(f"{out}: no checkpoint yet (stopped before the first one); training from step 0", file=sys.stderr)
+        if (out / TRAIN_LOG).is_file():
+            truncate_log(out / TRAIN_LOG, 0)
+        finished = False
+    if finished:  # budget reached before the metrics were written: evaluate only (no step, no file rewritten)
+        return trainer, TrainSummary(trainer.step, trainer.seconds, trainer.samples)
+
+    def started() -> None:  # the first step worked: from now on the run is one of this config
+        if to_dict(cfg) != _saved_config(out):
+            write_json_atomic(out / CONFIG, to_dict(cfg))
+
+    return trainer, trainer.fit(started)
+
+
+# bytes a ray takes in a step before it is marched (the sampler's indices and draws, the
+# RayBatch's 14 float32 values and int64 frame): a lower bound; its samples take more
+RAY_BYTES = 96
+
+
+def memory_limit() -> int | None:
+    """Bytes of memory this process may use: the machine's RAM, or a smaller cgroup limit."""
+    limits = []
+    try:
+        limits.append(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        pass
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(path).read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit() and int(text) < 1 << 60:
+            limits.append(int(text))
+    return min(limits) if limits else None
+
+
+def check_batch_memory(cfg, limit: int | None = None) -> None:
+    """Refuse, before any work, a --batch-size whose rays alone cannot fit in memory."""
+    limit = memory_limit() if limit is None else limit
+    need = cfg.batch_size * RAY_BYTES
+    if limit is not None and need > limit:
+        raise UsageError(
+            f"--batch-size {cfg.batch_size}: a step would need at least {need / 2**30:.1f} GiB for its rays "
+            f"alone ({RAY_BYTES} bytes a ray before marching) and this machine has {limit / 2**30:.1f} GiB; "
+            f"expected at most {limit // RAY_BYTES} (the default is 2048)"
+        )
 
 
 def map_safety_of(trainer, cfg, resolution: float = 0.05) -> dict | None:
@@ -320,6 +400,37 @@ def _saved_config(out: Path):
         return None
 
 
+# set by a parent (`virus-nerf online`) to its pid: the `train` child dies with that parent
+PARENT_ENV = "VIRUS_NERF_PARENT_PID"
+
+
+def watch_parent(poll_s: float = 0.5) -> bool:
+    """Die (SIGTERM to itself) when the parent named by $VIRUS_NERF_PARENT_PID is gone.
+
+    The experiments start each training as a child process; killing the experiment must not
+    leave its trainings running as orphans. A daemon thread polls os.getppid(), which changes
+    when the parent dies (the child is handed to init). Linux's prctl(PR_SET_PDEATHSIG) is not
+    used: it fires when the parent *thread* ends, and the runs are started from pool threads.
+    Returns whether it watches (only if the variable names the actual parent).
+    """
+    import signal
+    import threading
+    import time
+
+    want = os.environ.get(PARENT_ENV, "")
+    if not want.isdigit() or os.getppid() != int(want):
+        return False
+    parent = int(want)
+
+    def poll() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_s)
+        os.kill(os.getpid(), signal.SIGTERM)  # the run folder stays resumable, as after any kill
+
+    threading.Thread(target=poll, name="watch-parent", daemon=True).start()
+    return True
+
+
 def train(
     out: Path,
     data: Path | None = None,
@@ -346,8 +457,11 @@ def train(
     checkpoint.pt, metrics.json (docs/method.md 7), metrics_vs_time.csv and plots/. Everything is
     checked before OUT is made; a training that fails before its first checkpoint removes OUT.
     --resume continues an interrupted run from its checkpoint (its data and room come from
-    OUT/run.json); a finished run (budget reached, metrics.json written) is refused untouched,
-    unless a larger --max-steps/--max-time is given, whose results then replace the old ones.
+    OUT/run.json; a run killed before its first checkpoint trains from step 0); a finished run
+    (budget reached, metrics.json written) is refused untouched, unless a larger
+    --max-steps/--max-time is given, whose results then replace the old ones. Flags given with
+    --resume reach config.json only once the resumed run has made its first step. One process
+    trains in OUT at a time (OUT/run.lock); a second is refused with the first one's pid.
 
     Args:
         out: New run folder (with --resume: the run to continue).
@@ -375,6 +489,7 @@ def train(
             LiDAR map and --gt is not given).
     """
     out = Path(out)
+    watch_parent()
     if room is not None and (not room.strip() or "/" in room or "\\" in room or room in (".", "..")):
         raise UsageError(f"--room {room!r}: expected the name of a room folder inside --data (e.g. office)")
     if resume:
@@ -402,7 +517,8 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
 
     Args:
         run: A run folder written by `virus-nerf train`.
-        out: metrics.json to write (default RUN/evaluation/metrics.json; never overwritten).
+        out: metrics.json to write (default RUN/evaluation/metrics.json; never overwritten). An
+            evaluation killed before it wrote metrics.json (its plots there) is done again.
         n_rays: Rays per 360 deg scan (default: the run's setting, 512).
         gt: Ground truth, one or more of map, exact (simulated recordings only), paper,
             comma-separated (default: the run's setting, map); the first is the document's own.
@@ -412,13 +528,18 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     from virus_nerf.evaluation.plots import plots_dir_for, write_plots
     from virus_nerf.trainer.loop import TrainSummary
     from virus_nerf.trainer.run_folder import train_summary_block
+    from virus_nerf.utils.io import remove_stale_partials
 
     if n_rays is not None:
         require_int("--n-rays", n_rays, 1, 1_000_000)
     protocols = parse_gt_flag(gt) if gt is not None else None
     out = Path(out) if out is not None else Path(run) / "evaluation" / "metrics.json"
-    if out.exists() or plots_dir_for(out).exists():
-        raise OutputExistsError(out if out.exists() else plots_dir_for(out))
+    if out.exists():
+        raise OutputExistsError(out)
+    # plots without metrics.json: an evaluation killed before its end, done again whole (plots
+    # replaced once the new ones are complete); `.<plots>.partial-<pid>-*` of dead attempts go
+    remove_stale_partials(plots_dir_for(out))
+    redo = plots_dir_for(out).exists()
     trainer, cfg, _ = load_trained(run, "--run")
     if n_rays is not None or protocols is not None:
         ev = cfg.evaluation
@@ -432,7 +553,9 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     check_ground_truth_inputs(trainer.recording, cfg.evaluation.gt)
     result = _final_evaluation(trainer, run)
     summary = TrainSummary(trainer.step, trainer.seconds, trainer.samples)
-    write_plots(result, plots_dir_for(out), max_maps=8)
+    write_plots(result, plots_dir_for(out), max_maps=8, replace=redo)
+    if out.exists():  # another process finished the same evaluation meanwhile
+        raise OutputExistsError(out)
     result.write_json(out, train=train_summary_block(cfg, summary))
     print(result.table())
     print(f"wrote {out} and {plots_dir_for(out)}/")

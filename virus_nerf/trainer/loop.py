@@ -14,7 +14,9 @@ a --max-time bound depends on the machine's speed, as any time budget does.
 from __future__ import annotations
 
 import dataclasses
+import io
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -240,14 +242,35 @@ class Trainer:
                 "config": to_dict(self.config)}
 
     def save_checkpoint(self) -> None:
+        """checkpoint.pt, whole or not at all: serialised in memory, then written to a temporary
+        file renamed over the last one. A failed write (a full disk) raises an OSError naming
+        checkpoint.pt and leaves the last good checkpoint in place (torch.save straight to the
+        file reported a full disk as a RuntimeError `unexpected pos`)."""
+        buffer = io.BytesIO()
+        torch.save(self.state(), buffer)
         with atomic_path(self.run_dir / CHECKPOINT) as tmp:
-            torch.save(self.state(), tmp)
+            tmp.write_bytes(buffer.getbuffer())
 
     def load_checkpoint(self, path: Path) -> None:
+        """Continue from checkpoint.pt. A checkpoint whose tensors do not fit this run's model
+        (damaged, edited, another model) is a DataFormatError naming the file and the tensor."""
+        from virus_nerf.errors import DataFormatError, one_line
+        from virus_nerf.trainer.run_folder import check_counters, check_state_shapes
+
         # CPU first: the RNG states must stay CPU byte tensors (Generator.set_state refuses
         # others); load_state_dict copies the tensors onto the field's and optimiser's device
         state = torch.load(path, map_location="cpu", weights_only=False)
-        if "box" in state and self.config.extent.mode != "grow":  # a grown box is restored by the mapper
+        if not isinstance(state, dict):
+            raise DataFormatError(path, f"not a virus-nerf checkpoint (holds a {type(state).__name__})")
+        try:
+            check_counters(path, state)
+        except KeyError as exc:
+            raise DataFormatError(path, f"not a complete virus-nerf checkpoint: lacks {exc}") from None
+        check_state_shapes(path, "field", state["field"], self.field.state_dict())
+        grown = self.config.extent.mode == "grow"  # a grown box (and grid) is restored by the mapper
+        if not grown:
+            check_state_shapes(path, "grid", state["grid"], self.grid.state_dict())
+        if "box" in state and not grown:
             saved = SceneBox.from_dict(state["box"])
             if not np.allclose(saved.lo, self.box.lo, atol=1e-6) or not np.allclose(saved.hi, self.box.hi, atol=1e-6):
                 from virus_nerf.errors import DataFormatError
@@ -259,12 +282,19 @@ class Trainer:
                     "(was the recording or its map changed?)",
                     field="box",
                 )
-        self.mapper.load_state(state)
-        self.eval_history = [EvalPoint(**e) for e in state.get("eval_history", [])]
+        try:
+            self.mapper.load_state(state)
+            self.eval_history = [EvalPoint(**e) for e in state.get("eval_history", [])]
+        except (KeyError, ValueError, TypeError, RuntimeError) as exc:  # optimiser, RNG states, history
+            raise DataFormatError(path, f"does not fit this run's model ({type(exc).__name__}: "
+                                        f"{one_line(exc, 160)})") from None
 
     # ------------------------------------------------------------------ the loop
-    def fit(self) -> TrainSummary:
-        """Train until max_steps or max_time; logs, evaluations and checkpoints on the way."""
+    def fit(self, started: Callable[[], None] | None = None) -> TrainSummary:
+        """Train until max_steps or max_time; logs, evaluations and checkpoints on the way.
+
+        started: called once the first step of this call has succeeded (a resume writes its new
+        config.json then, so a resume that cannot start leaves the run as it was)."""
         c = self.config
         self.prepare()
         log = TrainLog(self.run_dir, self.step, c.max_steps, self.quiet)
@@ -272,7 +302,14 @@ class Trainer:
         checkpoints = Every.after(c.checkpoint_every, self.seconds)
         try:
             while not self._done():
-                terms = self._timed_step()
+                try:
+                    terms = self._timed_step()
+                except (MemoryError, RuntimeError) as exc:
+                    _raise_if_out_of_memory(exc, c.batch_size)
+                    raise
+                if started is not None:
+                    started()
+                    started = None
                 if self.step % c.log_every == 0 or self._done():
                     log.write(self._log_row(terms))
                 log.advance()
@@ -326,3 +363,14 @@ class Trainer:
         if log is not None:
             for k in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier"):
                 log.scalar(f"eval/zone3_{k}", getattr(point, k), self.step)
+
+
+def _raise_if_out_of_memory(exc: BaseException, batch_size: int) -> None:
+    """A training step that ran out of memory (numpy's MemoryError, torch's `can't allocate
+    memory` / CUDA `out of memory`) as a one-line UsageError naming --batch-size."""
+    from virus_nerf.errors import UsageError, one_line
+
+    text = str(exc)
+    if isinstance(exc, MemoryError) or "out of memory" in text or "can't allocate memory" in text:
+        raise UsageError(f"--batch-size {batch_size}: a training step ran out of memory ({one_line(exc, 120)}); "
+                         "expected a smaller --batch-size") from None

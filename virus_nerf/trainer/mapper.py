@@ -254,7 +254,9 @@ class Mapper(MapViews):
         rays = self.sampler._rays(np.zeros(8, dtype=np.int64), np.arange(8, dtype=np.int64)).to(self.device)
         visible_share = self.model.visible_share  # the render path statistic (restored on resume) stays
         out, _ = self.model.render(rays.origins, rays.directions, generator=None)
-        (out.rgb.sum() + out.depth.sum()).backward()
+        warm = out.rgb.sum() + out.depth.sum()
+        if warm.requires_grad:  # rays that march no occupied cell (a pruned grid on resume) have no graph
+            warm.backward()
         self.optimizer.zero_grad(set_to_none=True)
         self.model.visible_share = visible_share
 

@@ -10,6 +10,12 @@ A run folder (`virus-nerf train --out RUN`) holds:
     metrics.json         the final evaluation (docs/method.md 7); its presence marks a finished run
     plots/               figures of the final evaluation
     tensorboard/         optional TensorBoard logs
+    run.lock             held (fcntl.flock) by the process training in the folder, which writes its
+                         pid into it; the system drops the lock when that process dies, however
+                         it dies, so a stale lock never needs removing by hand
+
+config.json changes only when a resume with other flags (a larger budget, another batch size)
+has made its first step: a resume that fails before (e.g. out of memory) leaves the run as it was.
 
 `open_run` (and `trainer.command.load_trained` on top of it, which also loads the checkpoint into a
 Trainer) is the only way the commands (evaluate, export, resume) open an existing run, so every
@@ -35,6 +41,7 @@ METRICS_VS_TIME = "metrics_vs_time.csv"
 PLOTS = "plots"
 MAP_DIR = "map"  # a run without ground truth: its 2D maps (map.pgm/.yaml/.png, prob.*, snapshot.json)
 TENSORBOARD = "tensorboard"
+LOCK = "run.lock"
 
 # Checkpoint entries the trainer reads back (Trainer.load_checkpoint).
 CHECKPOINT_KEYS = ("field", "optimizer", "grid", "step", "seconds", "samples", "numpy_rng", "torch_generator")
@@ -173,7 +180,8 @@ def read_checkpoint_header(path: Path, cfg) -> dict:
     path = Path(path)
     if not path.is_file():
         raise DataFormatError(path, "missing: the run has no checkpoint (it stopped before its first one); "
-                                    "start a new run")
+                                    f"continue it with `virus-nerf train --resume --out {path.parent}` "
+                                    "(it trains from step 0)")
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # truncated zip, pickle garbage, not a torch file: torch raises many types
@@ -186,7 +194,102 @@ def read_checkpoint_header(path: Path, cfg) -> dict:
     saved = state.get("config")
     if isinstance(saved, dict):
         _check_same_shapes(path, saved, to_dict(cfg))
+    check_counters(path, state)
     return {"step": int(state["step"]), "seconds": float(state["seconds"]), "config": saved}
+
+
+def check_counters(path: Path, state: dict) -> None:
+    """The step, clock and sample count of a checkpoint are numbers (a damaged or hand-edited
+    file is named with its field, not a traceback)."""
+    import math
+
+    for key, kind in (("step", int), ("samples", int), ("seconds", float)):
+        value = state[key]
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+        ok = ok and (isinstance(value, int) if kind is int else math.isfinite(value)) and value >= 0
+        if not ok:
+            expected = "an integer >= 0" if kind is int else "a finite number >= 0"
+            raise DataFormatError(path, f"expected {expected}, got {one_line(repr(value), 60)}", field=key)
+    for key in ("field", "grid"):
+        tensors = state[key]
+        if not isinstance(tensors, dict):
+            raise DataFormatError(path, f"expected a dict of tensors, got {type(tensors).__name__}", field=key)
+
+
+def check_state_shapes(path: Path, key: str, saved: dict, expected: dict) -> None:
+    """Each tensor of checkpoint entry `key` (field, grid) has the name, shape and type the
+    run's config gives; otherwise a DataFormatError naming the checkpoint and the tensor."""
+    import torch
+
+    missing = [k for k in expected if k not in saved]
+    if missing:
+        raise DataFormatError(path, f"lacks tensor(s) {missing[:4]} of this run's {key}", field=key)
+    for name, want in expected.items():
+        got = saved[name]
+        if not isinstance(want, torch.Tensor):
+            continue
+        if not isinstance(got, torch.Tensor):
+            raise DataFormatError(path, f"expected a tensor, got {type(got).__name__}", field=f"{key}.{name}")
+        if tuple(got.shape) != tuple(want.shape) or got.dtype.is_floating_point != want.dtype.is_floating_point:
+            raise DataFormatError(
+                path, f"tensor of shape {tuple(got.shape)} ({got.dtype}); this run's config gives "
+                      f"{tuple(want.shape)} ({want.dtype}): the checkpoint is damaged or of another model",
+                field=f"{key}.{name}")
+
+
+# ---------------------------------------------------------------------------- the run's lock
+class RunLock:
+    """An exclusive lock on a run folder: one process trains in it at a time.
+
+    `fcntl.flock` on RUN/run.lock; the kernel releases it when the process exits or is killed,
+    so there is never a stale lock to remove. The holder writes its pid into the file, and a
+    second process is refused with a one-line UsageError naming the folder and that pid.
+    Where flock does not exist (Windows) the lock is a no-op.
+    """
+
+    def __init__(self, folder: Path, flag: str = "--out"):
+        self.folder = Path(folder)
+        self.flag = flag
+        self._fd: int | None = None
+
+    def acquire(self) -> RunLock:
+        import os
+
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not POSIX
+            return self
+        path = self.folder / LOCK
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+            os.close(fd)
+            who = f"pid {holder}" if holder.isdigit() else "another process"
+            raise UsageError(
+                f"{self.flag} {self.folder}: the run is in use by another virus-nerf process ({who}); "
+                "wait for it to end or stop it, then run again"
+            ) from None
+        mine = f"{os.getpid()}\n".encode()
+        if os.pread(fd, 64, 0) != mine:  # unchanged when this process held it before
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, mine, 0)
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        import os
+
+        if self._fd is not None:
+            os.close(self._fd)  # closing the last descriptor drops the flock
+            self._fd = None
+
+    def __enter__(self) -> RunLock:
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
 
 
 def _check_same_shapes(path: Path, saved: dict, now: dict) -> None:

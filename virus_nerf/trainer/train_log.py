@@ -50,11 +50,45 @@ def psnr_db(mse: float) -> float:
 
 
 def truncate_log(path: Path, step: int) -> None:
-    """Drop the rows of train_log.csv after `step` (a crash after the last checkpoint left them)."""
-    lines = path.read_text().splitlines(keepends=True)
-    keep = lines[:1] + [ln for ln in lines[1:] if ln.strip() and int(ln.split(",", 1)[0]) <= step]
-    if len(keep) != len(lines):
-        write_text_atomic(path, "".join(keep))
+    """Cut train_log.csv back to the rows up to `step` (the checkpoint's; a crash after it left
+    the later ones, which the resumed run writes again) and to complete lines.
+
+    A kill or a full disk can tear the last row (e.g. `8` of `85,1.2,...`, no newline): it is
+    dropped, so the next row does not fuse with it; so is a last row that is not numbers. An
+    unreadable row before the last is damage nobody can repair here: a DataFormatError naming
+    the file and the row. A missing or torn header is written again.
+    """
+    from virus_nerf.errors import DataFormatError
+
+    path = Path(path)
+    text = path.read_bytes().decode("utf-8", errors="replace")
+    header = ",".join(LogRow.FIELDS)
+    lines = text.split("\n")
+    complete = [ln.removesuffix("\r") for ln in lines[:-1]]  # after the last newline: a torn row, or ""
+    if not complete:
+        write_text_atomic(path, header + "\r\n")
+        return
+    if complete[0] != header:
+        raise DataFormatError(path, f"header {complete[0][:80]!r}: expected {header!r}", row=1)
+    keep = [header]
+    for i, line in enumerate(complete[1:], start=2):
+        cells = line.split(",")
+        try:
+            if len(cells) != len(LogRow.FIELDS):
+                raise ValueError
+            row_step = int(cells[0])
+            [float(c) for c in cells[1:]]
+        except ValueError:
+            if i == len(complete):
+                break  # the last row: torn or garbage, dropped
+            raise DataFormatError(
+                path, f"expected {len(LogRow.FIELDS)} comma-separated numbers ({header}); the log is damaged "
+                      "before its last row (move the file away to resume without it)", row=i) from None
+        if row_step <= step:
+            keep.append(line)
+    new = "\r\n".join(keep) + "\r\n"
+    if new != text:
+        write_text_atomic(path, new)
 
 
 class TrainLog:
@@ -65,19 +99,26 @@ class TrainLog:
         from tqdm import tqdm
 
         path = Path(run_dir) / "train_log.csv"
+        self.path = path
         new = not path.exists()
         if not new:
             truncate_log(path, step)  # rows after the checkpoint are trained again
         self._file = path.open("a", newline="")
-        self._csv = csv.writer(self._file)
+        self._csv = csv.writer(self._file)  # rows end in \r\n (the csv module's default)
         if new:
-            self._csv.writerow(LogRow.FIELDS)
+            self._append(LogRow.FIELDS)
         self._tb = _tensorboard(Path(run_dir) / "tensorboard")
         self._bar = tqdm(total=total_steps, initial=step, disable=quiet, unit="step", dynamic_ncols=True)
 
+    def _append(self, values) -> None:
+        try:
+            self._csv.writerow(values)
+            self._file.flush()
+        except OSError as exc:  # a full disk: name the file (a torn row is dropped on resume)
+            raise type(exc)(exc.errno, exc.strerror, str(self.path)) from exc
+
     def write(self, row: LogRow) -> None:
-        self._csv.writerow(row.values())
-        self._file.flush()
+        self._append(row.values())
         for name in LogRow.FIELDS[2:]:
             self.scalar(f"train/{name}", getattr(row, name), row.step)
         self._bar.set_postfix(loss=f"{row.loss:.4f}", psnr=f"{row.psnr:.1f}", t=f"{row.seconds:.0f}s")
@@ -92,7 +133,10 @@ class TrainLog:
 
     def close(self) -> None:
         self._bar.close()
-        self._file.close()
+        try:
+            self._file.close()
+        except OSError as exc:  # the last flush on a full disk: name the file
+            raise type(exc)(exc.errno, exc.strerror, str(self.path)) from exc
         if self._tb is not None:
             self._tb.close()
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -34,6 +35,11 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         os.chmod(tmp_path, 0o644)  # mkstemp makes 0600; results are ordinary files
         os.replace(tmp_path, path)
         _fsync_dir(path.parent)
+    except OSError as exc:
+        if exc.filename in (None, str(tmp_path), tmp_path) and exc.errno is not None:
+            # name the file being written, not its temporary (e.g. a full disk: ENOSPC)
+            raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
+        raise
     finally:
         try:
             tmp_path.unlink(missing_ok=True)
@@ -109,7 +115,8 @@ def new_output_dir(path: str | Path, *, replace: bool = False) -> Iterator[Path]
     """Build an output folder under a temporary name and rename it into place when complete.
 
     An error inside the block removes the temporary folder; a kill leaves a
-    `.<name>.partial-*` folder beside it, never a half-written `path`. With `replace=True` an
+    `.<name>.partial-<pid>-*` folder beside it, never a half-written `path`
+    (`remove_stale_partials` removes it when the next attempt starts). With `replace=True` an
     existing `path` is swapped for the new folder once the new one is complete (used only where
     the caller owns `path`, e.g. the plots of a run being resumed); otherwise it is refused.
     """
@@ -118,17 +125,24 @@ def new_output_dir(path: str | Path, *, replace: bool = False) -> Iterator[Path]
         raise OutputExistsError(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-", dir=path.parent))
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-{os.getpid()}-", dir=path.parent))
     except OSError as exc:  # name the folder asked for, not a parent or the temporary name
         reason = "a parent is not a folder" if isinstance(exc, FileExistsError | NotADirectoryError) else exc.strerror
         raise type(exc)(exc.errno, f"cannot create this folder ({reason})", str(path)) from None
     try:
-        yield tmp
+        try:
+            yield tmp
+        except OSError as exc:  # name the file as it will be, not inside the temporary folder
+            name = exc.filename
+            if isinstance(name, str | os.PathLike) and exc.errno is not None and \
+                    Path(name).is_relative_to(tmp):
+                raise type(exc)(exc.errno, exc.strerror, str(path / Path(name).relative_to(tmp))) from exc
+            raise
         os.chmod(tmp, 0o755)  # mkdtemp makes 0700
         if path.exists():
             if not replace:
                 raise OutputExistsError(path)
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-", dir=path.parent))
+            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.old-{os.getpid()}-", dir=path.parent))
             os.replace(path, old / path.name)
             os.replace(tmp, path)
             shutil.rmtree(old, ignore_errors=True)
@@ -138,3 +152,46 @@ def new_output_dir(path: str | Path, *, replace: bool = False) -> Iterator[Path]
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+_PARTIAL = re.compile(r"^\.(?P<name>.+)\.(?:partial|old)-(?:(?P<pid>\d+)-)?[^.]*$")
+
+
+def pid_alive(pid: int) -> bool:
+    """True if a process `pid` exists on this machine (it may belong to another user)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    except OSError:
+        return True
+    return True
+
+
+def remove_stale_partials(path: str | Path, *, owned: bool = False) -> list[Path]:
+    """Delete the `.<name>.partial-*` / `.<name>.old-*` folders `new_output_dir(path)` left when
+    its process was killed; returns what was removed.
+
+    Only folders of this `path` are touched, and only those whose owning process (the pid in
+    the name) is dead; `owned=True` (the caller holds the lock of the folder they are in, e.g. a
+    run folder being resumed) also removes those without a pid or with a live one, which no
+    other process can be writing.
+    """
+    path = Path(path)
+    removed = []
+    if not path.parent.is_dir():
+        return removed
+    for p in path.parent.iterdir():
+        m = _PARTIAL.match(p.name)
+        if not m or m.group("name") != path.name or not p.is_dir() or p.is_symlink():
+            continue
+        pid = m.group("pid")
+        stale = owned or (pid is not None and int(pid) != os.getpid() and not pid_alive(int(pid)))
+        if stale:
+            shutil.rmtree(p, ignore_errors=True)
+            removed.append(p)
+    return removed
