@@ -2,7 +2,8 @@
 (`extent.mode` grow) against the box fitted in advance from the LiDAR map and the whole drive.
 
 Each run is `virus-nerf train --online` (frames released by the training clock at
---playback-speed) in its own process, one at a time; the NeRF scans are scored at the end against
+--playback-speed), or with --steps an offline run of that many steps (bit-reproducible: the
+representation's cost alone, whatever else the machine runs), in its own process, one at a time; the NeRF scans are scored at the end against
 the LiDAR map at camera height (zone 3, `map` ground truth). The peak resident memory of each run
 (its process's ru_maxrss) is reported beside the drive's length.
 
@@ -30,14 +31,16 @@ from bench_time_to_map import DEFAULT_DATA, ensure_data  # noqa: E402
 MODES = {"fitted": {}, "grow": {"extent": {"mode": "grow"}}}
 
 
-def run_once(data: Path, room: str, mode: str, playback: float, seed: int, work: Path) -> dict:
-    """One online training; its zone-3 metrics, wall time and peak memory."""
+def run_once(data: Path, room: str, mode: str, playback: float, seed: int, work: Path,
+             steps: int | None = None) -> dict:
+    """One online training (or, with `steps`, an offline one of that many steps: bit-reproducible,
+    so a busy machine changes its wall time only); its zone-3 metrics, wall time and peak memory."""
     cfg = work / f"{mode}.json"
     cfg.write_text(json.dumps(MODES[mode]))
     out = work / f"run_{data.name}_{mode}_{seed}"
     cmd = [sys.executable, "-m", "virus_nerf.cli", "train", "--data", str(data), "--room", room, "--out", str(out),
-           "--online", "--playback-speed", str(playback), "--gt", "map", "--seed", str(seed), "--config", str(cfg),
-           "--quiet"]
+           "--gt", "map", "--seed", str(seed), "--config", str(cfg), "--quiet"]
+    cmd += ["--online", "--playback-speed", str(playback)] if steps is None else ["--max-steps", str(steps)]
     start = time.monotonic()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     _, status, usage = os.wait4(proc.pid, 0)
@@ -57,6 +60,7 @@ def main() -> None:
     ap.add_argument("--scenes", default="common,warehouse")
     ap.add_argument("--sim-seeds", default="61,62,63")
     ap.add_argument("--playback", type=float, default=1.0, help="recording seconds per training second")
+    ap.add_argument("--steps", type=int, help="offline runs of this many steps instead of online ones")
     ap.add_argument("--train-seed", type=int, default=0)
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--out", type=Path)
@@ -70,7 +74,7 @@ def main() -> None:
 
                 drive_s = load_recording(data, scene).duration
                 for mode in MODES:
-                    r = run_once(data, scene, mode, args.playback, args.train_seed, Path(tmp))
+                    r = run_once(data, scene, mode, args.playback, args.train_seed, Path(tmp), args.steps)
                     r.update(scene=scene, sim_seed=sim_seed, mode=mode, drive_s=round(drive_s, 1))
                     results.append(r)
                     print(json.dumps(r), flush=True)
@@ -80,7 +84,7 @@ def main() -> None:
             rows = [r for r in results if r["scene"] == scene and r["mode"] == mode]
             summary[f"{scene}/{mode}"] = {k: round(sum(r[k] for r in rows) / len(rows), 3)
                                           for k in ("acc_mean", "cov_mean", "peak_rss_mb", "steps")}
-    doc = {"command": " ".join(sys.argv), "playback": args.playback, "gt": "map, zone3", "runs": results,
+    doc = {"command": " ".join(sys.argv), "playback": None if args.steps else args.playback, "steps": args.steps, "gt": "map, zone3", "runs": results,
            "mean": summary}
     print(json.dumps(summary, indent=1))
     if args.out:

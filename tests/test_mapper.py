@@ -431,3 +431,33 @@ def _check_map_bag_sinks(rrd, bag_dir, out, n_snapshots: int, n_frames: int) -> 
     last = maps[-1]
     assert (last.info.height, last.info.width) == final.shape
     np.testing.assert_array_equal(np.asarray(last.data, dtype=np.int8).reshape(final.shape), expected)
+
+
+def test_mapper_api_bad_input_round_two():
+    """Issue 30: a mirror-image pose, a negative depth, a map resolution that cannot fit, and a
+    step in which no ray marches anything (every ray looks out of the box)."""
+    mapper = _mapper(sensors=("camera", "rgbd"))
+    mirror = _frame()
+    pose = mirror.cam_to_world.copy()
+    pose[:3, 0] *= -1  # det -1: orthonormal, but a reflection
+    with pytest.raises(UsageError, match=r"cam_to_world .*det \+1"):
+        mapper.add_frame(dataclasses.replace(mirror, cam_to_world=pose))
+    depth = np.full((INTR.height, INTR.width), 2.0)
+    depth[3, 4] = -2.0
+    with pytest.raises(UsageError, match=r"SyncFrame.depth .*negative .*min -2"):
+        mapper.add_frame(_frame(depth=depth))
+    mapper.add_frame(_frame(depth=np.full((INTR.height, INTR.width), 2.0)))
+    for resolution, what in ((1e-5, "would be a 600000x600000 px map"), (0.0, "expected a positive number")):
+        with pytest.raises(UsageError, match=what):
+            mapper.map2d(resolution)
+        with pytest.raises(UsageError, match=what):
+            mapper.probability_map(resolution)
+    outward = _mapper()
+    pose = np.eye(4)
+    pose[:3, :3] = [[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]]
+    pose[:3, 3] = (2.999, 0.0, 0.5)  # at the box edge looking out: no ray has a sample
+    outward.add_frame(_frame(cam_to_world=pose))
+    before = [p.detach().clone() for p in outward.field.parameters()]
+    outward.train(60.0, steps=2)
+    assert outward.step == 2
+    assert all(torch.equal(a, b.detach()) for a, b in zip(before, outward.field.parameters(), strict=True))

@@ -57,6 +57,8 @@ def test_a_recording_without_lidar_trains_maps_and_says_nothing_was_scored(no_li
     doc = json.loads((run / "metrics.json").read_text())
     assert doc["gt"] is None and doc["sensors"] == {} and doc["train"]["steps"] == 5
     assert json.loads((run / "config.json").read_text())["evaluation"]["gt"] == []
+    # 5 steps end inside the grid's 16-step warm-up: said once, in metrics.json and on stdout
+    assert any("warm-up" in w for w in doc["warnings"]) and "warning: the run ended inside" in out
     # the map: the box grown from the odometry camera positions by the USS reach (8 m), 1 px = 5 cm
     files = sorted((no_lidar / "office" / "poses").glob("poses_cam_sync*.csv"))
     assert len(files) >= 1
@@ -107,3 +109,20 @@ def test_gt_flag_parses_none():
     assert EvaluationConfig(gt=()).gt == ()
     with pytest.raises(UsageError, match="or none"):
         parse_gt_flag("nothing")
+
+
+def test_a_configured_sensor_that_never_answers_is_a_warning(no_lidar, small_config, tmp_path):
+    """Issue 30: a robot configured with USS whose recording has no echo at all trains (the USS
+    loss is zero) and says so."""
+    data = tmp_path / "data"
+    shutil.copytree(no_lidar, data)
+    for path in (data / "office" / "measurements").glob("USS*.csv"):
+        rows = path.read_text().splitlines()
+        path.write_text("\n".join([rows[0]] + [r.split(",")[0] + ",50000.0" for r in rows[1:]]) + "\n")  # no echo
+    run = tmp_path / "run"
+    code, out, err = run_cli(["train", "--data", data, "--room", "office", "--out", run, "--config", small_config,
+                              "--quiet"])
+    assert code == 0, err
+    warnings = json.loads((run / "metrics.json").read_text())["warnings"]
+    assert any(w.startswith("configured sensor(s) silent in the recording: uss (no echo") for w in warnings)
+    assert "warning: configured sensor(s) silent" in out

@@ -536,3 +536,34 @@ def test_bare_mcap_imports_and_the_report_says_the_ethz_stacks_were_used(sample_
     assert f"  note: {topics}: no [stacks] section: the ETHZ robot's stacks 1 and 3 are used" in report.summary()
     rec = load_recording(tmp_path / "out", "office")
     np.testing.assert_array_equal(rec.stacks[1].uss_range, load_recording(sample_dir, "office").stacks[1].uss_range)
+
+
+def test_sensor_rows_on_another_clock_are_refused_with_row_and_offset(sample_copy):
+    """Issue 30: rows are matched to the camera's by index, so a USS file whose times are 5000 s
+    off (another clock) is refused, not paired silently."""
+    path = sample_copy / "office" / "measurements" / "USS1.csv"
+    lines = path.read_text().splitlines()
+    head = lines[0].split(",")
+    t = head.index("time")
+    for k in range(1, len(lines)):  # every row on a clock 5000 s ahead
+        cells = lines[k].split(",")
+        cells[t] = f"{float(cells[t]) + 5000.0:.6f}"
+        lines[k] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataFormatError, match=r"USS1.csv, row 2, field 'time': time .* is \+5000.000 s from the "
+                                              r"camera's .*5 of 5 rows"):
+        load_recording(sample_copy, "office")
+
+
+def test_a_camera_pose_that_jumps_is_refused_with_its_row(sample_copy):
+    """Issue 30: one pose at x = 1e6 m (a GPS glitch) would grow the box to fit it."""
+    path = sample_copy / "office" / "poses" / "poses_cam_balm_sync3.csv"
+    lines = path.read_text().splitlines()
+    head = lines[0].split(",")
+    cells = lines[3].split(",")
+    cells[head.index("x")] = "1000000.0"
+    lines[3] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataFormatError, match=r"poses_cam_balm_sync3.csv, row 4, field 'x': the camera jumps "
+                                              r"\d+\.\d+ m in 0.208 s"):
+        load_recording(sample_copy, "office")

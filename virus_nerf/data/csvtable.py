@@ -109,7 +109,7 @@ def check_sorted_times(path: Path, times: np.ndarray, field: str = "time") -> No
         i = int(back[0]) + 1
         raise DataFormatError(
             path,
-            f"timestamps not strictly increasing ({times[i - 1]!r} then {times[i]!r})",
+            f"timestamps not strictly increasing ({float(times[i - 1])!r} then {float(times[i])!r})",
             row=i + 2,
             field=field,
         )

@@ -289,6 +289,39 @@ def _pose_file(poses_dir: Path, kind: str, stack: int, source: PoseSource) -> Pa
     return poses_dir / name
 
 
+SYNC_TOLERANCE_S = 0.5  # row i of a stack's files is one sample: their times agree within this
+MAX_JUMP_M, MAX_SPEED_M_S = 1.0, 5.0  # a camera moving farther and faster between two rows is a glitch
+
+
+def check_same_times(path: Path, times: np.ndarray, camera_times: np.ndarray, camera_file: str) -> None:
+    """Rows of a stack's sensor file are matched to the camera's by index (the ETHZ layout): refuse,
+    naming the first row, a file whose times are not the camera's within SYNC_TOLERANCE_S (e.g.
+    another clock), and say how many rows are off."""
+    n = min(len(times), len(camera_times))
+    off = np.flatnonzero(~(np.abs(np.asarray(times[:n]) - np.asarray(camera_times[:n])) <= SYNC_TOLERANCE_S))
+    if len(off):
+        k = int(off[0])
+        raise DataFormatError(path, f"time {times[k]:.3f} s is {times[k] - camera_times[k]:+.3f} s from the camera's "
+                                    f"{camera_times[k]:.3f} s in {camera_file} ({len(off)} of {n} rows are more than "
+                                    f"{SYNC_TOLERANCE_S} s off); expected row i of every file of a stack to be the same "
+                                    "sample (clocks that do not agree?)", row=k + 2, field="time")
+
+
+def check_pose_jumps(path: Path, times: np.ndarray, poses: np.ndarray) -> None:
+    """Refuse a camera pose that jumps more than MAX_JUMP_M at more than MAX_SPEED_M_S from the
+    previous row (a GPS glitch, an odometry reset), naming its row: a map from it would be wrong."""
+    if len(times) < 2:
+        return
+    step = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)  # (N-1,) m
+    dt = np.abs(np.diff(times))
+    bad = np.flatnonzero(~((step <= MAX_JUMP_M) | (step <= MAX_SPEED_M_S * dt)))
+    if len(bad):
+        k = int(bad[0]) + 1
+        raise DataFormatError(path, f"the camera jumps {step[k - 1]:.2f} m in {dt[k - 1]:.3f} s (time {times[k]:.3f} s); "
+                                    f"expected a continuous drive (at most {MAX_JUMP_M:g} m or {MAX_SPEED_M_S:g} m/s "
+                                    "between rows: a pose glitch or an odometry reset?)", row=k + 2, field="x")
+
+
 def resolve_pose_source(room_dir: Path, wanted: PoseSource) -> tuple[PoseSource, str | None]:
     """The pose source to read: `wanted`, or odometry when `wanted` is "optimised" and the room
     has only odometry pose files (a robot without a LiDAR has no LiDAR-optimised poses); the
@@ -345,8 +378,8 @@ def load_recording(
             t_lidar, lidar_to_world = read_poses(lidar_path)
         else:  # a robot without a LiDAR: its LiDAR poses are unknown (NaN), never used for mapping
             t_lidar, lidar_to_world = t_cam, np.full_like(cam_to_world, np.nan)
-        _, uss_range = read_uss(meas / f"USS{s}.csv")
-        _, irs_range = read_tof(meas / f"TOF{s}.csv")
+        t_uss, uss_range = read_uss(meas / f"USS{s}.csv")
+        t_tof, irs_range = read_tof(meas / f"TOF{s}.csv")
         images = _numbered_files(meas / f"CAM{s}_color_image_raw", ".png")
         depth_dir = meas / f"CAM{s}_aligned_depth_to_color_image_raw"
         depths = _numbered_files(depth_dir, ".npy") if depth_dir.is_dir() else []  # no depth camera: none
@@ -363,6 +396,9 @@ def load_recording(
             raise DataFormatError(
                 room_dir, f"stack {s} files disagree in sample count (row i of each is one sample): {counts}"
             )
+        check_same_times(meas / f"USS{s}.csv", t_uss, t_cam, cam_path.name)
+        check_same_times(meas / f"TOF{s}.csv", t_tof, t_cam, cam_path.name)
+        check_pose_jumps(cam_path, t_cam, cam_to_world)
         if check_images and images:
             for p in images:
                 size = image_size(p)

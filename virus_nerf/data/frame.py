@@ -51,11 +51,17 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
     if frame.depth is not None and np.shape(frame.depth) != want[:2]:
         raise UsageError(f"SyncFrame.depth (stack {sid}): shape {np.shape(frame.depth)}; expected {want[:2]} "
                          "metres (NaN = invalid) or None")
+    if frame.depth is not None:
+        d = np.asarray(frame.depth, dtype=np.float64)
+        if (d[np.isfinite(d)] < 0).any() or np.isinf(d).any():
+            raise UsageError(f"SyncFrame.depth (stack {sid}): holds negative or infinite values (min "
+                             f"{np.nanmin(d):g}); expected z-depths >= 0 m, NaN where invalid")
     pose = np.asarray(frame.cam_to_world, dtype=np.float64)
     if pose.shape != (4, 4) or not np.isfinite(pose).all() or not np.allclose(pose[3], (0, 0, 0, 1)) \
-            or not np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-3):
+            or not np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-3) \
+            or not np.linalg.det(pose[:3, :3]) > 0:  # a mirror image (det -1) is not a pose
         raise UsageError(f"SyncFrame.cam_to_world (stack {sid}, time {frame.time}): expected a finite (4, 4) "
-                         "rigid transform (rotation, translation in metres, last row 0 0 0 1)")
+                         "rigid transform (rotation with det +1, translation in metres, last row 0 0 0 1)")
     if np.shape(frame.irs_range) != (8, 8):
         raise UsageError(f"SyncFrame.irs_range (stack {sid}): shape {np.shape(frame.irs_range)}; expected (8, 8) "
                          "zone depths in metres in image zone order (NaN = invalid)")

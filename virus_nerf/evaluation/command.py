@@ -64,7 +64,13 @@ def sensors(
     write_plots(result, plot_dir, replace=redo)
     if out.exists():
         raise OutputExistsError(out)
-    result.write_json(out)
+    warnings = []
+    if (recording.root / "import_report.json").is_file() and "LiDAR" in config.sensors and protocols:
+        warnings.append("the LiDAR map of this imported bag was built from the same LiDAR scans: the LiDAR row "
+                        "scores their consistency with their own map, not accuracy")
+    result.write_json(out, warnings=warnings)
     print(f"{len(result.points)} test points of {Path(data) / room}; NND in metres, shares in [0, 1]")
     print(result.table())
+    for w in warnings:
+        print(f"warning: {w}")
     print(f"wrote {out} and {plot_dir}/")

@@ -88,6 +88,13 @@ class VirusGrid(OccupancyGrid):
         return SensorPriorRequest(c.init_zone_samples, c.init_uss_free, c.init_stereo)
 
     @property
+    def warmup_done(self) -> bool:
+        """True once every cell has had the warm-up's whole offset (p_init moved to p_prior): until
+        then cells nothing has updated are still occupied."""
+        c = self.config
+        return abs(self._decay_applied - (c.logodds_prior - c.logodds_init)) < 1e-6
+
+    @property
     def logodds(self) -> torch.Tensor:
         """(rx, ry, rz) float32 log-odds (a view: do not write)."""
         return self._logodds

@@ -203,6 +203,7 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     from virus_nerf.trainer.loop import Trainer
     from virus_nerf.trainer.report import write_run_plots
     from virus_nerf.trainer.run_folder import write_run_metrics
+    from virus_nerf.trainer.trust import map_warnings
     from virus_nerf.utils.io import new_output_dir, remove_stale_partials
     from virus_nerf.utils.seeding import seed_everything
 
@@ -248,10 +249,11 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
                 if not (out / CHECKPOINT).is_file():
                     shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
                 raise
+        warnings = map_warnings(trainer)
         if not cfg.evaluation.gt:
             if resume and to_dict(cfg) != _saved_config(out):
                 write_json_atomic(out / CONFIG, to_dict(cfg))
-            return _finish_without_ground_truth(trainer, out, cfg, summary, resume)
+            return _finish_without_ground_truth(trainer, out, cfg, summary, resume, warnings)
         if eval_recording is not recording:
             # the map and test points are judged in the true (optimised) frame
             trainer.recording = eval_recording
@@ -262,10 +264,12 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         write_run_plots(out, result, trainer.eval_history, replace=resume)  # plots first: metrics.json marks the end
         if resume and to_dict(cfg) != _saved_config(out):
             write_json_atomic(out / CONFIG, to_dict(cfg))  # a finished run's resume: evaluated with it
-        doc = write_run_metrics(out, result, cfg, summary, safety=safety)
+        doc = write_run_metrics(out, result, cfg, summary, safety=safety, warnings=warnings)
     finally:
         lock.release()
     print(result.table())
+    for w in warnings:
+        print(f"warning: {w}")
     if safety is not None:
         from virus_nerf.evaluation.safety import safety_line
 
@@ -365,7 +369,7 @@ def map_safety_of(trainer, cfg, resolution: float = 0.05) -> dict | None:
     return safety_document(zones, observed_share(mapper.observed(resolution)), "map", resolution)
 
 
-def _finish_without_ground_truth(trainer, out: Path, cfg, summary, resume: bool) -> dict:
+def _finish_without_ground_truth(trainer, out: Path, cfg, summary, resume: bool, warnings=()) -> dict:
     """A run with no ground truth: its map into OUT/map/, then metrics.json (gt null, the train
     block; it marks the run finished as for a scored run) and one line that nothing was scored."""
     from virus_nerf.evaluation.metrics import metrics_document
@@ -373,8 +377,10 @@ def _finish_without_ground_truth(trainer, out: Path, cfg, summary, resume: bool)
     from virus_nerf.utils.io import write_json_atomic
 
     info = trainer.mapper.snapshot(out / MAP_DIR, replace=resume)
-    doc = metrics_document({}, cfg.evaluation.zones, train_summary_block(cfg, summary), gt=None)
+    doc = metrics_document({}, cfg.evaluation.zones, train_summary_block(cfg, summary), gt=None, warnings=warnings)
     write_json_atomic(out / METRICS, doc)
+    for w in warnings:
+        print(f"warning: {w}")
     print(
         f"trained {summary.steps} steps in {summary.seconds:.1f} s; no ground truth (--gt none): no metrics "
         f"computed; map ({info.map_known:.1%} known) in {out / MAP_DIR}"

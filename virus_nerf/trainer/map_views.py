@@ -73,6 +73,7 @@ class MapViews:
         for name, v, lo in (("resolution", resolution, 0.0), ("n_rays", n_rays, 0), ("max_poses", max_poses, 0)):
             if isinstance(v, bool) or not isinstance(v, int | float) or not v > lo or not math.isfinite(v):
                 raise UsageError(f"Mapper.map2d {name} {v!r}: expected a positive number")
+        self._check_raster("Mapper.map2d", resolution)
         pos = self.store.cam_to_world[:, :3, 3]
         pos = pos[np.unique(np.linspace(0, len(pos) - 1, min(max_poses, len(pos))).round().astype(int))]
         lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
@@ -83,6 +84,20 @@ class MapViews:
             self.field.train()
         m.image = apply_mask(m.image, self.observed(resolution), UNKNOWN)  # free only where a sensor looked
         return m
+
+    def _check_raster(self, what: str, resolution) -> None:
+        """A one-line UsageError, before anything is allocated, for a resolution that is not a
+        positive number or would make the box's map larger than exports.maps.MAX_PIXELS."""
+        from virus_nerf.exports.maps import MAX_PIXELS, raster_shape
+
+        if isinstance(resolution, bool) or not isinstance(resolution, int | float) or not math.isfinite(resolution) \
+                or resolution <= 0:
+            raise UsageError(f"{what} resolution {resolution!r}: expected a positive number of metres per pixel")
+        nx, ny = raster_shape(np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2]), resolution)
+        if nx * ny > MAX_PIXELS:
+            raise UsageError(f"{what} resolution {resolution!r}: the {self.box.size[0]:.1f} x {self.box.size[1]:.1f} m "
+                             f"box would be a {nx}x{ny} px map; expected at most {MAX_PIXELS // 1_000_000} M px "
+                             "(a coarser resolution)")
 
     def observed(self, resolution: float = 0.05) -> np.ndarray:
         """(nx, ny) bool [ix, iy] over the box's x, y raster: pixels inside some frame's camera
@@ -104,6 +119,7 @@ class MapViews:
         exports.maps.probability_slice); None for the Instant-NGP grid."""
         from virus_nerf.exports.maps import probability_slice, scale_map
 
+        self._check_raster("Mapper.probability_map", resolution)
         if not isinstance(self.grid, VirusGrid):
             return None
         lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])

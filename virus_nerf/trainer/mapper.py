@@ -315,8 +315,9 @@ class Mapper(MapViews):
                 stereo_range=batch.stereo_range if "stereo" in s else None, stereo_sigma=batch.stereo_sigma)
             terms = dataclasses.replace(terms, total=terms.total + free)
         self.optimizer.zero_grad(set_to_none=True)
-        terms.total.backward()
-        self.optimizer.step()
+        if terms.total.requires_grad:  # no ray marched an occupied cell (e.g. all look out of the box): no update
+            terms.total.backward()
+            self.optimizer.step()
         self.step += 1
         self.samples += stats.n_samples
         self.rays += stats.n_rays
