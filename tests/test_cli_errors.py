@@ -176,7 +176,7 @@ def write_config(tmp_path: Path, doc) -> Path:
         ({"bogus": 1}, "unknown key(s) ['bogus']"),
         ({"max_steps": 0}, "max_steps 0: expected an integer >= 1"),
         ({"batch_size": -1}, "batch_size -1: expected an integer >= 1"),
-        ({"march": {"step_size": 0}}, "march.step_size 0.0: expected a finite number > 0"),
+        ({"march": {"step_size": 0}}, "march.step_size 0.0: expected a finite number >= 0.0001"),
         ({"virus_grid": {"update_interval": 0}}, "key 'virus_grid': VirusGridConfig: invalid value for update_interval"),
         ({"max_steps": None, "max_time": None}, "set max_steps or max_time"),
         ({"device": "tpu"}, "device 'tpu': expected 'auto', 'cpu', 'cuda'"),
@@ -221,7 +221,7 @@ def test_config_file_errors_name_file_and_key(tmp_path, doc, fragment):
         ({"evaluation": {"sensors": ["radar"]}}, "evaluation.sensors ['radar']: expected a subset of ['LiDAR', 'USS', 'IRS']"),
         ({"field": {"density_hidden": [0]}}, "field.density_hidden[0] 0: expected an integer >= 1"),
         ({"field": {"color_hidden": [64, -3]}}, "field.color_hidden[1] -3: expected an integer >= 1"),
-        ({"field": {"density_clamp": -1}}, "field.density_clamp -1.0: expected a finite number > 0"),
+        ({"field": {"density_clamp": -1}}, "field.density_clamp -1.0: expected a finite number in (0, 80]"),
         ({"optim": {"betas": [1.5, 0.9]}}, "optim.betas[0] 1.5: expected a number in [0, 1)"),
     ],
 )

@@ -318,3 +318,13 @@ def test_grid_exports_need_a_virus_run(trained_run, tmp_path):
     assert parse_what(None, "ngp") == ("map", "esdf", "scans")
     assert parse_what("all", "virus") == ("map", "prob", "grid3d", "esdf", "scans", "cloud", "images")
     assert parse_what("esdf,map", "virus") == ("map", "esdf")
+
+
+def test_export_sizes_that_cannot_be_made_are_one_line(trained_run, tmp_path):
+    """Issue 30: a resolution so fine its pixel count overflows, and images scaled to 0 x 0 px."""
+    for argv, fragment in ((["--resolution", "1e-300"], "would be a 1000000000000x1000000000000 px map"),
+                           (["--what", "images", "--image-scale", "1e-6"], "would be 0x0 px")):
+        out = tmp_path / "e"
+        code, _, err = run_cli(["export", "--run", trained_run, "--out", out, *argv])
+        assert code == 2 and len(err.strip().splitlines()) == 1 and fragment in err, err
+        assert not out.exists()

@@ -51,11 +51,19 @@ def storage_for(url: str | None, study_dir: Path):
     (sqlite:///..., postgresql://..., mysql://...: many machines at once)."""
     import optuna
 
+    from virus_nerf.errors import UsageError, one_line
+
     if url is not None and "://" in url:
-        return url  # optuna builds its RDBStorage from the URL
+        return url  # optuna builds its RDBStorage from the URL (opened, and checked, by open_study)
     path = Path(url.removeprefix("journal:")) if url else study_dir / JOURNAL
+    if path.is_dir():
+        raise UsageError(f"--storage {url or path}: is a folder; expected a journal file (a path) or an RDB URL")
     path.parent.mkdir(parents=True, exist_ok=True)
-    return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
+    try:
+        return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
+    except Exception as exc:  # a damaged journal: its log is replayed on opening
+        raise UsageError(f"--storage {path}: not a readable Optuna journal ({type(exc).__name__}: "
+                         f"{one_line(exc, 160)}); expected a journal file this tool wrote (or a new path)") from None
 
 
 def open_study(name: str, storage, objective: Objective, base: dict | None, seed: int, pruner: str,
@@ -69,7 +77,7 @@ def open_study(name: str, storage, objective: Objective, base: dict | None, seed
     """
     import optuna
 
-    from virus_nerf.errors import UsageError
+    from virus_nerf.errors import UsageError, one_line
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     try:
@@ -77,6 +85,11 @@ def open_study(name: str, storage, objective: Objective, base: dict | None, seed
                                     directions=objective.directions, pruner=_pruner(pruner))
     except ValueError as exc:  # e.g. a loaded study with other directions
         raise UsageError(f"--objective {objective.mode}: study {name!r} cannot be opened so ({exc})") from None
+    except Exception as exc:  # a storage that cannot be opened or read: SQLAlchemy, journal and decoding errors
+        where = storage if isinstance(storage, str) else "the journal file"
+        raise UsageError(f"--storage {where}: cannot open study {name!r} there ({type(exc).__name__}: "
+                         f"{one_line(exc, 160)}); expected a journal file this tool wrote, or an RDB URL "
+                         "such as sqlite:///study.db whose database can be created or opened") from None
     attrs = study.user_attrs
     if "objective" in attrs:
         if attrs["objective"] != objective.as_dict():

@@ -165,6 +165,10 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
 
         stack = trainer.recording.stacks.get(MAIN_STACK) or next(iter(trainer.recording.stacks.values()))
         intr = stack.intrinsics.scaled(image_scale)
+        if intr.width < 1 or intr.height < 1:
+            raise UsageError(f"--image-scale {image_scale:g}: CAM{stack.stack_id}'s {stack.intrinsics.width}x"
+                             f"{stack.intrinsics.height} px images would be {intr.width}x{intr.height} px; expected a "
+                             "scale giving at least 1x1 px")
         (folder / "images").mkdir()
         for k, pose in enumerate(pose_set.cam_to_world):
             rgb, depth_mm = views.render_image(trainer.model, intr, pose)

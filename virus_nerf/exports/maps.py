@@ -35,8 +35,11 @@ class OccupancyMap2D:
 
 def raster_shape(lo: np.ndarray, hi: np.ndarray, resolution: float) -> tuple[int, int]:
     """(nx, ny) pixels covering the box [lo, hi] (x, y) at `resolution` metres per pixel."""
-    nx, ny = np.ceil((np.asarray(hi[:2]) - np.asarray(lo[:2])) / resolution - 1e-9).astype(int)
-    return max(int(nx), 1), max(int(ny), 1)
+    with np.errstate(over="ignore", divide="ignore"):
+        cells = np.ceil((np.asarray(hi[:2], dtype=np.float64) - np.asarray(lo[:2], dtype=np.float64)) / resolution
+                        - 1e-9)
+    cells = np.where(np.isfinite(cells), np.minimum(cells, 1e12), 1e12)  # a tiny resolution: huge, not overflowed
+    return max(int(cells[0]), 1), max(int(cells[1]), 1)
 
 
 def to_image(grid_xy: np.ndarray) -> np.ndarray:

@@ -324,25 +324,10 @@ def _resume(out: Path, recording, cfg, quiet):
 RAY_BYTES = 96
 
 
-def memory_limit() -> int | None:
-    """Bytes of memory this process may use: the machine's RAM, or a smaller cgroup limit."""
-    limits = []
-    try:
-        limits.append(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):
-        pass
-    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
-        try:
-            text = Path(path).read_text().strip()
-        except OSError:
-            continue
-        if text.isdigit() and int(text) < 1 << 60:
-            limits.append(int(text))
-    return min(limits) if limits else None
-
-
 def check_batch_memory(cfg, limit: int | None = None) -> None:
     """Refuse, before any work, a --batch-size whose rays alone cannot fit in memory."""
+    from virus_nerf.utils.memory import memory_limit
+
     limit = memory_limit() if limit is None else limit
     need = cfg.batch_size * RAY_BYTES
     if limit is not None and need > limit:

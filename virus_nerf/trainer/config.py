@@ -180,8 +180,10 @@ class TrainConfig:
         number("checkpoint_every", 0.0)
         number("min_opacity", 0.0, 1.0, lo_open=False)
         flag("density_only_depth_rays")
-        number("march.step_size", 0.0)
-        number("march.near", 0.0, lo_open=False)
+        # bounds that keep a step finite: a 0.1 mm step walks 10^4 samples a metre, a start
+        # beyond 100 m leaves no ray in any room, exp(88.7) overflows float32
+        number("march.step_size", 1e-4, lo_open=False)
+        number("march.near", 0.0, 100.0, lo_open=False)
         integer("march.max_samples", 1)
         number("march.min_transmittance", 0.0, 1.0, lo_open=False)
         number("optim.lr", 0.0)
@@ -190,7 +192,7 @@ class TrainConfig:
         number("optim.lr_decay_driving", 0.0)
         integer("virus_grid.update_interval", 1)
         integer("ngp_grid.update_interval", 1)
-        integer("evaluation.n_rays", 1)
+        integer("evaluation.n_rays", 1, 1_000_000)
         # the nested sections whose own classes take any number: a bad value would end in a
         # traceback (ZeroDivisionError, KeyError 'zone3', a torch shape error) after the data
         # were read, or train on silently (a zero-width layer, a negative share or weight)
@@ -198,7 +200,7 @@ class TrainConfig:
             for i, width in enumerate(getattr(self.field, name)):
                 if not (isinstance(width, numbers.Integral) and width >= 1):
                     raise bad(f"field.{name}[{i}]", width, "an integer >= 1 (layer width)")
-        number("field.density_clamp", 0.0)
+        number("field.density_clamp", 0.0, 80.0)
         integer("ngp_grid.max_resolution", 1)
         integer("ngp_grid.warmup_steps", 0)
         integer("ngp_grid.chunk_size", 1)

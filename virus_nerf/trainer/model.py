@@ -196,10 +196,17 @@ def start_box(recording: Recording, config: TrainConfig) -> SceneBox:
 
 
 def build_grid(config: TrainConfig, box: SceneBox, device: torch.device, spec: GridSpec | None = None) -> OccupancyGrid:
-    """The configured occupancy grid over `spec` (default: `box` with the grid's max_resolution)."""
+    """The configured occupancy grid over `spec` (default: `box` with the grid's max_resolution);
+    a grid that cannot fit in memory is refused before it is allocated."""
+    from virus_nerf.utils.memory import require_memory
+
+    cfg = config.ngp_grid if config.grid == "ngp" else config.virus_grid
+    spec = spec or GridSpec.from_box(box, cfg.max_resolution)
+    key = "extent.grid_cell_m" if config.extent.mode == "grow" else f"{config.grid}_grid.max_resolution"
+    # per cell: float32 value, bool occupied, float32 probability or density on reading
+    require_memory(f"{key}: a {'x'.join(map(str, spec.resolution))} cell grid", spec.n_cells * 9.0,
+                   "a coarser grid")
     if config.grid == "ngp":
         cfg = config.ngp_grid
-        return NgpGrid(spec or GridSpec.from_box(box, cfg.max_resolution), cfg, step_size=config.march.step_size,
-                       device=device)
-    cfg = config.virus_grid
-    return VirusGrid(spec or GridSpec.from_box(box, cfg.max_resolution), cfg, device=device)
+        return NgpGrid(spec, cfg, step_size=config.march.step_size, device=device)
+    return VirusGrid(spec, cfg, device=device)
