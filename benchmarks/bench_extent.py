@@ -36,7 +36,7 @@ def run_once(data: Path, room: str, mode: str, playback: float, seed: int, work:
     """One online training (or, with `steps`, an offline one of that many steps: bit-reproducible,
     so a busy machine changes its wall time only); its zone-3 metrics, wall time and peak memory."""
     cfg = work / f"{mode}.json"
-    cfg.write_text(json.dumps({**MODES[mode], **({} if steps is None else {"max_time": None})}))  # steps alone
+    cfg.write_text(json.dumps({**MODES[mode], **({} if steps is None else {"max_time": None, "max_steps": steps})}))
     out = work / f"run_{data.name}_{mode}_{seed}"
     cmd = [sys.executable, "-m", "virus_nerf.cli", "train", "--data", str(data), "--room", room, "--out", str(out),
            "--gt", "map", "--seed", str(seed), "--config", str(cfg), "--quiet"]
