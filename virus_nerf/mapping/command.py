@@ -49,7 +49,7 @@ def map_bag(
     tf_child: str | None = None,
     odometry_topic: str = "/odom",
     import_first: bool = False,
-    first_snapshot: float = 5.0,
+    first_snapshot: float = 1.0,
     max_lag: float = 2.0,
     max_silence: float = 2.0,
     config: Path | None = None,
@@ -88,7 +88,7 @@ def map_bag(
         import_first: Import the whole bag into OUT/recording first, then replay it (the old path;
             --poses odometry is streaming only).
         first_snapshot: Wall-clock seconds from the first message to the first snapshot (at most
-            --snapshot-every); streaming only.
+            --snapshot-every; the mapper does not train before it); streaming only.
         max_lag: A colour image released more than this many recording seconds late (the mapper
             was busy) is dropped, and counted; streaming only.
         max_silence: A sensor topic (or the pose source) silent this many recording seconds has
@@ -193,7 +193,7 @@ def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: f
 
 def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float, topics: Path | None, cfg,
                    pose_args: dict, maps: dict, sinks: dict, *, odometry_topic: str = "/odom",
-                   first_snapshot: float = 5.0, max_lag: float = 2.0, max_silence: float = 2.0) -> None:
+                   first_snapshot: float = 1.0, max_lag: float = 2.0, max_silence: float = 2.0) -> None:
     """The streaming path (mapping/stream.py): topics checked against the bag before OUT is made;
     OUT removed again when the stream stops before its first frame (nothing was mapped)."""
     from virus_nerf.data.bags.importer import _plan, require_ros_extra

@@ -5,7 +5,8 @@ receive time in the bag (the order a robot gets them). Each released message goe
 `data.bags.live.LiveSync`, which hands back the frames it completes (colour image + depth, USS,
 IRS within their sync tolerances + pose); they go to the `Mapper` at once. The mapper trains while
 the next message is not yet due; every `snapshot_every` seconds of wall time (the first after
-`first_snapshot` s) the map goes to OUT/snapshots/NNNN_<s>s/ with a progress line that reports the
+`first_snapshot` s, before any training step: a step can take seconds on a CPU, and the first map
+shows that mapping runs) the map goes to OUT/snapshots/NNNN_<s>s/ with a progress line that reports the
 lag: the scaled wall clock minus the recording time of the newest frame. A colour image released
 more than `max_lag` recording seconds after it was due is dropped without being decoded (a robot
 cannot pause its sensors); the count is reported. The mapper is made at the first frames, its
@@ -21,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import statistics
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -73,8 +75,9 @@ class StreamReport:
 def warm_up(config) -> None:
     """Load torch's optimiser machinery and the mapper's kernels on a throwaway mapper (one small
     synthetic frame, one step) before the drive's clock starts, as a robot starts its mapper before
-    it drives off: the first real frame is then not seconds late (measured on 2 cores: Adam's first
-    import about 2 s, the first render 0.8 s)."""
+    it drives off: the first real frame is then not seconds late (measured on 2 shared cores: the
+    optimiser's first construction imports torch._dynamo, 1-2 s; the first render 0.2-0.8 s; the
+    first snapshot 0.2 s)."""
     from virus_nerf.data.frame import SyncFrame
     from virus_nerf.sensors.camera import Intrinsics
     from virus_nerf.trainer.mapper import Mapper
@@ -89,13 +92,15 @@ def warm_up(config) -> None:
     mapper.add_frame(SyncFrame(time=0.0, stack_id=0, rgb=rgb, cam_to_world=pose, uss_range=2.0,
                                irs_range=np.full((8, 8), 2.0), depth=depth))
     mapper.train(1.0, steps=1)
+    with tempfile.TemporaryDirectory() as tmp:  # the map code's first call (imports)
+        mapper.snapshot(Path(tmp) / "warm", n_rays=8, max_poses=1)
 
 
 class StreamRun:
     """One streaming run into OUT (see module doc); `run(messages)` returns the report."""
 
     def __init__(self, sync: LiveSync, out: Path, config, *, playback: float = 1.0, snapshot_every: float = 10.0,
-                 first_snapshot: float = 5.0, max_lag: float = 2.0, drive_s: float = 0.0, resolution: float = 0.05,
+                 first_snapshot: float = 1.0, max_lag: float = 2.0, drive_s: float = 0.0, resolution: float = 0.05,
                  n_rays: int = 360, max_poses: int = 30, train_slice: float = 0.25, train_share: float = 0.5,
                  box: Callable[[np.ndarray], SceneBox] = initial_box, log: Callable[[str], None] = print,
                  live=None, ros_bag=None) -> None:
@@ -103,7 +108,7 @@ class StreamRun:
         self.playback, self.snapshot_every, self.max_lag = playback, snapshot_every, max_lag
         self.drive_s, self.resolution, self.n_rays, self.max_poses = drive_s, resolution, n_rays, max_poses
         self.train_slice, self.box, self.log, self.live, self.ros_bag = train_slice, box, log, live, ros_bag
-        self.train_share, self.train_wall, self.mapper_start = train_share, 0.0, 0.0
+        self.train_share, self.train_next = train_share, 0.0
         self.next_snapshot = min(first_snapshot, snapshot_every)
         self.mapper = None
         self.held: list[StreamFrame] = []  # the first frames, until the mapper can be made
@@ -154,26 +159,27 @@ class StreamRun:
             if self._maybe_snapshot():
                 continue
             budget = min(self.train_slice, due - now, self.next_snapshot - now)
-            if self.mapper is not None:
+            if self.mapper is not None and self.report.snapshots:
                 self._train(budget)
-            else:
+            else:  # before the first snapshot: no step (one can take seconds on a CPU) may delay it
                 time.sleep(budget)
 
     def _train(self, budget: float) -> None:
         t = time.monotonic()
         self.mapper.train(budget)
-        self.train_wall += time.monotonic() - t
+        took = time.monotonic() - t
+        # the earliest next slice forced while behind: train_share of the wall time, over the last slice
+        self.train_next = self.now() + took * (1.0 - self.train_share) / self.train_share
 
     def _train_owed(self) -> None:
         """Behind the clock, the messages would take all the time and the map would never train:
-        training gets at least `train_share` of the wall time since the mapper was made (a robot's
-        mapper thread runs beside its sensor callbacks); the frames this delays past max_lag are
-        dropped."""
-        if self.mapper is None:
+        a slice is forced once the messages since the last one took as long as it (train_share
+        0.5), as a robot's mapper thread runs beside its sensor callbacks; the colour images this
+        delays past max_lag are dropped. Snapshots count for neither."""
+        if self.mapper is None or not self.report.snapshots:
             return
-        owed = self.train_share * (self.now() - self.mapper_start) - self.train_wall
-        if owed > 0:
-            self._train(min(owed, self.train_slice))
+        if self.now() >= self.train_next:
+            self._train(self.train_slice)
 
     def _add(self, frames: list[StreamFrame]) -> None:
         if self.mapper is None:
@@ -214,7 +220,6 @@ class StreamRun:
         self._add(first[:1])
         self.mapper.prepare()
         self._add(first[1:])
-        self.mapper_start = self.now()
 
     # ------------------------------------------------------------------ maps
     def _maybe_snapshot(self) -> bool:
@@ -225,6 +230,7 @@ class StreamRun:
         folder = self.out / SNAPSHOTS / f"{k:04d}_{now:.1f}s"
         lag = self.lag(now)
         info = self._snapshot(folder, self.newest)
+        self.train_next = self.now()  # the snapshot's time is not the messages'
         self.report.snapshots.append(str(folder))
         self.report.lag_s.append(round(lag, 3))
         if self.report.first_snapshot_s is None:

@@ -23,7 +23,7 @@ stream cannot.
 
 Bad data stops the stream with a `StreamError` (one line naming the topic and the bag time): a
 stamp older than its topic's previous one, a watched topic silent for `max_silence_s`, or the robot
-moving more than `max_jump_m` between consecutive frames.
+moving more than `max_jump_m` between consecutive frames (at most JUMP_WINDOW_S apart).
 """
 
 from __future__ import annotations
@@ -53,6 +53,7 @@ from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.sensors.geometry import pose_matrix
 
 MAX_JUMP_M = 1.0  # the robot moving further between two consecutive frames is a broken pose source
+JUMP_WINDOW_S = 1.0  # ... when they are at most this far apart in time
 MAX_SILENCE_S = 2.0  # a watched topic silent this long (bag time) has stopped
 PARTNERS = ("depth", "uss", "tof")  # the importer's order: a dropped frame counts its first missing partner
 
@@ -322,6 +323,7 @@ class LiveSync:
         self.dropped: dict[int, Counter] = {s: Counter() for s in cfg.stacks}
         self.made = 0
         self.last_frame: tuple[float, np.ndarray] | None = None  # (time, robot pose) for the jump check
+        self.error: StreamError | None = None  # met while releasing frames: raised at the next message
 
     # ------------------------------------------------------------------ input
     def topics(self) -> list[str]:
@@ -338,6 +340,8 @@ class LiveSync:
     def push(self, topic: str, msg: Message, late: bool = False) -> list[StreamFrame]:
         """One message; the frames it completes, in time order. late: a colour image the mapper
         is too far behind to use (counted as dropped, never decoded)."""
+        if self.error is not None:
+            raise self.error
         t = msg.time_s
         if self.t0 is None:
             self.t0 = t
@@ -364,6 +368,8 @@ class LiveSync:
 
     def finish(self) -> list[StreamFrame]:
         """The bag has ended: every waiting image is decided with what came."""
+        if self.error is not None:
+            raise self.error
         self.clock = math.inf
         return self._release()
 
@@ -385,8 +391,8 @@ class LiveSync:
         prev = self.last_stamp.get(topic)
         if prev is not None and msg.time_s < prev and "static" not in topic:
             raise StreamError(self.bag, f"topic {topic}: the clock went backwards: message {msg.index + 1} is stamped "
-                              f"{self.rel(msg.time_s):.3f} s, {prev - msg.time_s:.3f} s before the previous one "
-                              f"({self.rel(prev):.3f} s since the bag's start)", self.rel(prev))
+                              f"at {self.rel(msg.time_s):.3f} s, {prev - msg.time_s:.3f} s before the previous one at "
+                              f"{self.rel(prev):.3f} s (seconds since the bag's first message)", self.rel(prev))
         self.last_stamp[topic] = msg.time_s
 
     def _check_silence(self) -> None:
@@ -406,10 +412,12 @@ class LiveSync:
                               f"{self.rel(self.clock):.3f} s){': ' + why if why else ''}", self.rel(self.clock))
 
     def _check_jump(self, f: StreamFrame) -> None:
+        """Consecutive frames at most JUMP_WINDOW_S apart (frames dropped while the mapper was
+        behind leave gaps the robot may legitimately have driven a metre in)."""
         if self.last_frame is not None:
             t_prev, prev = self.last_frame
             d = float(np.linalg.norm(f.robot_to_world[:3, 3] - prev[:3, 3]))
-            if d > self.max_jump_m:
+            if d > self.max_jump_m and f.frame.time - t_prev <= JUMP_WINDOW_S:
                 raise StreamError(self.bag, f"{self.poses.describe}: the pose jumps {d:.2f} m between the frames at "
                                   f"{self.rel(t_prev):.3f} s and {self.rel(f.frame.time):.3f} s; expected at most "
                                   f"{self.max_jump_m:g} m", self.rel(f.frame.time))
@@ -424,8 +432,12 @@ class LiveSync:
                 if frame is not None:
                     out.append(frame)
         out.sort(key=lambda f: (f.frame.time, f.frame.stack_id))
-        for f in out:
-            self._check_jump(f)
+        for k, f in enumerate(out):
+            try:
+                self._check_jump(f)
+            except StreamError as exc:  # the frames before the jump still reach the map
+                self.error, out = exc, out[:k]
+                break
         self.made += len(out)
         self._prune()
         return out
