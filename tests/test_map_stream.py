@@ -4,6 +4,7 @@ the lag, and bad data stops the stream with one line after writing the map made 
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import re
 from pathlib import Path
@@ -210,9 +211,11 @@ def test_map_bag_streams_with_snapshots_lag_and_final_map(bags, tiny_cfg, tmp_pa
     """The default map-bag path: snapshots every 0.6 s, each line with the lag, a final map with
     every frame the importer makes (nothing dropped at --max-lag 100), stream.json; no recording/."""
     out = tmp_path / "out"
+    have_sinks = importlib.util.find_spec("rerun") and importlib.util.find_spec("mcap_ros2")
+    sinks = ["--rerun-save", tmp_path / "live.rrd", "--out-bag", tmp_path / "maps_bag"] if have_sinks else []
     code, stdout, stderr = run_cli(["map-bag", bags["ros1"], "--out", out, "--playback", "2", "--snapshot-every",
                                     "0.6", "--config", tiny_cfg, "--n-rays", "32", "--max-poses", "3", "--poses", "csv",
-                                    "--poses-file", bags["csv"], "--max-lag", "100"])
+                                    "--poses-file", bags["csv"], "--max-lag", "100", *sinks])
     assert code == 0, stderr
     lines = [ln for ln in stdout.splitlines() if ln.startswith(("snapshot", "final map"))]
     snaps = sorted(p for p in (out / "snapshots").iterdir() if p.is_dir())
@@ -227,6 +230,10 @@ def test_map_bag_streams_with_snapshots_lag_and_final_map(bags, tiny_cfg, tmp_pa
     assert len(report["lag_s"]) == len(snaps) and report["first_snapshot_s"] < 5
     assert (out / "map" / "mapper.pt").is_file() and not (out / "recording").exists()
     assert "map-bag: 30 frames, 0 dropped; lag at snapshots median" in stdout
+    if have_sinks:  # the live view and the ROS maps get every frame and every snapshot's maps, as in replay
+        from test_mapper import _check_map_bag_sinks
+
+        _check_map_bag_sinks(tmp_path / "live.rrd", tmp_path / "maps_bag", out, len(snaps), 30)
 
 
 def test_map_bag_drops_late_frames_and_keeps_the_map_on_bad_data(bags, tiny_cfg, tmp_path):
@@ -256,10 +263,15 @@ def test_map_bag_drops_late_frames_and_keeps_the_map_on_bad_data(bags, tiny_cfg,
     assert "map-bag: stopped at 1.6" in stdout and (out / "map" / "map.pgm").is_file()
 
 
-def test_map_bag_refuses_a_bag_without_images(bags, tmp_path):
-    """No colour image messages: one line naming the topic, nothing written."""
+def test_map_bag_refuses_a_bag_without_images_or_odometry(bags, tmp_path):
+    """No colour image messages, or no odometry topic for --poses odometry: one line naming the
+    topic, nothing written; --poses odometry cannot --import-first."""
     bag = _rewrite(bags["ros1"], tmp_path / "blind.bag",
                    lambda topic, t, msg, ty: [] if topic == "/CAM1/color/image_raw" else [(topic, ty, t, msg)])
-    code, _, stderr = run_cli(["map-bag", bag, "--out", tmp_path / "out", "--poses", "csv", "--poses-file", bags["csv"]])
-    assert code == 2 and stderr.count("\n") == 1 and "no topic /CAM1/color/image_raw" in stderr, stderr
-    assert not (tmp_path / "out").exists()
+    for argv, message in (([bag, "--poses", "csv", "--poses-file", bags["csv"]], "no topic /CAM1/color/image_raw"),
+                          ([bags["ros1"], "--poses", "odometry"], "no topic /odom (--odometry-topic)"),
+                          ([bags["ros1"], "--poses", "odometry", "--import-first"], "--poses odometry streams only"),
+                          ([bags["ros1"], "--poses", "csv"], "--poses csv needs --poses-file")):
+        code, _, stderr = run_cli(["map-bag", *argv, "--out", tmp_path / "out"])
+        assert code == 2 and stderr.count("\n") == 1 and message in stderr, stderr
+        assert not (tmp_path / "out").exists()

@@ -233,8 +233,9 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
         except BaseException as exc:
             if run_made_nothing(out):
                 shutil.rmtree(out, ignore_errors=True)
-            elif isinstance(exc, DataFormatError) and run is not None:
-                print(f"map-bag: stopped at {_at(exc)} of {max(last - first, 0.0):.1f} s of the bag; "
+            elif isinstance(exc, DataFormatError | KeyboardInterrupt) and run is not None:
+                at = _at(exc) if isinstance(exc, DataFormatError) else f"{run.report.stopped_at_s or 0.0:.2f} s"
+                print(f"map-bag: stopped at {at} of {max(last - first, 0.0):.1f} s of the bag; "
                       f"{summary(run.report)}; final map of what was made in {out / 'map'}")
             raise
     if report.final is None:

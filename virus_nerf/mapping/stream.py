@@ -143,6 +143,11 @@ class StreamRun:
             self.report.stopped_at_s = getattr(exc, "at_s", None)
             self._close()
             raise
+        except KeyboardInterrupt:  # the operator stops the robot's mapping: keep the map
+            self.report.stopped = "interrupted (Ctrl-C)"
+            self.report.stopped_at_s = None if self.sync.t0 is None else self.sync.rel(self.sync.clock)
+            self._close()
+            raise
         self._close()
         return self.report
 
@@ -265,7 +270,8 @@ class StreamRun:
         if self.mapper is not None:
             now = self.now()
             lag = self.lag(now)
-            info = self._snapshot(self.out / FINAL, self.newest, with_state=True)
+            info = self._snapshot(self.out / FINAL, self.newest if self.newest is not None else self.t0,
+                                  with_state=True)
             r.final = str(self.out / FINAL)
             r.frames, r.steps, r.train_s, r.wall_s = self.mapper.frames, self.mapper.step, self.mapper.seconds, now
             self.log(self._line("final map", now, info, self.out / FINAL, lag))
