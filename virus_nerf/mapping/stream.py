@@ -133,7 +133,7 @@ class StreamRun:
             for topic, msg in messages:
                 due = self._due(msg)
                 self._wait(due)
-                self._train_owed()
+                self._train_owed(due)
                 late = self.sync.is_color(topic) and (self.now() - due) * self.playback > self.max_lag
                 self._add(self.sync.push(topic, msg, late=late))
                 self._maybe_snapshot()
@@ -176,14 +176,16 @@ class StreamRun:
         # the earliest next slice forced while behind: train_share of the wall time, over the last slice
         self.train_next = self.now() + took * (1.0 - self.train_share) / self.train_share
 
-    def _train_owed(self) -> None:
+    def _train_owed(self, due: float) -> None:
         """Behind the clock, the messages would take all the time and the map would never train:
         a slice is forced once the messages since the last one took as long as it (train_share
-        0.5), as a robot's mapper thread runs beside its sensor callbacks; the colour images this
-        delays past max_lag are dropped. Snapshots count for neither."""
+        0.5), as a robot's mapper thread runs beside its sensor callbacks. Not while the stream is
+        more than max_lag behind: then its colour images are dropped anyway and catching up on the
+        other messages comes first (the lag stays bounded). Snapshots count for neither."""
         if self.mapper is None or not self.report.snapshots:
             return
-        if self.now() >= self.train_next:
+        now = self.now()
+        if now >= self.train_next and (now - due) * self.playback <= self.max_lag:
             self._train(self.train_slice)
 
     def _add(self, frames: list[StreamFrame]) -> None:
