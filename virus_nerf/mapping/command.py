@@ -88,7 +88,7 @@ def map_bag(
         import_first: Import the whole bag into OUT/recording first, then replay it (the old path;
             --poses odometry is streaming only).
         first_snapshot: Wall-clock seconds from the first message to the first snapshot (at most
-            --snapshot-every; the mapper does not train before it); streaming only.
+            --snapshot-every; no training step that might delay it starts); streaming only.
         max_lag: A colour image released more than this many recording seconds late (the mapper
             was busy) is dropped, and counted; streaming only.
         max_silence: A sensor topic (or the pose source) silent this many recording seconds has
@@ -220,7 +220,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
         sync = LiveSync(tcfg, source, bag, intrinsics=plan.intrinsics, with_depth="rgbd" in cfg.sensors,
                         max_silence_s=max_silence)
         first, last = reader.span_s
-        warm_up(cfg)
+        warm_step_s = warm_up(cfg)
         out.mkdir(parents=True)
         run = None
         try:
@@ -228,7 +228,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
                 live, ros_bag = open_sinks(stack, **sinks)
                 run = StreamRun(sync, out, cfg, playback=playback, snapshot_every=snapshot_every,
                                 first_snapshot=first_snapshot, max_lag=max_lag, drive_s=max(last - first, 0.0),
-                                live=live, ros_bag=ros_bag, **maps)
+                                live=live, ros_bag=ros_bag, warm_step_s=warm_step_s, **maps)
                 report = run.run(reader.iter_topics(sync.topics()))
         except BaseException as exc:
             if run_made_nothing(out):

@@ -5,8 +5,8 @@ receive time in the bag (the order a robot gets them). Each released message goe
 `data.bags.live.LiveSync`, which hands back the frames it completes (colour image + depth, USS,
 IRS within their sync tolerances + pose); they go to the `Mapper` at once. The mapper trains while
 the next message is not yet due; every `snapshot_every` seconds of wall time (the first after
-`first_snapshot` s, before any training step: a step can take seconds on a CPU, and the first map
-shows that mapping runs) the map goes to OUT/snapshots/NNNN_<s>s/ with a progress line that reports the
+`first_snapshot` s, delayed by no training step: a step can take seconds on a CPU, and the first
+map shows that mapping runs) the map goes to OUT/snapshots/NNNN_<s>s/ with a progress line that reports the
 lag: the scaled wall clock minus the recording time of the newest frame. A colour image released
 more than `max_lag` recording seconds after it was due is dropped without being decoded (a robot
 cannot pause its sensors); the count is reported. The mapper is made at the first frames, its
@@ -72,12 +72,12 @@ class StreamReport:
         return dataclasses.asdict(self)
 
 
-def warm_up(config) -> None:
+def warm_up(config) -> float:
     """Load torch's optimiser machinery and the mapper's kernels on a throwaway mapper (one small
     synthetic frame, one step) before the drive's clock starts, as a robot starts its mapper before
     it drives off: the first real frame is then not seconds late (measured on 2 shared cores: the
     optimiser's first construction imports torch._dynamo, 1-2 s; the first render 0.2-0.8 s; the
-    first snapshot 0.2 s)."""
+    first snapshot 0.2 s). Returns the seconds of its training step (a lower bound of a real one)."""
     from virus_nerf.data.frame import SyncFrame
     from virus_nerf.sensors.camera import Intrinsics
     from virus_nerf.trainer.mapper import Mapper
@@ -91,9 +91,13 @@ def warm_up(config) -> None:
     depth = np.full((intr.height, intr.width), 2.0, dtype=np.float32) if "rgbd" in cfg.sensors else None
     mapper.add_frame(SyncFrame(time=0.0, stack_id=0, rgb=rgb, cam_to_world=pose, uss_range=2.0,
                                irs_range=np.full((8, 8), 2.0), depth=depth))
+    mapper.train(1.0, steps=1)  # the first step: the optimiser's and backward's first calls
+    t = time.perf_counter()
     mapper.train(1.0, steps=1)
+    step_s = time.perf_counter() - t
     with tempfile.TemporaryDirectory() as tmp:  # the map code's first call (imports)
         mapper.snapshot(Path(tmp) / "warm", n_rays=8, max_poses=1)
+    return step_s
 
 
 class StreamRun:
@@ -103,12 +107,12 @@ class StreamRun:
                  first_snapshot: float = 1.0, max_lag: float = 2.0, drive_s: float = 0.0, resolution: float = 0.05,
                  n_rays: int = 360, max_poses: int = 30, train_slice: float = 0.25, train_share: float = 0.5,
                  box: Callable[[np.ndarray], SceneBox] = initial_box, log: Callable[[str], None] = print,
-                 live=None, ros_bag=None) -> None:
+                 live=None, ros_bag=None, warm_step_s: float = 0.1) -> None:
         self.sync, self.out, self.config = sync, Path(out), config
         self.playback, self.snapshot_every, self.max_lag = playback, snapshot_every, max_lag
         self.drive_s, self.resolution, self.n_rays, self.max_poses = drive_s, resolution, n_rays, max_poses
         self.train_slice, self.box, self.log, self.live, self.ros_bag = train_slice, box, log, live, ros_bag
-        self.train_share, self.train_next = train_share, 0.0
+        self.train_share, self.train_next, self.warm_step_s = train_share, 0.0, warm_step_s
         self.next_snapshot = min(first_snapshot, snapshot_every)
         self.mapper = None
         self.held: list[StreamFrame] = []  # the first frames, until the mapper can be made
@@ -164,10 +168,22 @@ class StreamRun:
             if self._maybe_snapshot():
                 continue
             budget = min(self.train_slice, due - now, self.next_snapshot - now)
-            if self.mapper is not None and self.report.snapshots:
+            if self._may_train(now):
                 self._train(budget)
-            else:  # before the first snapshot: no step (one can take seconds on a CPU) may delay it
+            else:
                 time.sleep(budget)
+
+    def _may_train(self, now: float) -> bool:
+        """A mapper, and no step that could delay the first snapshot (on a CPU one step can take
+        seconds): before it, a step starts only if it should end in time (3 x the warm-up's step,
+        or the mean of the steps so far)."""
+        if self.mapper is None:
+            return False
+        if self.report.snapshots:
+            return True
+        m = self.mapper
+        step_s = m.seconds / m.step if m.step else 3.0 * self.warm_step_s
+        return self.next_snapshot - now > step_s
 
     def _train(self, budget: float) -> None:
         t = time.monotonic()
@@ -182,9 +198,9 @@ class StreamRun:
         0.5), as a robot's mapper thread runs beside its sensor callbacks. Not while the stream is
         more than max_lag behind: then its colour images are dropped anyway and catching up on the
         other messages comes first (the lag stays bounded). Snapshots count for neither."""
-        if self.mapper is None or not self.report.snapshots:
-            return
         now = self.now()
+        if not self._may_train(now):
+            return
         if now >= self.train_next and (now - due) * self.playback <= self.max_lag:
             self._train(self.train_slice)
 
