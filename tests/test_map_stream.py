@@ -40,8 +40,8 @@ def bags(tiny_office, tmp_path_factory) -> dict[str, Path]:
 def tiny_cfg(tmp_path_factory) -> Path:
     from virus_nerf.config_io import to_dict
 
-    path = tmp_path_factory.mktemp("stream_cfg") / "cfg.json"
-    path.write_text(json.dumps(to_dict(tiny_train_config())))
+    path = tmp_path_factory.mktemp("stream_cfg") / "cfg.json"  # no stereo: its tracking costs per frame
+    path.write_text(json.dumps(to_dict(tiny_train_config(sensors=("camera", "uss", "irs")))))
     return path
 
 
@@ -237,8 +237,9 @@ def test_map_bag_streams_with_snapshots_lag_and_final_map(bags, tiny_cfg, tmp_pa
 
 
 def test_map_bag_drops_late_frames_and_keeps_the_map_on_bad_data(bags, tiny_cfg, tmp_path):
-    """Too fast a playback for the mapper: late colour images are dropped and counted. A pose jump:
-    exit 2, one line naming the pose source and the time, the final map of the frames before it."""
+    """Too fast a playback for the mapper: late colour images are dropped and counted. A pose jump,
+    a topic that stops: exit 2, one line naming the pose source or topic and the time, the final
+    map of the frames before it."""
     out = tmp_path / "late"
     code, stdout, stderr = run_cli(["map-bag", bags["ros1"], "--out", out, "--playback", "20", "--config", tiny_cfg,
                                     "--n-rays", "32", "--max-poses", "3", "--poses", "csv", "--poses-file", bags["csv"],
@@ -261,6 +262,16 @@ def test_map_bag_drops_late_frames_and_keeps_the_map_on_bad_data(bags, tiny_cfg,
     final = json.loads((out / "map" / "snapshot.json").read_text())
     assert 10 <= final["frames"] == report["frames"] < 30 and 1.5 < report["stopped_at_s"] < 1.75
     assert "map-bag: stopped at 1.6" in stdout and (out / "map" / "map.pgm").is_file()
+
+    bag = _rewrite(bags["ros1"], tmp_path / "stops.bag",  # /USS3 stops after 1 s
+                   lambda topic, t, msg, ty: [] if topic == "/USS3" and t * 1e-9 > 1700000001.0 else [(topic, ty, t, msg)])
+    out = tmp_path / "stops"
+    code, stdout, stderr = run_cli(["map-bag", bag, "--out", out, "--playback", "4", "--config", tiny_cfg,
+                                    "--n-rays", "32", "--max-poses", "3", "--poses", "csv", "--poses-file", bags["csv"],
+                                    "--max-lag", "100", "--max-silence", "1"])
+    assert code == 2 and stderr.count("\n") == 1, stderr
+    assert "topic /USS3 stopped: its last message is at 0.860 s and none came for 1 s" in stderr
+    assert json.loads((out / "map" / "snapshot.json").read_text())["frames"] >= 10
 
 
 def test_map_bag_refuses_a_bag_without_images_or_odometry(bags, tmp_path):

@@ -77,7 +77,7 @@ def warm_up(config) -> float:
     synthetic frame, one step) before the drive's clock starts, as a robot starts its mapper before
     it drives off: the first real frame is then not seconds late (measured on 2 shared cores: the
     optimiser's first construction imports torch._dynamo, 1-2 s; the first render 0.2-0.8 s; the
-    first snapshot 0.2 s). Returns the seconds of its training step (a lower bound of a real one)."""
+    first snapshot 0.2 s). Returns the seconds of its training step (a first step on one small frame)."""
     from virus_nerf.data.frame import SyncFrame
     from virus_nerf.sensors.camera import Intrinsics
     from virus_nerf.trainer.mapper import Mapper
@@ -91,9 +91,8 @@ def warm_up(config) -> float:
     depth = np.full((intr.height, intr.width), 2.0, dtype=np.float32) if "rgbd" in cfg.sensors else None
     mapper.add_frame(SyncFrame(time=0.0, stack_id=0, rgb=rgb, cam_to_world=pose, uss_range=2.0,
                                irs_range=np.full((8, 8), 2.0), depth=depth))
-    mapper.train(1.0, steps=1)  # the first step: the optimiser's and backward's first calls
     t = time.perf_counter()
-    mapper.train(1.0, steps=1)
+    mapper.train(1.0, steps=1)  # the optimiser's and backward's first calls: longer than a later step
     step_s = time.perf_counter() - t
     with tempfile.TemporaryDirectory() as tmp:  # the map code's first call (imports)
         mapper.snapshot(Path(tmp) / "warm", n_rays=8, max_poses=1)
@@ -175,14 +174,14 @@ class StreamRun:
 
     def _may_train(self, now: float) -> bool:
         """A mapper, and no step that could delay the first snapshot (on a CPU one step can take
-        seconds): before it, a step starts only if it should end in time (3 x the warm-up's step,
+        seconds): before it, a step starts only if it should end in time (2 x the warm-up's step,
         or the mean of the steps so far)."""
         if self.mapper is None:
             return False
         if self.report.snapshots:
             return True
         m = self.mapper
-        step_s = m.seconds / m.step if m.step else 3.0 * self.warm_step_s
+        step_s = m.seconds / m.step if m.step else 2.0 * self.warm_step_s
         return self.next_snapshot - now > step_s
 
     def _train(self, budget: float) -> None:
