@@ -118,6 +118,7 @@ class StreamRun:
         self.newest: float | None = None  # recording time of the newest frame given to the mapper
         self.start: float | None = None  # monotonic time of the first message
         self.r0 = self.t0 = 0.0  # receive time and stamp of the first message
+        self.behind = 0.0  # recording seconds the newest message was released after it was due
         self.report = StreamReport()
 
     # ------------------------------------------------------------------ clock
@@ -137,7 +138,8 @@ class StreamRun:
                 due = self._due(msg)
                 self._wait(due)
                 self._train_owed(due)
-                late = self.sync.is_color(topic) and (self.now() - due) * self.playback > self.max_lag
+                self.behind = (self.now() - due) * self.playback
+                late = self.sync.is_color(topic) and self.behind > self.max_lag
                 self._add(self.sync.push(topic, msg, late=late))
                 self._maybe_snapshot()
             self._add(self.sync.finish())
@@ -245,8 +247,13 @@ class StreamRun:
 
     # ------------------------------------------------------------------ maps
     def _maybe_snapshot(self) -> bool:
+        """A snapshot when due; postponed while the stream is more than max_lag behind (catching
+        up on the messages first: a snapshot can take seconds on a CPU, and taken while behind it
+        would put the stream further behind every time), by at most one snapshot period."""
         now = self.now()
         if self.mapper is None or now < self.next_snapshot:
+            return False
+        if self.behind > self.max_lag and now < self.next_snapshot + self.snapshot_every:
             return False
         k = len(self.report.snapshots) + 1
         folder = self.out / SNAPSHOTS / f"{k:04d}_{now:.1f}s"
