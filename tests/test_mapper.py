@@ -186,8 +186,9 @@ def test_online_trainer_gives_the_mapper_only_frames_the_clock_passed(tiny_offic
 
 
 def test_replay_and_map_bag_write_snapshots_with_progress_lines(tiny_office, tmp_path, capsys):
-    """map-bag on a real ROS 1 bag of the simulated office (imported with LiDAR odometry): the 3 s
-    drive at playback x1 gives snapshots every 0.4 s, each a complete folder with one progress line."""
+    """map-bag --import-first on a real ROS 1 bag of the simulated office (imported with LiDAR
+    odometry, then replayed): the 3 s drive at playback x1 gives snapshots every 0.4 s, each a
+    complete folder with one progress line (the streaming default: test_map_stream.py)."""
     pytest.importorskip("rosbags")
     pytest.importorskip("kiss_icp")
     from virus_nerf.data.bags.writer import write_bag
@@ -201,7 +202,7 @@ def test_replay_and_map_bag_write_snapshots_with_progress_lines(tiny_office, tmp
     have_sinks = importlib.util.find_spec("rerun") and importlib.util.find_spec("mcap_ros2")
     sinks = ["--rerun-save", tmp_path / "live.rrd", "--out-bag", tmp_path / "maps_bag"] if have_sinks else []
     code, stdout, stderr = run_cli(["map-bag", bag, "--out", out, "--playback", "1", "--snapshot-every", "0.4",
-                                    "--config", cfg, "--n-rays", "32", "--max-poses", "3", *sinks])
+                                    "--config", cfg, "--n-rays", "32", "--max-poses", "3", "--import-first", *sinks])
     assert code == 0, stderr
     assert (out / "recording" / "import_report.json").is_file()
     lines = [ln for ln in stdout.splitlines() if ln.startswith(("snapshot", "final map"))]

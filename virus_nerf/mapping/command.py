@@ -1,9 +1,11 @@
-"""`virus-nerf map-bag`: a ROS bag replayed through the Mapper in real time, with map snapshots.
+"""`virus-nerf map-bag`: a ROS bag mapped in real time, with map snapshots.
 
-The bag is first imported into OUT/recording (an ETHZ folder, by `virus_nerf.data.bags`), then
-that folder is replayed (mapping/replay.py): frames are added as the playback clock passes
-their timestamps, the map trains in between, a snapshot is written every --snapshot-every
-seconds and the final map at the end.
+By default the bag is streamed (mapping/stream.py, data/bags/live.py): read message by message in
+recording order as the playback clock passes them, synchronised into frames as they complete, the
+map trained in between. With --import-first the old path runs instead: the whole bag is imported
+into OUT/recording (an ETHZ folder, by `virus_nerf.data.bags`), then that folder is replayed
+(mapping/replay.py). Either way a snapshot is written every --snapshot-every seconds and the final
+map at the end.
 """
 
 from __future__ import annotations
@@ -15,7 +17,13 @@ from typing import Annotated
 
 import tyro
 
-from virus_nerf.errors import OutputExistsError, UsageError, require_int, require_number
+from virus_nerf.errors import (
+    DataFormatError,
+    OutputExistsError,
+    UsageError,
+    require_int,
+    require_number,
+)
 
 
 def _importer():
@@ -26,6 +34,9 @@ def _importer():
     return import_bag
 
 
+POSES = ("lidar-odometry", "tf", "csv", "odometry")
+
+
 def map_bag(
     bag: Annotated[Path, tyro.conf.Positional],
     out: Path,
@@ -33,6 +44,14 @@ def map_bag(
     snapshot_every: float = 10.0,
     topics: Path | None = None,
     poses: str = "lidar-odometry",
+    poses_file: Path | None = None,
+    tf_parent: str = "odom",
+    tf_child: str | None = None,
+    odometry_topic: str = "/odom",
+    import_first: bool = False,
+    first_snapshot: float = 1.0,
+    max_lag: float = 2.0,
+    max_silence: float = 2.0,
     config: Path | None = None,
     resolution: float = 0.05,
     n_rays: int = 360,
@@ -42,19 +61,38 @@ def map_bag(
     rerun_save: Path | None = None,
     out_bag: Path | None = None,
 ) -> None:
-    """Map a ROS bag while replaying it in real time: snapshots every few seconds, a final map.
+    """Map a ROS bag while playing it in real time: snapshots every few seconds, a final map.
 
-    Writes OUT/ (refused if it exists): recording/ (the bag as an ETHZ folder), snapshots/NNNN_<s>s/
-    (map.pgm/.yaml/.png, prob.* for the VIRUS grid, snapshot.json; one progress line each) and
-    map/ (the final map and mapper.pt). Each snapshot folder appears complete or not at all.
+    Streams the bag (docs/live-view.md, "Streaming"): messages are read in recording order as the
+    playback clock passes them, each colour image becomes a frame once its depth, USS, IRS and pose
+    are in (within the topics file's sync tolerances) and goes to the mapper at once. Writes OUT/
+    (refused if it exists): snapshots/NNNN_<s>s/ (map.pgm/.yaml/.png, prob.* for the VIRUS grid,
+    snapshot.json; one progress line each, with the lag), map/ (the final map and mapper.pt) and
+    stream.json (frames, dropped frames by reason, lag, where a stream stopped). Bad data (a topic
+    that stops, a clock that goes backwards, a pose jump over 1 m) stops the stream: the final map
+    of what was made is written, then the one-line error and exit code 2.
 
     Args:
-        bag: ROS bag (ROS 1 .bag or a ROS 2 bag folder).
+        bag: ROS bag (ROS 1 .bag, a ROS 2 bag folder, or a bare ROS 2 .mcap/.db3 file).
         out: New output folder.
         playback: Recording seconds per wall-clock second (below 1 on a slow machine).
         snapshot_every: Wall-clock seconds between map snapshots.
-        topics: Topic mapping file for the importer (default: its built-in topic names).
-        poses: Pose source for the importer (default lidar-odometry).
+        topics: Topic mapping file (default: the ETHZ robot's topic names).
+        poses: Pose source: lidar-odometry (KISS-ICP scan by scan), tf (/tf, /tf_static), csv
+            (--poses-file) or odometry (nav_msgs/Odometry on --odometry-topic; streaming only).
+        poses_file: LiDAR (or robot) poses for --poses csv: time,x,y,z,qx,qy,qz,qw CSV or TUM.
+        tf_parent: --poses tf: the world frame.
+        tf_child: --poses tf: the LiDAR's frame (default: the frame of the LiDAR topic's messages).
+        odometry_topic: --poses odometry: the topic; its child frame takes the LiDAR's place for
+            the topics file's camera_in_lidar mounting.
+        import_first: Import the whole bag into OUT/recording first, then replay it (the old path;
+            --poses odometry is streaming only).
+        first_snapshot: Wall-clock seconds from the first message to the first snapshot (at most
+            --snapshot-every; no training step that might delay it starts); streaming only.
+        max_lag: A colour image released more than this many recording seconds late (the mapper
+            was busy) is dropped, and counted; streaming only.
+        max_silence: A sensor topic (or the pose source) silent this many recording seconds has
+            stopped: the stream ends there (bad data); streaming only.
         config: JSON training config (a run's config.json works; default: the defaults).
         resolution: Metres per map pixel.
         n_rays: Rays per 360 deg scan of the maps.
@@ -66,13 +104,20 @@ def map_bag(
         out_bag: New folder for a rosbag2 (MCAP) of the maps as they grow (/map, /map_probability,
             nav_msgs/OccupancyGrid) and the robot's /tf, for RViz 2 and Foxglove.
     """
-    from virus_nerf.mapping.replay import replay
-
     require_number("--playback", playback, 0.0)
     require_number("--snapshot-every", snapshot_every, 0.0)
     require_number("--resolution", resolution, 0.0)
     require_int("--n-rays", n_rays, 1, 1_000_000)
     require_int("--max-poses", max_poses, 1)
+    require_number("--first-snapshot", first_snapshot, 0.0)
+    require_number("--max-lag", max_lag, 0.0)
+    require_number("--max-silence", max_silence, 0.0)
+    if poses not in POSES:
+        raise UsageError(f"--poses {poses!r}: expected {', '.join(POSES[:-1])} or {POSES[-1]}")
+    if import_first and poses == "odometry":
+        raise UsageError("--poses odometry streams only: drop --import-first")
+    if poses == "csv" and poses_file is None:
+        raise UsageError("--poses csv needs --poses-file FILE (time,x,y,z,qx,qy,qz,qw or TUM)")
     bag, out = Path(bag), Path(out)
     if not bag.exists():
         raise UsageError(f"BAG {bag}: no such file or folder; expected a ROS bag")
@@ -95,25 +140,129 @@ def map_bag(
         from virus_nerf.mapping.live_view import _rerun
 
         _rerun()  # the live extra's one-line message now, not after the import
+    maps = dict(resolution=resolution, n_rays=n_rays, max_poses=max_poses)
+    sinks = dict(rerun=rerun, rerun_connect=rerun_connect, rerun_save=rerun_save, out_bag=out_bag)
+    pose_args = dict(poses=poses, poses_file=poses_file, tf_parent=tf_parent, tf_child=tf_child)
+    if import_first:
+        _import_then_replay(bag, out, playback, snapshot_every, topics, cfg, pose_args, maps, sinks)
+        return
+    stream_map_bag(bag, out, playback, snapshot_every, topics, cfg, pose_args, maps, sinks,
+                   odometry_topic=odometry_topic, first_snapshot=first_snapshot, max_lag=max_lag,
+                   max_silence=max_silence)
+
+
+def open_sinks(stack: ExitStack, rerun: bool, rerun_connect: str | None, rerun_save: Path | None,
+               out_bag: Path | None) -> tuple:
+    """(LiveView or None, RosMapBag or None), closed with `stack`."""
+    live = ros_bag = None
+    if rerun or rerun_connect or rerun_save:
+        from virus_nerf.mapping.live_view import LiveView
+
+        live = stack.enter_context(LiveView(spawn=rerun, connect=rerun_connect, save=rerun_save))
+    if out_bag is not None:
+        from virus_nerf.mapping.ros_maps import RosMapBag
+
+        ros_bag = stack.enter_context(RosMapBag(out_bag))
+    return live, ros_bag
+
+
+def sinks_note(sinks: dict) -> str:
+    return "".join(f"; {what} {p}" for what, p in (("live view in", sinks["rerun_save"]),
+                                                    ("ROS maps in", sinks["out_bag"])) if p)
+
+
+def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: float, topics: Path | None, cfg,
+                        pose_args: dict, maps: dict, sinks: dict) -> None:
+    """The whole bag imported into OUT/recording, then replayed (--import-first)."""
+    from virus_nerf.mapping.replay import replay
+
     import_bag = _importer()
     out.mkdir(parents=True)
     try:
-        imported = import_bag(bag, out / "recording", topics=topics, poses=poses)
+        imported = import_bag(bag, out / "recording", topics=topics, **pose_args)
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)  # nothing written yet but the partial import
         raise
-    with ExitStack() as sinks:
-        live = ros_bag = None
-        if rerun or rerun_connect or rerun_save:
-            from virus_nerf.mapping.live_view import LiveView
-
-            live = sinks.enter_context(LiveView(spawn=rerun, connect=rerun_connect, save=rerun_save))
-        if out_bag is not None:
-            from virus_nerf.mapping.ros_maps import RosMapBag
-
-            ros_bag = sinks.enter_context(RosMapBag(out_bag))
-        report = replay(out / "recording", out, playback, snapshot_every, cfg, room=imported.room,
-                        resolution=resolution, n_rays=n_rays, max_poses=max_poses, live=live, ros_bag=ros_bag)
-    extra = "".join(f"; {what} {p}" for what, p in (("live view in", rerun_save), ("ROS maps in", out_bag)) if p)
+    with ExitStack() as stack:
+        live, ros_bag = open_sinks(stack, **sinks)
+        report = replay(out / "recording", out, playback, snapshot_every, cfg, room=imported.room, **maps,
+                        live=live, ros_bag=ros_bag)
     print(f"map-bag: {report.frames} frames, {report.steps} steps in {report.wall_s:.1f} s; "
-          f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}{extra}")
+          f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}{sinks_note(sinks)}")
+
+
+def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float, topics: Path | None, cfg,
+                   pose_args: dict, maps: dict, sinks: dict, *, odometry_topic: str = "/odom",
+                   first_snapshot: float = 1.0, max_lag: float = 2.0, max_silence: float = 2.0) -> None:
+    """The streaming path (mapping/stream.py): topics checked against the bag before OUT is made;
+    OUT removed again when the stream stops before its first frame (nothing was mapped)."""
+    from virus_nerf.data.bags.importer import _plan, require_ros_extra
+    from virus_nerf.data.bags.live import LiveSync, make_pose_source
+    from virus_nerf.data.bags.reader import BagReader
+    from virus_nerf.data.bags.topics import default_topics, read_topics
+    from virus_nerf.mapping.stream import StreamRun, summary, warm_up
+    from virus_nerf.trainer.config import TrainConfig
+
+    require_ros_extra(pose_args["poses"])
+    poses = pose_args["poses"]
+    tcfg = read_topics(topics) if topics else default_topics()
+    cfg = cfg if cfg is not None else TrainConfig()
+    with BagReader(bag) as reader:
+        plan = _plan(reader, tcfg, "csv" if poses == "odometry" else poses)
+        if poses == "odometry":
+            reader.require(odometry_topic, "odometry", "--odometry-topic")
+        child = pose_args["tf_child"]
+        if poses == "tf" and child is None:
+            child = _lidar_frame(reader, tcfg.lidar.topic)
+        source = make_pose_source(poses, tcfg, bag, present=lambda t: t in reader.topics,
+                                  poses_file=pose_args["poses_file"], tf_parent=pose_args["tf_parent"],
+                                  tf_child=child, odometry_topic=odometry_topic)
+        sync = LiveSync(tcfg, source, bag, intrinsics=plan.intrinsics, with_depth="rgbd" in cfg.sensors,
+                        max_silence_s=max_silence)
+        first, last = reader.span_s
+        warm_step_s = warm_up(cfg)
+        out.mkdir(parents=True)
+        run = None
+        try:
+            with ExitStack() as stack:
+                live, ros_bag = open_sinks(stack, **sinks)
+                run = StreamRun(sync, out, cfg, playback=playback, snapshot_every=snapshot_every,
+                                first_snapshot=first_snapshot, max_lag=max_lag, drive_s=max(last - first, 0.0),
+                                live=live, ros_bag=ros_bag, warm_step_s=warm_step_s, **maps)
+                report = run.run(reader.iter_topics(sync.topics()))
+        except BaseException as exc:
+            if run_made_nothing(out):
+                shutil.rmtree(out, ignore_errors=True)
+            elif isinstance(exc, DataFormatError | KeyboardInterrupt) and run is not None:
+                at = _at(exc) if isinstance(exc, DataFormatError) else f"{run.report.stopped_at_s or 0.0:.2f} s"
+                print(f"map-bag: stopped at {at} of {max(last - first, 0.0):.1f} s of the bag; "
+                      f"{summary(run.report)}; final map of what was made in {out / 'map'}")
+            raise
+    if report.final is None:
+        shutil.rmtree(out, ignore_errors=True)
+        raise DataFormatError(bag, f"no frame could be made ({summary(report)}); check the topics file's sync "
+                              "tolerances and the pose source")
+    print(f"map-bag: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s; "
+          f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}"
+          f"{sinks_note(sinks)}")
+
+
+def run_made_nothing(out: Path) -> bool:
+    """Nothing was written into OUT (the stream stopped before its first frame made the mapper)."""
+    return not (out / "snapshots").exists() and not (out / "map").exists()
+
+
+def _at(exc: Exception) -> str:
+    at = getattr(exc, "at_s", None)
+    return "an unknown time" if at is None else f"{at:.2f} s"
+
+
+def _lidar_frame(reader, topic: str | None) -> str:
+    """--poses tf without --tf-child: the frame of the LiDAR's first message."""
+    from virus_nerf.errors import UsageError
+
+    if not topic or topic not in reader.topics:
+        raise UsageError("--poses tf needs --tf-child FRAME (the bag has no LiDAR whose frame could be used)")
+    for msg in reader.iter_topic(topic):
+        return msg.msg.header.frame_id.lstrip("/")
+    raise UsageError("--poses tf needs --tf-child FRAME (the LiDAR topic has no messages)")

@@ -30,6 +30,7 @@ CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 RANGE = "sensor_msgs/msg/Range"
 CLOUD = "sensor_msgs/msg/PointCloud2"
 TF = "tf2_msgs/msg/TFMessage"
+ODOMETRY = "nav_msgs/msg/Odometry"
 
 # Which message types each role accepts (the importer refuses a topic of any other type).
 ACCEPTED: dict[str, tuple[str, ...]] = {
@@ -40,6 +41,7 @@ ACCEPTED: dict[str, tuple[str, ...]] = {
     "tof": (TOF_TYPE,),
     "lidar": (CLOUD,),
     "tf": (TF,),
+    "odometry": (ODOMETRY,),  # wheel (or any) odometry: map-bag --poses odometry
 }
 
 
@@ -214,3 +216,19 @@ def decode_cloud(msg, where: Where) -> np.ndarray:
     pts = np.frombuffer(data[: n * step].tobytes(), dtype=dtype, count=n)
     xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1).astype(np.float64)
     return xyz[np.isfinite(xyz).all(axis=1)]
+
+
+def decode_odometry(msg, where: Where) -> np.ndarray:
+    """nav_msgs/Odometry -> (4, 4) pose of its child frame (the robot) in its header's frame;
+    the covariance and twist are not used. A non-finite pose or a quaternion far from unit norm
+    is refused (a zero quaternion is what an uninitialised odometry publishes)."""
+    from virus_nerf.sensors.geometry import pose_matrix
+
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    xyz = np.array([p.x, p.y, p.z], dtype=np.float64)
+    quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+    norm = float(np.linalg.norm(quat))
+    if not (np.isfinite(xyz).all() and np.isfinite(quat).all()) or abs(norm - 1.0) > 1e-3:
+        raise where.error(f"pose {xyz.round(4).tolist()} / quaternion {quat.round(4).tolist()} is not finite or "
+                          "not of unit norm", field="pose.pose")
+    return pose_matrix(xyz, quat / norm)

@@ -47,6 +47,7 @@ class Message:
     time_s: float  # header stamp; the bag's receive time where the header stamp is unset
     msg: object
     msgtype: str
+    received_s: float | None = None  # the bag's receive (record) time: the order messages arrive in
 
 
 class BagReader:
@@ -103,6 +104,11 @@ class BagReader:
             out[name] = TopicInfo(name, m.normalise_type(info.msgtype or "?"), int(info.msgcount))
         return out
 
+    @property
+    def span_s(self) -> tuple[float, float]:
+        """(first, last) receive time of the bag's messages in seconds (from the bag's index)."""
+        return self._reader.start_time * 1e-9, self._reader.end_time * 1e-9
+
     def require(self, topic: str, role: str, key: str) -> TopicInfo:
         """The topic's info; refuses a topic missing from the bag or of a type `role` cannot read.
 
@@ -156,6 +162,7 @@ class BagReader:
                 stamp = m.stamp_s(msg)
                 k = counts[conn.topic]
                 counts[conn.topic] = k + 1
-                yield conn.topic, Message(k, stamp if stamp > 0 else t_ns * 1e-9, msg, m.normalise_type(conn.msgtype))
+                yield conn.topic, Message(k, stamp if stamp > 0 else t_ns * 1e-9, msg, m.normalise_type(conn.msgtype),
+                                          t_ns * 1e-9)
         except self._errors as exc:
             raise self.corrupt(exc) from None

@@ -1,0 +1,288 @@
+"""Streaming map-bag (issue 29, item 3): the bag synchronised message by message (data/bags/live.py)
+gives the importer's frames and poses, the real-time loop (mapping/stream.py) writes snapshots with
+the lag, and bad data stops the stream with one line after writing the map made so far."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import run_cli, tiny_train_config
+
+pytest.importorskip("rosbags")
+
+from virus_nerf.data.bags import messages as m  # noqa: E402
+from virus_nerf.data.bags.live import LiveSync, StreamError, make_pose_source  # noqa: E402
+from virus_nerf.data.bags.reader import BagReader  # noqa: E402
+from virus_nerf.data.bags.topics import default_topics  # noqa: E402
+from virus_nerf.data.ethz import load_recording  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def bags(tiny_office, tmp_path_factory) -> dict[str, Path]:
+    """The tiny office as a ROS 1 bag (LiDAR, no tf), a ROS 2 bag with /tf, and its LiDAR poses as CSV."""
+    from virus_nerf.data.bags.writer import write_bag
+    from virus_nerf.data.writer import write_poses
+
+    d = tmp_path_factory.mktemp("stream_bags")
+    rec = load_recording(tiny_office, "office")
+    times, poses = rec._lidar_pose_track
+    write_poses(d / "lidar.csv", times, poses)
+    return {"ros1": write_bag(tiny_office, d / "drive.bag", ros_version=1),
+            "tf": write_bag(tiny_office, d / "drive_tf", ros_version=2, tf=True), "csv": d / "lidar.csv"}
+
+
+@pytest.fixture(scope="module")
+def tiny_cfg(tmp_path_factory) -> Path:
+    from virus_nerf.config_io import to_dict
+
+    path = tmp_path_factory.mktemp("stream_cfg") / "cfg.json"  # no stereo: its tracking costs per frame
+    path.write_text(json.dumps(to_dict(tiny_train_config(sensors=("camera", "uss", "irs")))))
+    return path
+
+
+def _stream(bag: Path, poses: str, cfg=None, **kw):
+    """Every message of `bag` through a LiveSync (no mapper, no clock) -> (frames, sync)."""
+    cfg = cfg or default_topics()
+    with BagReader(bag) as reader:
+        source = make_pose_source(poses, cfg, bag, present=lambda t: t in reader.topics, **kw)
+        sync = LiveSync(cfg, source, bag)
+        frames = []
+        for topic, msg in reader.iter_topics(sync.topics()):
+            frames += sync.push(topic, msg)
+        frames += sync.finish()
+    return frames, sync
+
+
+def _by_stack(frames) -> dict[int, list]:
+    out: dict[int, list] = {}
+    for f in frames:
+        out.setdefault(f.frame.stack_id, []).append(f.frame)
+    return out
+
+
+def _rewrite(src: Path, dst: Path, edit) -> Path:
+    """Copy a ROS 1 bag; edit(topic, t_ns, msg) -> [(topic, msgtype, t_ns, msg), ...] replaces each message."""
+    from rosbags.rosbag1 import Reader, Writer
+
+    store = m.make_typestore(1)
+    with Reader(src) as r, Writer(dst) as w:
+        conns = {}
+        for c, t, raw in r.messages():
+            for topic, msgtype, t_ns, msg in edit(c.topic, t, store.deserialize_ros1(raw, c.msgtype), c.msgtype):
+                if topic not in conns:
+                    conns[topic] = w.add_connection(topic, msgtype, typestore=store)
+                w.write(conns[topic], t_ns, store.serialize_ros1(msg, msgtype))
+    return dst
+
+
+@pytest.mark.parametrize("poses", ["tf", "csv"])
+def test_streamed_frames_are_the_importers(bags, tmp_path, poses):
+    """--poses tf (ROS 2 bag) and csv (ROS 1 bag): the same frames as import-bag, stamp for stamp,
+    with the same poses (to the 1e-9 of the importer's CSV), USS, IRS and pixels."""
+    from virus_nerf.data.bags.importer import import_bag
+
+    bag = bags["tf"] if poses == "tf" else bags["ros1"]
+    kw = {"tf_child": "rslidar"} if poses == "tf" else {"poses_file": bags["csv"]}
+    import_bag(bag, tmp_path / "rec", poses=poses, room="drive", **kw)
+    rec = load_recording(tmp_path / "rec", "drive")
+    frames, sync = _stream(bag, poses, **kw)
+    assert not sync.dropped_total() and len(frames) == sum(len(st) for st in rec.stacks.values())
+    by = _by_stack(frames)
+    for s, st in rec.stacks.items():
+        got = by[s]
+        assert len(got) == len(st)
+        np.testing.assert_allclose([f.time for f in got], st.times, atol=1e-6)
+        np.testing.assert_allclose(np.stack([f.cam_to_world for f in got]), st.cam_to_world, atol=1e-8)
+        np.testing.assert_array_equal([f.uss_range for f in got], st.uss_range)
+        np.testing.assert_array_equal(np.stack([f.irs_range for f in got]), st.irs_range)
+        for i in (0, len(st) // 2, len(st) - 1):
+            assert np.array_equal(got[i].rgb, st.image(i))
+
+
+def test_lidar_odometry_and_wheel_odometry_streams(bags, tiny_office, tmp_path):
+    """KISS-ICP registering scan by scan gives every frame a pose near the simulator's; a robot
+    without LiDAR: nav_msgs/Odometry on /odom (here the LiDAR's true pose at each scan)."""
+    truth = load_recording(tiny_office, "office")
+    n = sum(len(st) for st in truth.stacks.values())
+    frames, sync = _stream(bags["ros1"], "lidar-odometry")
+    assert len(frames) == n and not sync.dropped_total()
+    for f in frames:  # the stream cannot re-register the start against later scans (importer's refine_start_s)
+        st = truth.stacks[f.frame.stack_id]
+        k = int(np.argmin(np.abs(st.times - f.frame.time)))  # the world frame of both: the first scan
+        assert np.linalg.norm(f.frame.cam_to_world[:3, 3] - st.cam_to_world[k, :3, 3]) < 0.1  # measured 8 cm at 3 s
+
+    store = m.make_typestore(1)
+    T = store.types
+
+    def add_odom(topic, t_ns, msg, msgtype):
+        out = [(topic, msgtype, t_ns, msg)]
+        if topic == "/rslidar_points":
+            pose = truth.lidar_pose_at(t_ns * 1e-9)
+            from virus_nerf.sensors.geometry import matrix_to_quat
+
+            q = matrix_to_quat(pose[:3, :3])
+            cov = np.zeros(36)
+            odom = T["nav_msgs/msg/Odometry"](
+                header=T["std_msgs/msg/Header"](seq=0, stamp=msg.header.stamp, frame_id="odom"), child_frame_id="rslidar",
+                pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=T["geometry_msgs/msg/Pose"](
+                    position=T["geometry_msgs/msg/Point"](x=pose[0, 3], y=pose[1, 3], z=pose[2, 3]),
+                    orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])), covariance=cov),
+                twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=T["geometry_msgs/msg/Twist"](
+                    linear=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                    angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)), covariance=cov))
+            out.append(("/odom", "nav_msgs/msg/Odometry", t_ns, odom))
+        return out
+
+    bag = _rewrite(bags["ros1"], tmp_path / "odom.bag", add_odom)
+    frames, sync = _stream(bag, "odometry", odometry_topic="/odom")
+    assert len(frames) == n and not sync.dropped_total()
+    for f in frames:
+        st = truth.stacks[f.frame.stack_id]
+        k = int(np.argmin(np.abs(st.times - f.frame.time)))
+        assert np.linalg.norm(f.frame.cam_to_world[:3, 3] - st.cam_to_world[k, :3, 3]) < 0.02  # 10 Hz interpolated
+
+
+def _bad(bags, tmp_path, name, edit, **kw) -> tuple[list, StreamError]:
+    bag = _rewrite(bags["ros1"], tmp_path / f"{name}.bag", edit)
+    frames = []
+    with pytest.raises(StreamError) as err:
+        cfg = default_topics()
+        with BagReader(bag) as reader:
+            sync = LiveSync(cfg, make_pose_source("csv", cfg, bag, present=lambda t: True, poses_file=bags["csv"]),
+                            bag, **kw)
+            for topic, msg in reader.iter_topics(sync.topics()):
+                frames += sync.push(topic, msg)
+            frames += sync.finish()
+    assert "\n" not in str(err.value)
+    return frames, err.value
+
+
+def test_bad_input_while_streaming_names_the_topic_and_time(bags, tmp_path):
+    """A clock that goes backwards, a topic that stops half-way, a pose that jumps: one line naming
+    the topic (or pose source) and the bag time, after the frames made until then."""
+    def keep(topic, t, msg, ty):
+        return [(topic, ty, t, msg)]
+
+    def backwards(topic, t, msg, ty):
+        if topic == "/USS1" and abs(t * 1e-9 - 1700000001.458) < 0.01:  # the 8th USS1 message 1 s early
+            msg.header.stamp.sec -= 1
+        return keep(topic, t, msg, ty)
+
+    frames, err = _bad(bags, tmp_path, "backwards", backwards)
+    assert "topic /USS1: the clock went backwards: message 8 is stamped at 0.458 s" in str(err), err
+    assert err.at_s == pytest.approx(1.25, abs=0.01) and frames
+
+    def stops(topic, t, msg, ty):
+        return [] if topic == "/TOF3" and t * 1e-9 > 1700000001.0 else keep(topic, t, msg, ty)
+
+    frames, err = _bad(bags, tmp_path, "stops", stops, max_silence_s=1.0)
+    assert "topic /TOF3 stopped: its last message is at 0.860 s" in str(err) and "none came for 1 s" in str(err)
+    assert frames and err.at_s > 1.86
+
+    # a pose file whose poses jump 2 m after 1.5 s
+    rec_csv = bags["csv"].read_text().splitlines()
+    jumped = [rec_csv[0]] + [_shift(row, 2.0) if float(row.split(",")[0]) > 1700000001.5 else row for row in rec_csv[1:]]
+    bad_csv = tmp_path / "jump.csv"
+    bad_csv.write_text("\n".join(jumped) + "\n")
+    cfg = default_topics()
+    frames = []
+    with pytest.raises(StreamError) as err, BagReader(bags["ros1"]) as reader:
+        sync = LiveSync(cfg, make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bad_csv),
+                        bags["ros1"])
+        for topic, msg in reader.iter_topics(sync.topics()):
+            frames += sync.push(topic, msg)
+    assert re.search(r"the pose jumps [12]\.\d\d m between the frames at 1\.\d+ s and 1\.\d+ s; expected at most 1 m",
+                     str(err.value)), err.value
+    assert f"--poses-file {bad_csv}" in str(err.value) and frames
+
+
+def _shift(row: str, dx: float) -> str:
+    v = row.split(",")
+    v[1] = f"{float(v[1]) + dx:.9f}"
+    return ",".join(v)
+
+
+def test_map_bag_streams_with_snapshots_lag_and_final_map(bags, tiny_cfg, tmp_path):
+    """The default map-bag path: snapshots every 0.6 s, each line with the lag, a final map with
+    every frame the importer makes (nothing dropped at --max-lag 100), stream.json; no recording/."""
+    out = tmp_path / "out"
+    have_sinks = importlib.util.find_spec("rerun") and importlib.util.find_spec("mcap_ros2")
+    sinks = ["--rerun-save", tmp_path / "live.rrd", "--out-bag", tmp_path / "maps_bag"] if have_sinks else []
+    code, stdout, stderr = run_cli(["map-bag", bags["ros1"], "--out", out, "--playback", "2", "--snapshot-every",
+                                    "0.6", "--config", tiny_cfg, "--n-rays", "32", "--max-poses", "3", "--poses", "csv",
+                                    "--poses-file", bags["csv"], "--max-lag", "100", *sinks])
+    assert code == 0, stderr
+    lines = [ln for ln in stdout.splitlines() if ln.startswith(("snapshot", "final map"))]
+    snaps = sorted(p for p in (out / "snapshots").iterdir() if p.is_dir())
+    assert len(snaps) >= 1 and len(lines) == len(snaps) + 1
+    for k, (line, folder) in enumerate(zip(lines, snaps, strict=False), start=1):
+        assert line.startswith(f"snapshot {k} at ") and ", lag " in line and str(folder) in line
+        assert {"map.pgm", "map.yaml", "map.png", "snapshot.json"} <= {p.name for p in folder.iterdir()}
+    assert lines[-1].startswith("final map") and ", lag " in lines[-1]
+    report = json.loads((out / "stream.json").read_text())
+    final = json.loads((out / "map" / "snapshot.json").read_text())
+    assert final["frames"] == report["frames"] == 30 and report["dropped"] == {} and report["stopped"] is None
+    assert len(report["lag_s"]) == len(snaps) and report["first_snapshot_s"] < 5
+    assert (out / "map" / "mapper.pt").is_file() and not (out / "recording").exists()
+    assert "map-bag: 30 frames, 0 dropped; lag at snapshots median" in stdout
+    if have_sinks:  # the live view and the ROS maps get every frame and every snapshot's maps, as in replay
+        from test_mapper import _check_map_bag_sinks
+
+        _check_map_bag_sinks(tmp_path / "live.rrd", tmp_path / "maps_bag", out, len(snaps), 30)
+
+
+def test_map_bag_drops_late_frames_and_keeps_the_map_on_bad_data(bags, tiny_cfg, tmp_path):
+    """Too fast a playback for the mapper: late colour images are dropped and counted. A pose jump,
+    a topic that stops: exit 2, one line naming the pose source or topic and the time, the final
+    map of the frames before it."""
+    out = tmp_path / "late"
+    code, stdout, stderr = run_cli(["map-bag", bags["ros1"], "--out", out, "--playback", "20", "--config", tiny_cfg,
+                                    "--n-rays", "32", "--max-poses", "3", "--poses", "csv", "--poses-file", bags["csv"],
+                                    "--max-lag", "0.05"])
+    assert code == 0, stderr
+    report = json.loads((out / "stream.json").read_text())
+    assert report["dropped"]["late (the mapper was behind)"] >= 10 and report["frames"] >= 1
+    assert f"{report['dropped']['late (the mapper was behind)']} late (the mapper was behind)" in stdout
+
+    rows = bags["csv"].read_text().splitlines()
+    bad_csv = tmp_path / "jump.csv"
+    bad_csv.write_text("\n".join([rows[0]] + [_shift(r, 3.0) if float(r.split(",")[0]) > 1700000001.5 else r
+                                              for r in rows[1:]]) + "\n")
+    out = tmp_path / "jump"
+    code, stdout, stderr = run_cli(["map-bag", bags["ros1"], "--out", out, "--playback", "4", "--config", tiny_cfg,
+                                    "--n-rays", "32", "--max-poses", "3", "--poses", "csv", "--poses-file", bad_csv,
+                                    "--max-lag", "100"])
+    assert code == 2 and stderr.count("\n") == 1 and re.search(r"the pose jumps [23]\.\d\d m", stderr), stderr
+    report = json.loads((out / "stream.json").read_text())
+    final = json.loads((out / "map" / "snapshot.json").read_text())
+    assert 10 <= final["frames"] == report["frames"] < 30 and 1.5 < report["stopped_at_s"] < 1.75
+    assert "map-bag: stopped at 1.6" in stdout and (out / "map" / "map.pgm").is_file()
+
+    bag = _rewrite(bags["ros1"], tmp_path / "stops.bag",  # /USS3 stops after 1 s
+                   lambda topic, t, msg, ty: [] if topic == "/USS3" and t * 1e-9 > 1700000001.0 else [(topic, ty, t, msg)])
+    out = tmp_path / "stops"
+    code, stdout, stderr = run_cli(["map-bag", bag, "--out", out, "--playback", "4", "--config", tiny_cfg,
+                                    "--n-rays", "32", "--max-poses", "3", "--poses", "csv", "--poses-file", bags["csv"],
+                                    "--max-lag", "100", "--max-silence", "1"])
+    assert code == 2 and stderr.count("\n") == 1, stderr
+    assert "topic /USS3 stopped: its last message is at 0.860 s and none came for 1 s" in stderr
+    assert json.loads((out / "map" / "snapshot.json").read_text())["frames"] >= 10
+
+
+def test_map_bag_refuses_a_bag_without_images_or_odometry(bags, tmp_path):
+    """No colour image messages, or no odometry topic for --poses odometry: one line naming the
+    topic, nothing written; --poses odometry cannot --import-first."""
+    bag = _rewrite(bags["ros1"], tmp_path / "blind.bag",
+                   lambda topic, t, msg, ty: [] if topic == "/CAM1/color/image_raw" else [(topic, ty, t, msg)])
+    for argv, message in (([bag, "--poses", "csv", "--poses-file", bags["csv"]], "no topic /CAM1/color/image_raw"),
+                          ([bags["ros1"], "--poses", "odometry"], "no topic /odom (--odometry-topic)"),
+                          ([bags["ros1"], "--poses", "odometry", "--import-first"], "--poses odometry streams only"),
+                          ([bags["ros1"], "--poses", "csv"], "--poses csv needs --poses-file")):
+        code, _, stderr = run_cli(["map-bag", *argv, "--out", tmp_path / "out"])
+        assert code == 2 and stderr.count("\n") == 1 and message in stderr, stderr
+        assert not (tmp_path / "out").exists()

@@ -1,0 +1,531 @@
+"""A bag's messages -> synchronised frames, one message at a time (streaming `map-bag`, issue 29).
+
+The importer (importer.py, stages.py) matches every colour frame against the whole bag; a robot
+cannot wait for the whole drive. `LiveSync` gets the messages in the order they were recorded and
+keeps only what the next frames can still use:
+
+- the newest USS, IRS (TOF) and depth messages of each stack (`Recent`), back to the oldest
+  colour image still waiting minus the sync tolerance of that sensor;
+- the colour images still waiting for their partners (a few per stack);
+- the poses of the pose source (`PoseSource`: /tf, KISS-ICP over each LiDAR scan, nav_msgs
+  Odometry, or a CSV/TUM file), back to the oldest waiting image.
+
+A colour image becomes a frame as soon as each partner is *decided*: the partner topic has sent a
+message stamped at or after the image (no later message can be nearer), or the stream's clock (the
+newest stamp seen) has passed the image by that sensor's tolerance (nothing within the tolerance
+can still come). Its pose likewise: a pose at or after the image exists (then it is interpolated as
+the importer interpolates), or the clock passed the image by sync.pose_tolerance_s (then the newest
+pose serves if it lies within the tolerance). With the same tolerances and the same nearest-stamp
+rule (ties to the earlier stamp) the frames are the importer's; the differences are the ends of a
+pose track (a pose that arrives later than the tolerance does not count) and KISS-ICP's start,
+which the importer re-registers against the following seconds (odometry.py `refine_start_s`) and a
+stream cannot.
+
+Bad data stops the stream with a `StreamError` (one line naming the topic and the bag time): a
+stamp older than its topic's previous one, a watched topic silent for `max_silence_s`, or the robot
+moving more than `max_jump_m` between consecutive frames (at most JUMP_WINDOW_S apart).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from virus_nerf.data.bags import messages as m
+from virus_nerf.data.bags.odometry import (
+    KissIcpSettings,
+    PoseTrack,
+    Transform,
+    horizontal_planes,
+    tf_track,
+)
+from virus_nerf.data.bags.reader import Message
+from virus_nerf.data.bags.topics import LidarConfig, TopicsConfig
+from virus_nerf.data.frame import SyncFrame
+from virus_nerf.errors import DataFormatError
+from virus_nerf.sensors import irs, uss
+from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.sensors.geometry import pose_matrix
+
+MAX_JUMP_M = 1.0  # the robot moving further between two consecutive frames is a broken pose source
+JUMP_WINDOW_S = 1.0  # ... when they are at most this far apart in time
+MAX_SILENCE_S = 2.0  # a watched topic silent this long (bag time) has stopped
+PARTNERS = ("depth", "uss", "tof")  # the importer's order: a dropped frame counts its first missing partner
+
+
+class StreamError(DataFormatError):
+    """Bad data met while streaming; `at_s`: where (seconds since the bag's first message)."""
+
+    def __init__(self, bag: Path, problem: str, at_s: float) -> None:
+        super().__init__(bag, problem)
+        self.at_s = at_s
+
+
+@dataclass(frozen=True)
+class StreamFrame:
+    """A frame for the mapper and the robot's (LiDAR / odometry frame) pose it came from."""
+
+    frame: SyncFrame
+    robot_to_world: np.ndarray  # (4, 4)
+
+
+class Recent:
+    """Stamped values of one topic, oldest first, within the window the waiting frames need."""
+
+    def __init__(self) -> None:
+        self.items: deque[tuple[float, object]] = deque()
+
+    @property
+    def newest_s(self) -> float:
+        return self.items[-1][0] if self.items else -math.inf
+
+    def add(self, t: float, value) -> None:
+        self.items.append((t, value))
+
+    def decided(self, t: float, tolerance_s: float, clock_s: float) -> bool:
+        """No message still to come can be nearer to `t` within the tolerance than those here."""
+        return self.newest_s >= t or clock_s > t + tolerance_s
+
+    def nearest(self, t: float, tolerance_s: float):
+        """The value stamped nearest to `t` within the tolerance (ties: the earlier stamp), or None."""
+        best, best_d, best_t = None, math.inf, math.inf
+        for ti, v in self.items:
+            d = abs(ti - t)
+            if d < best_d or (d == best_d and ti < best_t):
+                best, best_d, best_t = v, d, ti
+        return best if best_d <= tolerance_s else None
+
+    def prune(self, before_s: float) -> None:
+        while self.items and self.items[0][0] < before_s:
+            self.items.popleft()
+
+
+# ------------------------------------------------------------------------------------- poses
+class PoseSource:
+    """Robot-to-world poses as their messages arrive. Subclasses feed `add`; `at` interpolates."""
+
+    describe = "poses"
+    topics: tuple[str, ...] = ()
+
+    def add(self, topic: str, msg: Message) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def newest_s(self) -> float:
+        """Stamp of the newest pose known (-inf: none yet)."""
+        raise NotImplementedError
+
+    def decided(self, t: float, tolerance_s: float, clock_s: float) -> bool:
+        return self.newest_s() >= t or clock_s > t + tolerance_s
+
+    def at(self, t: float, tolerance_s: float) -> np.ndarray | None:
+        raise NotImplementedError
+
+    def prune(self, before_s: float) -> None:
+        """Forget poses no waiting or future frame can use (keeps one before `before_s`)."""
+
+    def problem(self) -> str:
+        """Why there is no pose yet, for the error when none comes (empty: no known reason)."""
+        return ""
+
+
+class TrackPoses(PoseSource):
+    """A pose track that grows message by message (KISS-ICP, odometry); interpolated as PoseTrack."""
+
+    def __init__(self) -> None:
+        self.times: list[float] = []
+        self.poses: list[np.ndarray] = []
+
+    def append(self, t: float, pose: np.ndarray) -> None:
+        if self.times and t <= self.times[-1]:
+            return  # a repeated stamp: the first pose stands (times must increase for the slerp)
+        self.times.append(t)
+        self.poses.append(pose)
+
+    def newest_s(self) -> float:
+        return self.times[-1] if self.times else -math.inf
+
+    def at(self, t: float, tolerance_s: float) -> np.ndarray | None:
+        if not self.times:
+            return None
+        pose, ok = PoseTrack(np.array(self.times), np.stack(self.poses)).at(np.array([t]), tolerance_s)
+        return pose[0] if ok[0] else None
+
+    def prune(self, before_s: float) -> None:
+        k = int(np.searchsorted(self.times, before_s)) - 1  # the last pose before: an interpolation end
+        if k > 0:
+            del self.times[:k], self.poses[:k]
+
+
+class CsvPoses(PoseSource):
+    """A whole pose file (read before the drive): every pose is known at once."""
+
+    def __init__(self, track: PoseTrack, path: Path) -> None:
+        self.track, self.describe = track, f"--poses-file {path}"
+
+    def newest_s(self) -> float:
+        return float(self.track.times_s[-1])
+
+    def decided(self, t: float, tolerance_s: float, clock_s: float) -> bool:
+        return True
+
+    def at(self, t: float, tolerance_s: float) -> np.ndarray | None:
+        pose, ok = self.track.at(np.array([t]), tolerance_s)
+        return pose[0] if ok[0] else None
+
+
+class OdometryPoses(TrackPoses):
+    """nav_msgs/Odometry on one topic (a robot without LiDAR: its wheel odometry)."""
+
+    def __init__(self, topic: str, bag: Path) -> None:
+        super().__init__()
+        self.topics, self.describe, self.bag = (topic,), f"odometry {topic}", bag
+
+    def add(self, topic: str, msg: Message) -> None:
+        self.append(msg.time_s, m.decode_odometry(msg.msg, m.Where(self.bag, topic, msg.index)))
+
+
+class KissPoses(TrackPoses):
+    """KISS-ICP registering each LiDAR scan as it arrives (kiss_icp.KissICP.register_frame), with
+    the importer's range filter and float32 points, so the poses are those of its first pass."""
+
+    def __init__(self, topic: str, lidar: LidarConfig, settings: KissIcpSettings | None, bag: Path) -> None:
+        from kiss_icp.kiss_icp import KissICP
+
+        from virus_nerf.data.bags.odometry import _kiss_config
+
+        super().__init__()
+        self.topics, self.describe, self.bag = (topic,), f"KISS-ICP on {topic}", bag
+        self.lidar, self.settings = lidar, settings or KissIcpSettings()
+        self.icp = KissICP(_kiss_config(self.settings))
+        self.band: tuple[float, float] | None = None  # drop_floor_ceiling_m: heights kept (first scan)
+
+    def add(self, topic: str, msg: Message) -> None:
+        pts = m.decode_cloud(msg.msg, m.Where(self.bag, topic, msg.index))
+        r = np.linalg.norm(pts, axis=1)
+        pts = pts[(r >= self.lidar.min_range_m) & (r <= self.lidar.max_range_m)].astype(np.float32)
+        pts = pts.astype(np.float64)  # the importer's scans went through a float32 PCD
+        s = self.settings
+        if s.drop_floor_ceiling_m > 0:
+            if self.band is None:
+                floor, ceiling = horizontal_planes(pts)
+                self.band = (floor + s.drop_floor_ceiling_m, ceiling - s.drop_floor_ceiling_m)
+            pts = pts[(pts[:, 2] > self.band[0]) & (pts[:, 2] < self.band[1])]
+        if self.times and msg.time_s <= self.times[-1]:
+            return  # a repeated stamp (the importer keeps one scan per stamp)
+        self.icp.register_frame(pts, np.empty(0))
+        self.append(msg.time_s, np.array(self.icp.last_pose, dtype=np.float64))
+
+
+class TfPoses(PoseSource):
+    """Frame `child` in frame `parent` from /tf and /tf_static as they arrive (odometry.tf_track
+    over the transforms kept: the importer's composition and interpolation)."""
+
+    def __init__(self, topics: tuple[str, ...], parent: str, child: str, bag: Path) -> None:
+        self.topics, self.parent, self.child, self.bag = topics, parent, child, bag
+        self.describe = f"tf {parent} -> {child} ({', '.join(topics)})"
+        self.static: dict[str, Transform] = {}
+        self.dynamic: dict[str, list[Transform]] = {}  # child frame -> its transforms, stamp order
+        self._track: PoseTrack | None = None
+        self._problem = f"no transform from {parent} to {child} yet"
+        self._dirty = False
+
+    def add(self, topic: str, msg: Message) -> None:
+        static = "static" in topic
+        for tr in msg.msg.transforms:
+            tt, q = tr.transform.translation, tr.transform.rotation
+            pose = pose_matrix(np.array([tt.x, tt.y, tt.z]), np.array([q.x, q.y, q.z, q.w]))
+            item = Transform(m.stamp_s(tr), tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/"), pose, static)
+            if static:
+                self.static[item.child] = item
+            else:
+                links = self.dynamic.setdefault(item.child, [])
+                if not links or item.time_s > links[-1].time_s:
+                    links.append(item)
+        self._dirty = True
+
+    def track(self) -> PoseTrack | None:
+        if self._dirty:
+            self._dirty = False
+            items = list(self.static.values()) + [tr for links in self.dynamic.values() for tr in links]
+            try:
+                self._track = tf_track(items, self.parent, self.child, str(self.bag))
+            except DataFormatError as exc:  # the chain is not complete yet (or never will be)
+                self._track, self._problem = None, exc.problem
+        return self._track
+
+    def _chain_newest(self) -> float:
+        """The newest stamp at which every dynamic link of the chain is known."""
+        newest, f = math.inf, self.child
+        while f != self.parent:
+            if f in self.dynamic:
+                newest = min(newest, self.dynamic[f][-1].time_s)
+                f = self.dynamic[f][-1].parent
+            elif f in self.static:
+                f = self.static[f].parent
+            else:
+                return -math.inf
+        return newest
+
+    def newest_s(self) -> float:
+        return -math.inf if self.track() is None else self._chain_newest()
+
+    def at(self, t: float, tolerance_s: float) -> np.ndarray | None:
+        track = self.track()
+        if track is None:
+            return None
+        pose, ok = track.at(np.array([t]), tolerance_s)
+        return pose[0] if ok[0] else None
+
+    def prune(self, before_s: float) -> None:
+        for links in self.dynamic.values():
+            k = next((i for i, tr in enumerate(links) if tr.time_s >= before_s), len(links)) - 1
+            if k > 0:
+                del links[:k]
+                self._dirty = True
+
+    def problem(self) -> str:
+        return "" if self.track() is not None else self._problem
+
+
+# ------------------------------------------------------------------------------- the frames
+class LiveSync:
+    """Messages in, frames out (module doc). `push` each message in bag order, `finish` at the end.
+
+    cfg: the topics file (stacks, sync tolerances, camera mounting); intrinsics: stacks whose
+    intrinsics come from the topics file's CSV (the others from their first camera_info);
+    with_depth: decode the depth image of each frame (the rgbd sensor)."""
+
+    def __init__(self, cfg: TopicsConfig, poses: PoseSource, bag: Path, *, intrinsics: dict[int, Intrinsics] | None = None,
+                 with_depth: bool = False, max_silence_s: float = MAX_SILENCE_S, max_jump_m: float = MAX_JUMP_M) -> None:
+        self.cfg, self.poses, self.bag, self.with_depth = cfg, poses, Path(bag), with_depth
+        self.max_silence_s, self.max_jump_m = max_silence_s, max_jump_m
+        self.intrinsics: dict[int, Intrinsics] = dict(intrinsics or {})
+        self.mount = {s: st.camera_in_lidar() for s, st in cfg.stacks.items()}
+        sync = cfg.sync
+        self.tolerance = {"depth": sync.depth_tolerance_s, "uss": sync.uss_tolerance_s, "tof": sync.tof_tolerance_s}
+        self.roles: dict[str, list[tuple[int, str]]] = {}
+        for s, st in cfg.stacks.items():
+            for role, topic in st.roles().items():
+                self.roles.setdefault(topic, []).append((s, role))
+        self.buffers = {(s, r): Recent() for s, st in cfg.stacks.items() for r in PARTNERS if r in st.roles()}
+        self.waiting: dict[int, deque[Message]] = {s: deque() for s in cfg.stacks}
+        self.watched = {t for t, keys in self.roles.items() if any(r != "camera_info" for _, r in keys)}
+        self.last_kept = dict.fromkeys(cfg.stacks, -math.inf)  # camera_rate_hz thinning
+        self.last_color = dict.fromkeys(cfg.stacks, -math.inf)
+        self.last_stamp: dict[str, float] = {}
+        self.t0: float | None = None  # the first stamp: bag times in messages count from here
+        self.clock = -math.inf  # the newest stamp seen
+        self.dropped: dict[int, Counter] = {s: Counter() for s in cfg.stacks}
+        self.made = 0
+        self.last_frame: tuple[float, np.ndarray] | None = None  # (time, robot pose) for the jump check
+        self.error: StreamError | None = None  # met while releasing frames: raised at the next message
+
+    # ------------------------------------------------------------------ input
+    def topics(self) -> list[str]:
+        """Every topic to read, stacks first, then the pose source's."""
+        return list(self.roles) + [t for t in self.poses.topics if t not in self.roles]
+
+    def is_color(self, topic: str) -> bool:
+        return any(r == "color" for _, r in self.roles.get(topic, ()))
+
+    def rel(self, t: float) -> float:
+        """Seconds since the bag's first message."""
+        return t - (self.t0 if self.t0 is not None else t)
+
+    def push(self, topic: str, msg: Message, late: bool = False) -> list[StreamFrame]:
+        """One message; the frames it completes, in time order. late: a colour image the mapper
+        is too far behind to use (counted as dropped, never decoded)."""
+        if self.error is not None:
+            raise self.error
+        t = msg.time_s
+        if self.t0 is None:
+            self.t0 = t
+        self._check_clock(topic, msg)
+        self.clock = max(self.clock, t)
+        if topic in self.poses.topics:
+            self.poses.add(topic, msg)
+        for s, role in self.roles.get(topic, ()):
+            where = m.Where(self.bag, topic, msg.index)
+            if role == "color":
+                self._color(s, msg, late)
+            elif role == "camera_info":
+                if s not in self.intrinsics:
+                    self.intrinsics[s] = m.decode_camera_info(msg.msg, where)
+            elif role == "uss":
+                self.buffers[(s, role)].add(t, float(uss.range_from_raw(np.array([m.decode_uss_us(msg.msg, msg.msgtype,
+                                                                                               where)]))[0]))
+            elif role == "tof":
+                self.buffers[(s, role)].add(t, _irs_grid(m.decode_tof(msg.msg, where)[0]))
+            else:  # depth: decoded only if the frame is made and wants it
+                self.buffers[(s, role)].add(t, msg)
+        self._check_silence()
+        return self._release()
+
+    def finish(self) -> list[StreamFrame]:
+        """The bag has ended: every waiting image is decided with what came."""
+        if self.error is not None:
+            raise self.error
+        self.clock = math.inf
+        return self._release()
+
+    def _color(self, s: int, msg: Message, late: bool) -> None:
+        t = msg.time_s
+        self.last_color[s] = t
+        rate = self.cfg.sync.camera_rate_hz
+        if rate > 0 and t - self.last_kept[s] < 1.0 / rate - 1e-6:
+            self.dropped[s]["thinned to camera_rate_hz"] += 1
+            return
+        self.last_kept[s] = t
+        if late:
+            self.dropped[s]["late (the mapper was behind)"] += 1
+        else:
+            self.waiting[s].append(msg)
+
+    # ------------------------------------------------------------------ checks
+    def _check_clock(self, topic: str, msg: Message) -> None:
+        prev = self.last_stamp.get(topic)
+        if prev is not None and msg.time_s < prev and "static" not in topic:
+            raise StreamError(self.bag, f"topic {topic}: the clock went backwards: message {msg.index + 1} is stamped "
+                              f"at {self.rel(msg.time_s):.3f} s, {prev - msg.time_s:.3f} s before the previous one at "
+                              f"{self.rel(prev):.3f} s (seconds since the bag's first message)", self.rel(prev))
+        self.last_stamp[topic] = msg.time_s
+
+    def _check_silence(self) -> None:
+        """A watched topic (or the pose source) silent for max_silence_s of bag time has stopped."""
+        limit = self.max_silence_s
+        for topic in self.watched:
+            last = self.last_stamp.get(topic)
+            if self.clock - (self.t0 if last is None else last) > limit:
+                what = "sent nothing" if last is None else f"stopped: its last message is at {self.rel(last):.3f} s"
+                raise StreamError(self.bag, f"topic {topic} {what} and none came for {limit:g} s (bag time "
+                                  f"{self.rel(self.clock):.3f} s)", self.rel(self.clock))
+        newest = self.poses.newest_s()
+        if self.clock - max(newest, self.t0) > limit:
+            why = self.poses.problem()
+            what = "no pose yet" if newest == -math.inf else f"the last pose is at {self.rel(newest):.3f} s"
+            raise StreamError(self.bag, f"{self.poses.describe}: {what} and none came for {limit:g} s (bag time "
+                              f"{self.rel(self.clock):.3f} s){': ' + why if why else ''}", self.rel(self.clock))
+
+    def _check_jump(self, f: StreamFrame) -> None:
+        """Consecutive frames at most JUMP_WINDOW_S apart (frames dropped while the mapper was
+        behind leave gaps the robot may legitimately have driven a metre in)."""
+        if self.last_frame is not None:
+            t_prev, prev = self.last_frame
+            d = float(np.linalg.norm(f.robot_to_world[:3, 3] - prev[:3, 3]))
+            if d > self.max_jump_m and f.frame.time - t_prev <= JUMP_WINDOW_S:
+                raise StreamError(self.bag, f"{self.poses.describe}: the pose jumps {d:.2f} m between the frames at "
+                                  f"{self.rel(t_prev):.3f} s and {self.rel(f.frame.time):.3f} s; expected at most "
+                                  f"{self.max_jump_m:g} m", self.rel(f.frame.time))
+        self.last_frame = (f.frame.time, f.robot_to_world)
+
+    # ------------------------------------------------------------------ output
+    def _release(self) -> list[StreamFrame]:
+        out = []
+        for s, queue in self.waiting.items():
+            while queue and self._decided(s, queue[0].time_s):
+                frame = self._make(s, queue.popleft())
+                if frame is not None:
+                    out.append(frame)
+        out.sort(key=lambda f: (f.frame.time, f.frame.stack_id))
+        for k, f in enumerate(out):
+            try:
+                self._check_jump(f)
+            except StreamError as exc:  # the frames before the jump still reach the map
+                self.error, out = exc, out[:k]
+                break
+        self.made += len(out)
+        self._prune()
+        return out
+
+    def _decided(self, s: int, t: float) -> bool:
+        roles = self.cfg.stacks[s].roles()
+        tol = self.cfg.sync.pose_tolerance_s
+        if s not in self.intrinsics and self.clock <= t + max([tol, *self.tolerance.values()]):
+            return False  # its camera_info follows the image: wait as long as for any partner
+        return (all(self.buffers[(s, r)].decided(t, self.tolerance[r], self.clock) for r in PARTNERS if r in roles)
+                and self.poses.decided(t, tol, self.clock))
+
+    def _make(self, s: int, msg: Message) -> StreamFrame | None:
+        """The frame of colour image `msg`, or None (counted) when a partner or its pose is missing."""
+        t, roles = msg.time_s, self.cfg.stacks[s].roles()
+        partner = {}
+        for r in PARTNERS:
+            if r in roles:
+                partner[r] = self.buffers[(s, r)].nearest(t, self.tolerance[r])
+                if partner[r] is None:
+                    self.dropped[s][f"no {r} within {self.tolerance[r]:g} s"] += 1
+                    return None
+        robot = self.poses.at(t, self.cfg.sync.pose_tolerance_s)
+        if robot is None:
+            self.dropped[s]["no pose"] += 1
+            return None
+        if s not in self.intrinsics:
+            self.dropped[s]["no camera_info"] += 1
+            return None
+        intr = self.intrinsics[s]
+        topic = self.cfg.stacks[s].color
+        where = m.Where(self.bag, topic, msg.index)
+        rgb = m.decode_color(msg.msg, msg.msgtype, where)
+        if rgb.shape[:2] != (intr.height, intr.width):
+            raise StreamError(self.bag, f"topic {topic}, message {msg.index + 1}: image is {rgb.shape[1]}x{rgb.shape[0]}; "
+                              f"the camera info of stack {s} says {intr.width}x{intr.height}", self.rel(t))
+        depth = self._depth(s, partner.get("depth"), intr) if self.with_depth else None
+        frame = SyncFrame(time=t, stack_id=s, rgb=rgb, cam_to_world=robot @ self.mount[s],
+                          uss_range=partner.get("uss", math.nan),
+                          irs_range=partner["tof"] if "tof" in partner else np.full((8, 8), np.nan), depth=depth)
+        return StreamFrame(frame, robot)
+
+    def _depth(self, s: int, msg: Message | None, intr: Intrinsics) -> np.ndarray:
+        """(H, W) metres, NaN invalid (the importer's uint16 mm read back; all NaN without a depth topic)."""
+        if msg is None:
+            return np.full((intr.height, intr.width), np.nan, dtype=np.float32)
+        topic = self.cfg.stacks[s].depth
+        mm = m.decode_depth(msg.msg, msg.msgtype, m.Where(self.bag, topic, msg.index))
+        if mm.shape != (intr.height, intr.width):
+            raise StreamError(self.bag, f"topic {topic}, message {msg.index + 1}: depth map is {mm.shape[1]}x"
+                              f"{mm.shape[0]}; the colour image is {intr.width}x{intr.height}", self.rel(msg.time_s))
+        depth = mm.astype(np.float32) / 1000.0
+        depth[(mm == 0) | (mm == 65535)] = np.nan
+        return depth
+
+    def _prune(self) -> None:
+        """Keep what the waiting images and the next ones (stamped after the last seen) can use."""
+        horizon = {s: q[0].time_s if q else self.last_color[s] for s, q in self.waiting.items()}
+        for (s, r), buf in self.buffers.items():
+            buf.prune(horizon[s] - self.tolerance[r] - 1e-9)
+        self.poses.prune(min(horizon.values()) - self.cfg.sync.pose_tolerance_s)
+
+    # ------------------------------------------------------------------ report
+    def dropped_total(self) -> Counter:
+        total: Counter = Counter()
+        for c in self.dropped.values():
+            total.update(c)
+        return total
+
+
+def _irs_grid(meas_mm: np.ndarray) -> np.ndarray:
+    """TOF zones (64,) mm in sensor order -> (8, 8) m in image zone order, NaN invalid (as data.ethz.read_tof)."""
+    metres = np.asarray(meas_mm, dtype=np.float64) / 1000.0
+    metres[~np.isfinite(metres) | (metres <= irs.IRS_MIN_VALID_M)] = np.nan
+    return irs.grid_from_measurements(metres)
+
+
+def make_pose_source(poses: str, cfg: TopicsConfig, bag: Path, *, present: Callable[[str], bool],
+                     poses_file: Path | None = None, tf_parent: str = "odom", tf_child: str | None = None,
+                     odometry_topic: str = "/odom", kiss: KissIcpSettings | None = None) -> PoseSource:
+    """The pose source of `--poses` (lidar-odometry, tf, csv, odometry); present(topic): is it in the bag."""
+    if poses == "lidar-odometry":
+        return KissPoses(cfg.lidar.topic, cfg.lidar, kiss, bag)
+    if poses == "odometry":
+        return OdometryPoses(odometry_topic, bag)
+    if poses == "csv":
+        from virus_nerf.data.bags.odometry import csv_track
+
+        return CsvPoses(csv_track(poses_file), Path(poses_file))
+    topics = tuple(t for t in cfg.tf_topics if present(t))
+    return TfPoses(topics, tf_parent, tf_child, bag)

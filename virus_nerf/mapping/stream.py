@@ -1,0 +1,312 @@
+"""Streaming `map-bag`: the bag read message by message in recording order and mapped as it goes.
+
+A wall clock, scaled by the playback speed, releases each message when it passes the message's
+receive time in the bag (the order a robot gets them). Each released message goes to a
+`data.bags.live.LiveSync`, which hands back the frames it completes (colour image + depth, USS,
+IRS within their sync tolerances + pose); they go to the `Mapper` at once. The mapper trains while
+the next message is not yet due; every `snapshot_every` seconds of wall time (the first after
+`first_snapshot` s, delayed by no training step: a step can take seconds on a CPU, and the first
+map shows that mapping runs) the map goes to OUT/snapshots/NNNN_<s>s/ with a progress line that reports the
+lag: the scaled wall clock minus the recording time of the newest frame. A colour image released
+more than `max_lag` recording seconds after it was due is dropped without being decoded (a robot
+cannot pause its sensors); the count is reported. The mapper is made at the first frames, its
+scene box from their camera positions (`initial_box`).
+
+Bad data (`live.StreamError` and any `DataFormatError` of a message) stops the stream: the map made
+so far is written to OUT/map/ as the final map, OUT/stream.json says where it stopped, and the
+error is raised again (map-bag: exit code 2 with the one-line error).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from virus_nerf.data.bags.live import LiveSync, StreamFrame
+from virus_nerf.errors import DataFormatError
+from virus_nerf.mapping.replay import FINAL, SNAPSHOTS, _progress_line, _publish
+from virus_nerf.scene_box import SceneBox
+
+REPORT = "stream.json"
+STARTUP_WAIT_S = 1.0  # bag seconds the first frames wait for every stack's camera_info
+
+
+def initial_box(positions: np.ndarray) -> SceneBox:
+    """The scene box from the camera positions (N, 3) of the first frames: grown by the longest
+    sensor reach in x, y (IRS 4 m, USS 8 m) and 1.5 m in z, as trainer.model.fit_scene_box does
+    without a LiDAR map. The room beyond is not known yet; kept in one place so that a box that
+    grows with the drive can replace it."""
+    from virus_nerf.sensors import irs
+    from virus_nerf.trainer.model import USS_MAX_RANGE_M
+
+    reach = max(irs.IRS_MAX_RANGE_M, USS_MAX_RANGE_M)
+    p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    return SceneBox(tuple(p.min(axis=0) - [reach, reach, 1.5]), tuple(p.max(axis=0) + [reach, reach, 1.5]))
+
+
+@dataclass
+class StreamReport:
+    """What a streaming run did (also OUT/stream.json)."""
+
+    snapshots: list[str] = field(default_factory=list)
+    final: str | None = None
+    frames: int = 0
+    steps: int = 0
+    train_s: float = 0.0
+    wall_s: float = 0.0  # from the first message to the final map
+    first_snapshot_s: float | None = None  # wall seconds from the first message to the first snapshot
+    dropped: dict[str, int] = field(default_factory=dict)  # reason -> colour frames
+    lag_s: list[float] = field(default_factory=list)  # at each snapshot
+    stopped: str | None = None  # the error that stopped the stream
+    stopped_at_s: float | None = None  # bag seconds since the first message
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def warm_up(config) -> float:
+    """Load torch's optimiser machinery and the mapper's kernels on a throwaway mapper (one small
+    synthetic frame, one step) before the drive's clock starts, as a robot starts its mapper before
+    it drives off: the first real frame is then not seconds late (measured on 2 shared cores: the
+    optimiser's first construction imports torch._dynamo, 1-2 s; the first render 0.2-0.8 s; the
+    first snapshot 0.2 s). Returns the seconds of its training step (a first step on one small frame)."""
+    from virus_nerf.data.frame import SyncFrame
+    from virus_nerf.sensors.camera import Intrinsics
+    from virus_nerf.trainer.mapper import Mapper
+
+    intr = Intrinsics(fx=40.0, fy=40.0, cx=32.0, cy=24.0, width=64, height=48)
+    cfg = dataclasses.replace(config, max_steps=1, max_time=None)
+    mapper = Mapper(cfg, {0: intr}, SceneBox((-3.0, -3.0, -1.0), (3.0, 3.0, 2.0)))
+    pose = np.eye(4)
+    pose[:3, :3] = [[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]]  # level, looking along +x
+    rgb = np.full((intr.height, intr.width, 3), 128, dtype=np.uint8)
+    depth = np.full((intr.height, intr.width), 2.0, dtype=np.float32) if "rgbd" in cfg.sensors else None
+    mapper.add_frame(SyncFrame(time=0.0, stack_id=0, rgb=rgb, cam_to_world=pose, uss_range=2.0,
+                               irs_range=np.full((8, 8), 2.0), depth=depth))
+    t = time.perf_counter()
+    mapper.train(1.0, steps=1)  # the optimiser's and backward's first calls: longer than a later step
+    step_s = time.perf_counter() - t
+    with tempfile.TemporaryDirectory() as tmp:  # the map code's first call (imports)
+        mapper.snapshot(Path(tmp) / "warm", n_rays=8, max_poses=1)
+    return step_s
+
+
+class StreamRun:
+    """One streaming run into OUT (see module doc); `run(messages)` returns the report."""
+
+    def __init__(self, sync: LiveSync, out: Path, config, *, playback: float = 1.0, snapshot_every: float = 10.0,
+                 first_snapshot: float = 1.0, max_lag: float = 2.0, drive_s: float = 0.0, resolution: float = 0.05,
+                 n_rays: int = 360, max_poses: int = 30, train_slice: float = 0.25, train_share: float = 0.5,
+                 box: Callable[[np.ndarray], SceneBox] = initial_box, log: Callable[[str], None] = print,
+                 live=None, ros_bag=None, warm_step_s: float = 0.1) -> None:
+        self.sync, self.out, self.config = sync, Path(out), config
+        self.playback, self.snapshot_every, self.max_lag = playback, snapshot_every, max_lag
+        self.drive_s, self.resolution, self.n_rays, self.max_poses = drive_s, resolution, n_rays, max_poses
+        self.train_slice, self.box, self.log, self.live, self.ros_bag = train_slice, box, log, live, ros_bag
+        self.train_share, self.train_next, self.warm_step_s = train_share, 0.0, warm_step_s
+        self.next_snapshot = min(first_snapshot, snapshot_every)
+        self.mapper = None
+        self.held: list[StreamFrame] = []  # the first frames, until the mapper can be made
+        self.newest: float | None = None  # recording time of the newest frame given to the mapper
+        self.start: float | None = None  # monotonic time of the first message
+        self.r0 = self.t0 = 0.0  # receive time and stamp of the first message
+        self.behind = 0.0  # recording seconds the newest message was released after it was due
+        self.report = StreamReport()
+
+    # ------------------------------------------------------------------ clock
+    def now(self) -> float:
+        return time.monotonic() - self.start
+
+    def lag(self, now: float) -> float:
+        """Recording seconds between the scaled wall clock and the newest frame (the first message
+        stands in before the first frame)."""
+        return self.t0 + now * self.playback - (self.newest if self.newest is not None else self.t0)
+
+    # ------------------------------------------------------------------ the loop
+    def run(self, messages) -> StreamReport:
+        """messages: (topic, Message) in bag order (BagReader.iter_topics)."""
+        try:
+            for topic, msg in messages:
+                due = self._due(msg)
+                self._wait(due)
+                self._train_owed(due)
+                self.behind = (self.now() - due) * self.playback
+                late = self.sync.is_color(topic) and self.behind > self.max_lag
+                self._add(self.sync.push(topic, msg, late=late))
+                self._maybe_snapshot()
+            self._add(self.sync.finish())
+        except DataFormatError as exc:
+            self.report.stopped = str(exc)
+            self.report.stopped_at_s = getattr(exc, "at_s", None)
+            self._close()
+            raise
+        except KeyboardInterrupt:  # the operator stops the robot's mapping: keep the map
+            self.report.stopped = "interrupted (Ctrl-C)"
+            self.report.stopped_at_s = None if self.sync.t0 is None else self.sync.rel(self.sync.clock)
+            self._close()
+            raise
+        self._close()
+        return self.report
+
+    def _due(self, msg) -> float:
+        """Wall seconds (from the first message) at which `msg` is released."""
+        received = msg.received_s if msg.received_s is not None else msg.time_s
+        if self.start is None:
+            self.start, self.r0, self.t0 = time.monotonic(), received, msg.time_s
+        return (received - self.r0) / self.playback
+
+    def _wait(self, due: float) -> None:
+        """Train (or sleep, before the first frame) until `due`; snapshots on the way."""
+        while (now := self.now()) < due:
+            if self._maybe_snapshot():
+                continue
+            budget = min(self.train_slice, due - now, self.next_snapshot - now)
+            if self._may_train(now):
+                self._train(budget)
+            else:
+                time.sleep(budget)
+
+    def _may_train(self, now: float) -> bool:
+        """A mapper, and no step that could delay the first snapshot (on a CPU one step can take
+        seconds): before it, a step starts only if it should end in time (2 x the warm-up's step,
+        or the mean of the steps so far)."""
+        if self.mapper is None:
+            return False
+        if self.report.snapshots:
+            return True
+        m = self.mapper
+        step_s = m.seconds / m.step if m.step else 2.0 * self.warm_step_s
+        return self.next_snapshot - now > step_s
+
+    def _train(self, budget: float) -> None:
+        t = time.monotonic()
+        self.mapper.train(budget)
+        took = time.monotonic() - t
+        # the earliest next slice forced while behind: train_share of the wall time, over the last slice
+        self.train_next = self.now() + took * (1.0 - self.train_share) / self.train_share
+
+    def _train_owed(self, due: float) -> None:
+        """Behind the clock, the messages would take all the time and the map would never train:
+        a slice is forced once the messages since the last one took as long as it (train_share
+        0.5), as a robot's mapper thread runs beside its sensor callbacks. Not while the stream is
+        more than max_lag behind: then its colour images are dropped anyway and catching up on the
+        other messages comes first (the lag stays bounded). Snapshots count for neither."""
+        now = self.now()
+        if not self._may_train(now):
+            return
+        if now >= self.train_next and (now - due) * self.playback <= self.max_lag:
+            self._train(self.train_slice)
+
+    def _add(self, frames: list[StreamFrame]) -> None:
+        if self.mapper is None:
+            self.held.extend(frames)
+            if not self.held:
+                return
+            stacks_known = set(self.sync.cfg.stacks) <= set(self.sync.intrinsics)
+            if not stacks_known and self.sync.clock <= self.held[0].frame.time + STARTUP_WAIT_S:
+                return
+            frames, self.held = self.held, []
+            self._make_mapper(frames)  # adds them
+            return
+        for f in frames:
+            if f.frame.stack_id not in self.mapper.intrinsics:
+                self.sync.dropped[f.frame.stack_id]["no camera_info"] += 1
+                continue
+            self.mapper.add_frame(f.frame)
+            self.newest = f.frame.time if self.newest is None else max(self.newest, f.frame.time)
+            if self.live is not None:
+                self.live.log_frame(f.frame, self.mapper.intrinsics)
+            if self.ros_bag is not None:
+                self.ros_bag.write_pose(f.frame.time, f.frame.cam_to_world, f.frame.stack_id)
+
+    def _make_mapper(self, first: list[StreamFrame]) -> None:
+        """The mapper for the stacks whose intrinsics are known, its box from the first frames; the
+        first frame's prior and the kernels loaded (start-up, on the clock: the robot is driving)."""
+        from virus_nerf.config_io import to_dict
+        from virus_nerf.trainer.mapper import Mapper
+        from virus_nerf.utils.io import write_json_atomic
+
+        box = self.box(np.stack([f.frame.cam_to_world[:3, 3] for f in first]))
+        cfg = dataclasses.replace(self.config, max_steps=None, max_time=max(self.drive_s / self.playback, 1e-3))
+        self.mapper = Mapper(cfg, dict(self.sync.intrinsics), box)
+        (self.out / SNAPSHOTS).mkdir(parents=True)
+        write_json_atomic(self.out / SNAPSHOTS / "config.json", to_dict(cfg))
+        if self.live is not None:
+            self.live.start_time = first[0].frame.time
+        self._add(first[:1])
+        self.mapper.prepare()
+        self._add(first[1:])
+
+    # ------------------------------------------------------------------ maps
+    def _maybe_snapshot(self) -> bool:
+        """A snapshot when due; postponed while the stream is more than max_lag behind (catching
+        up on the messages first: a snapshot can take seconds on a CPU, and taken while behind it
+        would put the stream further behind every time), by at most one snapshot period."""
+        now = self.now()
+        if self.mapper is None or now < self.next_snapshot:
+            return False
+        if self.behind > self.max_lag and now < self.next_snapshot + self.snapshot_every:
+            return False
+        k = len(self.report.snapshots) + 1
+        folder = self.out / SNAPSHOTS / f"{k:04d}_{now:.1f}s"
+        lag = self.lag(now)
+        info = self._snapshot(folder, self.newest)
+        self.train_next = self.now()  # the snapshot's time is not the messages'
+        self.report.snapshots.append(str(folder))
+        self.report.lag_s.append(round(lag, 3))
+        if self.report.first_snapshot_s is None:
+            self.report.first_snapshot_s = round(self.now(), 3)
+        self.log(self._line(f"snapshot {k}", now, info, folder, lag))
+        after = self.now()  # the next one on the grid after this one was written (missed ones skipped)
+        self.next_snapshot += self.snapshot_every * max(1, math.floor((after - self.next_snapshot) / self.snapshot_every) + 1)
+        return True
+
+    def _snapshot(self, folder: Path, recording_time: float, with_state: bool = False):
+        maps = _publish(self.mapper, recording_time, self.resolution, self.n_rays, self.max_poses, self.live,
+                        self.ros_bag)
+        return self.mapper.snapshot(folder, self.resolution, self.n_rays, self.max_poses, with_state=with_state,
+                                    maps=maps)
+
+    def _line(self, what: str, now: float, info, folder: Path, lag: float) -> str:
+        """replay's progress line with the lag and the frames dropped so far."""
+        drive_t = (self.newest if self.newest is not None else self.t0) - self.t0
+        head, _, tail = _progress_line(what, now, drive_t, self.drive_s, info, folder).rpartition(" -> ")
+        dropped = sum(self.sync.dropped_total().values())
+        return f"{head}, lag {lag:.2f} s, {dropped} dropped -> {tail}"
+
+    def _close(self) -> None:
+        """The final map of what was made (none when no frame reached the mapper) and the report."""
+        from virus_nerf.utils.io import write_json_atomic
+
+        r = self.report
+        if self.mapper is None and self.held:  # the bag ended (or stopped) during the start-up wait
+            frames, self.held = self.held, []
+            self._make_mapper(frames)
+        r.dropped = dict(self.sync.dropped_total())
+        if self.mapper is not None:
+            now = self.now()
+            lag = self.lag(now)
+            info = self._snapshot(self.out / FINAL, self.newest if self.newest is not None else self.t0,
+                                  with_state=True)
+            r.final = str(self.out / FINAL)
+            r.frames, r.steps, r.train_s, r.wall_s = self.mapper.frames, self.mapper.step, self.mapper.seconds, now
+            self.log(self._line("final map", now, info, self.out / FINAL, lag))
+        if self.out.is_dir():
+            write_json_atomic(self.out / REPORT, r.as_dict())
+
+
+def summary(report: StreamReport) -> str:
+    """One line: frames, dropped frames by reason, lag at the snapshots."""
+    dropped = sum(report.dropped.values())
+    reasons = ", ".join(f"{n} {why}" for why, n in sorted(report.dropped.items(), key=lambda kv: -kv[1]))
+    lag = (f"; lag at snapshots median {statistics.median(report.lag_s):.2f} s, max {max(report.lag_s):.2f} s"
+           if report.lag_s else "")
+    return f"{report.frames} frames, {dropped} dropped{f' ({reasons})' if reasons else ''}{lag}"
