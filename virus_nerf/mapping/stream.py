@@ -10,7 +10,7 @@ map shows that mapping runs) the map goes to OUT/snapshots/NNNN_<s>s/ with a pro
 lag: the scaled wall clock minus the recording time of the newest frame. A colour image released
 more than `max_lag` recording seconds after it was due is dropped without being decoded (a robot
 cannot pause its sensors); the count is reported. The mapper is made at the first frames, its
-scene box from their camera positions (`initial_box`).
+scene box around the first frame, grown as the robot drives (`initial_box`, docs/extent.md).
 
 Bad data (`live.StreamError` and any `DataFormatError` of a message) stops the stream: the map made
 so far is written to OUT/map/ as the final map, OUT/stream.json says where it stopped, and the
@@ -39,17 +39,13 @@ REPORT = "stream.json"
 STARTUP_WAIT_S = 1.0  # bag seconds the first frames wait for every stack's camera_info
 
 
-def initial_box(positions: np.ndarray) -> SceneBox:
-    """The scene box from the camera positions (N, 3) of the first frames: grown by the longest
-    sensor reach in x, y (IRS 4 m, USS 8 m) and 1.5 m in z, as trainer.model.fit_scene_box does
-    without a LiDAR map. The room beyond is not known yet; kept in one place so that a box that
-    grows with the drive can replace it."""
-    from virus_nerf.sensors import irs
-    from virus_nerf.trainer.model import USS_MAX_RANGE_M
+def initial_box(positions: np.ndarray, extent) -> SceneBox:
+    """The scene box of a stream: the room is not known in advance, so the box starts around the
+    first frame's camera (grid/extent.py first_box) and the mapper grows it as the robot drives
+    (`extent.mode` grow, docs/extent.md)."""
+    from virus_nerf.grid.extent import first_box
 
-    reach = max(irs.IRS_MAX_RANGE_M, USS_MAX_RANGE_M)
-    p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    return SceneBox(tuple(p.min(axis=0) - [reach, reach, 1.5]), tuple(p.max(axis=0) + [reach, reach, 1.5]))
+    return first_box(np.asarray(positions, dtype=np.float64).reshape(-1, 3)[0], extent)
 
 
 @dataclass
@@ -105,7 +101,7 @@ class StreamRun:
     def __init__(self, sync: LiveSync, out: Path, config, *, playback: float = 1.0, snapshot_every: float = 10.0,
                  first_snapshot: float = 1.0, max_lag: float = 2.0, drive_s: float = 0.0, resolution: float = 0.05,
                  n_rays: int = 360, max_poses: int = 30, train_slice: float = 0.25, train_share: float = 0.5,
-                 box: Callable[[np.ndarray], SceneBox] = initial_box, log: Callable[[str], None] = print,
+                 box: Callable[..., SceneBox] = initial_box, log: Callable[[str], None] = print,
                  live=None, ros_bag=None, warm_step_s: float = 0.1) -> None:
         self.sync, self.out, self.config = sync, Path(out), config
         self.playback, self.snapshot_every, self.max_lag = playback, snapshot_every, max_lag
@@ -234,8 +230,10 @@ class StreamRun:
         from virus_nerf.trainer.mapper import Mapper
         from virus_nerf.utils.io import write_json_atomic
 
-        box = self.box(np.stack([f.frame.cam_to_world[:3, 3] for f in first]))
-        cfg = dataclasses.replace(self.config, max_steps=None, max_time=max(self.drive_s / self.playback, 1e-3))
+        # the extent is unknown: the box grows from the first frame (grid/extent.py)
+        cfg = dataclasses.replace(self.config, max_steps=None, max_time=max(self.drive_s / self.playback, 1e-3),
+                                  extent=dataclasses.replace(self.config.extent, mode="grow"))
+        box = self.box(np.stack([f.frame.cam_to_world[:3, 3] for f in first]), cfg.extent)
         self.mapper = Mapper(cfg, dict(self.sync.intrinsics), box)
         (self.out / SNAPSHOTS).mkdir(parents=True)
         write_json_atomic(self.out / SNAPSHOTS / "config.json", to_dict(cfg))
