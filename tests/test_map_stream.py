@@ -116,29 +116,7 @@ def test_lidar_odometry_and_wheel_odometry_streams(bags, tiny_office, tmp_path):
         k = int(np.argmin(np.abs(st.times - f.frame.time)))  # the world frame of both: the first scan
         assert np.linalg.norm(f.frame.cam_to_world[:3, 3] - st.cam_to_world[k, :3, 3]) < 0.1  # measured 8 cm at 3 s
 
-    store = m.make_typestore(1)
-    T = store.types
-
-    def add_odom(topic, t_ns, msg, msgtype):
-        out = [(topic, msgtype, t_ns, msg)]
-        if topic == "/rslidar_points":
-            pose = truth.lidar_pose_at(t_ns * 1e-9)
-            from virus_nerf.sensors.geometry import matrix_to_quat
-
-            q = matrix_to_quat(pose[:3, :3])
-            cov = np.zeros(36)
-            odom = T["nav_msgs/msg/Odometry"](
-                header=T["std_msgs/msg/Header"](seq=0, stamp=msg.header.stamp, frame_id="odom"), child_frame_id="rslidar",
-                pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=T["geometry_msgs/msg/Pose"](
-                    position=T["geometry_msgs/msg/Point"](x=pose[0, 3], y=pose[1, 3], z=pose[2, 3]),
-                    orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])), covariance=cov),
-                twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=T["geometry_msgs/msg/Twist"](
-                    linear=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-                    angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)), covariance=cov))
-            out.append(("/odom", "nav_msgs/msg/Odometry", t_ns, odom))
-        return out
-
-    bag = _rewrite(bags["ros1"], tmp_path / "odom.bag", add_odom)
+    bag = _rewrite(bags["ros1"], tmp_path / "odom.bag", _odometry_edit(truth))
     frames, sync = _stream(bag, "odometry", odometry_topic="/odom")
     assert len(frames) == n and not sync.dropped_total()
     for f in frames:
@@ -286,3 +264,52 @@ def test_map_bag_refuses_a_bag_without_images_or_odometry(bags, tmp_path):
         code, _, stderr = run_cli(["map-bag", *argv, "--out", tmp_path / "out"])
         assert code == 2 and stderr.count("\n") == 1 and message in stderr, stderr
         assert not (tmp_path / "out").exists()
+
+
+def _odometry_edit(truth, drop_lidar: bool = False):
+    """A `_rewrite` edit adding nav_msgs/Odometry on /odom (the LiDAR's true pose) at every LiDAR
+    stamp, and with `drop_lidar` leaving the LiDAR out: a robot with wheel odometry and no LiDAR."""
+    from virus_nerf.sensors.geometry import matrix_to_quat
+
+    T = m.make_typestore(1).types
+
+    def edit(topic, t_ns, msg, msgtype):
+        out = [] if drop_lidar and topic == "/rslidar_points" else [(topic, msgtype, t_ns, msg)]
+        if topic == "/rslidar_points":
+            pose = truth.lidar_pose_at(t_ns * 1e-9)
+            q = matrix_to_quat(pose[:3, :3])
+            cov = np.zeros(36)
+            odom = T["nav_msgs/msg/Odometry"](
+                header=T["std_msgs/msg/Header"](seq=0, stamp=msg.header.stamp, frame_id="odom"), child_frame_id="rslidar",
+                pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=T["geometry_msgs/msg/Pose"](
+                    position=T["geometry_msgs/msg/Point"](x=pose[0, 3], y=pose[1, 3], z=pose[2, 3]),
+                    orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])), covariance=cov),
+                twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=T["geometry_msgs/msg/Twist"](
+                    linear=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                    angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)), covariance=cov))
+            out.append(("/odom", "nav_msgs/msg/Odometry", t_ns, odom))
+        return out
+
+    return edit
+
+
+def test_import_bag_with_wheel_odometry_and_no_lidar_trains_without_ground_truth(bags, tiny_office, tiny_cfg,
+                                                                                 tmp_path):
+    """Issue 29 item 1: a bag with cameras, USS, IRS and nav_msgs/Odometry only imports (camera =
+    odometry pose x mounting, exactly the LiDAR-pose import's), and `train` on it maps and scores
+    nothing."""
+    truth = load_recording(tiny_office, "office")
+    bag = _rewrite(bags["ros1"], tmp_path / "odom.bag", _odometry_edit(truth, drop_lidar=True))
+    code, out, err = run_cli(["import-bag", bag, "--out", tmp_path / "data", "--poses", "odometry"])
+    assert code == 0, err
+    rec = load_recording(tmp_path / "data", "odom")
+    assert rec.map_path is None and len(rec.lidar_times) == 0
+    for s, st in rec.stacks.items():  # the poses at the camera stamps: the simulator's, to the 10 Hz interpolation
+        ref = truth.stacks[s]
+        k = np.searchsorted(ref.times, st.times)
+        np.testing.assert_allclose(st.times, ref.times[k], atol=1e-6)
+        assert np.abs(st.cam_to_world[:, :3, 3] - ref.cam_to_world[k, :3, 3]).max() < 0.02
+    code, out, err = run_cli(["train", "--data", tmp_path / "data", "--room", "odom", "--out", tmp_path / "run",
+                              "--config", tiny_cfg, "--quiet"])
+    assert code == 0, err
+    assert "no LiDAR map" in out and (tmp_path / "run" / "map" / "map.pgm").is_file()

@@ -26,7 +26,7 @@ from virus_nerf.utils.io import new_output_dir, write_json_atomic
 
 __all__ = ["ImportReport", "import_bag", "require_ros_extra", "room_name"]
 
-PoseMode = Literal["lidar-odometry", "tf", "csv"]
+PoseMode = Literal["lidar-odometry", "tf", "csv", "odometry"]
 ROS_EXTRA = "pip install 'virus-nerf[ros]'"
 
 
@@ -46,16 +46,18 @@ def room_name(bag: Path) -> str:
 def import_bag(bag: str | Path, out: str | Path, topics: str | Path | TopicsConfig | None = None,
                poses: PoseMode = "lidar-odometry", poses_file: str | Path | None = None,
                tf_parent: str = "odom", tf_child: str | None = None, room: str | None = None,
-               kiss: KissIcpSettings | None = None) -> ImportReport:
+               kiss: KissIcpSettings | None = None, odometry_topic: str = "/odom") -> ImportReport:
     """Import `bag` into the new ETHZ data folder `out` (room `room`, default the bag's name).
 
     poses: 'lidar-odometry' (KISS-ICP on the LiDAR topic), 'tf' (frame `tf_child`, default the
     LiDAR's frame, in `tf_parent` from /tf and /tf_static) or 'csv' (`poses_file`: LiDAR poses
-    as time,x,y,z,qx,qy,qz,qw or TUM). Raises DataFormatError / UsageError / OutputExistsError
+    as time,x,y,z,qx,qy,qz,qw or TUM) or 'odometry' (nav_msgs/Odometry on `odometry_topic`, e.g. a
+    robot's wheel odometry: no LiDAR needed; the robot frame's pose with the topics file's
+    camera mounting). Raises DataFormatError / UsageError / OutputExistsError
     (one line) before or while reading; `out` then does not exist.
     """
-    if poses not in ("lidar-odometry", "tf", "csv"):
-        raise UsageError(f"--poses {poses!r}: expected lidar-odometry, tf or csv")
+    if poses not in ("lidar-odometry", "tf", "csv", "odometry"):
+        raise UsageError(f"--poses {poses!r}: expected lidar-odometry, tf, csv or odometry")
     require_ros_extra(poses)
     bag, out = Path(bag), Path(out)
     if out.exists():
@@ -68,7 +70,7 @@ def import_bag(bag: str | Path, out: str | Path, topics: str | Path | TopicsConf
     if not re.fullmatch(r"[A-Za-z0-9_-]+", room):
         raise UsageError(f"--room {room!r}: expected letters, digits, '_' or '-'")
     with BagReader(bag) as reader:
-        plan = _plan(reader, cfg, poses)
+        plan = _plan(reader, cfg, poses, odometry_topic)
         with new_output_dir(out) as root:
             report = ImportRun(reader, cfg, plan, root, room).run(poses, csv_poses, tf_parent, tf_child, kiss)
             report.data_dir = str(out)
@@ -76,7 +78,7 @@ def import_bag(bag: str | Path, out: str | Path, topics: str | Path | TopicsConf
     return report
 
 
-def _plan(reader: BagReader, cfg: TopicsConfig, poses: str) -> Plan:
+def _plan(reader: BagReader, cfg: TopicsConfig, poses: str, odometry_topic: str = "/odom") -> Plan:
     """Check every named topic against the bag before anything is written."""
     roles: dict[tuple[int | None, str], str] = {}
     where = f"topics file {cfg.source}" if cfg.source else "default ETHZ topics"
@@ -91,6 +93,12 @@ def _plan(reader: BagReader, cfg: TopicsConfig, poses: str) -> Plan:
     elif poses == "lidar-odometry":
         raise DataFormatError(reader.path, f"--poses lidar-odometry needs a LiDAR: no topic {cfg.lidar.topic} "
                               f"(lidar.topic of the {where}); name it in a topics file or use --poses tf or csv")
+    if poses == "odometry":
+        if odometry_topic not in bag_topics:
+            raise DataFormatError(reader.path, f"--poses odometry: no topic {odometry_topic} in the bag; name the "
+                                  "nav_msgs/Odometry topic with --odometry-topic")
+        reader.require(odometry_topic, "odometry", "--odometry-topic")
+        roles[(None, "odometry")] = odometry_topic
     if poses == "tf":
         found = [t for t in cfg.tf_topics if t in bag_topics]
         if not found:

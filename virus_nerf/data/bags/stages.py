@@ -62,6 +62,7 @@ class ImportRun:
         self.small: dict[Key, list] = defaultdict(list)  # uss: echo us; tof: (meas (64,), stds (64,))
         self.camera_info: dict[int, Intrinsics] = {}
         self.transforms: list[Transform] = []
+        self.odometry: list[tuple[float, np.ndarray]] = []  # (time s, (4, 4) robot pose) of --poses odometry
         self.lidar_times: list[float] = []
         self.lidar_paths: list[Path] = []
         self.lidar_frame: str | None = None
@@ -112,10 +113,12 @@ class ImportRun:
                     self._lidar_scan(msg, where, seen_files)
                 elif role.startswith("tf"):
                     self._tf(msg, static="static" in topic)
+                elif role == "odometry":
+                    self.odometry.append((msg.time_s, m.decode_odometry(msg.msg, where)))
         if (None, "lidar") not in self.plan.roles:
             self.notes.append("no LiDAR in the bag: no scans and no map (evaluation against a map is impossible)")
         for key in self.plan.roles:
-            if key[1] in ("lidar", "camera_info") or key[1].startswith("tf"):
+            if key[1] in ("lidar", "camera_info", "odometry") or key[1].startswith("tf"):
                 times = self.stamps[key]
                 used = len(self.lidar_times) if key[1] == "lidar" else len(times)
                 self._report(key, np.array(times), used)
@@ -175,6 +178,14 @@ class ImportRun:
                 raise UsageError("--poses tf needs --tf-child FRAME (the bag has no LiDAR whose frame could be used)")
             track = tf_track(self.transforms, tf_parent, child, str(self.reader.path))
             return track, {"tf_parent": tf_parent, "tf_child": child}
+        if poses == "odometry":
+            if len(self.odometry) < 2:
+                raise DataFormatError(self.reader.path, f"--poses odometry: topic {self.plan.roles[(None, 'odometry')]}"
+                                      f" has {len(self.odometry)} messages; expected at least 2")
+            self.odometry.sort(key=lambda tp: tp[0])
+            times = np.array([t for t, _ in self.odometry])
+            return PoseTrack(times, np.stack([p for _, p in self.odometry])), {
+                "odometry_topic": self.plan.roles[(None, "odometry")]}
         assert csv_poses is not None
         return csv_poses, None
 
