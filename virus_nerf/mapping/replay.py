@@ -109,7 +109,9 @@ def replay(
     times = [float(recording.stacks[s].times[i]) for s, i in order]
     drive_s = times[-1] - times[0]
     cfg = config if config is not None else TrainConfig()
-    cfg = dataclasses.replace(cfg, max_steps=None, max_time=max(drive_s / playback, 1e-3))  # lr decay horizon
+    # lr decay horizon; the extent is unknown to a robot: the box grows from the first frame (docs/extent.md)
+    cfg = dataclasses.replace(cfg, max_steps=None, max_time=max(drive_s / playback, 1e-3),
+                              extent=dataclasses.replace(cfg.extent, mode="grow"))
     mapper = Mapper.for_recording(recording, cfg)
     with_depth = "rgbd" in cfg.sensors
 
