@@ -105,6 +105,8 @@ def test_train_argument_errors(tmp_path, extra, fragment):
         (["trian"], ["Unrecognized options: trian", "Available subcommands"]),
         ([], ["missing command"]),
         (["train", "--data", "x"], ["virus-nerf train: missing required argument(s) --out PATH"]),
+        (["import-bag", "--out", "{tmp}/d"], ["virus-nerf import-bag: missing required argument(s) PATH (the "
+                                             "positional argument: ROS 1 .bag file, ROS 2 bag folder"]),
     ],
 )
 def test_command_errors(tmp_path, argv, fragments):

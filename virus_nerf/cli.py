@@ -119,7 +119,19 @@ def tyro_error_line(text: str, command: str | None = None) -> str:
     elif first.startswith("Error parsing "):
         msg = first.removeprefix("Error parsing ").split(" Got errors:")[0]
     elif title == "Required options":
-        missing = [ln for sec in keep for ln in sec if ln.startswith("-")]
+        body = [ln for sec in keep for ln in sec]
+        missing = [ln for ln in body if ln.startswith("-")]
+        for k, ln in enumerate(body):  # a positional shows as its metavar alone, its help on the next line
+            if re.fullmatch(r"[A-Z][A-Z_]*", ln):
+                words = []
+                for nxt in body[k + 1:]:  # its help, wrapped over lines up to "(required)"
+                    if nxt.startswith("-") or re.fullmatch(r"[A-Z][A-Z_]*", nxt):
+                        break
+                    words.append(nxt)
+                    if nxt.endswith("(required)"):
+                        break
+                what = " ".join(words).removesuffix("(required)").strip().rstrip(".")
+                missing.append(f"{ln} (the positional argument: {what})" if what else f"{ln} (positional)")
         who = keep[0][0].removeprefix("Missing from ").rstrip(":")
         msg = f"{who}: missing required argument(s) {', '.join(missing)}"
     elif title == "Missing subcommand":
