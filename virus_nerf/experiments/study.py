@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from virus_nerf.experiments.search_space import build_config
+from virus_nerf.utils.io import pid_alive
 
 JOURNAL = "optuna.journal"  # default storage: a journal file in the study folder
 
@@ -140,7 +141,7 @@ def settle_stale_trials(study, objective: Objective) -> list[int]:
     host, settled = socket.gethostname(), []
     for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
         pid = t.user_attrs.get("pid")
-        if t.user_attrs.get("host") != host or not isinstance(pid, int) or pid == os.getpid() or _alive(pid):
+        if t.user_attrs.get("host") != host or not isinstance(pid, int) or pid == os.getpid() or pid_alive(pid):
             continue
         run = Path(t.user_attrs.get("run", ""))
         values = None
@@ -153,16 +154,6 @@ def settle_stale_trials(study, objective: Objective) -> list[int]:
             study.tell(t.number, values)
         settled.append(t.number)
     return settled
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def best_trial(study, objective: Objective):
