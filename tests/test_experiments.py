@@ -97,6 +97,10 @@ def test_demo_end_to_end(tmp_path: Path):
     assert "| NeRF | zone3" in report and "| LiDAR | zone3" in report
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["train"]["grid"] == "virus" and doc["train"]["sensors"] == ["camera", "uss", "irs", "stereo"]
+    # the planner-safety figure and the warnings (a 4 s run ends in the grid's warm-up) in the report too
+    shares = " | ".join("-" if b["free_share"] is None else f"{b['free_share']:.3f}" for b in doc["safety"]["zones"].values())
+    assert "## Can a planner trust the map?" in report and f"| {shares} |" in report
+    assert all(f"**Warning:** {w}" in report for w in doc["warnings"]) and doc["warnings"]
     for image in ("metrics_bars.png",):
         assert (out / "run" / "plots" / image).is_file()
     from virus_nerf.errors import OutputExistsError

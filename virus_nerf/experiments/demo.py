@@ -33,7 +33,7 @@ def demo(
     from virus_nerf.errors import OutputExistsError, require_int, require_number
     from virus_nerf.evaluation.evaluate import parse_gt_flag
     from virus_nerf.evaluation.metrics import RunMetrics
-    from virus_nerf.experiments.report import metrics_markdown_by_gt
+    from virus_nerf.experiments.report import metrics_markdown_by_gt, safety_markdown
     from virus_nerf.sim.command import simulate
     from virus_nerf.trainer.command import run_training
     from virus_nerf.trainer.config import TrainConfig
@@ -78,6 +78,7 @@ def demo(
         "",
         metrics_markdown_by_gt(RunMetrics.from_document(doc)),
         "",
+        *safety_markdown(doc),
         f"## Metrics per sensor and zone (paper Fig. 3; ground truth: {protocols[0]})",
         "",
         "![metric bars](run/plots/metrics_bars.png)",

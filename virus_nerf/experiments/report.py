@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from virus_nerf.evaluation.metrics import RunMetrics
@@ -42,3 +42,20 @@ def metrics_markdown_by_gt(metrics: RunMetrics, zones: Sequence[str] = ("zone1",
 
     return "\n\n".join(f"Ground truth: **{p}** ({GT_DESCRIPTIONS[p]})\n\n{metrics_markdown(metrics, zones, p)}"
                         for p in metrics.by_gt)
+
+
+def safety_markdown(doc: Mapping[str, Any]) -> list[str]:
+    """Report lines for a metrics document's planner-safety block and warnings (none: no lines)."""
+    lines: list[str] = []
+    safety = doc.get("safety")
+    if safety:
+        cells = " | ".join(_cell(b["free_share"]) for b in safety["zones"].values())
+        lines += ["## Can a planner trust the map?", "",
+                  f"Share of the ground-truth obstacles ({safety['gt']}, camera height) that the 2D map marks free "
+                  f"(nothing but free within {safety['tolerance_m']:g} m), by distance to the robot's path; "
+                  f"{safety['observed']:.0%} of the map observed by some sensor (the rest stays unknown).", "",
+                  "| " + " | ".join(f"within {z}" if z != "all" else "all" for z in safety["zones"]) + " |",
+                  "|" + "---|" * len(safety["zones"]), f"| {cells} |", ""]
+    for w in doc.get("warnings", []):
+        lines += [f"**Warning:** {w}", ""]
+    return lines
