@@ -40,9 +40,11 @@ def sensors(
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.errors import require_int, require_number
     from virus_nerf.evaluation.evaluate import (
+        LIDAR_OWN_MAP,
         EvaluationConfig,
         check_ground_truth_inputs,
         evaluate,
+        lidar_scored_against_own_map,
         parse_gt_flag,
     )
 
@@ -64,10 +66,8 @@ def sensors(
     write_plots(result, plot_dir, replace=redo)
     if out.exists():
         raise OutputExistsError(out)
-    warnings = []
-    if (recording.root / "import_report.json").is_file() and "LiDAR" in config.sensors and protocols:
-        warnings.append("the LiDAR map of this imported bag was built from the same LiDAR scans: the LiDAR row "
-                        "scores their consistency with their own map, not accuracy")
+    warnings = [LIDAR_OWN_MAP] if "LiDAR" in config.sensors and protocols and lidar_scored_against_own_map(recording) \
+        else []
     result.write_json(out, warnings=warnings)
     print(f"{len(result.points)} test points of {Path(data) / room}; NND in metres, shares in [0, 1]")
     print(result.table())

@@ -195,6 +195,17 @@ def load_exact_scene(recording: Recording):
     return Scene.load(path)
 
 
+LIDAR_OWN_MAP = ("the LiDAR map of this imported bag was built from the same LiDAR scans: the LiDAR row "
+                 "scores their consistency with their own map, not accuracy")
+
+
+def lidar_scored_against_own_map(recording: Recording) -> bool:
+    """True for a recording `import-bag` wrote with a map (it builds the map from the same scans)."""
+    from virus_nerf.data.bags.report import REPORT_NAME
+
+    return recording.map_path is not None and (recording.root / REPORT_NAME).is_file()
+
+
 def check_ground_truth_inputs(recording: Recording, protocols: Sequence[str]) -> None:
     """Fail now, not after training, when a protocol lacks its input (the map, scene.json)."""
     if any(p in ("map", "paper") for p in protocols):

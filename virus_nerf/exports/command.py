@@ -183,14 +183,13 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
 
 def training_observed(recording, lo: np.ndarray, shape: tuple[int, int], resolution: float) -> np.ndarray:
     """(nx, ny) bool [ix, iy]: map pixels the training frames' sensors looked at (exports/observed.py)."""
-    from virus_nerf.exports.observed import camera_half_fov, observed_mask
+    from virus_nerf.exports.observed import frames_observed
 
-    poses, half = [], []
-    for stack in recording.stacks.values():
-        rows = stack.indices("train")
-        poses.append(stack.cam_to_world[rows])
-        half.append(np.full(len(rows), camera_half_fov(stack.intrinsics.width, stack.intrinsics.fx)))
-    return observed_mask(np.concatenate(poses), np.concatenate(half), lo, shape, resolution)
+    stacks = list(recording.stacks.values())
+    rows = [st.indices("train") for st in stacks]
+    return frames_observed(np.concatenate([st.cam_to_world[r] for st, r in zip(stacks, rows, strict=True)]),
+                           np.concatenate([np.full(len(r), st.stack_id) for st, r in zip(stacks, rows, strict=True)]),
+                           {st.stack_id: st.intrinsics for st in stacks}, lo, shape, resolution)
 
 
 def camera_height(recording) -> float:

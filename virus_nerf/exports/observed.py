@@ -74,6 +74,14 @@ def observed_mask(
     return mask
 
 
+def frames_observed(cam_to_world: np.ndarray, stack_ids: np.ndarray, intrinsics, lo: np.ndarray,
+                    shape: tuple[int, int], resolution: float, reach: float = OBSERVE_REACH_M) -> np.ndarray:
+    """`observed_mask` of frames (N, 4, 4) whose cameras are `intrinsics[stack_ids[k]]` (any
+    resolution: the field of view is W / fx)."""
+    half = np.array([camera_half_fov(intrinsics[int(s)].width, intrinsics[int(s)].fx) for s in stack_ids])
+    return observed_mask(cam_to_world, half, lo, shape, resolution, reach)
+
+
 def apply_mask(image: np.ndarray, mask_xy: np.ndarray, unobserved_value: int) -> np.ndarray:
     """A map image (H, W) (row 0 = largest y) with every pixel outside `mask_xy` [ix, iy] set to
     `unobserved_value`; the input is not changed."""

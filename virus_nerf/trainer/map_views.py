@@ -103,15 +103,14 @@ class MapViews:
         """(nx, ny) bool [ix, iy] over the box's x, y raster: pixels inside some frame's camera
         view wedge (exports/observed.py); outside it every map is unknown."""
         from virus_nerf.exports.maps import raster_shape
-        from virus_nerf.exports.observed import camera_half_fov, observed_mask
+        from virus_nerf.exports.observed import frames_observed
 
-        key = (self.frames, float(resolution))
+        key = (self.frames, float(resolution), self.box)  # a grown box is another raster
         if getattr(self, "_observed_cache", (None,))[0] != key:
             lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
-            half = np.array([camera_half_fov(self.intrinsics[int(s)].width, self.intrinsics[int(s)].fx)
-                             for s in self.store.stack_ids])
-            self._observed_cache = (key, observed_mask(self.store.cam_to_world, half, lo,
-                                                       raster_shape(lo, hi, resolution), resolution))
+            self._observed_cache = (key, frames_observed(self.store.cam_to_world, self.store.stack_ids,
+                                                         self.intrinsics, lo, raster_shape(lo, hi, resolution),
+                                                         resolution))
         return self._observed_cache[1]
 
     def probability_map(self, resolution: float = 0.05, band: float = 0.1):

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from virus_nerf.evaluation.evaluate import LIDAR_OWN_MAP, lidar_scored_against_own_map
+
 MIN_TRAINING_FRAMES = 10  # fewer training frames than this: the map rests on a few views
-IMPORT_REPORT = "import_report.json"  # written by import-bag into the recording's data folder
 
 
 def map_warnings(trainer) -> list[str]:
@@ -36,7 +37,6 @@ def map_warnings(trainer) -> list[str]:
         out.append(f"the run ended inside the occupancy grid's warm-up (step {mapper.step}, "
                    f"{mapper.grid.occupancy_share():.0%} of cells still occupied): the grid has not yet "
                    "separated free from occupied space; train longer")
-    if (trainer.recording.root / IMPORT_REPORT).is_file() and trainer.recording.map_path is not None:
-        out.append("the LiDAR map of this imported bag was built from the same LiDAR scans: the LiDAR row "
-                   "scores their consistency with their own map, not accuracy")
+    if lidar_scored_against_own_map(trainer.recording):
+        out.append(LIDAR_OWN_MAP)
     return out

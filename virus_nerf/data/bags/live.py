@@ -46,13 +46,14 @@ from virus_nerf.data.bags.odometry import (
 )
 from virus_nerf.data.bags.reader import Message
 from virus_nerf.data.bags.topics import LidarConfig, TopicsConfig
+from virus_nerf.data.ethz import MAX_JUMP_M
 from virus_nerf.data.frame import SyncFrame
 from virus_nerf.errors import DataFormatError
 from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.sensors.geometry import pose_matrix
 
-MAX_JUMP_M = 1.0  # the robot moving further between two consecutive frames is a broken pose source
+# MAX_JUMP_M (data/ethz.py): the robot moving further between two consecutive frames is a broken pose source
 JUMP_WINDOW_S = 1.0  # ... when they are at most this far apart in time
 MAX_SILENCE_S = 2.0  # a watched topic silent this long (bag time) has stopped
 PARTNERS = ("depth", "uss", "tof")  # the importer's order: a dropped frame counts its first missing partner
