@@ -2,7 +2,7 @@
 (`extent.mode` grow) against the box fitted in advance from the LiDAR map and the whole drive.
 
 Each run is `virus-nerf train --online` (frames released by the training clock at
---playback-speed), or with --steps an offline run of that many steps (bit-reproducible: the
+--playback), or with --steps an offline run of that many steps (bit-reproducible: the
 representation's cost alone, whatever else the machine runs), in its own process, one at a time; the NeRF scans are scored at the end against
 the LiDAR map at camera height (zone 3, `map` ground truth). The peak resident memory of each run
 (its process's ru_maxrss) is reported beside the drive's length.
@@ -40,7 +40,7 @@ def run_once(data: Path, room: str, mode: str, playback: float, seed: int, work:
     out = work / f"run_{data.name}_{mode}_{seed}"
     cmd = [sys.executable, "-m", "virus_nerf.cli", "train", "--data", str(data), "--room", room, "--out", str(out),
            "--gt", "map", "--seed", str(seed), "--config", str(cfg), "--quiet"]
-    cmd += ["--online", "--playback-speed", str(playback)] if steps is None else ["--max-steps", str(steps)]
+    cmd += ["--online", "--playback", str(playback)] if steps is None else ["--max-steps", str(steps)]
     start = time.monotonic()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     _, status, usage = os.wait4(proc.pid, 0)

@@ -2,7 +2,7 @@
 
 For each simulated drive (one simulation seed each), two runs of the same wall budget, one at a
 time, each in its own process: offline (`--max-time` = the drive's length, every frame from the
-first step) and online (`--online --playback-speed 1`: frames appear as the training clock passes
+first step) and online (`--online --playback 1`: frames appear as the training clock passes
 their time, the whole drive in the same seconds). Both are scored at the end on all test points
 against the LiDAR map at camera height (zone 3, `map` ground truth). Online runs follow the
 training clock, so a busy machine changes their numbers: run this on an idle one.
@@ -30,7 +30,7 @@ def run(data: Path, room: str, out: Path, online: bool, seconds: float, seed: in
     cfg.write_text(config)
     cmd = [sys.executable, "-m", "virus_nerf.cli", "train", "--data", str(data), "--room", room, "--out", str(out),
            "--gt", "map", "--seed", str(seed), "--config", str(cfg), "--quiet"]
-    cmd += ["--online", "--playback-speed", "1"] if online else ["--max-time", str(seconds)]
+    cmd += ["--online", "--playback", "1"] if online else ["--max-time", str(seconds)]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed: {proc.stderr.strip()[-500:]}")

@@ -92,10 +92,8 @@ def child(args: argparse.Namespace) -> None:
         points = []
         last_steps, last_samples, last_rays = 0, 0, 0
         for cp in checkpoints:
-            while (trainer.step < cp) if by_steps else (since_process_start() - eval_s < cp):
-                t0 = time.perf_counter()
-                trainer.train_step()
-                trainer.seconds += time.perf_counter() - t0
+            while (trainer.mapper.step < cp) if by_steps else (since_process_start() - eval_s < cp):
+                trainer.train_step()  # on the training clock
             wall = since_process_start() - eval_s
             t0 = time.perf_counter()
             result = trainer.evaluate(with_sensors=False)
@@ -103,23 +101,23 @@ def child(args: argparse.Namespace) -> None:
             z3 = result.metrics["NeRF"].zones["zone3"]
             by_gt = {gt: {k: getattr(m["NeRF"].zones["zone3"], k) for k in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier")}
                      for gt, m in (result.by_gt or {}).items()}
-            d_steps, d_samples = trainer.step - last_steps, trainer.samples - last_samples
+            d_steps, d_samples = trainer.mapper.step - last_steps, trainer.mapper.samples - last_samples
             rays = trainer.mapper.rays  # a step may take fewer rays than the batch
             d_rays = rays - last_rays
             points.append({
-                "checkpoint_s": cp, "wall_s": round(wall, 2), "steps": trainer.step,
-                "train_s": round(trainer.seconds, 2),
-                "steps_per_s": round(trainer.step / trainer.seconds, 3) if trainer.seconds else None,
-                "samples_per_s": round(trainer.samples / trainer.seconds) if trainer.seconds else None,
+                "checkpoint_s": cp, "wall_s": round(wall, 2), "steps": trainer.mapper.step,
+                "train_s": round(trainer.mapper.seconds, 2),
+                "steps_per_s": round(trainer.mapper.step / trainer.mapper.seconds, 3) if trainer.mapper.seconds else None,
+                "samples_per_s": round(trainer.mapper.samples / trainer.mapper.seconds) if trainer.mapper.seconds else None,
                 "samples_per_ray": round(d_samples / max(1, d_rays), 1),
                 "rays_per_step": round(d_rays / max(1, d_steps), 1),
-                "occupied_share": round(trainer.grid.occupancy_share(), 4),
+                "occupied_share": round(trainer.mapper.grid.occupancy_share(), 4),
                 "acc_mean": z3.acc_mean, "cov_mean": z3.cov_mean,
                 "acc_inlier": z3.acc_inlier, "cov_inlier": z3.cov_inlier,
                 "acc_too_close": z3.acc_too_close, "acc_too_far": z3.acc_too_far,
                 "by_gt": by_gt,
             })
-            last_steps, last_samples, last_rays = trainer.step, trainer.samples, rays
+            last_steps, last_samples, last_rays = trainer.mapper.step, trainer.mapper.samples, rays
     print(json.dumps({"startup_s": round(startup, 2), "grid_init_s": round(getattr(trainer, "grid_init_s", 0.0), 2),
                       "eval_s": round(eval_s, 1), "points": points}))
 

@@ -42,22 +42,22 @@ def measure(recording, field_name: str, batch: int, grid: str, steps: int, warm:
         _ = trainer.sampler  # decode frames before timing
         for _ in range(warm):
             trainer.train_step()
-        sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
+        sync = torch.cuda.synchronize if trainer.mapper.device.type == "cuda" else (lambda: None)
         sync()  # on a GPU, time finished work, not queued kernels
-        s0, n0 = trainer.step, trainer.samples
+        s0, n0 = trainer.mapper.step, trainer.mapper.samples
         t0 = time.perf_counter()
         for _ in range(steps):
             trainer.train_step()
         sync()
         dt = time.perf_counter() - t0
-        n = trainer.samples - n0
+        n = trainer.mapper.samples - n0
         return {
-            "steps_per_s": round((trainer.step - s0) / dt, 3),
+            "steps_per_s": round((trainer.mapper.step - s0) / dt, 3),
             "samples_per_s": round(n / dt),
             "samples_per_ray": round(n / (steps * batch), 1),
-            "occupied_share": round(trainer.grid.occupancy_share(), 4),
+            "occupied_share": round(trainer.mapper.grid.occupancy_share(), 4),
             "torch_threads": torch.get_num_threads(),
-            "device": str(trainer.device),
+            "device": str(trainer.mapper.device),
         }
 
 

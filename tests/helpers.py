@@ -26,9 +26,10 @@ def run_cli(argv) -> tuple[int, str, str]:
 
 def tiny_train_config(**changes):
     """A 5-step training of 128 rays on a coarse grid: enough to write every file of a run."""
+    from virus_nerf.engine.config import MarchConfig
     from virus_nerf.grid.ngp import NgpGridConfig
     from virus_nerf.grid.virus import VirusGridConfig
-    from virus_nerf.trainer.config import MarchConfig, TrainConfig
+    from virus_nerf.trainer.config import TrainConfig
 
     base = TrainConfig(
         max_steps=5, max_time=None, batch_size=128, image_scale=1.0, log_every=2,

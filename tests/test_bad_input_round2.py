@@ -31,10 +31,10 @@ def test_config_values_that_never_finish_are_refused(tmp_path, doc, fragment):
 def test_a_grid_that_cannot_fit_is_refused_with_the_memory_it_needs():
     import torch
 
+    from virus_nerf.engine.model import build_grid
     from virus_nerf.grid.virus import VirusGridConfig
     from virus_nerf.scene_box import SceneBox
     from virus_nerf.trainer.config import TrainConfig
-    from virus_nerf.trainer.model import build_grid
     from virus_nerf.utils.memory import require_memory
 
     cfg = TrainConfig(virus_grid=VirusGridConfig(max_resolution=100_000))

@@ -49,7 +49,7 @@ def train_args(tmp_path: Path, *extra: str) -> list[str]:
         (("--seed", "-1"), "--seed -1: expected an integer in [0, 4294967295]"),
         (("--image-scale", "0"), "--image-scale 0.0: expected a number in (0, 1]"),
         (("--image-scale", "2"), "--image-scale 2.0: expected a number in (0, 1]"),
-        (("--playback-speed", "0"), "--playback-speed 0.0: expected a number > 0"),
+        (("--playback", "0"), "--playback 0.0: expected a number > 0"),
         (("--eval-interval", "-1"), "--eval-interval -1.0: expected a number >= 0"),
         (("--sensors", "camera,lidar"), "--sensors 'camera,lidar': unknown sensor 'lidar'; expected a comma-separated"),
         (("--sensors", ","), "--sensors ',': an empty sensor name"),
@@ -91,7 +91,7 @@ def test_train_argument_errors(tmp_path, extra, fragment):
         (["demo", "--out", "{tmp}/demo", "--train-time", "0"], ["--train-time 0.0: expected a number > 0"]),
         (["ablation", "--out", "{tmp}/abl", "--seeds", "0"], ["--seeds 0: expected an integer in [1, 1000]"]),
         (["ablation", "--out", "{tmp}/abl", "--scenes", "kitchen"], ["--scenes 'kitchen': expected one or more of office, common, warehouse (space-separated)"]),
-        (["online", "--out", "{tmp}/onl", "--playback-speed", "0"], ["--playback-speed 0.0: expected a number > 0"]),
+        (["online", "--out", "{tmp}/onl", "--playback", "0"], ["--playback 0.0: expected a number > 0"]),
         (["sensors", "--data", "{tmp}/d", "--room", "office", "--out", "{tmp}/m.json", "--gt", "voxels"],
          ["--gt 'voxels': unknown protocol 'voxels'"]),
         (["evaluate", "--run", "{tmp}/run", "--gt", "exact,lidar"], ["--gt 'exact,lidar': unknown protocol 'lidar'"]),
@@ -264,7 +264,7 @@ def test_train_config_checks_types_and_ranges_itself():
 
 
 # ------------------------------------------------------------------------------ fuzzing
-FLAG_NAMES = ["--max-time", "--max-steps", "--batch-size", "--seed", "--playback-speed", "--image-scale",
+FLAG_NAMES = ["--max-time", "--max-steps", "--batch-size", "--seed", "--playback", "--image-scale",
               "--eval-interval", "--sensors", "--grid", "--config"]
 values = st.one_of(
     st.integers(-(10**12), 10**12).map(str),

@@ -105,8 +105,8 @@ def test_killed_at_every_checkpoint_equals_an_uninterrupted_run(tiny_office, tmp
     from test_trainer import small_config
 
     from virus_nerf.data.ethz import load_recording
+    from virus_nerf.engine.model import TWO_PASS_BELOW
     from virus_nerf.trainer.loop import Trainer
-    from virus_nerf.trainer.model import TWO_PASS_BELOW
 
     steps = 60
     cfg = small_config(max_steps=steps, log_every=1, checkpoint_every=1e-9, eval_interval=0.0, device="cpu")
@@ -115,16 +115,16 @@ def test_killed_at_every_checkpoint_equals_an_uninterrupted_run(tiny_office, tmp
     full = Trainer(rec, cfg, tmp_path / "full", quiet=True)
     (tmp_path / "full").mkdir()
     shares = []
-    real_step = Trainer._timed_step
+    real_step = Trainer.train_step
 
     def watched(self):
         terms = real_step(self)
-        shares.append(self.model.visible_share)
+        shares.append(self.mapper.model.visible_share)
         return terms
 
-    monkeypatch.setattr(Trainer, "_timed_step", watched)
+    monkeypatch.setattr(Trainer, "train_step", watched)
     full.fit()
-    monkeypatch.setattr(Trainer, "_timed_step", real_step)
+    monkeypatch.setattr(Trainer, "train_step", real_step)
     switch = next((i for i, s in enumerate(shares) if s < TWO_PASS_BELOW), steps)
     assert shares[0] >= TWO_PASS_BELOW and switch < steps - 10, ("the run must cross the render-path switch", shares)
 
@@ -132,11 +132,11 @@ def test_killed_at_every_checkpoint_equals_an_uninterrupted_run(tiny_office, tmp
     plan = {"left": 0, "right_after": False}
 
     def save_then_die(self):
-        if self.step < steps and plan["left"] == 0:
+        if self.mapper.step < steps and plan["left"] == 0:
             raise _Killed  # killed one step after the last checkpoint, before writing this one
         plan["left"] -= 1
         real_save(self)
-        if self.step < steps and plan["left"] == 0 and plan["right_after"]:
+        if self.mapper.step < steps and plan["left"] == 0 and plan["right_after"]:
             raise _Killed  # killed right after writing it
 
     monkeypatch.setattr(Trainer, "save_checkpoint", save_then_die)
@@ -147,7 +147,7 @@ def test_killed_at_every_checkpoint_equals_an_uninterrupted_run(tiny_office, tmp
         t = Trainer(rec, cfg, run, quiet=True)
         if (run / "checkpoint.pt").is_file():
             t.load_checkpoint(run / "checkpoint.pt")
-            resumed_at.append(t.step)
+            resumed_at.append(t.mapper.step)
         # this "process" writes one checkpoint, then dies at once or one step later
         plan.update(left=1, right_after=len(resumed_at) % 2 == 0)
         try:

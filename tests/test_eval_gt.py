@@ -8,7 +8,8 @@ from helpers import horizontal_test_point
 
 from virus_nerf.evaluation.gt import cast_rays, gt_scan, height_slice, rasterise
 from virus_nerf.evaluation.metrics import nnd_samples, zone_metrics
-from virus_nerf.evaluation.scans import RangeModel, horizontal_directions, model_scan, scan_angles
+from virus_nerf.evaluation.scans import model_scan
+from virus_nerf.maps.scans import RangeModel, horizontal_directions, scan_angles
 
 HALF = 2.0  # the square room spans [-2, 2]^2
 

@@ -22,7 +22,7 @@ from virus_nerf.evaluation.metrics import (
     write_metrics_json,
     zone_metrics,
 )
-from virus_nerf.evaluation.scans import FieldOfView, Sector
+from virus_nerf.maps.scans import FieldOfView, Sector
 
 ORIGIN = np.zeros(2)
 

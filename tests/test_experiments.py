@@ -10,7 +10,7 @@ import pytest
 
 from virus_nerf.experiments import ablation as abl
 from virus_nerf.experiments.online import band
-from virus_nerf.exports.maps import FREE, OCCUPIED, UNKNOWN, scan_occupancy, write_map_server
+from virus_nerf.maps.occupancy import FREE, OCCUPIED, UNKNOWN, scan_occupancy, write_map_server
 from virus_nerf.trainer.run_folder import EvalPoint
 
 

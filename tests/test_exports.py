@@ -13,7 +13,9 @@ import pytest
 from helpers import run_cli, tiny_train_config
 from PIL import Image
 
-from virus_nerf.exports import clouds, esdf, grid3d, maps
+from virus_nerf.exports import clouds, grid3d
+from virus_nerf.maps import esdf
+from virus_nerf.maps import occupancy as maps
 
 # ------------------------------------------------------------------ independent readers
 
@@ -211,7 +213,7 @@ def test_export_all_writes_every_format(exported):
     # the ESDF is the signed distance to the trinary map's occupied pixels
     d = np.load(exported / "esdf.npy")
     assert d.shape == a.shape
-    seen = ~np.isnan(d)  # NaN: no sensor looked there (exports/observed.py), and the map is unknown
+    seen = ~np.isnan(d)  # NaN: no sensor looked there (maps/observed.py), and the map is unknown
     assert (a[~seen] == 205).all() and seen.any()
     if (a == 0).any():
         assert np.all(d[a == 0] < 0) and np.all(d[(a != 0) & seen] > 0)
@@ -223,7 +225,7 @@ def test_export_all_writes_every_format(exported):
 
 
 def test_scans_lie_at_the_model_ranges(exported, trained_run):
-    from virus_nerf.evaluation.scans import horizontal_directions
+    from virus_nerf.maps.scans import horizontal_directions
     from virus_nerf.trainer.command import load_trained
 
     trainer, _, _ = load_trained(trained_run, "--run")
@@ -234,7 +236,7 @@ def test_scans_lie_at_the_model_ranges(exported, trained_run):
     pts = np.column_stack([ply["x"], ply["y"], ply["z"]])
     np.testing.assert_array_equal(pts, np.column_stack([pcd["x"], pcd["y"], pcd["z"]]))
     dirs = horizontal_directions(90)
-    r = trainer.model.ranges(np.tile(pos, (90, 1)), dirs)
+    r = trainer.mapper.model.ranges(np.tile(pos, (90, 1)), dirs)
     ok = np.isfinite(r) & (r > 0)
     np.testing.assert_allclose(pts, (pos + dirs[ok] * r[ok, None]).astype(np.float32), atol=1e-4)
     cloud = read_ply(exported / "cloud.ply")
@@ -262,7 +264,7 @@ def test_rendered_depth_png_matches_the_model_ranges(exported, trained_run):
     pose[:3, 3] = [float(v) for v in row[2:5]]
     v, u = np.mgrid[0 : intr.height : 3, 0 : intr.width : 3]
     dirs_cam = pixel_directions(intr, u.ravel(), v.ravel())
-    r = trainer.model.ranges(np.tile(pose[:3, 3], (len(dirs_cam), 1)), dirs_cam @ pose[:3, :3].T)
+    r = trainer.mapper.model.ranges(np.tile(pose[:3, 3], (len(dirs_cam), 1)), dirs_cam @ pose[:3, :3].T)
     want = np.where(np.isfinite(r), np.rint(r * dirs_cam[:, 2] * 1000), 0)
     got = depth[v.ravel(), u.ravel()].astype(float)
     assert np.mean((got > 0) == (want > 0)) >= 0.99  # hit / no hit as SceneModel.ranges says

@@ -90,7 +90,7 @@ def test_a_mapper_in_grow_mode_grows_as_it_drives_and_refuses_a_frame_outside_it
     from helpers import tiny_train_config
 
     from virus_nerf.data.ethz import load_recording
-    from virus_nerf.trainer.mapper import Mapper
+    from virus_nerf.engine.mapper import Mapper
 
     rec = load_recording(tiny_office, "office")
     cfg = tiny_train_config(extent=ExtentConfig(mode="grow", reach_m=1.0, grow_step_m=0.5, frame_m=30.0))

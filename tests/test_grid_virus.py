@@ -228,15 +228,13 @@ def test_the_warmup_lasts_warmup_steps_driving_while_frames_keep_arriving():
     g = torch.Generator().manual_seed(0)
     l_init, l_prior = math.log(0.55 / 0.45), math.log(0.49 / 0.51)
     offline, driving = VirusGrid(CUBE, cfg), VirusGrid(CUBE, cfg)
-    driving.driving = True
-    for grid in (offline, driving):
-        grid.update(60, None, None, g)
+    offline.update(60, None, None, g)
+    driving.update(60, None, None, g, driving=True)
     assert torch.allclose(offline.logodds, torch.tensor(l_init + 0.6 * (l_prior - l_init)), atol=1e-6)
     assert torch.allclose(driving.logodds, torch.tensor(l_init + 0.2 * (l_prior - l_init)), atol=1e-6)
-    driving.update(150, None, None, g)
+    driving.update(150, None, None, g, driving=True)
     assert driving.occupied.all(), "still marched halfway through the driving warm-up"
-    driving.driving = False  # the switch moves every cell to the offline schedule's offset
-    driving.update(150, None, None, g)
+    driving.update(150, None, None, g, driving=False)  # the switch moves every cell to the offline offset
     assert torch.allclose(driving.logodds, torch.tensor(l_prior), atol=1e-6)
 
 
@@ -247,14 +245,12 @@ def test_a_warmup_by_budget_share_ends_at_that_share_of_the_run_whatever_its_len
     g = torch.Generator().manual_seed(0)
     l_init, l_prior = math.log(0.55 / 0.45), math.log(0.49 / 0.51)
     short, long_run, no_budget = VirusGrid(CUBE, cfg), VirusGrid(CUBE, cfg), VirusGrid(CUBE, cfg)
-    short.budget_progress, long_run.budget_progress = 0.25, 0.25
-    short.update(20, None, None, g)  # a 80-step run, a quarter done
-    long_run.update(500, None, None, g)  # a 2000-step run, a quarter done
+    short.update(20, None, None, g, budget_progress=0.25)  # a 80-step run, a quarter done
+    long_run.update(500, None, None, g, budget_progress=0.25)  # a 2000-step run, a quarter done
     for grid in (short, long_run):
         assert torch.allclose(grid.logodds, torch.tensor(l_init + 0.625 * (l_prior - l_init)), atol=1e-6)
         assert grid.occupied.all()
-    short.budget_progress = 0.4
-    short.update(32, None, None, g)
+    short.update(32, None, None, g, budget_progress=0.4)
     assert torch.allclose(short.logodds, torch.tensor(l_prior), atol=1e-6)
     no_budget.update(60, None, None, g)  # budget_progress None: 60 of warmup_steps 100
     assert torch.allclose(no_budget.logodds, torch.tensor(l_init + 0.6 * (l_prior - l_init)), atol=1e-6)
@@ -271,13 +267,20 @@ def test_the_mapper_tells_the_grid_its_budget_share(tiny_office, tmp_path):
     rec = load_recording(tiny_office, "office")
     cfg = small_config(max_steps=8, virus_grid=_config(update_interval=4, rays_per_update=64, warmup_budget_share=0.5))
     trainer = Trainer(rec, cfg, tmp_path, quiet=True)
-    for _ in range(4):
+    grid, told = trainer.mapper.grid, []
+    update = grid.update
+
+    def spy(*args, **kwargs):
+        told.append(kwargs)
+        return update(*args, **kwargs)
+
+    grid.update = spy
+    for _ in range(8):
         trainer.train_step()
-    assert trainer.grid.budget_progress == pytest.approx(3 / 8)  # the lr's share at step 4 (0-based 3)
-    for _ in range(4):
-        trainer.train_step()
-    assert trainer.grid.budget_progress == pytest.approx(7 / 8)
-    assert not trainer.grid.occupied.all(), "past half the budget the untouched cells are empty"
+    # the step context comes as arguments: the lr's share at steps 4 and 8 (0-based 3 and 7), offline
+    assert [k["budget_progress"] for k in told] == pytest.approx([3 / 8, 7 / 8])
+    assert [k["driving"] for k in told] == [False, False]
+    assert not trainer.mapper.grid.occupied.all(), "past half the budget the untouched cells are empty"
 
 
 def test_evidence_holds_a_cell_up_through_the_warmup():

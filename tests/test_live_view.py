@@ -11,8 +11,8 @@ import pytest
 
 from virus_nerf.data.frame import SyncFrame
 from virus_nerf.errors import OutputExistsError, UsageError
-from virus_nerf.exports.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap2D
 from virus_nerf.mapping.live_view import irs_points, map_pixels, uss_cone_lines
+from virus_nerf.maps.occupancy import FREE, OCCUPIED, UNKNOWN, OccupancyMap2D
 from virus_nerf.sensors.camera import Intrinsics
 
 INTR = Intrinsics(fx=50.0, fy=50.0, cx=31.5, cy=23.5, width=64, height=48)
@@ -147,7 +147,7 @@ def test_refusals(tmp_path, monkeypatch):
 
 
 class _FakeMapper:
-    """The Mapper's public query API (trainer/map_views.py), answering fixed maps and one scan."""
+    """The Mapper's public query API (engine/views.py), answering fixed maps and one scan."""
 
     def __init__(self):
         from types import SimpleNamespace

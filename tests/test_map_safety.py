@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from virus_nerf.evaluation.safety import map_safety, obstacle_pixels, safety_document, safety_line
-from virus_nerf.exports.maps import FREE, OCCUPIED, UNKNOWN, to_image
-from virus_nerf.exports.observed import apply_mask, camera_half_fov, observed_mask, observed_share
+from virus_nerf.maps.observed import apply_mask, camera_half_fov, observed_mask, observed_share
+from virus_nerf.maps.occupancy import FREE, OCCUPIED, UNKNOWN, to_image
 
 
 def camera_looking(x: float, y: float, yaw: float, z: float = 0.5) -> np.ndarray:

@@ -15,13 +15,13 @@ from helpers import run_cli, tiny_train_config
 
 from virus_nerf.data.ethz import load_recording
 from virus_nerf.data.frame import SyncFrame
+from virus_nerf.engine.config import MarchConfig
+from virus_nerf.engine.mapper import Mapper
 from virus_nerf.errors import OutputExistsError, UsageError
 from virus_nerf.grid.virus import VirusGridConfig
 from virus_nerf.sampler.frames import FrameStore
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.sensors.camera import Intrinsics
-from virus_nerf.trainer.config import MarchConfig
-from virus_nerf.trainer.mapper import Mapper
 
 INTR = Intrinsics(fx=20.0, fy=20.0, cx=16.0, cy=12.0, width=32, height=24)
 BOX = SceneBox((-3.0, -3.0, -1.0), (3.0, 3.0, 2.0))
@@ -130,7 +130,7 @@ def test_snapshots_are_written_whole_and_never_overwritten(tmp_path, monkeypatch
         mapper.snapshot(tmp_path / "s1")
     assert before == {p.name: p.read_bytes() for p in (tmp_path / "s1").iterdir()}
 
-    import virus_nerf.exports.maps as maps
+    import virus_nerf.maps.occupancy as maps
 
     def broken_png(path, image):
         raise OSError("disk full")
@@ -179,7 +179,7 @@ def test_online_trainer_gives_the_mapper_only_frames_the_clock_passed(tiny_offic
     trainer.train_step()
     assert trainer.mapper.frames == len(trainer.available_frames()) == 1
     times = np.sort(trainer.store.times)
-    trainer.seconds = (times[5] - times[0]) / trainer.config.playback_speed + 1e-6
+    trainer.mapper.seconds = (times[5] - times[0]) / trainer.config.playback_speed + 1e-6
     trainer.train_step()
     assert trainer.mapper.frames == len(trainer.available_frames()) >= 6
     assert np.all(np.diff(trainer.mapper.store.times) >= 0), "frames arrive in time order"
@@ -302,23 +302,26 @@ def test_newest_frames_get_their_share_of_the_batch_only_while_driving():
     for k in range(10):
         mapper.add_frame(_frame(float(k)))
     mapper.train(600.0, steps=1)
-    assert mapper._frame_odds() is None  # every frame was there at the first step: offline, uniform
+    assert mapper._frame_odds(mapper.schedule) is None  # every frame was there at the first step: offline, uniform
     mapper.add_frame(_frame(20.0))
-    odds = mapper._frame_odds()
+    odds = mapper._frame_odds(mapper.schedule)
     np.testing.assert_allclose(odds, [0.5 / 11] * 10 + [0.5 + 0.5 / 11])
     batch = mapper.sampler.sample(np.random.default_rng(0), 20000, np.arange(11), odds)
     assert abs(float((batch.frames == 10).float().mean()) - (0.5 + 0.5 / 11)) < 0.015
     assert mapper.train(600.0, steps=2).steps == 2
-    assert not mapper.grid.driving
+    told = []
+    update = mapper.grid.update
+    mapper.grid.update = lambda *a, **k: told.append(k["driving"]) or update(*a, **k)
     mapper.train(600.0, steps=mapper.grid.update_interval)  # a grid update while driving
-    assert mapper.grid.driving  # its warm-up now runs over virus_grid.warmup_steps_driving
+    assert told == [True]  # its warm-up now runs over virus_grid.warmup_steps_driving
+    assert mapper.schedule.driving and mapper.schedule.lr_decay_to == mapper.config.optim.lr_decay_driving
     again = Mapper(mapper.config, mapper.intrinsics, mapper.box)
     again.load_state(mapper.state())  # a resumed mapper knows the frames it started with
     for k in range(10):
         again.add_frame(_frame(float(k)))
-    assert again._frame_odds() is None
+    assert again._frame_odds(again.schedule) is None
     again.add_frame(_frame(20.0))
-    np.testing.assert_allclose(again._frame_odds(), odds)
+    np.testing.assert_allclose(again._frame_odds(again.schedule), odds)
 
 
 def test_learning_rate_decays_offline_and_stays_while_driving():
@@ -340,7 +343,7 @@ def test_learning_rate_decays_offline_and_stays_while_driving():
 
 
 def test_rays_for_step_keeps_the_sample_budget_by_hand():
-    from virus_nerf.trainer.schedule import rays_for_step
+    from virus_nerf.engine.schedule import rays_for_step
 
     assert rays_for_step(2048, None, 177.0) == 2048  # no budget: always the batch
     assert rays_for_step(2048, 65536, 0.0) == 2048  # first step: nothing measured yet

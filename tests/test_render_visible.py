@@ -11,13 +11,13 @@ import math
 
 import torch
 
+from virus_nerf.engine.model import SceneModel
 from virus_nerf.field.field import FieldConfig, NerfField
 from virus_nerf.grid.base import GridSpec
 from virus_nerf.grid.ngp import NgpGrid, NgpGridConfig
 from virus_nerf.render import PackedSamples
 from virus_nerf.render.compositing import transmittance
 from virus_nerf.scene_box import SceneBox
-from virus_nerf.trainer.model import SceneModel
 
 
 def test_transmittance_by_hand():

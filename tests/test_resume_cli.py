@@ -396,7 +396,7 @@ def test_a_failed_resume_leaves_the_run_as_it_was(run_copy, monkeypatch):
     def out_of_memory(self):
         raise MemoryError("Unable to allocate 7.45 GiB for an array with shape (1000000000,)")
 
-    monkeypatch.setattr(Trainer, "_timed_step", out_of_memory)
+    monkeypatch.setattr(Trainer, "train_step", out_of_memory)
     code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--batch-size", "4096",
                             "--quiet"])
     one_line_error(code, err, "--batch-size 4096: a training step ran out of memory (Unable to allocate 7.45 GiB",

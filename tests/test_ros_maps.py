@@ -14,8 +14,8 @@ make_reader = pytest.importorskip("mcap.reader").make_reader
 DecoderFactory = pytest.importorskip("mcap_ros2.decoder").DecoderFactory
 
 from virus_nerf.errors import OutputExistsError, UsageError  # noqa: E402
-from virus_nerf.exports.maps import FREE, OCCUPIED, UNKNOWN, OccupancyMap2D, write_map_server  # noqa: E402
 from virus_nerf.mapping.ros_maps import RosMapBag, base_pose  # noqa: E402
+from virus_nerf.maps.occupancy import FREE, OCCUPIED, UNKNOWN, OccupancyMap2D, write_map_server  # noqa: E402
 
 RES, ORIGIN = 0.25, (-1.5, 2.0)
 
@@ -31,7 +31,7 @@ def _pattern_map() -> OccupancyMap2D:
 
 
 def _prob_map() -> OccupancyMap2D:
-    """Scale map: p = 0, 0.5, 1 and one in between, as exports.maps.scale_map stores them."""
+    """Scale map: p = 0, 0.5, 1 and one in between, as maps.occupancy.scale_map stores them."""
     p = np.linspace(0.0, 1.0, 35).reshape(5, 7)
     value = np.rint(255 * (1 - p)).astype(np.uint8)
     return OccupancyMap2D(value, RES, ORIGIN, "scale")

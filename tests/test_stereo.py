@@ -267,9 +267,9 @@ def test_mapper_gets_stereo_targets_while_frames_arrive():
     from helpers import tiny_train_config
 
     from virus_nerf.data.frame import SyncFrame
+    from virus_nerf.engine.mapper import Mapper
     from virus_nerf.scene_box import SceneBox
     from virus_nerf.stereo.depth import StereoConfig as Cfg
-    from virus_nerf.trainer.mapper import Mapper
 
     cfg = dataclasses.replace(tiny_train_config(sensors=("camera", "stereo"), device="cpu"),
                               stereo=Cfg(refresh_frames=4))

@@ -11,11 +11,12 @@ import pytest
 import torch
 
 from virus_nerf.data.ethz import load_recording
+from virus_nerf.engine.config import MarchConfig
 from virus_nerf.errors import OutputExistsError
 from virus_nerf.grid.ngp import NgpGridConfig
 from virus_nerf.grid.virus import VirusGridConfig
 from virus_nerf.trainer.command import run_training
-from virus_nerf.trainer.config import MarchConfig, TrainConfig
+from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.loop import Trainer
 
 METRIC_KEYS = {"acc_mean", "acc_median", "acc_inlier", "acc_too_close", "acc_too_far", "cov_mean", "cov_median",
@@ -34,7 +35,7 @@ def small_config(**changes) -> TrainConfig:
 
 
 def params(trainer: Trainer) -> list[torch.Tensor]:
-    return [p.detach().clone() for p in trainer.field.parameters()]
+    return [p.detach().clone() for p in trainer.mapper.field.parameters()]
 
 
 def test_loss_falls(tiny_office, tmp_path):
@@ -68,11 +69,11 @@ def test_same_seed_same_parameters_and_resume_is_exact(tiny_office, tmp_path):
     del c
     d = Trainer(rec, cfg, tmp_path / "c", quiet=True)
     d.load_checkpoint(tmp_path / "c" / "checkpoint.pt")
-    assert d.step == 10
+    assert d.mapper.step == 10
     d.fit()
     for x, y in zip(params(a), params(d), strict=True):
         assert torch.equal(x, y)
-    assert torch.equal(a.grid.occupied, d.grid.occupied)
+    assert torch.equal(a.mapper.grid.occupied, d.mapper.grid.occupied)
 
 
 @pytest.mark.parametrize(
@@ -136,9 +137,9 @@ def test_online_mode_reveals_frames_with_the_clock(tiny_office, tmp_path):
     times = np.sort(trainer.store.times)
     assert len(trainer.available_frames()) == 1  # at clock 0 only the first frame
     for k in (1, len(times) // 2, len(times) - 1):
-        trainer.seconds = (times[k] - times[0]) / 2.0 + 1e-6  # just past frame k at playback x2
+        trainer.mapper.seconds = (times[k] - times[0]) / 2.0 + 1e-6  # just past frame k at playback x2
         assert len(trainer.available_frames()) == k + 1 + int(np.sum(times[k + 1:] == times[k]))
-        trainer.seconds = (times[k] - times[0]) / 2.0 - 1e-6  # just before it
+        trainer.mapper.seconds = (times[k] - times[0]) / 2.0 - 1e-6  # just before it
         assert len(trainer.available_frames()) == int(np.sum(times < times[k]))
     assert trainer.max_time == pytest.approx((times[-1] - times[0]) / 2.0)
 
@@ -163,10 +164,10 @@ def test_scene_model_ranges_find_a_known_wall(tiny_office, tmp_path):
     cfg = small_config()
     trainer = Trainer(rec, cfg, tmp_path, quiet=True)  # grid before any update: every cell occupied
     origin = rec.stacks[1].cam_to_world[0, :3, 3]
-    trainer.model.field = _WallField(float(origin[0]) + 1.0).to(trainer.device)
+    trainer.mapper.model.field = _WallField(float(origin[0]) + 1.0).to(trainer.mapper.device)
     origins = np.tile(origin, (8, 1))
     dirs = np.array([[1.0, 0.0, 0.0]] * 4 + [[-1.0, 0.0, 0.0]] * 4)
-    r = trainer.model.ranges(origins, dirs)
+    r = trainer.mapper.model.ranges(origins, dirs)
     assert np.all(np.abs(r[:4] - 1.0) <= cfg.march.step_size)
     assert np.all(np.isnan(r[4:]))
 
@@ -249,7 +250,7 @@ def test_torch_backends_train_like_the_numba_kernels(tiny_office, tmp_path, twin
                            field=dataclasses.replace(FieldConfig.cpu_default(), backend=backend), device=device)
         trainer = Trainer(rec, cfg, tmp_path / backend, quiet=True)
         losses = [trainer.train_step().as_floats()["total"] for _ in range(5)]
-        runs[backend] = (losses, [p.cpu() for p in params(trainer)], trainer.samples)
+        runs[backend] = (losses, [p.cpu() for p in params(trainer)], trainer.mapper.samples)
     (ln, pn, sn), (lt, pt, st) = runs["numba"], runs["torch"]
     assert sn == st, "both marchers place the same samples"
     np.testing.assert_allclose(lt, ln, rtol=1e-4)
@@ -263,10 +264,10 @@ def test_torch_backends_train_like_the_numba_kernels(tiny_office, tmp_path, twin
 def test_density_only_depth_rays_skip_the_colour_network(tiny_office, tmp_path):
     rec = load_recording(tiny_office, "office")
     trainer = Trainer(rec, small_config(density_only_depth_rays=True), tmp_path, quiet=True)
-    pts = torch.tensor([[1.0, 1.0, 1.0], [1.5, 1.0, 1.2], [2.0, 2.0, 0.5]]) + torch.tensor(trainer.box.lo)
-    pts, dirs = pts.to(trainer.device), torch.tensor([[1.0, 0.0, 0.0]] * 3, device=trainer.device)
-    sigma_all, rgb_all = trainer.field(pts, dirs)
-    sigma, rgb = trainer.field(pts, dirs, torch.tensor([True, False, True], device=trainer.device))
+    pts = torch.tensor([[1.0, 1.0, 1.0], [1.5, 1.0, 1.2], [2.0, 2.0, 0.5]]) + torch.tensor(trainer.mapper.box.lo)
+    pts, dirs = pts.to(trainer.mapper.device), torch.tensor([[1.0, 0.0, 0.0]] * 3, device=trainer.mapper.device)
+    sigma_all, rgb_all = trainer.mapper.field(pts, dirs)
+    sigma, rgb = trainer.mapper.field(pts, dirs, torch.tensor([True, False, True], device=trainer.mapper.device))
     assert torch.equal(sigma, sigma_all)
     assert torch.equal(rgb[[0, 2]], rgb_all[[0, 2]]) and torch.all(rgb[1] == 0)
     terms = trainer.train_step()
@@ -276,12 +277,12 @@ def test_density_only_depth_rays_skip_the_colour_network(tiny_office, tmp_path):
 def test_online_scores_nothing_before_the_first_test_point(tiny_office, tmp_path):
     rec = load_recording(tiny_office, "office")
     trainer = Trainer(rec, small_config(online=True, max_steps=None, max_time=5.0), tmp_path, quiet=True)
-    trainer.seconds = 0.0
+    trainer.mapper.seconds = 0.0
     first = min(tp.time for tp in (g.test_point for g in __import__(
         "virus_nerf.evaluation.evaluate", fromlist=["build_ground_truth"]).build_ground_truth(rec)))
     assert first > trainer.t0, "the tiny office must start before its first test point for this test to mean anything"
     assert trainer.evaluate(with_sensors=False) is None
-    trainer.seconds = trainer.duration
+    trainer.mapper.seconds = trainer.duration
     assert trainer.evaluate(with_sensors=False) is not None
 
 
@@ -297,14 +298,14 @@ def test_grid_prior_uses_only_the_frames_available_at_the_start(tiny_office, tmp
     assert len(first) < len(online.store)
     ref = build_virus_grid_like(offline)
     ref.initialise(irs_zone_rays(online.store, first, ref.config.init_zone_samples).valid())
-    assert torch.equal(online.grid.logodds, ref.logodds)
-    assert not torch.equal(offline.grid.logodds, ref.logodds), "offline uses every training frame"
+    assert torch.equal(online.mapper.grid.logodds, ref.logodds)
+    assert not torch.equal(offline.mapper.grid.logodds, ref.logodds), "offline uses every training frame"
 
 
 def build_virus_grid_like(trainer: Trainer):
     from virus_nerf.grid.virus import VirusGrid
 
-    return VirusGrid(trainer.grid.spec, trainer.grid.config)
+    return VirusGrid(trainer.mapper.grid.spec, trainer.mapper.grid.config)
 
 
 def test_metrics_record_start_up_and_wall_clock(tiny_office, tmp_path):
@@ -341,10 +342,10 @@ def test_checkpoints_load_on_the_cpu_whatever_the_trainer_device(tiny_office, tm
     a.train_step()
     a.save_checkpoint()
     b = Trainer(rec, small_config(max_steps=2), tmp_path, quiet=True)
-    b.device = torch.device("cuda")  # what a GPU trainer holds; nothing is moved here
+    b.mapper.device = torch.device("cuda")  # what a GPU trainer holds; nothing is moved here
     b.load_checkpoint(tmp_path / "checkpoint.pt")
-    assert b.step == 1
-    assert torch.equal(b.generator.get_state(), a.generator.get_state())
+    assert b.mapper.step == 1
+    assert torch.equal(b.mapper.generator.get_state(), a.mapper.generator.get_state())
     assert read_checkpoint_header(tmp_path / "checkpoint.pt", small_config(max_steps=2))["step"] == 1
 
 

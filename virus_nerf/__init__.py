@@ -1,7 +1,8 @@
 """VIRUS-NeRF: Vision, InfraRed and UltraSonic based Neural Radiance Fields.
 
-Data flow (docs/method.md 2): data -> sensors -> sampler -> grid -> render (marching, compositing)
--> field -> losses -> trainer -> evaluation -> cli.
+Data flow (docs/method.md 2): data -> sensors -> stereo -> sampler -> grid -> render (marching,
+compositing) -> field -> losses -> maps -> engine (the Mapper) -> trainer (the run) -> evaluation
+-> exports, mapping -> experiments -> cli.
 """
 
 __version__ = "0.1.0"
@@ -13,8 +14,10 @@ __version__ = "0.1.0"
 # The public API, for a robot program (README, "On a robot"): loaded on first use, so that
 # `import virus_nerf` (and the command line's error path) does not pull in torch.
 _PUBLIC = {
-    "Mapper": "virus_nerf.trainer.mapper",
-    "TrainSlice": "virus_nerf.trainer.mapper",
+    "Mapper": "virus_nerf.engine.mapper",
+    "TrainSlice": "virus_nerf.engine.mapper",
+    "MapperConfig": "virus_nerf.engine.config",
+    "StepSchedule": "virus_nerf.engine.schedule",
     "TrainConfig": "virus_nerf.trainer.config",
     "SyncFrame": "virus_nerf.data.frame",
     "Intrinsics": "virus_nerf.sensors.camera",

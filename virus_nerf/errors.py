@@ -96,3 +96,16 @@ def require_number(name: str, value: object, lo: float, hi: float | None = None,
         else:
             expected = f"{kind} in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
         raise UsageError(f"{name} {value}: expected {expected}")
+
+
+def renamed_flag(new: str, new_value, old: str, old_value):
+    """The value of flag `new`, or of its deprecated old name `old` (with a one-line notice on
+    stderr); both given is a UsageError."""
+    if old_value is None:
+        return new_value
+    if new_value is not None:
+        raise UsageError(f"{old} {old_value!r}: the old name of {new}; give {new} alone")
+    import sys
+
+    print(f"virus-nerf: note: {old} is deprecated; use {new} (the same recording seconds per second)", file=sys.stderr)
+    return old_value

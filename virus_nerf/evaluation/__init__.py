@@ -47,17 +47,17 @@ from virus_nerf.evaluation.metrics import (
     write_metrics_json,
     zone_metrics,
 )
-from virus_nerf.evaluation.scans import (
+from virus_nerf.evaluation.scans import model_scan
+from virus_nerf.evaluation.sensor_scans import irs_scan_2d, lidar_scan_2d, uss_scan_2d
+from virus_nerf.evaluation.testpoints import TestPoint, make_test_points
+from virus_nerf.maps.scans import (
     FieldOfView,
     RangeModel,
     Scan2D,
     Sector,
     horizontal_directions,
-    model_scan,
     scan_angles,
 )
-from virus_nerf.evaluation.sensor_scans import irs_scan_2d, lidar_scan_2d, uss_scan_2d
-from virus_nerf.evaluation.testpoints import TestPoint, make_test_points
 
 __all__ = [
     "DEFAULT_ZONES", "GT_PROTOCOLS", "METRIC_KEYS", "PAPER_ROOMS", "SENSOR_NAMES",

@@ -45,9 +45,10 @@ from virus_nerf.evaluation.metrics import (
     write_metrics_json,
     zone_metrics,
 )
-from virus_nerf.evaluation.scans import RangeModel, Scan2D, model_scan
+from virus_nerf.evaluation.scans import model_scan
 from virus_nerf.evaluation.sensor_scans import irs_scan_2d, lidar_scan_2d, uss_scan_2d
 from virus_nerf.evaluation.testpoints import TestPoint, make_test_points
+from virus_nerf.maps.scans import RangeModel, Scan2D
 
 SENSOR_NAMES = ("LiDAR", "USS", "IRS")
 GtProtocol = Literal["map", "exact", "paper"]

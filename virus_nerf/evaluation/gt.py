@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from virus_nerf.evaluation.metrics import GT_PROTOCOLS  # noqa: F401  (the names live beside the schema)
-from virus_nerf.evaluation.scans import FieldOfView, Scan2D, horizontal_directions, scan_angles
 from virus_nerf.evaluation.testpoints import TestPoint
+from virus_nerf.maps.scans import FieldOfView, Scan2D, horizontal_directions, scan_angles
 
 GT_DESCRIPTIONS = {
     "map": "LiDAR map slice as solid 3 cm voxels, 2 cm raster",

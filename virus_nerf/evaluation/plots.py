@@ -21,7 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from virus_nerf.evaluation.metrics import DEFAULT_ZONES, SensorMetrics, Zone  # noqa: E402
-from virus_nerf.evaluation.scans import FieldOfView  # noqa: E402
+from virus_nerf.maps.scans import FieldOfView  # noqa: E402
 from virus_nerf.utils.io import atomic_path, new_output_dir  # noqa: E402
 
 COLOURS = {"GT": "black", "LiDAR": "tab:blue", "USS": "tab:orange", "IRS": "tab:green", "NeRF": "tab:red"}

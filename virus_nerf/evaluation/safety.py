@@ -33,7 +33,7 @@ class SafetyZone:
 
 def obstacle_pixels(points_xy: np.ndarray, origin: tuple[float, float], resolution: float,
                     shape_hw: tuple[int, int]) -> np.ndarray:
-    """(H, W) bool image (row 0 = largest y, the exports.maps raster): pixels holding a point."""
+    """(H, W) bool image (row 0 = largest y, the maps.occupancy raster): pixels holding a point."""
     h, w = shape_hw
     out = np.zeros((h, w), dtype=bool)
     ij = np.floor((np.asarray(points_xy, dtype=np.float64).reshape(-1, 2) - np.asarray(origin)) / resolution).astype(int)
@@ -60,7 +60,7 @@ def map_safety(image: np.ndarray, origin: tuple[float, float], resolution: float
                tolerance: float = SAFETY_TOLERANCE_M) -> list[SafetyZone]:
     """Per zone, the ground-truth obstacle pixels and how many the map `image` marks free for sure.
 
-    image (H, W) trinary map (exports.maps raster); obstacles_xy (K, 2) ground-truth points at
+    image (H, W) trinary map (maps.occupancy raster); obstacles_xy (K, 2) ground-truth points at
     camera height (m); path_xy (P, 2) the robot's camera positions (m).
     """
     from scipy.spatial import cKDTree

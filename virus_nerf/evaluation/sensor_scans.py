@@ -16,8 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from virus_nerf.data.ethz import Recording
-from virus_nerf.evaluation.scans import FieldOfView, Scan2D, Sector
 from virus_nerf.evaluation.testpoints import TestPoint, nearest_index
+from virus_nerf.maps.scans import FieldOfView, Scan2D, Sector
 from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import z_depth_to_ray_length
 from virus_nerf.sensors.geometry import transform_points, yaw_of

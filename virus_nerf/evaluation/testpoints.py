@@ -10,8 +10,8 @@ import numpy as np
 from virus_nerf.data.ethz import Recording
 from virus_nerf.errors import DataFormatError
 from virus_nerf.sensors.geometry import yaw_of
+from virus_nerf.sensors.rig import MAIN_STACK
 
-MAIN_STACK = 1
 PARTNER_STACK = 3
 
 

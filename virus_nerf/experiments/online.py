@@ -70,10 +70,11 @@ def online(
     quick: bool = False,
     seeds: int | None = None,
     duration: float | None = None,
-    playback_speed: float = 0.5,
+    playback: float | None = None,
     eval_interval: float | None = None,
     workers: int = 1,
     gt: str = "map",
+    playback_speed: float | None = None,
 ) -> None:
     """Offline vs online training on a simulated office; writes OUT/online.{png,json,md}.
 
@@ -88,21 +89,22 @@ def online(
         quick: Smoke profile: 1 seed, a 10 s drive.
         seeds: Training seeds (default 3; quick 1).
         duration: Seconds of simulated drive (default 40; quick 10).
-        playback_speed: Online: recording seconds per training second (below 1 for slow machines);
-            the online run trains for duration / playback_speed seconds, the offline run as long.
+        playback: Online: recording seconds per training second (default 0.5; below 1 for slow
+            machines); the online run trains for duration / playback seconds, the offline run as long.
         eval_interval: Seconds of training between evaluations (default: 1/10 of the run).
         workers: Trainings in parallel (default 1: the online run is timed against the
             wall clock, so each training gets the whole machine; two at once on a 2-core machine
             halve the steps of both and the online run falls behind its frames).
         gt: Ground truth of the evaluations, one or more of map, exact, paper, comma-separated
             (default map); the curves use the first.
+        playback_speed: Deprecated: the old name of --playback.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from virus_nerf.errors import require_int, require_number
+    from virus_nerf.errors import renamed_flag, require_int, require_number
     from virus_nerf.evaluation.evaluate import parse_gt_flag
     from virus_nerf.evaluation.plots import save_png
     from virus_nerf.sim.command import simulate
@@ -112,7 +114,9 @@ def online(
         require_int("--seeds", seeds, 1, 1000)
     if duration is not None:
         require_number("--duration", duration, 0.0, 3600.0)
-    require_number("--playback-speed", playback_speed, 0.0)
+    playback_speed = renamed_flag("--playback", playback, "--playback-speed", playback_speed)
+    playback_speed = 0.5 if playback_speed is None else playback_speed
+    require_number("--playback", playback_speed, 0.0)
     if eval_interval is not None:
         require_number("--eval-interval", eval_interval, 0.0)
     require_int("--workers", workers, 1, 64)
@@ -133,7 +137,7 @@ def online(
         specs.append(RunSpec(f"offline seed {s}", data, "office", out / "runs" / f"offline_seed{s}",
                              common + ("--seed", str(s), "--max-time", str(t_train))))
         specs.append(RunSpec(f"online seed {s}", data, "office", out / "runs" / f"online_seed{s}",
-                             common + ("--seed", str(s), "--online", "--playback-speed", str(playback_speed))))
+                             common + ("--seed", str(s), "--online", "--playback", str(playback_speed))))
     failed = _run_all_as_parent(specs, workers)
     grid = np.linspace(0, t_train, 101)
     summary = {}

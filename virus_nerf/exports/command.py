@@ -11,7 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.errors import UsageError
-from virus_nerf.exports.maps import MAX_PIXELS, OccupancyMap2D, raster_shape
+from virus_nerf.maps import extract
+from virus_nerf.maps.extract import check_raster
+from virus_nerf.maps.occupancy import raster_shape
 
 KINDS = ("map", "prob", "grid3d", "esdf", "scans", "cloud", "images")
 DEFAULT_KINDS = ("map", "prob", "grid3d", "esdf", "scans")  # cloud and images render many camera rays
@@ -98,23 +100,26 @@ def export(
 def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,
                 image_scale) -> list[str]:
     """Compute and write every requested kind into `folder`; returns a short line per kind."""
-    from virus_nerf.exports import clouds, esdf, grid3d, maps, observed, views
+    from virus_nerf.exports import clouds, grid3d, views
+    from virus_nerf.maps import esdf, observed
+    from virus_nerf.maps import occupancy as maps
     from virus_nerf.utils.io import write_json_atomic, write_text_atomic
 
-    lo, hi = np.asarray(trainer.box.lo[:2], float), np.asarray(trainer.box.hi[:2], float)
+    box = trainer.mapper.box
+    lo, hi = np.asarray(box.lo[:2], float), np.asarray(box.hi[:2], float)
     nx, ny = raster_shape(lo, hi, resolution)
-    if nx * ny > MAX_PIXELS and {"map", "prob", "esdf"} & set(kinds):
-        raise UsageError(f"--resolution {resolution}: the {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} m scene would be "
-                         f"a {nx}x{ny} px map; expected at most {MAX_PIXELS // 1_000_000} M px (a coarser resolution)")
+    if {"map", "prob", "esdf"} & set(kinds):
+        check_raster("--resolution", lo, hi, resolution)
     summary: dict = {"kinds": list(kinds), "resolution": resolution, "origin": [float(lo[0]), float(lo[1]), 0.0]}
     done = []
     seen = None
     if {"map", "esdf", "prob"} & set(kinds):
         seen = training_observed(trainer.recording, lo, (nx, ny), resolution)  # (nx, ny) [ix, iy]
         summary["observed"] = round(observed.observed_share(seen), 4)
+    recording = trainer.recording
     if "map" in kinds or "esdf" in kinds:
-        m = _render_map(trainer, resolution, n_rays, max_poses)
-        m.image = observed.apply_mask(m.image, seen, maps.UNKNOWN)  # free only where a sensor looked
+        positions = np.concatenate([s.cam_to_world[:, :3, 3] for s in recording.stacks.values()])
+        m = extract.occupancy_map(trainer.mapper.model, positions, lo, hi, resolution, n_rays, max_poses, seen)
         if "map" in kinds:
             maps.write_map_server(m, folder, "map")
             _write_png(folder / "map.png", m.image)
@@ -125,14 +130,13 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
             esdf.write_esdf(esdf.DistanceField2D(d, resolution, m.origin), folder)
             done.append("esdf.npy/.yaml/.png")
     if "prob" in kinds or "grid3d" in kinds:
-        grid = trainer.grid
+        grid = trainer.mapper.grid
         prob3 = grid.probability.detach().cpu().numpy()
         spec = grid.spec
         if "prob" in kinds:
-            height = camera_height(trainer.recording)
-            p_xy = maps.probability_slice(prob3, spec.box.lo, spec.box.hi, height, band, lo, hi, resolution)
-            p_xy[~seen] = 0.5  # no sensor looked: no knowledge, never free
-            maps.write_map_server(maps.scale_map(p_xy, lo, resolution), folder, "prob")
+            height = extract.camera_height(*recording_poses(recording))
+            maps.write_map_server(extract.probability_map(prob3, spec.box.lo, spec.box.hi, height, band, lo, hi,
+                                                          resolution, seen), folder, "prob")
             summary["prob_map"] = {"height": height, "band": band, "projection": "max over layers in the band"}
             done.append(f"prob.pgm/.yaml (scale, z {height:.2f} +- {band:g} m)")
         if "grid3d" in kinds:
@@ -149,13 +153,13 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
         (folder / "scans").mkdir()
         n_pts = 0
         for k, pose in enumerate(pose_set.cam_to_world):
-            pts = views.scan_points(trainer.model, pose[:3, 3], n_rays)
+            pts = views.scan_points(trainer.mapper.model, pose[:3, 3], n_rays)
             clouds.write_pcd(folder / "scans" / f"scan_{k:04d}.pcd", pts)
             clouds.write_ply(folder / "scans" / f"scan_{k:04d}.ply", pts)
             n_pts += len(pts)
         done.append(f"scans/ ({len(pose_set)} poses, {n_pts} points)")
     if "cloud" in kinds:
-        xyz, rgb = views.surface_cloud(trainer.model, trainer.recording, cloud_points, cfg.image_scale)
+        xyz, rgb = views.surface_cloud(trainer.mapper.model, trainer.recording, cloud_points, cfg.image_scale)
         clouds.write_pcd(folder / "cloud.pcd", xyz, rgb)
         clouds.write_ply(folder / "cloud.ply", xyz, rgb)
         summary["cloud_points"] = len(xyz)
@@ -171,7 +175,7 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
                              "scale giving at least 1x1 px")
         (folder / "images").mkdir()
         for k, pose in enumerate(pose_set.cam_to_world):
-            rgb, depth_mm = views.render_image(trainer.model, intr, pose)
+            rgb, depth_mm = views.render_image(trainer.mapper.model, intr, pose)
             _write_png(folder / "images" / f"color_{k:04d}.png", rgb)
             _write_png(folder / "images" / f"depth_{k:04d}.png", depth_mm)
         summary["images"] = {"width": intr.width, "height": intr.height, "fx": intr.fx, "fy": intr.fy,
@@ -182,8 +186,8 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
 
 
 def training_observed(recording, lo: np.ndarray, shape: tuple[int, int], resolution: float) -> np.ndarray:
-    """(nx, ny) bool [ix, iy]: map pixels the training frames' sensors looked at (exports/observed.py)."""
-    from virus_nerf.exports.observed import frames_observed
+    """(nx, ny) bool [ix, iy]: map pixels the training frames' sensors looked at (maps/observed.py)."""
+    from virus_nerf.maps.observed import frames_observed
 
     stacks = list(recording.stacks.values())
     rows = [st.indices("train") for st in stacks]
@@ -192,27 +196,15 @@ def training_observed(recording, lo: np.ndarray, shape: tuple[int, int], resolut
                            {st.stack_id: st.intrinsics for st in stacks}, lo, shape, resolution)
 
 
-def camera_height(recording) -> float:
-    """Median camera-1 height (m) over the recording: the height of the 2D maps (docs/method.md 6.3)."""
-    from virus_nerf.evaluation.testpoints import MAIN_STACK
-
-    stacks = [recording.stacks[MAIN_STACK]] if MAIN_STACK in recording.stacks else list(recording.stacks.values())
-    return float(np.median(np.concatenate([s.cam_to_world[:, 2, 3] for s in stacks])))
+def recording_poses(recording) -> tuple[np.ndarray, np.ndarray]:
+    """Every frame's camera-to-world (N, 4, 4) and stack id (N,), stack by stack."""
+    stacks = list(recording.stacks.values())
+    return (np.concatenate([s.cam_to_world for s in stacks]),
+            np.concatenate([np.full(len(s.cam_to_world), s.stack_id) for s in stacks]))
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
     """8-bit grey/RGB or 16-bit grey (uint16) PNG, atomically."""
-    from virus_nerf.exports.maps import write_png
+    from virus_nerf.maps.occupancy import write_png
 
     write_png(path, image)
-
-
-def _render_map(trainer, resolution: float, n_rays: int, max_poses: int) -> OccupancyMap2D:
-    """360 deg model scans from up to `max_poses` camera positions -> occupancy raster."""
-    from virus_nerf.exports.views import scan_map
-
-    recording = trainer.recording
-    lo, hi = np.asarray(trainer.box.lo[:2]), np.asarray(trainer.box.hi[:2])
-    positions = np.concatenate([s.cam_to_world[:, :3, 3] for s in recording.stacks.values()])
-    positions = positions[np.linspace(0, len(positions) - 1, min(max_poses, len(positions))).astype(int)]
-    return scan_map(trainer.model, positions, lo, hi, resolution, n_rays)

@@ -85,32 +85,13 @@ def render_rays(model, origins: np.ndarray, directions: np.ndarray, chunk: int =
 
 def scan_points(model, position: np.ndarray, n_rays: int) -> np.ndarray:
     """A 360 deg horizontal scan at `position` (3,) -> hit points (M, 3), world frame (docs/method.md 6.3)."""
-    from virus_nerf.evaluation.scans import horizontal_directions
+    from virus_nerf.maps.scans import horizontal_directions
 
     dirs = horizontal_directions(n_rays)
     origins = np.broadcast_to(np.asarray(position, dtype=np.float64), dirs.shape).copy()
     r = np.asarray(model.ranges(origins, dirs), dtype=np.float64)
     ok = np.isfinite(r) & (r > 0)
     return origins[ok] + dirs[ok] * r[ok, None]
-
-
-def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int):
-    """360 deg model scans from camera `positions` (N, 3) -> a trinary OccupancyMap2D over the
-    (x, y) box [lo, hi] (exports.maps.scan_occupancy: passed cells free, end cells occupied)."""
-    from virus_nerf.evaluation.scans import horizontal_directions
-    from virus_nerf.exports.maps import scan_occupancy
-
-    dirs = horizontal_directions(n_rays)
-    origins_all, dirs_all, ranges_all = [], [], []
-    for p in np.asarray(positions, dtype=np.float64).reshape(-1, 3):
-        origins = np.broadcast_to(p, dirs.shape).copy()
-        ranges_all.append(model.ranges(origins, dirs))
-        origins_all.append(origins[:, :2])
-        dirs_all.append(dirs[:, :2])
-    if not ranges_all:
-        return scan_occupancy(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), lo, hi, resolution)
-    return scan_occupancy(np.concatenate(origins_all), np.concatenate(dirs_all), np.concatenate(ranges_all),
-                          lo, hi, resolution)
 
 
 def surface_cloud(model, recording, max_points: int, image_scale: float):

@@ -167,11 +167,6 @@ class OccupancyGrid(ABC):
 
     spec: GridSpec
     config: object  # the grid's own config dataclass
-    # set by the trainer: frames keep arriving (mapping while driving); a grid may schedule by it
-    driving: bool = False
-    # set by the trainer: share in [0, 1] of the run's step/time budget used (None until it does)
-    budget_progress: float | None = None
-
     @property
     def update_interval(self) -> int:
         """Training steps between two calls of `update`."""
@@ -198,8 +193,14 @@ class OccupancyGrid(ABC):
         density_fn: DensityFn,
         batch: GridUpdateBatch | None,
         generator: torch.Generator,
+        *,
+        driving: bool = False,
+        budget_progress: float | None = None,
     ) -> None:
-        """One grid update at training step `step` (called every `update_interval` steps)."""
+        """One grid update at training step `step` (called every `update_interval` steps).
+
+        driving: frames keep arriving (mapping while driving); budget_progress: share in [0, 1]
+        of the run's step / time budget used (None: no budget). A grid may schedule by either."""
 
     @abstractmethod
     def state_dict(self) -> dict[str, torch.Tensor | int | float]:

@@ -111,8 +111,12 @@ class NgpGrid(OccupancyGrid):
         density_fn: DensityFn,
         batch: GridUpdateBatch | None,
         generator: torch.Generator,
+        *,
+        driving: bool = False,
+        budget_progress: float | None = None,
     ) -> None:
-        """One Instant-NGP update at training step `step`; `batch` is not used by this grid."""
+        """One Instant-NGP update at training step `step`; `batch` and the schedule are not used
+        by this grid."""
         cells = self.cells_to_update(step, generator)
         points = self.cell_points(cells, generator)
         sigma = torch.empty(cells.shape[0], dtype=torch.float32, device=self.device)

@@ -119,8 +119,12 @@ class VirusGrid(OccupancyGrid):
         density_fn: DensityFn | None,
         batch: GridUpdateBatch | None,
         generator: torch.Generator,
+        *,
+        driving: bool = False,
+        budget_progress: float | None = None,
     ) -> None:
-        """Warm-up decay, then Depth-Update and NeRF-Update on their shares of `batch`.
+        """Warm-up decay (scheduled by `driving` and `budget_progress`), then Depth-Update and
+        NeRF-Update on their shares of `batch`.
 
         Depth rays get round(depth_share * rays_per_update) (fewer if the batch has fewer); the
         NeRF-Update gets the rest of rays_per_update, so a camera-only run (no depth rays) spends
@@ -130,7 +134,7 @@ class VirusGrid(OccupancyGrid):
         if step < 0:
             raise ValueError(f"VirusGrid.update: step must be >= 0, got {step}")
         self._occupied = None
-        self._apply_warmup(step)
+        self._apply_warmup(step, driving, budget_progress)
         if batch is not None:
             n_depth_avail = int(batch.depth_ranges.shape[0])
             n_nerf_avail = int(batch.nerf_origins.shape[0])
@@ -158,16 +162,16 @@ class VirusGrid(OccupancyGrid):
         self._last_step = step
         self._n_updates += 1
 
-    def _apply_warmup(self, step: int) -> None:
+    def _apply_warmup(self, step: int, driving: bool = False, budget_progress: float | None = None) -> None:
         """Move every cell to the warm-up offset of `step` (a function of steps, not updates);
         over `warmup_steps_driving` steps instead while `driving`, or over `warmup_budget_share` of
         the run's budget when that is set and the run has one (the offset is applied as a
         difference, so a switch moves every cell by the same amount and keeps its evidence)."""
         c = self.config
-        if c.warmup_budget_share is not None and self.budget_progress is not None and not self.driving:
-            done = min(1.0, self.budget_progress / c.warmup_budget_share)
+        if c.warmup_budget_share is not None and budget_progress is not None and not driving:
+            done = min(1.0, budget_progress / c.warmup_budget_share)
         else:
-            length = c.warmup_steps_driving if self.driving else c.warmup_steps
+            length = c.warmup_steps_driving if driving else c.warmup_steps
             done = min(step, length) / length
         target = (c.logodds_prior - c.logodds_init) * done
         delta = target - self._decay_applied

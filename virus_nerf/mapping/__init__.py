@@ -1,2 +1,2 @@
-"""Mapping while driving: replaying a recording (or a bag) through a `trainer.mapper.Mapper` in real
+"""Mapping while driving: replaying a recording (or a bag) through a `engine.mapper.Mapper` in real
 time, with map snapshots on the way (`virus-nerf map-bag`)."""

@@ -20,7 +20,7 @@ Entity paths (world: metres, right-handed, z up; S = the sensor stack id):
 - world/camera_S/uss             LineStrips3D, the USS cone (55x35 deg) at its echo range: the
                                  ellipse and four edges, labelled with the range; empty: no echo
 - world/scan                     Points3D, the NeRF's 360 deg 2D scan at the camera's height
-- map/trinary                    Image, the 2D occupancy map (exports.maps raster: row 0 = largest y;
+- map/trinary                    Image, the 2D occupancy map (maps.occupancy raster: row 0 = largest y;
                                  0 occupied, 254 free, 205 unknown)
 - map/probability                Image, the VIRUS grid's probability map (255 (1 - p))
 - map/scan                       Points2D, the same scan in the map images' pixel coordinates
@@ -40,8 +40,8 @@ import numpy as np
 
 from virus_nerf.data.frame import SyncFrame
 from virus_nerf.errors import OutputExistsError, UsageError
-from virus_nerf.exports.maps import OccupancyMap2D
 from virus_nerf.mapping.ros_maps import base_pose
+from virus_nerf.maps.occupancy import OccupancyMap2D
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.sensors.irs import IRS_MAX_RANGE_M, zone_directions
 from virus_nerf.sensors.uss import USS_FOV_H_DEG, USS_FOV_V_DEG
@@ -89,7 +89,7 @@ def range_colors(r: np.ndarray, far: float = IRS_MAX_RANGE_M) -> np.ndarray:
 
 def map_pixels(xy: np.ndarray, m: OccupancyMap2D) -> np.ndarray:
     """World (N, 2) x, y in metres -> (N, 2) continuous pixel coordinates (u right, v down, the
-    image's top-left corner at 0, 0) of map `m`'s raster (exports.maps: row 0 = largest y)."""
+    image's top-left corner at 0, 0) of map `m`'s raster (maps.occupancy: row 0 = largest y)."""
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     h = np.shape(m.image)[0]
     u = (xy[:, 0] - m.origin[0]) / m.resolution

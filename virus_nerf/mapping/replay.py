@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from virus_nerf.data.playback import Playback
 from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError, require_number
 
 SNAPSHOTS = "snapshots"
@@ -84,8 +85,8 @@ def replay(
     every snapshot's maps (/map, /map_probability), stamped with the recording's time.
     """
     from virus_nerf.data.ethz import load_recording
+    from virus_nerf.engine.mapper import Mapper
     from virus_nerf.trainer.config import TrainConfig
-    from virus_nerf.trainer.mapper import Mapper
     from virus_nerf.utils.io import write_json_atomic
 
     require_number("--playback", playback, 0.0)
@@ -141,11 +142,12 @@ def replay(
 
     add(0)
     mapper.prepare()
+    feeder = Playback(times[0], playback)  # on the wall clock
     start = time.monotonic()
     next_frame, next_snapshot = 1, snapshot_every
     while True:
         now = time.monotonic() - start
-        while next_frame < len(order) and (times[next_frame] - times[0]) / playback <= now:
+        while next_frame < len(order) and feeder.elapsed_at(times[next_frame]) <= now:
             add(next_frame)
             next_frame += 1
         if next_frame == len(order):
@@ -157,7 +159,7 @@ def replay(
             log(_progress_line(f"snapshot {len(written)}", now, times[next_frame - 1] - times[0], drive_s, info,
                                folder))
             next_snapshot = (math.floor(now / snapshot_every) + 1) * snapshot_every  # skip any missed
-        wait_frame = (times[next_frame] - times[0]) / playback - now
+        wait_frame = feeder.elapsed_at(times[next_frame]) - now
         budget = min(train_slice, wait_frame, next_snapshot - now)
         if budget > 0:
             mapper.train(budget)

@@ -6,7 +6,7 @@ PATH/ holding metadata.yaml and PATH/<folder name>.mcap (`RosMapBag.mcap_path`) 
 
 - `/map` (nav_msgs/msg/OccupancyGrid): the trinary map (`Mapper.map2d`): 100 occupied, 0 free,
   -1 unknown, the values map_server would publish from the same map.pgm (its thresholds,
-  exports.maps.OCCUPIED_THRESH / FREE_THRESH);
+  maps.occupancy.OCCUPIED_THRESH / FREE_THRESH);
 - `/map_probability` (nav_msgs/msg/OccupancyGrid): the VIRUS grid's occupancy probability
   (`Mapper.probability_map`) as round(100 p), 0..100; -1 never occurs (cells outside the grid's
   box are p = 0.5, i.e. 50);
@@ -15,7 +15,7 @@ PATH/ holding metadata.yaml and PATH/<folder name>.mcap (`RosMapBag.mcap_path`) 
 Both grids are in frame "map"; info.origin is the world (x, y, 0) of the lower-left corner of
 the lower-left cell with identity orientation, info.resolution metres per cell. Cell data is
 row-major from the lower-left (OccupancyGrid row 0 = smallest y), whereas the map images
-(exports.maps, PGM) have row 0 = largest y: the rows are flipped on the way out.
+(maps.occupancy, PGM) have row 0 = largest y: the rows are flipped on the way out.
 
 Robot pose (map -> base_link), ROS body axes x forward, y left, z up. The mapper knows camera
 poses in OpenCV axes (x right, y down, z forward). Two ways to a robot pose:
@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.errors import OutputExistsError, UsageError
-from virus_nerf.exports.maps import FREE_THRESH, OCCUPIED_THRESH, OccupancyMap2D
+from virus_nerf.maps.occupancy import FREE_THRESH, OCCUPIED_THRESH, OccupancyMap2D
 from virus_nerf.sensors.geometry import invert_pose, matrix_to_quat
 
 MAP_TOPIC = "/map"

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.data.bags.live import LiveSync, StreamFrame
+from virus_nerf.data.playback import Playback
 from virus_nerf.errors import DataFormatError
 from virus_nerf.mapping.replay import FINAL, SNAPSHOTS, _progress_line, _publish
 from virus_nerf.scene_box import SceneBox
@@ -75,8 +76,8 @@ def warm_up(config) -> float:
     optimiser's first construction imports torch._dynamo, 1-2 s; the first render 0.2-0.8 s; the
     first snapshot 0.2 s). Returns the seconds of its training step (a first step on one small frame)."""
     from virus_nerf.data.frame import SyncFrame
+    from virus_nerf.engine.mapper import Mapper
     from virus_nerf.sensors.camera import Intrinsics
-    from virus_nerf.trainer.mapper import Mapper
 
     intr = Intrinsics(fx=40.0, fy=40.0, cx=32.0, cy=24.0, width=64, height=48)
     cfg = dataclasses.replace(config, max_steps=1, max_time=None)
@@ -124,7 +125,7 @@ class StreamRun:
     def lag(self, now: float) -> float:
         """Recording seconds between the scaled wall clock and the newest frame (the first message
         stands in before the first frame)."""
-        return self.t0 + now * self.playback - (self.newest if self.newest is not None else self.t0)
+        return Playback(self.t0, self.playback).recording_time(now) - (self.newest if self.newest is not None else self.t0)
 
     # ------------------------------------------------------------------ the loop
     def run(self, messages) -> StreamReport:
@@ -157,7 +158,7 @@ class StreamRun:
         received = msg.received_s if msg.received_s is not None else msg.time_s
         if self.start is None:
             self.start, self.r0, self.t0 = time.monotonic(), received, msg.time_s
-        return (received - self.r0) / self.playback
+        return Playback(self.r0, self.playback).elapsed_at(received)  # released by the receive clock
 
     def _wait(self, due: float) -> None:
         """Train (or sleep, before the first frame) until `due`; snapshots on the way."""
@@ -227,7 +228,7 @@ class StreamRun:
         """The mapper for the stacks whose intrinsics are known, its box from the first frames; the
         first frame's prior and the kernels loaded (start-up, on the clock: the robot is driving)."""
         from virus_nerf.config_io import to_dict
-        from virus_nerf.trainer.mapper import Mapper
+        from virus_nerf.engine.mapper import Mapper
         from virus_nerf.utils.io import write_json_atomic
 
         # the extent is unknown: the box grows from the first frame (grid/extent.py)

@@ -5,7 +5,7 @@ Images are decoded once at the training resolution; a 10-minute two-camera recor
 under the run folder and the OS pages it in and out (docs/method.md 3.6: train within 8 GB of RAM).
 
 A store also grows: `FrameStore.empty` and `append` / `append_rows` add frames one at a time
-(mapping while driving, `trainer.mapper.Mapper`). Its arrays stay exactly F rows long (views of
+(mapping while driving, `engine.mapper.Mapper`). Its arrays stay exactly F rows long (views of
 buffers whose capacity doubles), so the sampler and the sensor rays read a growing store like a
 fixed one, and frames not yet appended cannot be drawn.
 """

@@ -26,6 +26,9 @@ CAMERA_IN_LIDAR: dict[int, tuple[tuple[float, float, float], tuple[float, float,
 }
 
 STACK_IDS = (1, 3)
+# the stack whose camera is the scan origin of the evaluation and the height of the 2D maps
+# (docs/method.md 6.1, 6.3)
+MAIN_STACK = 1
 
 # Pinhole intrinsics of the real cameras at 640x480 (the sample's camera_intrinsics.CSV).
 CAMERA_INTRINSICS: dict[int, Intrinsics] = {

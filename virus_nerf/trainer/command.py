@@ -17,7 +17,14 @@ import sys
 from pathlib import Path
 from typing import Literal
 
-from virus_nerf.errors import DataFormatError, UsageError, one_line, require_int, require_number
+from virus_nerf.errors import (
+    DataFormatError,
+    UsageError,
+    one_line,
+    renamed_flag,
+    require_int,
+    require_number,
+)
 from virus_nerf.sampler.batch import SENSORS
 from virus_nerf.trainer.config import check_device
 from virus_nerf.trainer.run_folder import (
@@ -57,7 +64,7 @@ def _check_train_flags(
     if seed is not None:
         require_int("--seed", seed, 0, 2**32 - 1)
     if playback_speed is not None:
-        require_number("--playback-speed", playback_speed, 0.0)
+        require_number("--playback", playback_speed, 0.0)
     if image_scale is not None:
         require_number("--image-scale", image_scale, 0.0, 1.0)
     if eval_interval is not None:
@@ -256,8 +263,7 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
             return _finish_without_ground_truth(trainer, out, cfg, summary, resume, warnings)
         if eval_recording is not recording:
             # the map and test points are judged in the true (optimised) frame
-            trainer.recording = eval_recording
-            trainer._gt = None
+            trainer.evaluate_on(eval_recording)
         result = _final_evaluation(trainer, out)
         trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
         safety = map_safety_of(trainer, cfg)
@@ -297,7 +303,7 @@ def _resume(out: Path, recording, cfg, quiet):
     if (out / CHECKPOINT).is_file():
         header = read_checkpoint_header(out / CHECKPOINT, cfg)
         trainer.load_checkpoint(out / CHECKPOINT)
-        finished = trainer._done()
+        finished = trainer.done()
         if finished and (out / METRICS).is_file():
             raise UsageError(
                 f"--resume {out}: the run is finished (step {header['step']}, {header['seconds']:.1f} s of training "
@@ -310,7 +316,7 @@ def _resume(out: Path, recording, cfg, quiet):
             truncate_log(out / TRAIN_LOG, 0)
         finished = False
     if finished:  # budget reached before the metrics were written: evaluate only (no step, no file rewritten)
-        return trainer, TrainSummary(trainer.step, trainer.seconds, trainer.samples)
+        return trainer, TrainSummary(trainer.mapper.step, trainer.mapper.seconds, trainer.mapper.samples)
 
     def started() -> None:  # the first step worked: from now on the run is one of this config
         if to_dict(cfg) != _saved_config(out):
@@ -343,7 +349,7 @@ def map_safety_of(trainer, cfg, resolution: float = 0.05) -> dict | None:
     snapshots write it) against the LiDAR map at camera height; None without a LiDAR map."""
     from virus_nerf.evaluation.gt import height_slice
     from virus_nerf.evaluation.safety import map_safety, safety_document
-    from virus_nerf.exports.observed import observed_share
+    from virus_nerf.maps.observed import observed_share
 
     recording, mapper = trainer.recording, trainer.mapper
     if recording.map_path is None or not mapper.frames:
@@ -434,13 +440,14 @@ def train(
     seed: int | None = None,
     online: bool = False,
     odometry_poses: bool = False,
-    playback_speed: float | None = None,
+    playback: float | None = None,
     image_scale: float | None = None,
     eval_interval: float | None = None,
     config: Path | None = None,
     resume: bool = False,
     quiet: bool = False,
     gt: str | None = None,
+    playback_speed: float | None = None,
 ) -> None:
     """Train a VIRUS-NeRF (or Instant-NGP) on a recording, then evaluate its 2D scans.
 
@@ -466,7 +473,8 @@ def train(
         seed: Seed for everything random (default 0).
         online: Replay the recording by its timestamps (frames appear as the clock passes them).
         odometry_poses: Train on the odometry poses instead of the optimised ones.
-        playback_speed: Online mode: recording seconds per training second.
+        playback: Online mode: recording seconds per training second (the frame feeder's speed, as
+            map-bag's --playback on the wall clock; default 1).
         image_scale: Training image resolution relative to the recording, in (0, 1] (default 0.5).
         eval_interval: Seconds of training between NeRF-scan evaluations (0: only at the end).
         config: JSON config file (a run's config.json works); flags given here override it.
@@ -478,8 +486,10 @@ def train(
             own, metric vs time), the others go to by_gt; or none (no ground truth: train and write
             the map to OUT/map/, score nothing; also chosen, with a note, when the recording has no
             LiDAR map and --gt is not given).
+        playback_speed: Deprecated: the old name of --playback.
     """
     out = Path(out)
+    playback_speed = renamed_flag("--playback", playback, "--playback-speed", playback_speed)
     watch_parent()
     if room is not None and (not room.strip() or "/" in room or "\\" in room or room in (".", "..")):
         raise UsageError(f"--room {room!r}: expected the name of a room folder inside --data (e.g. office)")
@@ -543,7 +553,7 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
                          "give --gt map, exact or paper to score it")
     check_ground_truth_inputs(trainer.recording, cfg.evaluation.gt)
     result = _final_evaluation(trainer, run)
-    summary = TrainSummary(trainer.step, trainer.seconds, trainer.samples)
+    summary = TrainSummary(trainer.mapper.step, trainer.mapper.seconds, trainer.mapper.samples)
     write_plots(result, plots_dir_for(out), max_maps=8, replace=redo)
     if out.exists():  # another process finished the same evaluation meanwhile
         raise OutputExistsError(out)
@@ -560,7 +570,7 @@ def _final_evaluation(trainer, run: Path):
     result = trainer.evaluate(with_sensors=True)
     if result is None:
         raise UsageError(
-            f"{run}: the online run stopped at step {trainer.step} before the drive reached its first "
+            f"{run}: the online run stopped at step {trainer.mapper.step} before the drive reached its first "
             "test point; there is nothing to score (train longer)"
         )
     return result

@@ -1,6 +1,6 @@
 """The training loop (docs/method.md 3.6) of one run folder, driving a `Mapper`.
 
-The Mapper (trainer/mapper.py) owns the model and one training step (sample rays, render,
+The Mapper (engine/mapper.py) owns the model and one training step (sample rays, render,
 losses, Adam, grid updates); the Trainer owns the run: which frames the Mapper has (offline:
 every training frame before the first step; online: each frame once the training clock times
 the playback speed passes its timestamp), the budget, evaluations, logs and checkpoints.
@@ -25,32 +25,27 @@ import torch
 
 from virus_nerf.config_io import to_dict
 from virus_nerf.data.ethz import Recording
+from virus_nerf.data.playback import Playback
+from virus_nerf.engine.mapper import Mapper
+from virus_nerf.engine.model import start_box
+from virus_nerf.engine.schedule import budget_share
 from virus_nerf.evaluation.evaluate import EvaluationResult, build_ground_truth, evaluate
 from virus_nerf.losses import LossTerms
 from virus_nerf.sampler.batch import BatchSampler
 from virus_nerf.sampler.frames import FrameStore, build_frame_store
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.trainer.config import TrainConfig
-from virus_nerf.trainer.mapper import Mapper
-from virus_nerf.trainer.model import build_grid, resolve_device, start_box
 from virus_nerf.trainer.run_folder import (
     CHECKPOINT,
     METRICS_VS_TIME,
     EvalPoint,
     write_eval_history,
 )
-from virus_nerf.trainer.schedule import budget_share
 from virus_nerf.trainer.train_log import Every, LogRow, TrainLog, psnr_db
 from virus_nerf.utils.clock import since_process_start
 from virus_nerf.utils.io import atomic_path
 
-__all__ = ["Trainer", "TrainSummary", "build_grid", "resolve_device"]
-
-
-def _in_mapper(name: str, doc: str) -> property:
-    """A Trainer attribute that is the mapper's attribute `name` (read and write)."""
-    return property(lambda self: getattr(self.mapper, name),
-                    lambda self, value: setattr(self.mapper, name, value), doc=doc)
+__all__ = ["Trainer", "TrainSummary"]
 
 
 @dataclass
@@ -87,21 +82,6 @@ class Trainer:
         self._prepared = False
         self.startup_s: float | None = None  # process start -> first step (set by prepare)
         self.grid_init_s = 0.0
-
-    # the model and the training state live in the mapper
-    box = property(lambda self: self.mapper.box)
-    field = property(lambda self: self.mapper.field)
-    grid = property(lambda self: self.mapper.grid)
-    model = property(lambda self: self.mapper.model)
-    optimizer = property(lambda self: self.mapper.optimizer)
-    rng = property(lambda self: self.mapper.rng)
-    generator = property(lambda self: self.mapper.generator)
-
-    # read and written by resume, benchmarks and tests: the mapper's own attributes
-    device = _in_mapper("device", "torch.device the mapper trains on")
-    step = _in_mapper("step", "training steps so far")
-    seconds = _in_mapper("seconds", "the training clock (steps and grid updates; start-up and evaluations excluded)")
-    samples = _in_mapper("samples", "samples marched and rendered so far, summed over steps")
 
     @property
     def store(self) -> FrameStore:
@@ -173,6 +153,11 @@ class Trainer:
         return float(min(s.times[s.split == "train"].min() for s in self.recording.stacks.values()))
 
     @property
+    def playback(self) -> Playback:
+        """Online: the feeder that releases the training frames as the training clock passes them."""
+        return Playback(self.t0, self.config.playback_speed)
+
+    @property
     def duration(self) -> float:
         end = max(s.times[s.split == "train"].max() for s in self.recording.stacks.values())
         return float(end) - self.t0
@@ -184,32 +169,38 @@ class Trainer:
             return self.duration / self.config.playback_speed
         return self.config.max_time
 
-    def _done(self) -> bool:
+    def done(self) -> bool:
         c = self.config
-        if c.max_steps is not None and self.step >= c.max_steps:
+        if c.max_steps is not None and self.mapper.step >= c.max_steps:
             return True
-        return self.max_time is not None and self.seconds >= self.max_time
+        return self.max_time is not None and self.mapper.seconds >= self.max_time
 
-    def _progress(self) -> float:
+    def progress(self) -> float:
         """The mapper's budget share, with the online run's time budget (duration / speed)."""
-        return budget_share(self.step, self.seconds, self.config.max_steps, self.max_time)
+        return budget_share(self.mapper.step, self.mapper.seconds, self.config.max_steps, self.max_time)
 
     def available_frames(self) -> np.ndarray:
         """Source frame rows the run may use now; online, only frames the clock has passed."""
         if not self.config.online:
             return np.arange(len(self.store))
-        clock = self.t0 + self.seconds * self.config.playback_speed
-        avail = np.flatnonzero(self.store.times <= clock)
+        avail = np.flatnonzero(self.playback.due(self.store.times, self.mapper.seconds))
         return avail if avail.size else np.array([int(np.argmin(self.store.times))])
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> LossTerms:
-        """One step of the mapper on the frames available now."""
+        """One step of the mapper on the frames available now, on the training clock (the
+        frames arrive off the clock; their grid prior is on it)."""
         self.prepare()
         self._sync_frames()
-        return self.mapper.train_step(self._progress())
+        return self.mapper.train_step(self.progress())
 
     # ------------------------------------------------------------------ evaluation
+    def evaluate_on(self, recording: Recording) -> None:
+        """Judge the map against `recording` from now on (its ground truth and test points): the
+        optimised frame of a run trained on odometry poses."""
+        self.recording = recording
+        self._gt = None
+
     def evaluate(self, with_sensors: bool = True) -> EvaluationResult | None:
         """Score the NeRF scan (and the instantaneous sensors) at the test points.
 
@@ -223,18 +214,18 @@ class Trainer:
             self._gt = build_ground_truth(self.recording, cfg)
         gts = self._gt
         if self.config.online:
-            clock = self.t0 + self.seconds * self.config.playback_speed
+            clock = self.playback.recording_time(self.mapper.seconds)
             gts = [g for g in gts if g.test_point.time <= clock + 1e-9]
             if not gts:
                 return None
         from dataclasses import replace
 
         cfg = cfg if with_sensors else replace(cfg, sensors=())
-        self.field.eval()
+        self.mapper.field.eval()
         try:
-            return evaluate(self.recording, {"NeRF": self.model}, cfg, ground_truth=gts)
+            return evaluate(self.recording, {"NeRF": self.mapper.model}, cfg, ground_truth=gts)
         finally:
-            self.field.train()
+            self.mapper.field.train()
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict:
@@ -266,19 +257,19 @@ class Trainer:
             check_counters(path, state)
         except KeyError as exc:
             raise DataFormatError(path, f"not a complete virus-nerf checkpoint: lacks {exc}") from None
-        check_state_shapes(path, "field", state["field"], self.field.state_dict())
+        check_state_shapes(path, "field", state["field"], self.mapper.field.state_dict())
         grown = self.config.extent.mode == "grow"  # a grown box (and grid) is restored by the mapper
         if not grown:
-            check_state_shapes(path, "grid", state["grid"], self.grid.state_dict())
+            check_state_shapes(path, "grid", state["grid"], self.mapper.grid.state_dict())
         if "box" in state and not grown:
             saved = SceneBox.from_dict(state["box"])
-            if not np.allclose(saved.lo, self.box.lo, atol=1e-6) or not np.allclose(saved.hi, self.box.hi, atol=1e-6):
+            if not np.allclose(saved.lo, self.mapper.box.lo, atol=1e-6) or not np.allclose(saved.hi, self.mapper.box.hi, atol=1e-6):
                 from virus_nerf.errors import DataFormatError
 
                 raise DataFormatError(
                     path,
                     f"scene box lo={saved.lo} hi={saved.hi} does not match the recording's "
-                    f"lo={self.box.lo} hi={self.box.hi}; the network would be read in another frame "
+                    f"lo={self.mapper.box.lo} hi={self.mapper.box.hi}; the network would be read in another frame "
                     "(was the recording or its map changed?)",
                     field="box",
                 )
@@ -297,39 +288,33 @@ class Trainer:
         config.json then, so a resume that cannot start leaves the run as it was)."""
         c = self.config
         self.prepare()
-        log = TrainLog(self.run_dir, self.step, c.max_steps, self.quiet)
-        evaluations = Every.aligned(c.eval_interval, self.seconds)
-        checkpoints = Every.after(c.checkpoint_every, self.seconds)
+        log = TrainLog(self.run_dir, self.mapper.step, c.max_steps, self.quiet)
+        evaluations = Every.aligned(c.eval_interval, self.mapper.seconds)
+        checkpoints = Every.after(c.checkpoint_every, self.mapper.seconds)
         try:
-            while not self._done():
+            while not self.done():
                 try:
-                    terms = self._timed_step()
+                    terms = self.train_step()
                 except (MemoryError, RuntimeError) as exc:
                     _raise_if_out_of_memory(exc, c.batch_size)
                     raise
                 if started is not None:
                     started()
                     started = None
-                if self.step % c.log_every == 0 or self._done():
+                if self.mapper.step % c.log_every == 0 or self.done():
                     log.write(self._log_row(terms))
                 log.advance()
-                if evaluations.due(self.seconds) and not self._done():
+                if evaluations.due(self.mapper.seconds) and not self.done():
                     self._evaluate_during_training(log)
                     evaluations.next_at += evaluations.period
-                if checkpoints.due(self.seconds):
+                if checkpoints.due(self.mapper.seconds):
                     self.save_checkpoint()
-                    checkpoints = Every.after(c.checkpoint_every, self.seconds)
+                    checkpoints = Every.after(c.checkpoint_every, self.mapper.seconds)
             wall_s = since_process_start()
             self.save_checkpoint()
         finally:
             log.close()
-        return TrainSummary(self.step, self.seconds, self.samples, self.startup_s, wall_s)
-
-    def _timed_step(self) -> LossTerms:
-        """One training step on the training clock."""
-        self.prepare()
-        self._sync_frames()  # the frames arrive off the clock; their grid prior is on it
-        return self.mapper.timed_step(self._progress())
+        return TrainSummary(self.mapper.step, self.mapper.seconds, self.mapper.samples, self.startup_s, wall_s)
 
     def _evaluate_during_training(self, log: TrainLog) -> None:
         result = self.evaluate(with_sensors=False)
@@ -339,8 +324,8 @@ class Trainer:
     def _log_row(self, terms: LossTerms) -> LogRow:
         t = terms.as_floats()
         return LogRow(
-            step=self.step,
-            seconds=round(self.seconds, 3),
+            step=self.mapper.step,
+            seconds=round(self.mapper.seconds, 3),
             loss=t["total"],
             colour=t["colour"],
             irs=t["irs"],
@@ -348,13 +333,13 @@ class Trainer:
             rgbd=t["rgbd"],
             psnr=psnr_db(t["colour"]),
             samples_per_ray=round(self.mapper.last_samples_per_ray, 2),
-            occupied=round(self.grid.occupancy_share(), 4),
+            occupied=round(self.mapper.grid.occupancy_share(), 4),
             frames=len(self.available_frames()),
         )
 
     def record_eval(self, result: EvaluationResult, log: TrainLog | None = None) -> None:
         z3 = result.metrics["NeRF"].zones["zone3"]
-        point = EvalPoint(step=self.step, seconds=round(self.seconds, 3),
+        point = EvalPoint(step=self.mapper.step, seconds=round(self.mapper.seconds, 3),
                           acc_mean=z3.acc_mean, cov_mean=z3.cov_mean,
                           acc_inlier=z3.acc_inlier, cov_inlier=z3.cov_inlier,
                           n_test_points=len(result.points))
@@ -362,7 +347,7 @@ class Trainer:
         write_eval_history(self.run_dir / METRICS_VS_TIME, self.eval_history)
         if log is not None:
             for k in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier"):
-                log.scalar(f"eval/zone3_{k}", getattr(point, k), self.step)
+                log.scalar(f"eval/zone3_{k}", getattr(point, k), self.mapper.step)
 
 
 def _raise_if_out_of_memory(exc: BaseException, batch_size: int) -> None:

@@ -4,7 +4,7 @@ Signed, in metres, between pixel centres: outside obstacles the distance to the 
 occupied pixel (> 0), inside obstacles minus the distance to the nearest pixel that is not
 occupied (<= -resolution). Unknown pixels count as not occupied: the field says how far the
 known obstacles are, not where it is safe to drive (the map's unknown pixels say that); pixels
-no sensor looked at (exports/observed.py) are NaN: no distance is claimed there. Written as
+no sensor looked at (maps/observed.py) are NaN: no distance is claimed there. Written as
 float32 `.npy` in image layout (row 0 = largest y, the map_server raster of `maps`), a map_server
 style YAML naming it, and a PNG preview.
 """

@@ -12,6 +12,8 @@ import numpy as np
 import torch
 
 from virus_nerf.data.ethz import Recording
+from virus_nerf.data.room_box import fit_scene_box
+from virus_nerf.engine.config import MapperConfig
 from virus_nerf.field.field import NerfField
 from virus_nerf.grid.base import GridSpec, OccupancyGrid
 from virus_nerf.grid.ngp import NgpGrid
@@ -20,8 +22,6 @@ from virus_nerf.render.compositing import RenderOutput, composite, scan_depth, t
 from virus_nerf.render.marching import march_rays
 from virus_nerf.render.samples import PackedSamples
 from virus_nerf.scene_box import SceneBox
-from virus_nerf.sensors import irs
-from virus_nerf.trainer.config import TrainConfig
 
 # Visible share of the marched samples under which a training step first finds the hidden ones
 # with a density-only pass (then trains the rest); above it one pass trains every density and
@@ -29,32 +29,6 @@ from virus_nerf.trainer.config import TrainConfig
 # ~15 %, backward ~22 %, density MLP ~21 %, colour MLP ~42 % of the field's time): the pre-pass
 # costs ~22 % of a full pass and pays off below a ~0.6 visible share.
 TWO_PASS_BELOW = 0.6
-
-USS_MAX_RANGE_M = 8.0  # the URM37 V5.0's range (datasheet, docs/uss-range.md); bounds the box when there is no map
-
-
-def fit_scene_box(recording: Recording, margin: float = 0.1) -> SceneBox:
-    """Anisotropic box around the room (docs/method.md 3.5, 9.2), in metres.
-
-    From the LiDAR map where there is one (robust 0.1/99.9 percentiles), otherwise from the
-    camera positions grown by the longest sensor range.
-
-    Online runs use the same box, fitted before training from the whole map and drive: the
-    room's extent is taken as known in advance (as from a floor plan). It is the field's and
-    the grids' coordinate frame and bounds the marching; no density, colour or occupancy comes
-    from it. A box grown from what the drive has seen would move the hash grid's frame mid-run.
-    """
-    cams = np.concatenate([s.cam_to_world[:, :3, 3] for s in recording.stacks.values()])
-    if recording.map_path is not None:
-        pts = recording.lidar_map()
-        lo = np.percentile(pts, 0.1, axis=0)
-        hi = np.percentile(pts, 99.9, axis=0)
-        lo, hi = np.minimum(lo, cams.min(axis=0)), np.maximum(hi, cams.max(axis=0))
-        return SceneBox(tuple(lo - margin), tuple(hi + margin))
-    reach = max(irs.IRS_MAX_RANGE_M, USS_MAX_RANGE_M)
-    lo = cams.min(axis=0) - [reach, reach, 1.5]
-    hi = cams.max(axis=0) + [reach, reach, 1.5]
-    return SceneBox(tuple(lo), tuple(hi))
 
 
 @dataclass
@@ -183,7 +157,7 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def start_box(recording: Recording, config: TrainConfig) -> SceneBox:
+def start_box(recording: Recording, config: MapperConfig) -> SceneBox:
     """The mapper's box before its first frame: fitted to the room (`extent.mode` fitted), or the
     box around the recording's first training frame (grow: grid/extent.py)."""
     if config.extent.mode != "grow":
@@ -195,7 +169,7 @@ def start_box(recording: Recording, config: TrainConfig) -> SceneBox:
     return first_box(first[1], config.extent)
 
 
-def build_grid(config: TrainConfig, box: SceneBox, device: torch.device, spec: GridSpec | None = None) -> OccupancyGrid:
+def build_grid(config: MapperConfig, box: SceneBox, device: torch.device, spec: GridSpec | None = None) -> OccupancyGrid:
     """The configured occupancy grid over `spec` (default: `box` with the grid's max_resolution);
     a grid that cannot fit in memory is refused before it is allocated."""
     from virus_nerf.utils.memory import require_memory

@@ -14,8 +14,7 @@ Example, in a ROS node or a script (metres, seconds, RGB; OpenCV camera axes)::
     from virus_nerf.data.frame import SyncFrame, check_frame
     from virus_nerf.scene_box import SceneBox
     from virus_nerf.sensors.camera import Intrinsics
-    from virus_nerf.trainer.config import TrainConfig
-    from virus_nerf.trainer.mapper import Mapper
+        from virus_nerf.engine.mapper import Mapper
 
     intr = Intrinsics(fx=386.0, fy=386.0, cx=320.0, cy=240.0, width=640, height=480)
     mapper = Mapper(TrainConfig(), {1: intr, 3: intr}, SceneBox((-5, -5, -1), (5, 5, 2)))
@@ -24,7 +23,7 @@ Example, in a ROS node or a script (metres, seconds, RGB; OpenCV camera axes)::
                                uss_range=uss_m, irs_range=zones_8x8_m))
     # between messages, e.g. in a timer:
     report = mapper.train(0.5)            # TrainSlice(steps, seconds, loss, frames, ...)
-    grid_map = mapper.map2d()             # exports.maps.OccupancyMap2D (write_map_server)
+    grid_map = mapper.map2d()             # maps.occupancy.OccupancyMap2D (write_map_server)
     scans = mapper.scans(poses)           # [evaluation.scans.Scan2D] at (N, 4, 4) poses
     mapper.snapshot(Path("maps/0001"))    # map.pgm/.yaml/.png (+ prob.*) and snapshot.json
 """
@@ -41,6 +40,10 @@ import numpy as np
 import torch
 
 from virus_nerf.data.frame import SyncFrame, check_frame
+from virus_nerf.engine.config import MapperConfig
+from virus_nerf.engine.model import SceneModel, build_grid, resolve_device, start_box
+from virus_nerf.engine.schedule import StepSchedule, budget_share
+from virus_nerf.engine.views import MapViews
 from virus_nerf.errors import UsageError
 from virus_nerf.field.field import NerfField
 from virus_nerf.grid.base import GridSpec, GridUpdateBatch
@@ -53,10 +56,6 @@ from virus_nerf.sampler.sensor_rays import irs_zone_rays, stereo_target_rays, us
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.stereo.depth import StereoDepth, StereoFeed
-from virus_nerf.trainer.config import TrainConfig
-from virus_nerf.trainer.map_views import MapViews
-from virus_nerf.trainer.model import SceneModel, build_grid, resolve_device, start_box
-from virus_nerf.trainer.schedule import budget_share, rays_for_step
 
 
 @dataclass(frozen=True)
@@ -82,10 +81,12 @@ class Mapper(MapViews):
     frame (grid/extent.py first_box), which grows as frames arrive (grid/extent.py).
     """
 
-    def __init__(self, config: TrainConfig, intrinsics: Mapping[int, Intrinsics], box: SceneBox):
+    def __init__(self, config: MapperConfig, intrinsics: Mapping[int, Intrinsics], box: SceneBox):
         if not intrinsics:
             raise UsageError("Mapper intrinsics {}: expected at least one stack id -> Intrinsics")
+        config = config.engine()  # the engine's knobs alone (a TrainConfig's run knobs stay with the run)
         self.config = config
+        self.schedules = {False: StepSchedule.for_mode(config, False), True: StepSchedule.for_mode(config, True)}
         self.intrinsics = dict(intrinsics)
         self.box = box
         self.device = resolve_device(config.device)
@@ -125,9 +126,9 @@ class Mapper(MapViews):
         self._stereo_feed: StereoFeed | None = None  # fed by track_image (mapping while driving)
 
     @classmethod
-    def for_recording(cls, recording, config: TrainConfig) -> Mapper:
+    def for_recording(cls, recording, config: MapperConfig) -> Mapper:
         """A mapper for a recording's stacks and scene box, no frames: the box fitted to the room
-        (trainer.model.fit_scene_box), or with `extent.mode` grow the first frame's box."""
+        (data.room_box.fit_scene_box), or with `extent.mode` grow the first frame's box."""
         return cls(config, {s: st.intrinsics for s, st in recording.stacks.items()}, start_box(recording, config))
 
     # ------------------------------------------------------------------ frames
@@ -265,22 +266,31 @@ class Mapper(MapViews):
         return budget_share(self.step, self.seconds, self.config.max_steps, self.config.max_time)
 
     def train_step(self, progress: float | None = None) -> LossTerms:
-        """One step on every frame added so far (the prior of new frames first); `progress` in
-        [0, 1] sets the learning rate lr * lr_decay_to ** progress (default `self.progress()`)."""
+        """The one training step, on the training clock: every frame added so far (the prior of
+        new frames first); `progress` in [0, 1] of the budget sets the learning rate (the
+        schedule's lr * lr_decay_to ** progress; default `self.progress()`)."""
+        t_start = time.perf_counter()
+        terms = self._step(progress)
+        self.seconds += time.perf_counter() - t_start
+        self.last_loss = float(terms.total.detach())
+        return terms
+
+    def _step(self, progress: float | None) -> LossTerms:
+        """`train_step` off the clock: sample, render, losses, Adam, grid update."""
         if not self._warm:
             self.prepare()
         self._apply_pending_prior()
         if self._frames_at_start is None:
             self._frames_at_start = self.frames
         c = self.config
-        decay = c.optim.lr_decay_driving if self.driving else c.optim.lr_decay_to
+        schedule = self.schedule
         progress = self.progress() if progress is None else progress
-        lr = c.optim.lr * decay ** progress
+        lr = schedule.learning_rate(progress)
         for g in self.optimizer.param_groups:
             g["lr"] = lr
-        cap = c.max_samples_per_step_driving if self.driving else c.max_samples_per_step
-        n_rays = rays_for_step(c.batch_size, cap, self.last_samples_per_ray)
-        batch = self.sampler.sample(self.rng, n_rays, np.arange(self.frames), self._frame_odds()).to(self.device)
+        n_rays = schedule.rays(c.batch_size, self.last_samples_per_ray)
+        batch = self.sampler.sample(self.rng, n_rays, np.arange(self.frames), self._frame_odds(schedule))
+        batch = batch.to(self.device)
         sensors = c.sensors
         rgb_rays = None
         if c.density_only_depth_rays:
@@ -323,10 +333,14 @@ class Mapper(MapViews):
         self.rays += stats.n_rays
         self.last_samples_per_ray = stats.n_samples / max(1, stats.n_rays)
         if self.step % self.grid.update_interval == 0:
-            self.grid.driving = self.driving
-            self.grid.budget_progress = progress  # every TrainConfig has a step or time budget
-            self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator)
+            self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator,
+                             driving=schedule.driving, budget_progress=progress)
         return terms
+
+    @property
+    def schedule(self) -> StepSchedule:
+        """The next step's schedule: offline, or driving once frames arrive after the first step."""
+        return self.schedules[self.driving]
 
     @property
     def driving(self) -> bool:
@@ -337,13 +351,12 @@ class Mapper(MapViews):
         virus_grid.warmup_steps_driving)."""
         return self._frames_at_start is not None and self.frames > self._frames_at_start
 
-    def _frame_odds(self) -> np.ndarray | None:
-        """Per-frame odds of the next batch: None (uniform) offline, config.recent's share on
+    def _frame_odds(self, schedule: StepSchedule) -> np.ndarray | None:
+        """Per-frame odds of the next batch: None (uniform) offline, the schedule's share on
         the newest frames while driving."""
-        share = self.config.recent.share
-        if share <= 0.0 or not self.driving:
+        if schedule.recent_share <= 0.0:
             return None
-        return recent_frame_odds(self.store.times, share, self.config.recent.window)
+        return recent_frame_odds(self.store.times, schedule.recent_share, schedule.recent_window)
 
     def _grid_batch(self, batch: RayBatch, stats) -> GridUpdateBatch:
         """Candidates for one grid update; the grid draws its own share of each at random.
@@ -366,14 +379,6 @@ class Mapper(MapViews):
             forward_sigma=stats.sigma,
         )
 
-    def timed_step(self, progress: float | None = None) -> LossTerms:
-        """`train_step` on the training clock."""
-        t_start = time.perf_counter()
-        terms = self.train_step(progress)
-        self.seconds += time.perf_counter() - t_start
-        self.last_loss = float(terms.total.detach())
-        return terms
-
     def train(self, seconds: float, steps: int | None = None) -> TrainSlice:
         """Train on the frames added so far for `seconds` of training clock (and at most `steps`
         steps); the one-off start-up of the first call (kernel loading) is not counted."""
@@ -386,7 +391,7 @@ class Mapper(MapViews):
         step0, clock0 = self.step, self.seconds
         loss = None
         while self.seconds - clock0 < seconds and (steps is None or self.step - step0 < steps):
-            loss = float(self.timed_step().total.detach())
+            loss = float(self.train_step().total.detach())
         return TrainSlice(steps=self.step - step0, seconds=self.seconds - clock0, loss=loss, frames=self.frames,
                           total_steps=self.step, total_seconds=self.seconds)
 

@@ -85,7 +85,7 @@ def frames_observed(cam_to_world: np.ndarray, stack_ids: np.ndarray, intrinsics,
 def apply_mask(image: np.ndarray, mask_xy: np.ndarray, unobserved_value: int) -> np.ndarray:
     """A map image (H, W) (row 0 = largest y) with every pixel outside `mask_xy` [ix, iy] set to
     `unobserved_value`; the input is not changed."""
-    from virus_nerf.exports.maps import to_image
+    from virus_nerf.maps.occupancy import to_image
 
     out = np.array(image, copy=True)
     out[~to_image(mask_xy)] = unobserved_value

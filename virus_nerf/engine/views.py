@@ -1,4 +1,4 @@
-"""What a `Mapper` (trainer/mapper.py) answers about its current map: NeRF 360 deg scans, the 2D
+"""What a `Mapper` (engine/mapper.py) answers about its current map: NeRF 360 deg scans, the 2D
 occupancy map, the VIRUS grid's probability map, and snapshots of them as map_server files.
 
 A mixin so that the training engine and the queries read apart; it uses the mapper's `model`,
@@ -17,6 +17,10 @@ import torch
 
 from virus_nerf.errors import UsageError
 from virus_nerf.grid.virus import VirusGrid
+from virus_nerf.maps.extract import camera_height, check_raster, occupancy_map, probability_map
+from virus_nerf.maps.observed import frames_observed
+from virus_nerf.maps.occupancy import raster_shape
+from virus_nerf.maps.scans import FieldOfView, Scan2D, horizontal_directions, points_from_ranges
 
 
 @dataclass(frozen=True)
@@ -31,23 +35,15 @@ class SnapshotInfo:
     map_occupied: float  # share of the map's known pixels that are occupied
     map_known: float  # share of the map's pixels that are known (free or occupied)
     grid_occupied: float  # share of the occupancy grid's cells the marcher samples
-    observed: float = 0.0  # share of the map's pixels some sensor looked at (exports/observed.py)
-
+    observed: float = 0.0  # share of the map's pixels some sensor looked at (maps/observed.py)
 
 
 class MapViews:
     """Queries of the current map (mixed into `Mapper`)."""
 
     def scans(self, poses: np.ndarray, n_rays: int = 512) -> list:
-        """NeRF 360 deg horizontal scans (evaluation.scans.Scan2D, world x, y in metres) from each
+        """NeRF 360 deg horizontal scans (maps.scans.Scan2D, world x, y in metres) from each
         pose's position: poses (N, 4, 4) camera-to-world, (4, 4), or positions (N, 3)."""
-        from virus_nerf.evaluation.scans import (
-            FieldOfView,
-            Scan2D,
-            horizontal_directions,
-            points_from_ranges,
-        )
-
         positions = _positions(poses)
         dirs = horizontal_directions(n_rays)
         out = []
@@ -62,49 +58,31 @@ class MapViews:
         return out
 
     def map2d(self, resolution: float = 0.05, n_rays: int = 360, max_poses: int = 30):
-        """The current 2D occupancy map (exports.maps.OccupancyMap2D, trinary, over the box's x, y):
-        NeRF scans from up to `max_poses` camera positions of the frames added so far (evenly
-        spread), cells a scan passed free, end cells occupied, the rest unknown; and unknown
-        wherever no sensor looked (`observed`), whatever the NeRF says there."""
-        from virus_nerf.exports.maps import UNKNOWN
-        from virus_nerf.exports.observed import apply_mask
-        from virus_nerf.exports.views import scan_map
-
-        for name, v, lo in (("resolution", resolution, 0.0), ("n_rays", n_rays, 0), ("max_poses", max_poses, 0)):
+        """The current 2D occupancy map (maps.occupancy.OccupancyMap2D, trinary, over the box's
+        x, y): NeRF scans from up to `max_poses` camera positions of the frames added so far
+        (evenly spread), cells a scan passed free, end cells occupied, the rest unknown; and
+        unknown wherever no sensor looked (`observed`), whatever the NeRF says there. The same
+        extraction as `virus-nerf export` (maps/extract.py)."""
+        for name, v, lo in (("n_rays", n_rays, 0), ("max_poses", max_poses, 0)):
             if isinstance(v, bool) or not isinstance(v, int | float) or not v > lo or not math.isfinite(v):
                 raise UsageError(f"Mapper.map2d {name} {v!r}: expected a positive number")
-        self._check_raster("Mapper.map2d", resolution)
-        pos = self.store.cam_to_world[:, :3, 3]
-        pos = pos[np.unique(np.linspace(0, len(pos) - 1, min(max_poses, len(pos))).round().astype(int))]
-        lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
+        lo, hi = self._raster_box("Mapper.map2d resolution", resolution)
         self.field.eval()
         try:
-            m = scan_map(self.model, pos if len(pos) else np.zeros((0, 3)), lo, hi, resolution, int(n_rays))
+            return occupancy_map(self.model, self.store.cam_to_world[:, :3, 3], lo, hi, resolution, int(n_rays),
+                                 int(max_poses), self.observed(resolution))
         finally:
             self.field.train()
-        m.image = apply_mask(m.image, self.observed(resolution), UNKNOWN)  # free only where a sensor looked
-        return m
 
-    def _check_raster(self, what: str, resolution) -> None:
-        """A one-line UsageError, before anything is allocated, for a resolution that is not a
-        positive number or would make the box's map larger than exports.maps.MAX_PIXELS."""
-        from virus_nerf.exports.maps import MAX_PIXELS, raster_shape
-
-        if isinstance(resolution, bool) or not isinstance(resolution, int | float) or not math.isfinite(resolution) \
-                or resolution <= 0:
-            raise UsageError(f"{what} resolution {resolution!r}: expected a positive number of metres per pixel")
-        nx, ny = raster_shape(np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2]), resolution)
-        if nx * ny > MAX_PIXELS:
-            raise UsageError(f"{what} resolution {resolution!r}: the {self.box.size[0]:.1f} x {self.box.size[1]:.1f} m "
-                             f"box would be a {nx}x{ny} px map; expected at most {MAX_PIXELS // 1_000_000} M px "
-                             "(a coarser resolution)")
+    def _raster_box(self, what: str, resolution) -> tuple[np.ndarray, np.ndarray]:
+        """The box's (x, y) corners, once `resolution` is checked (maps.extract.check_raster)."""
+        lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
+        check_raster(what, lo, hi, resolution)
+        return lo, hi
 
     def observed(self, resolution: float = 0.05) -> np.ndarray:
         """(nx, ny) bool [ix, iy] over the box's x, y raster: pixels inside some frame's camera
-        view wedge (exports/observed.py); outside it every map is unknown."""
-        from virus_nerf.exports.maps import raster_shape
-        from virus_nerf.exports.observed import frames_observed
-
+        view wedge (maps/observed.py); outside it every map is unknown."""
         key = (self.frames, float(resolution), self.box)  # a grown box is another raster
         if getattr(self, "_observed_cache", (None,))[0] != key:
             lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
@@ -115,24 +93,16 @@ class MapViews:
 
     def probability_map(self, resolution: float = 0.05, band: float = 0.1):
         """The VIRUS grid's occupancy probability at camera height (`mode: scale` OccupancyMap2D;
-        exports.maps.probability_slice); None for the Instant-NGP grid."""
-        from virus_nerf.exports.maps import probability_slice, scale_map
-
-        self._check_raster("Mapper.probability_map", resolution)
+        maps.extract.probability_map); None for the Instant-NGP grid."""
+        lo, hi = self._raster_box("Mapper.probability_map resolution", resolution)
         if not isinstance(self.grid, VirusGrid):
             return None
-        lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
-        p = probability_slice(self.grid.probability.numpy(), self.box.lo, self.box.hi, self.camera_height(), band,
-                              lo, hi, resolution)
-        p[~self.observed(resolution)] = 0.5  # no sensor looked: no knowledge, never free
-        return scale_map(p, lo, resolution)
+        return probability_map(self.grid.probability.numpy(), self.box.lo, self.box.hi, self.camera_height(), band,
+                               lo, hi, resolution, self.observed(resolution))
 
     def camera_height(self) -> float:
-        """Median height (m) of stack 1's cameras (all stacks' without stack 1) so far."""
-        z = self.store.cam_to_world[:, 2, 3]
-        main = self.store.stack_ids == 1
-        z = z[main] if main.any() else z
-        return float(np.median(z)) if len(z) else float(self.box.center[2])
+        """Median height (m) of the main stack's cameras (all stacks' without it) so far."""
+        return camera_height(self.store.cam_to_world, self.store.stack_ids, default=float(self.box.center[2]))
 
     def snapshot(self, folder: Path, resolution: float = 0.05, n_rays: int = 360, max_poses: int = 30,
                  with_state: bool = False, replace: bool = False, maps: tuple | None = None) -> SnapshotInfo:
@@ -141,8 +111,8 @@ class MapViews:
         snapshot.json and, with `with_state`, mapper.pt (`state()`). `replace`: an existing folder
         is replaced once the new one is complete (a resumed run's own map). `maps`: (map2d,
         probability_map) already computed at these settings for this state (not recomputed)."""
-        from virus_nerf.exports.maps import FREE, OCCUPIED, write_map_server, write_png
-        from virus_nerf.exports.observed import observed_share
+        from virus_nerf.maps.observed import observed_share
+        from virus_nerf.maps.occupancy import FREE, OCCUPIED, write_map_server, write_png
         from virus_nerf.utils.io import new_output_dir, write_json_atomic
 
         folder = Path(folder)

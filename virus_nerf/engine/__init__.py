@@ -1,0 +1,9 @@
+"""The method's own room (docs/architecture.md): the robot's mapping engine, with no run folder,
+command line or evaluation.
+
+config: `MapperConfig`, every knob the engine reads
+mapper: `Mapper`, frames in, training steps, map queries out (its public API)
+model: `SceneModel` (field + occupancy grid + marcher), the grid and device it runs on
+schedule: how long and how wide a step is, offline or while driving (`StepSchedule`)
+views: the map queries mixed into `Mapper` (scans, 2D maps, snapshots)
+"""

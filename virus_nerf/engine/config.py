@@ -1,0 +1,236 @@
+"""The engine's configuration: only the knobs the `Mapper` reads (the method, its sensors and
+its schedule), validated in one place. `trainer.config.TrainConfig` adds the run's knobs (budget
+checks, evaluation, logging, the online clock) on top; config.json holds both."""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+from dataclasses import field as dc_field
+from typing import Literal
+
+from virus_nerf.field.field import FieldConfig
+from virus_nerf.grid.extent import ExtentConfig
+from virus_nerf.grid.ngp import NgpGridConfig
+from virus_nerf.grid.virus import VirusGridConfig
+from virus_nerf.losses import LossWeights
+from virus_nerf.sampler.batch import SENSORS, BatchShares
+from virus_nerf.stereo.depth import StereoConfig
+
+
+@dataclass
+class MarchConfig:
+    """Ray marching along training and scan rays (metres)."""
+
+    step_size: float = 0.03  # constant step; 1 cm - 5 cm suits rooms
+    near: float = 0.05  # start of every ray, in front of the lens
+    max_samples: int = 256  # per ray, after occupancy skipping
+    # training: samples behind a transmittance below this get no gradient pass (a density-only
+    # pass finds them first); 0 renders every sample with gradients. 1e-4 (Instant-NGP's early
+    # termination): the same map per step as 0 and about half the CPU time per step at 2048-4096
+    # rays; 1e-3 lost quality (docs/method.md 10, README "Time to map")
+    min_transmittance: float = 1e-4
+    backend: str = "auto"  # marching and compositing: auto (numba on CPU, torch on CUDA) | numba | torch
+
+    def __post_init__(self) -> None:
+        if self.backend not in ("auto", "numba", "torch"):
+            raise ValueError(f"march.backend {self.backend!r}: expected 'auto', 'numba' or 'torch'")
+
+
+@dataclass
+class OptimConfig:
+    lr: float = 0.0094  # Adam; from the tuning study (paper 5e-3 on a GPU with 4096 rays; see README)
+    eps: float = 1e-15
+    betas: tuple[float, float] = (0.9, 0.99)
+    lr_decay_to: float = 0.1  # exponential decay to this fraction of lr at max_steps/max_time
+    # the same while mapping while driving (frames added after the first step: --online,
+    # map-bag): 1 = a constant lr, since new frames keep arriving and a decayed lr leaves the
+    # last part of the drive half-trained (README, "Mapping while driving")
+    lr_decay_driving: float = 1.0
+
+
+@dataclass
+class RecentFrames:
+    """Mapping while driving: a share of every batch from the newest frames.
+
+    Once frames arrive after training has begun (`--online`, `map-bag`, `Mapper.add_frame`
+    between `train` calls), `share` of each batch's rays come from the frames of the last
+    `window` seconds of recording time and the rest from all frames; a frame just driven past
+    otherwise gets 1/N of the rays. Offline (every frame present at the first step) it does
+    nothing. share 0 samples all frames alike.
+    """
+
+    share: float = 0.5
+    window: float = 5.0  # seconds of recording time
+
+
+class Checks:
+    """Type and range checks of dotted config knobs; a bad value is a ValueError naming the
+    knob, the value and what was expected (the command line turns it into one line)."""
+
+    def __init__(self, config) -> None:
+        self.config = config
+
+    def get(self, dotted: str):
+        obj = self.config
+        for part in dotted.split("."):
+            obj = getattr(obj, part)
+        return obj
+
+    @staticmethod
+    def bad(name: str, value, expected: str) -> ValueError:
+        return ValueError(f"{name} {value!r}: expected {expected}")
+
+    def integer(self, name: str, lo: int, hi: int | None = None, optional: bool = False) -> None:
+        v = self.get(name)
+        if v is None and optional:
+            return
+        ok = isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= lo and (hi is None or v <= hi)
+        if not ok:
+            rng = f"an integer >= {lo}" if hi is None else f"an integer in [{lo}, {hi}]"
+            raise self.bad(name, v, rng + (" or None" if optional else ""))
+
+    def number(self, name: str, lo: float, hi: float | None = None, *, lo_open: bool = True,
+               optional: bool = False) -> None:
+        v = self.get(name)
+        if v is None and optional:
+            return
+        ok = isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+        ok = ok and (v > lo if lo_open else v >= lo) and (hi is None or v <= hi)
+        if not ok:
+            rng = f"{'>' if lo_open else '>='} {lo:g}" if hi is None else \
+                f"in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
+            raise self.bad(name, v, f"a finite number {rng}" + (" or None" if optional else ""))
+
+    def flag(self, name: str) -> None:
+        if not isinstance(self.get(name), bool):
+            raise self.bad(name, self.get(name), "a bool (true or false)")
+
+
+@dataclass
+class MapperConfig:
+    """Every knob of the method (docs/method.md 3): the grid, the sensors, the field, the
+    marcher, the losses, the optimiser and its schedule. max_steps / max_time only shape the
+    learning-rate decay here (`Mapper.train(seconds)` decides how long to train)."""
+
+    grid: Literal["virus", "ngp"] = "virus"
+    # stereo (depth triangulated from the cameras' own tracks, docs/method.md 3.7) is on by
+    # default: common areas no test or tuning used, 180 s, mean of 3 rooms: 0.370 / 0.511 m
+    # against 0.397 / 0.699 without it (docs/decisions.md D31)
+    sensors: tuple[str, ...] = ("camera", "uss", "irs", "stereo")
+    max_steps: int | None = None  # stop after this many steps (None: no step limit)
+    max_time: float | None = 120.0  # seconds of training, evaluation excluded (None: no limit)
+    batch_size: int = 2048  # rays per step (at most, with max_samples_per_step)
+    # cap on a step's samples, like Instant-NGP's fixed sample budget per step: while rays are
+    # long (the grid's warm-up, a large room, the first frames online) a step takes fewer rays,
+    # min(batch_size, cap / the last step's samples per ray), at least batch_size / 8. None:
+    # always batch_size rays. max_samples_per_step_driving replaces it while mapping while driving
+    # (frames arrive after the first step): 32768 (2048 rays x 16 samples) nearly doubles the steps
+    # of a 40 s drive at playback x1 (the grid stays in its warm-up all drive, 16-67 samples per
+    # ray) and gave 0.172 +- 0.043 m against 0.209 +- 0.023 without it (5 seeds, README
+    # "Mapping while driving"). Offline it stays off: more steps but worse maps there (README,
+    # "Time to map": the step-counted grid warm-up ends before the field knows the room)
+    max_samples_per_step: int | None = None
+    max_samples_per_step_driving: int | None = 32768
+    seed: int = 0
+    image_scale: float = 0.5  # training image resolution relative to the recording
+    device: str = "auto"  # auto | cpu | cuda
+    min_opacity: float = 0.5  # scan rays with lower opacity give no point (docs/method.md 3.1)
+    # depth-supervised (IRS, RGB-D) rays train the density alone: no colour MLP, no colour loss
+    density_only_depth_rays: bool = False
+    field: FieldConfig = dc_field(default_factory=FieldConfig.cpu_default)
+    march: MarchConfig = dc_field(default_factory=MarchConfig)
+    optim: OptimConfig = dc_field(default_factory=OptimConfig)
+    shares: BatchShares = dc_field(default_factory=BatchShares)
+    recent: RecentFrames = dc_field(default_factory=RecentFrames)
+    weights: LossWeights = dc_field(default_factory=LossWeights)
+    ngp_grid: NgpGridConfig = dc_field(default_factory=NgpGridConfig)
+    virus_grid: VirusGridConfig = dc_field(default_factory=VirusGridConfig)
+    # the stereo sensor: depth triangulated from the cameras' own tracks (docs/method.md 3.7)
+    stereo: StereoConfig = dc_field(default_factory=StereoConfig)
+    # the map's extent: fitted to the room before the first step, or grown from the first frame
+    # as the robot drives (a room never seen; grid/extent.py, docs/extent.md)
+    extent: ExtentConfig = dc_field(default_factory=ExtentConfig)
+
+    def __post_init__(self) -> None:
+        """Types and ranges of every top-level knob (and the nested ones that would crash a
+        step); a bad value is a ValueError naming the field, the value and what was expected."""
+        check = Checks(self)
+        integer, number, flag, bad = check.integer, check.number, check.flag, check.bad
+        if isinstance(self.sensors, str):
+            self.sensors = tuple(s.strip() for s in self.sensors.split(",") if s.strip())
+        allowed = set(SENSORS)
+        if not isinstance(self.sensors, tuple | list) or not all(isinstance(s, str) for s in self.sensors):
+            raise bad("sensors", self.sensors, f"a non-empty subset of {sorted(allowed)}")
+        self.sensors = tuple(self.sensors)
+        bad_sensors = set(self.sensors) - allowed
+        if bad_sensors or not self.sensors:
+            raise ValueError(f"sensors {self.sensors}: expected a non-empty subset of {sorted(allowed)}")
+        if self.grid not in ("virus", "ngp"):
+            raise ValueError(f"grid {self.grid!r}: expected 'virus' or 'ngp'")
+        integer("max_steps", 1, optional=True)
+        number("max_time", 0.0, optional=True)
+        if self.max_steps is None and self.max_time is None:
+            raise ValueError("max_steps and max_time are both None: set max_steps or max_time (or both)")
+        integer("batch_size", 1)
+        integer("max_samples_per_step", 1, optional=True)
+        integer("max_samples_per_step_driving", 1, optional=True)
+        integer("seed", 0, 2**32 - 1)
+        number("image_scale", 0.0, 1.0)
+        if not isinstance(self.device, str) or not (self.device in ("auto", "cpu", "cuda")
+                                                    or self.device.startswith("cuda:")):
+            raise bad("device", self.device, "'auto', 'cpu', 'cuda' or 'cuda:<index>'")
+        number("min_opacity", 0.0, 1.0, lo_open=False)
+        flag("density_only_depth_rays")
+        # bounds that keep a step finite: a 0.1 mm step walks 10^4 samples a metre, a start
+        # beyond 100 m leaves no ray in any room, exp(88.7) overflows float32
+        number("march.step_size", 1e-4, lo_open=False)
+        number("march.near", 0.0, 100.0, lo_open=False)
+        integer("march.max_samples", 1)
+        number("march.min_transmittance", 0.0, 1.0, lo_open=False)
+        number("optim.lr", 0.0)
+        number("optim.eps", 0.0)
+        number("optim.lr_decay_to", 0.0)
+        number("optim.lr_decay_driving", 0.0)
+        integer("virus_grid.update_interval", 1)
+        integer("ngp_grid.update_interval", 1)
+        # the nested sections whose own classes take any number: a bad value would end in a
+        # traceback (ZeroDivisionError, a torch shape error) after the data were read, or train
+        # on silently (a zero-width layer, a negative share or weight)
+        for name in ("density_hidden", "color_hidden"):
+            for i, width in enumerate(getattr(self.field, name)):
+                if not (isinstance(width, numbers.Integral) and width >= 1):
+                    raise bad(f"field.{name}[{i}]", width, "an integer >= 1 (layer width)")
+        number("field.density_clamp", 0.0, 80.0)
+        integer("ngp_grid.max_resolution", 1)
+        integer("ngp_grid.warmup_steps", 0)
+        integer("ngp_grid.chunk_size", 1)
+        number("ngp_grid.decay", 0.0, 1.0)
+        number("ngp_grid.step_size", 0.0)
+        number("ngp_grid.min_alpha", 0.0, 1.0)
+        if not self.ngp_grid.min_alpha < 1.0:
+            raise bad("ngp_grid.min_alpha", self.ngp_grid.min_alpha, "a finite number in (0, 1)")
+        for i, beta in enumerate(self.optim.betas):
+            if not (isinstance(beta, numbers.Real) and not isinstance(beta, bool) and 0.0 <= beta < 1.0):
+                raise bad(f"optim.betas[{i}]", beta, "a number in [0, 1)")
+        number("recent.share", 0.0, 1.0, lo_open=False)
+        number("recent.window", 0.0)
+        number("shares.irs", 0.0, 1.0, lo_open=False)
+        number("shares.uss", 0.0, 1.0, lo_open=False)
+        number("shares.stereo", 0.0, 1.0, lo_open=False)
+        if self.shares.irs + self.shares.uss + self.shares.stereo > 1.0:
+            raise ValueError(f"shares.irs {self.shares.irs!r} + shares.uss {self.shares.uss!r} + shares.stereo "
+                             f"{self.shares.stereo!r}: expected a sum <= 1 (the rest of the batch are random pixels)")
+        for name in ("colour", "irs", "uss", "rgbd", "stereo", "distortion"):
+            number(f"weights.{name}", 0.0, lo_open=False)
+        number("weights.stereo_sigma_ref", 0.0)
+        for name in ("free_uss", "free_depth", "free_margin"):
+            number(f"weights.{name}", 0.0, lo_open=False)
+
+    def engine(self) -> MapperConfig:
+        """This config's engine knobs alone (a `TrainConfig` drops its run knobs; the sections
+        are shared, not copied)."""
+        import dataclasses
+
+        return MapperConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(MapperConfig)})

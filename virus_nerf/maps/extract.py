@@ -1,0 +1,94 @@
+"""One map extraction for every consumer: `virus-nerf export` (a trained run), the Mapper's
+`map2d` / `probability_map` / snapshots (mapping while driving) and the planner-safety figure.
+
+The 2D map of a trained model is its own 360 deg scans at camera height from evenly spread
+camera positions, rasterised (maps/occupancy.py: passed cells free, end cells occupied), then
+unknown wherever no sensor looked (maps/observed.py). The probability map is the VIRUS grid's
+occupancy probability at camera height, 0.5 where no sensor looked. The caller chooses the
+positions and the observed mask (a run: the recording's frames; the Mapper: the frames it has).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from virus_nerf.errors import UsageError
+from virus_nerf.maps.observed import apply_mask
+from virus_nerf.maps.occupancy import (
+    MAX_PIXELS,
+    UNKNOWN,
+    OccupancyMap2D,
+    probability_slice,
+    raster_shape,
+    scale_map,
+    scan_occupancy,
+)
+from virus_nerf.maps.scans import horizontal_directions
+from virus_nerf.sensors.rig import MAIN_STACK
+
+
+def check_raster(what: str, lo: np.ndarray, hi: np.ndarray, resolution) -> tuple[int, int]:
+    """(nx, ny) of the (x, y) box [lo, hi] at `resolution`; a one-line UsageError naming `what`
+    (the flag or argument) before anything is allocated for a resolution that is not a positive
+    number or makes the map larger than maps.occupancy.MAX_PIXELS."""
+    if isinstance(resolution, bool) or not isinstance(resolution, int | float) or not np.isfinite(resolution) \
+            or resolution <= 0:
+        raise UsageError(f"{what} {resolution!r}: expected a positive number of metres per pixel")
+    nx, ny = raster_shape(lo, hi, resolution)
+    if nx * ny > MAX_PIXELS:
+        raise UsageError(f"{what} {resolution!r}: the {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} m box would be a "
+                         f"{nx}x{ny} px map; expected at most {MAX_PIXELS // 1_000_000} M px (a coarser resolution)")
+    return nx, ny
+
+
+def spread_positions(positions: np.ndarray, max_poses: int) -> np.ndarray:
+    """(N, 3) camera positions -> at most `max_poses` of them, evenly spread over their order
+    (the first and the last always among them)."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if not len(positions):
+        return positions
+    return positions[np.linspace(0, len(positions) - 1, min(max_poses, len(positions))).astype(int)]
+
+
+def camera_height(cam_to_world: np.ndarray, stack_ids: np.ndarray, default: float = 0.0) -> float:
+    """Median height (m) of the main stack's cameras (every stack's without it): the height of
+    the 2D maps (docs/method.md 6.3). cam_to_world (N, 4, 4), stack_ids (N,)."""
+    z = np.asarray(cam_to_world)[:, 2, 3]
+    main = np.asarray(stack_ids) == MAIN_STACK
+    z = z[main] if main.any() else z
+    return float(np.median(z)) if len(z) else float(default)
+
+
+def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int):
+    """360 deg model scans from camera `positions` (N, 3) -> a trinary OccupancyMap2D over the
+    (x, y) box [lo, hi] (maps.occupancy.scan_occupancy: passed cells free, end cells occupied)."""
+    dirs = horizontal_directions(n_rays)
+    origins_all, dirs_all, ranges_all = [], [], []
+    for p in np.asarray(positions, dtype=np.float64).reshape(-1, 3):
+        origins = np.broadcast_to(p, dirs.shape).copy()
+        ranges_all.append(model.ranges(origins, dirs))
+        origins_all.append(origins[:, :2])
+        dirs_all.append(dirs[:, :2])
+    if not ranges_all:
+        return scan_occupancy(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), lo, hi, resolution)
+    return scan_occupancy(np.concatenate(origins_all), np.concatenate(dirs_all), np.concatenate(ranges_all),
+                          lo, hi, resolution)
+
+
+def occupancy_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int,
+                  max_poses: int, observed: np.ndarray) -> OccupancyMap2D:
+    """The trinary 2D map: scans from up to `max_poses` of the camera `positions` (N, 3), then
+    unknown outside `observed` ((nx, ny) bool [ix, iy], maps/observed.py), whatever the model says."""
+    m = scan_map(model, spread_positions(positions, max_poses), lo, hi, resolution, n_rays)
+    m.image = apply_mask(m.image, observed, UNKNOWN)  # free only where a sensor looked
+    return m
+
+
+def probability_map(probability: np.ndarray, box_lo, box_hi, height: float, band: float, lo: np.ndarray,
+                    hi: np.ndarray, resolution: float, observed: np.ndarray) -> OccupancyMap2D:
+    """The VIRUS grid's occupancy probability (rx, ry, rz) over the 3D box [box_lo, box_hi] as a
+    `mode: scale` map of the (x, y) box [lo, hi] at `height` +- `band` m (maximum over the
+    layers), 0.5 outside `observed`."""
+    p = probability_slice(probability, box_lo, box_hi, height, band, lo, hi, resolution)
+    p[~observed] = 0.5  # no sensor looked: no knowledge, never free
+    return scale_map(p, lo, resolution)
