@@ -11,20 +11,17 @@ map-bag` replays a recording through one in real time (mapping/replay.py).
 
 Example, in a ROS node or a script (metres, seconds, RGB; OpenCV camera axes)::
 
-    from virus_nerf.data.frame import SyncFrame, check_frame
-    from virus_nerf.scene_box import SceneBox
-    from virus_nerf.sensors.camera import Intrinsics
-        from virus_nerf.engine.mapper import Mapper
+    from virus_nerf import Intrinsics, Mapper, MapperConfig, SceneBox, SyncFrame
 
     intr = Intrinsics(fx=386.0, fy=386.0, cx=320.0, cy=240.0, width=640, height=480)
-    mapper = Mapper(TrainConfig(), {1: intr, 3: intr}, SceneBox((-5, -5, -1), (5, 5, 2)))
+    mapper = Mapper(MapperConfig(), {1: intr, 3: intr}, SceneBox((-5, -5, -1), (5, 5, 2)))
     # on every synchronised set of messages:
     mapper.add_frame(SyncFrame(time=t, stack_id=1, rgb=rgb, cam_to_world=pose,
                                uss_range=uss_m, irs_range=zones_8x8_m))
     # between messages, e.g. in a timer:
     report = mapper.train(0.5)            # TrainSlice(steps, seconds, loss, frames, ...)
     grid_map = mapper.map2d()             # maps.occupancy.OccupancyMap2D (write_map_server)
-    scans = mapper.scans(poses)           # [evaluation.scans.Scan2D] at (N, 4, 4) poses
+    scans = mapper.scans(poses)           # [maps.scans.Scan2D] at (N, 4, 4) poses
     mapper.snapshot(Path("maps/0001"))    # map.pgm/.yaml/.png (+ prob.*) and snapshot.json
 """
 

@@ -35,9 +35,8 @@ class FieldConfig:
     backend: str = "auto"  # hash encoding: "auto" (numba on CPU, torch on CUDA), "numba", "torch"
     density_clamp: float = 15.0  # trunc_exp: |logit| clamp inside the gradient, upper clamp of sigma
     # added to the density logit: sigma = exp(h0 + density_bias). At 0 (the paper) an untrained
-    # field holds ~1 /m everywhere (a 3 m ray is 95 % opaque). -3 (0.05 /m, space starts nearly
-    # empty) gave better common-area scans but the colour never trained (PSNR 6.5 dB against
-    # 21 dB after 30 s in the office), so it stays off (README, time to map)
+    # field holds ~1 /m everywhere (a 3 m ray is 95 % opaque); a negative bias starts the space
+    # emptier but starves the colour (docs/decisions.md D19, D20)
     density_bias: float = 0.0
 
     def __post_init__(self) -> None:

@@ -26,18 +26,15 @@ class VirusGridConfig:
     logodds_max: float = 4.0  # clamp (p ~ 0.982)
     init_probability: float = 0.55  # slightly above 0.5: everything is marched at first
     prior_probability: float = 0.49  # where unsupported cells end after the warm-up (empty)
-    # training steps (not updates) of the decay init -> prior. 1000 was better in 180 s
-    # two-thread runs of the common area (3 of 3 pairs) but a run must finish its warm-up: in
-    # Table I's 75 s single-thread runs (~190-600 steps) it never did, and they got slower and
-    # worse (common area row 8 0.658 against 0.560 m; README, "Time to map"), so it stays 330
+    # training steps (not updates) of the decay init -> prior; short enough that Table I's 75 s
+    # runs finish it (docs/decisions.md D4)
     warmup_steps: int = 330
     # while mapping while driving (frames keep arriving): a cell first seen after the warm-up can
-    # only come back through the IRS, so the warm-up lasts longer (online office drive, 5 seeds:
-    # 0.186 +- 0.019 m with 660 against 0.229 +- 0.041 with 330; README "Mapping while driving")
+    # only come back through the IRS, so the warm-up lasts longer (D6)
     warmup_steps_driving: int = 660
-    # Option (off): end the warm-up at this share of the run's own budget (max_steps / max_time,
-    # the larger share used, as the learning-rate decay) instead of after warmup_steps, so a short
-    # and a long run both finish it; driving runs count steps (warmup_steps_driving).
+    # Option (off, D5): end the warm-up at this share of the run's own budget (max_steps /
+    # max_time, the larger share used, as the learning-rate decay) instead of after warmup_steps,
+    # so a short and a long run both finish it; driving runs count steps (warmup_steps_driving).
     warmup_budget_share: float | None = None
     update_interval: int = 21  # training steps between grid updates (the trainer calls update)
     rays_per_update: int = 438  # rays per update, both kinds together (paper: ~1k)
@@ -51,13 +48,10 @@ class VirusGridConfig:
     # space along each target's ray up to two standard deviations before the point, "depth" = a
     # Depth-Update with the IRS model, "off" = none (docs/method.md 3.7)
     init_stereo: Literal["off", "free", "depth"] = "off"
-    # NeRF-Update densities: "forward" (default, the paper's speed-up) reuses the densities of
-    # the training forward pass: no extra network pass, and only cells the marcher sampled get
-    # evidence, so cells nothing renders through are not raised by haze (measured with the
-    # earlier defaults: office 60 s: 0.197 / 0.254 m at 11.1 steps/s against 0.217 / 0.258 at
-    # 9.2; common area 180 s: 0.635 / 0.964 against 0.679 / 1.075; README, time to map).
-    # "resample" draws nerf_points_per_ray points along rays of the batch and evaluates the
-    # density MLP there.
+    # NeRF-Update densities: "forward" (default, the paper's speed-up, D8) reuses the densities
+    # of the training forward pass: no extra network pass, and only cells the marcher sampled get
+    # evidence, so cells nothing renders through are not raised by haze. "resample" draws
+    # nerf_points_per_ray points along rays of the batch and evaluates the density MLP there.
     nerf_update_source: Literal["resample", "forward"] = "forward"
     # Depth-Update (IRS, MURIEL model; sensor_model docstring)
     std_per_m: float = 0.0066  # range noise grows 0.66 cm per metre ...
@@ -71,9 +65,8 @@ class VirusGridConfig:
     nerf_points_per_ray: int = 64  # points drawn uniformly in [0, nerf_far] per ray
     pos_noise_per_m: float = 0.05  # std of the point jitter per metre along the ray
     threshold_step: float = 0.01  # sigma_T_max: density at which a step of this many metres ...
-    # ... has this alpha (Instant-NGP: 0.01, docs/method.md 3.3). 0.15 (sigma_T_max 16.3 /m)
-    # beat the tuning study's 0.0438 (4.5 /m) per step in both simulated rooms and gave faster
-    # steps (fewer occupied cells); 0.4 was worse in the common area (README, "Time to map")
+    # ... has this alpha (Instant-NGP: 0.01, docs/method.md 3.3); 0.15 gives sigma_T_max 16.3 /m
+    # (D1; 0.4: D2)
     threshold_alpha: float = 0.15
     sigma_floor: float = 1e-6  # 1/m, keeps ln(sigma) finite
     # sigma_T: "mean" = min(sigma_T_max, mean density of the update's points) (paper eq. 9);

@@ -173,16 +173,13 @@ class LossWeights:
     # stereo_sigma_ref (weighted_depth_loss)
     stereo: float = 1.0
     stereo_sigma_ref: float = 0.1  # m
-    # line-of-sight emptiness before each return (free_space_loss): USS echoes over the cone,
-    # and the IRS zones and stereo targets; free_margin m (stereo: 2 sigma) short of the return.
-    # free_uss 0.5 beat 0 in 3 of 3 common areas no test or tuning used (180 s, with stereo:
-    # 0.345 / 0.486 m against 0.370 / 0.511, docs/decisions.md D32); free_depth 0.5 gave
-    # 0.363 / 0.495 (acc 3 of 3, cov 2 of 3 better), not kept until measured beside it
+    # line-of-sight emptiness before each return (free_space_loss): USS echoes over the cone
+    # (docs/decisions.md D32), and the IRS zones and stereo targets (free_depth: D34, off);
+    # free_margin m (stereo: 2 sigma) short of the return
     free_uss: float = 0.5
     free_depth: float = 0.0
     free_margin: float = 0.1
-    # interval distortion (m) on every ray against haze along rays; the paper has none. Alone at
-    # 0.01 it made the common area worse (README, time to map), so it is off by default.
+    # interval distortion (m) on every ray against haze along rays; the paper has none; off (D21)
     distortion: float = 0.0
 
 
