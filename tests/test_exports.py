@@ -330,3 +330,19 @@ def test_export_sizes_that_cannot_be_made_are_one_line(trained_run, tmp_path):
         code, _, err = run_cli(["export", "--run", trained_run, "--out", out, *argv])
         assert code == 2 and len(err.strip().splitlines()) == 1 and fragment in err, err
         assert not out.exists()
+
+
+def test_evaluate_and_export_wait_for_no_one_in_the_run(trained_run, tmp_path):
+    """A run another process holds (a `train` working in it) is neither evaluated nor exported:
+    one line naming --run, and nothing written."""
+    from virus_nerf.errors import UsageError
+    from virus_nerf.exports.command import export
+    from virus_nerf.trainer.command import evaluate
+    from virus_nerf.trainer.run_folder import RunLock
+
+    with RunLock(trained_run, "--out"):
+        with pytest.raises(UsageError, match=rf"--run {trained_run}: the run is in use by another virus-nerf process"):
+            evaluate(run=trained_run, out=tmp_path / "metrics.json")
+        with pytest.raises(UsageError, match=rf"--run {trained_run}: the run is in use"):
+            export(run=trained_run, out=tmp_path / "export")
+    assert not (tmp_path / "metrics.json").exists() and not (tmp_path / "export").exists()

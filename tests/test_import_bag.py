@@ -295,3 +295,23 @@ def test_missing_ros_extra_is_one_line(tmp_path, monkeypatch):
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: None if n == "rosbags" else real(n, *a))
     _fails([tmp_path / "b.bag", "--out", tmp_path / "out"], "pip install 'virus-nerf[ros]'")
+
+
+def test_an_implausible_camera_info_is_one_line_naming_topic_message_and_field():
+    """A CameraInfo whose K cannot belong to its image (a driver that publishes K for another
+    resolution, or a 1e-9 px focal length) is refused like an implausible intrinsics file."""
+    from types import SimpleNamespace
+
+    from virus_nerf.data.bags.messages import Where, decode_camera_info
+    from virus_nerf.errors import DataFormatError
+
+    where = Where(Path("robot.bag"), "/cam1/camera_info", 4)
+    good = SimpleNamespace(k=[386.0, 0, 320.0, 0, 386.0, 240.0, 0, 0, 1], width=640, height=480)
+    assert decode_camera_info(good, where).fx == 386.0
+    tiny = SimpleNamespace(k=[1e-9, 0, 320.0, 0, 386.0, 240.0, 0, 0, 1], width=640, height=480)
+    with pytest.raises(DataFormatError, match=r"robot.bag.*topic /cam1/camera_info, message 5: camera matrix fx: "
+                                              r"focal length 1e-09 px gives a 180.0 degree field of view"):
+        decode_camera_info(tiny, where)
+    off = SimpleNamespace(k=[386.0, 0, 1280.0, 0, 386.0, 240.0, 0, 0, 1], width=640, height=480)
+    with pytest.raises(DataFormatError, match=r"camera matrix cx: principal point 1280 px lies outside the image"):
+        decode_camera_info(off, where)

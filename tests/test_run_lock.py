@@ -76,18 +76,14 @@ def test_watch_parent_only_watches_the_parent_it_is_told(monkeypatch):
     assert not watch_parent()
 
 
-def test_online_tells_its_runs_to_die_with_it(monkeypatch):
-    import virus_nerf.experiments.online as online
+def test_every_experiment_tells_its_runs_to_die_with_it(monkeypatch):
+    """ablation, tune, online and demo start their trainings with runs._worker_env: each child
+    gets this process's pid, so its watch_parent ends it when the experiment is killed."""
+    from virus_nerf.experiments.runs import _worker_env
     from virus_nerf.trainer.command import PARENT_ENV
 
-    seen = {}
-
-    def fake_run_all(specs, workers):
-        seen["env"] = os.environ.get(PARENT_ENV)
-        return []
-
     monkeypatch.delenv(PARENT_ENV, raising=False)
-    monkeypatch.setattr(online, "run_all", fake_run_all)
-    assert online._run_all_as_parent([], 1) == []
-    assert seen["env"] == str(os.getpid())
-    assert PARENT_ENV not in os.environ
+    env = _worker_env(1)
+    assert env[PARENT_ENV] == str(os.getpid())
+    assert env["OMP_NUM_THREADS"] == "1"
+    assert PARENT_ENV not in os.environ  # the experiment's own environment is left alone

@@ -47,22 +47,6 @@ def band(histories: list[list[EvalPoint]], key: str, grid: np.ndarray) -> tuple[
     return mean, std
 
 
-def _run_all_as_parent(specs: list[RunSpec], workers: int) -> list:
-    """run_all, its `virus-nerf train` children told to die with this process (a killed
-    `online` leaves no training running; its run folders resume on the next `online`)."""
-    import os
-
-    from virus_nerf.trainer.command import PARENT_ENV
-
-    old = os.environ.get(PARENT_ENV)
-    os.environ[PARENT_ENV] = str(os.getpid())
-    try:
-        return run_all(specs, workers=workers)
-    finally:
-        if old is None:
-            os.environ.pop(PARENT_ENV, None)
-        else:
-            os.environ[PARENT_ENV] = old
 
 
 def online(
@@ -138,7 +122,7 @@ def online(
                              common + ("--seed", str(s), "--max-time", str(t_train))))
         specs.append(RunSpec(f"online seed {s}", data, "office", out / "runs" / f"online_seed{s}",
                              common + ("--seed", str(s), "--online", "--playback", str(playback_speed))))
-    failed = _run_all_as_parent(specs, workers)
+    failed = run_all(specs, workers)
     grid = np.linspace(0, t_train, 101)
     summary = {}
     fig, ax = plt.subplots(figsize=(6.5, 3.8))

@@ -67,7 +67,7 @@ def export(
     """
     from virus_nerf.errors import OutputExistsError, require_int, require_number
     from virus_nerf.trainer.command import load_trained
-    from virus_nerf.trainer.run_folder import open_run
+    from virus_nerf.trainer.run_folder import RunLock, open_run
     from virus_nerf.utils.io import new_output_dir
 
     require_number("--resolution", resolution, 0.0)
@@ -90,7 +90,8 @@ def export(
         raise OutputExistsError(out)  # before any work
     cfg, _ = open_run(run, "--run")
     kinds = parse_what(what, cfg.grid)
-    with new_output_dir(out) as tmp:  # made (and checked writable) before anything is computed
+    # not while a `train` works in the run (its checkpoint would be a moment of a moving run)
+    with RunLock(Path(run), "--run"), new_output_dir(out) as tmp:  # OUT made (and checked writable) first
         trainer, cfg, _ = load_trained(run, "--run", poses="odometry" if cfg.odometry_poses else "optimised")
         written = _export_all(trainer, cfg, tmp, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,
                               image_scale if image_scale is not None else cfg.image_scale)

@@ -525,10 +525,8 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
             comma-separated (default: the run's setting, map); the first is the document's own.
     """
     from virus_nerf.errors import OutputExistsError
-    from virus_nerf.evaluation.evaluate import check_ground_truth_inputs, parse_gt_flag
-    from virus_nerf.evaluation.plots import plots_dir_for, write_plots
-    from virus_nerf.trainer.loop import TrainSummary
-    from virus_nerf.trainer.run_folder import train_summary_block
+    from virus_nerf.evaluation.evaluate import parse_gt_flag
+    from virus_nerf.evaluation.plots import plots_dir_for
     from virus_nerf.utils.io import remove_stale_partials
 
     if n_rays is not None:
@@ -542,6 +540,21 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     remove_stale_partials(plots_dir_for(out))
     redo = plots_dir_for(out).exists()
     trainer, cfg, _ = load_trained(run, "--run")
+    lock = RunLock(Path(run), "--run").acquire()  # not while a `train` (or another evaluate) works in it
+    try:
+        _evaluate_run(run, out, trainer, cfg, n_rays, protocols, redo)
+    finally:
+        lock.release()
+
+
+def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protocols, redo: bool) -> None:
+    """`evaluate`'s work, holding the run's lock."""
+    from virus_nerf.errors import OutputExistsError
+    from virus_nerf.evaluation.evaluate import check_ground_truth_inputs
+    from virus_nerf.evaluation.plots import plots_dir_for, write_plots
+    from virus_nerf.trainer.loop import TrainSummary
+    from virus_nerf.trainer.run_folder import train_summary_block
+
     if n_rays is not None or protocols is not None:
         ev = cfg.evaluation
         ev = dataclasses.replace(ev, n_rays=n_rays if n_rays is not None else ev.n_rays,

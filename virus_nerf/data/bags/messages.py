@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.errors import DataFormatError
-from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.sensors.camera import Intrinsics, intrinsics_problem
 
 # Custom messages of the ETHZ robot (ROS package `sensors`). USS: the echo time of the first
 # echo in microseconds (metres = meas / 5000, >= 50000 = no echo). TOF: the 64 zones of the
@@ -158,6 +158,10 @@ def decode_camera_info(msg, where: Where) -> Intrinsics:
     if k.size != 9 or not np.isfinite(k).all() or k[0] <= 0 or k[4] <= 0 or msg.width <= 0 or msg.height <= 0:
         raise where.error(f"camera matrix {k.tolist()} at {msg.width}x{msg.height} is not a valid pinhole camera",
                           field="K")
+    problem = intrinsics_problem(float(k[0]), float(k[4]), float(k[2]), float(k[5]), int(msg.width), int(msg.height))
+    if problem is not None:  # e.g. a camera driver that publishes K of another resolution, or zeros
+        name, what = problem
+        raise where.error(f"camera matrix {name}: {what}", field="K")
     return Intrinsics(fx=float(k[0]), fy=float(k[4]), cx=float(k[2]), cy=float(k[5]),
                       width=int(msg.width), height=int(msg.height))
 
