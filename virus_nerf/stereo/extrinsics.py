@@ -68,11 +68,12 @@ def rotate_camera(pose: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
 
 
 def match_pair(gray_a: np.ndarray, gray_b: np.ndarray, k_a: np.ndarray, k_b: np.ndarray, pose_a: np.ndarray,
-               pose_b: np.ndarray, cfg: TrackerConfig = TrackerConfig(), gate_px: float = 15.0) -> PairMatches:
+               pose_b: np.ndarray, cfg: TrackerConfig | None = None, gate_px: float = 15.0) -> PairMatches:
     """Corners of image a followed into image b; matches further than `gate_px` from their
     epipolar line (gross mismatches, not pose error) are dropped."""
     import cv2
 
+    cfg = cfg or TrackerConfig()
     corners = cv2.goodFeaturesToTrack(gray_a, cfg.max_corners, cfg.quality, cfg.min_distance)
     uv_a = np.zeros((0, 2)) if corners is None else corners.reshape(-1, 2).astype(np.float64)
     wide = dataclasses.replace(cfg, epipolar_max_px=gate_px)
@@ -112,7 +113,7 @@ def check_rotation(pairs: list[PairMatches], huber_px: float = 1.0) -> RotationC
                          median_px_before=float(np.median(before)), median_px_after=float(np.median(after)))
 
 
-def check_recording(recording, max_pairs: int = 20, max_dt: float = 0.1, cfg: TrackerConfig = TrackerConfig(),
+def check_recording(recording, max_pairs: int = 20, max_dt: float = 0.1, cfg: TrackerConfig | None = None,
                     stacks: tuple[int, int] = (1, 3)) -> RotationCheck:
     """The check on up to `max_pairs` simultaneous (within `max_dt` s) image pairs of a recording's
     two stacks, evenly spread over the drive."""
