@@ -51,3 +51,16 @@ def test_poses_that_agree_with_the_images_need_no_correction():
     assert abs(check.correction_deg[0]) < 0.03 and abs(check.correction_deg[2]) < 0.03
     with pytest.raises(ValueError, match="at least 8"):
         check_rotation([PairMatches(np.zeros((3, 2)), np.zeros((3, 2)), np.eye(3), np.eye(3), np.eye(4), np.eye(4))])
+
+
+def test_on_the_real_sample_pitch_and_roll_agree_with_the_poses_and_yaw_is_weak(sample_dir):
+    """The real rig (../shared/data): the recorded poses leave ~1.3 px epipolar distance; the fit
+    finds pitch and roll within half a degree of them, yaw far less determined (docs/results.md)."""
+    from virus_nerf.data.ethz import load_recording
+    from virus_nerf.stereo.extrinsics import check_recording
+
+    check = check_recording(load_recording(sample_dir, "office"))
+    assert check.matches > 200
+    assert abs(check.correction_deg[0]) < 0.5 and abs(check.correction_deg[2]) < 0.5
+    assert check.median_px_after < check.median_px_before
+    assert check.std_deg[1] > 3 * max(check.std_deg[0], check.std_deg[2])
