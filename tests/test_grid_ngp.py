@@ -12,7 +12,7 @@ from virus_nerf.grid.ngp import NgpGrid, NgpGridConfig
 from virus_nerf.scene_box import SceneBox
 
 BOX = SceneBox((0.0, 0.0, 0.0), (4.0, 4.0, 1.0))  # 16 x 16 x 4 cells of 0.25 m at max_res 16
-CFG = NgpGridConfig(max_resolution=16, warmup_steps=32, update_interval=16, step_size=0.01)
+CFG = NgpGridConfig(max_resolution=16, warmup_steps=32, update_interval=16)  # marched at 0.01 m (NgpGrid's default)
 
 
 class Recorder:
@@ -36,8 +36,8 @@ def const(v: float):
 
 
 def test_config_resolution_and_sigma_max():
-    assert NgpGridConfig().sigma_max == pytest.approx(-math.log(0.99) / 0.01)
-    assert NgpGridConfig(step_size=0.02).sigma_max == pytest.approx(0.50252, rel=1e-4)
+    assert NgpGrid(BOX).sigma_max == pytest.approx(-math.log(0.99) / 0.01)
+    assert NgpGrid(BOX, step_size=0.02).sigma_max == pytest.approx(0.50252, rel=1e-4)
     room = NgpGrid(SceneBox((-4.5, -4.0, 0.0), (4.5, 4.0, 2.6)))
     assert room.spec.resolution == (128, 114, 37)
     grid = NgpGrid(BOX, CFG)
@@ -104,7 +104,7 @@ def test_threshold_is_min_of_mean_and_sigma_max():
     assert int(grid.occupied.sum()) == grid.spec.n_cells // 4 and bool(grid.occupied[:4].all())
     grid = NgpGrid(BOX, CFG)
     grid.update(0, quarter(2.0, 3.0), None, g)  # mean 2.25 > sigma_max: everything above 1.005
-    assert grid.threshold == pytest.approx(CFG.sigma_max)
+    assert grid.threshold == pytest.approx(grid.sigma_max)
     assert bool(grid.occupied.all())
     grid = NgpGrid(BOX, CFG)
     grid.update(0, quarter(0.0, 0.0), None, g)  # zero everywhere: nothing exceeds 0
@@ -158,6 +158,6 @@ def test_constructor_takes_a_spec_and_the_marchers_step():
     spec = GridSpec.from_box(BOX, 8)
     grid = NgpGrid(spec, CFG, step_size=0.03)
     assert grid.spec is spec and grid.spec.resolution == (8, 8, 2)
-    assert grid.config.sigma_max == pytest.approx(-math.log(0.99) / 0.03)
+    assert grid.sigma_max == pytest.approx(-math.log(0.99) / 0.03)
     with pytest.raises(ValueError, match="step_size"):
         NgpGrid(BOX, CFG, step_size=0.0)

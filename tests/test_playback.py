@@ -36,10 +36,11 @@ def test_the_old_flag_name_still_works_with_a_notice(capsys):
 
 
 def test_train_takes_the_old_flag_into_the_same_config_field(tmp_path, capsys):
-    from virus_nerf.trainer.command import _resolve_config, train
+    from virus_nerf.trainer.command import _resolve_config, train, train_flags
 
-    cfg = _resolve_config(None, None, None, None, 5, None, None, True, False, 2.0, None, None)
+    given, flags = train_flags({"max_steps": 5, "online": True}, playback_speed=2.0)
+    cfg = _resolve_config(None, given, flags)
     assert cfg.playback_speed == 2.0 and cfg.online
-    with pytest.raises(UsageError, match="--playback 0.0: expected a number > 0"):
-        train(out=tmp_path / "run", data=tmp_path, room="office", online=True, playback_speed=0.0)
+    with pytest.raises(UsageError, match="--playback-speed 0.0: expected a finite number > 0"):
+        train(out=tmp_path / "run", data=tmp_path, room="office", knobs={"online": True}, playback_speed=0.0)
     assert "--playback-speed is deprecated" in capsys.readouterr().err

@@ -4,8 +4,10 @@ Types are checked, not coerced: a `bool` field takes only a JSON bool (`"online"
 an error, not True), an `int` field takes an integer (or a float with no fractional part, e.g.
 2048.0), a `float` field takes any finite number, a `str` field only a string, a tuple field a
 JSON list whose elements are checked one by one (fixed-length tuples also by length), a Literal
-field one of its values, and an `X | None` field null or an X. Unknown keys are an error. Every
-error is a `ConfigError` (a ValueError) whose one-line message names the file and the key.
+field one of its values, and an `X | None` field null or an X. Unknown keys are an error, but
+for the keys earlier versions wrote that nothing reads any more (REMOVED_KEYS): those are
+dropped with a one-line note on stderr, so an old run's config.json still loads. Every error is
+a `ConfigError` (a ValueError) whose one-line message names the file and the key.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import dataclasses
 import difflib
 import json
 import math
+import sys
 import types
 import typing
 from pathlib import Path
@@ -22,6 +25,11 @@ from typing import Any, TypeVar
 from virus_nerf.errors import ConfigError, one_line
 
 T = TypeVar("T")
+
+# dotted key -> why nothing reads it any more (what took its place)
+REMOVED_KEYS = {
+    "ngp_grid.step_size": "the NGP grid's threshold follows the marcher's step, march.step_size",
+}
 
 
 def to_dict(obj: Any) -> Any:
@@ -40,12 +48,18 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", *, file
     """
     if file is None and where != "config":
         file = where  # older callers passed the file name as `where`
-    return _build(cls, data, _Ctx(file), "")
+    ctx = _Ctx(file)
+    built = _build(cls, data, ctx, "")
+    for key in ctx.dropped:  # only once the config is good: an error stays the one line
+        print(f"virus-nerf: note: {file or 'config'}: key '{key}' ignored (no longer read: {REMOVED_KEYS[key]})",
+              file=sys.stderr)
+    return built
 
 
 @dataclasses.dataclass(frozen=True)
 class _Ctx:
     file: str | Path | None
+    dropped: list[str] = dataclasses.field(default_factory=list)  # REMOVED_KEYS met
 
     def error(self, key: str, problem: str) -> ConfigError:
         return ConfigError(problem, file=self.file, key=key)
@@ -74,7 +88,9 @@ def _build(cls: type[T], data: Any, ctx: _Ctx, key: str) -> T:
     hints = typing.get_type_hints(cls)
     fields = [f for f in dataclasses.fields(cls) if f.init]  # type: ignore[arg-type]
     names = [f.name for f in fields]
-    unknown = sorted(set(data) - set(names), key=str)
+    removed = [k for k in data if _join(key, str(k)) in REMOVED_KEYS]
+    ctx.dropped.extend(_join(key, k) for k in removed)
+    unknown = sorted(set(data) - set(names) - set(removed), key=str)
     if unknown:
         hint = ""
         close = difflib.get_close_matches(str(unknown[0]), names, n=1)

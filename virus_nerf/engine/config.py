@@ -4,12 +4,12 @@ checks, evaluation, logging, the online clock) on top; config.json holds both.""
 
 from __future__ import annotations
 
-import math
 import numbers
 from dataclasses import dataclass
 from dataclasses import field as dc_field
 from typing import Literal
 
+from virus_nerf.checks import Checks
 from virus_nerf.field.field import FieldConfig
 from virus_nerf.grid.extent import ExtentConfig
 from virus_nerf.grid.ngp import NgpGridConfig
@@ -40,9 +40,11 @@ class MarchConfig:
 
 @dataclass
 class OptimConfig:
-    lr: float = 0.0094  # Adam; from the tuning study (paper 5e-3 on a GPU with 4096 rays; see README)
-    eps: float = 1e-15
-    betas: tuple[float, float] = (0.9, 0.99)
+    """The Adam optimiser and its learning-rate decay."""
+
+    lr: float = 0.0094  # Adam's learning rate; from the tuning study (paper 5e-3 on a GPU with 4096 rays; see README)
+    eps: float = 1e-15  # Adam's epsilon
+    betas: tuple[float, float] = (0.9, 0.99)  # Adam's decay rates of the moment estimates
     lr_decay_to: float = 0.1  # exponential decay to this fraction of lr at max_steps/max_time
     # the same while mapping while driving (frames added after the first step: --online,
     # map-bag): 1 = a constant lr, since new frames keep arriving and a decayed lr leaves the
@@ -61,51 +63,8 @@ class RecentFrames:
     nothing. share 0 samples all frames alike.
     """
 
-    share: float = 0.5
+    share: float = 0.5  # of each batch, from the frames of the last `window` seconds
     window: float = 5.0  # seconds of recording time
-
-
-class Checks:
-    """Type and range checks of dotted config knobs; a bad value is a ValueError naming the
-    knob, the value and what was expected (the command line turns it into one line)."""
-
-    def __init__(self, config) -> None:
-        self.config = config
-
-    def get(self, dotted: str):
-        obj = self.config
-        for part in dotted.split("."):
-            obj = getattr(obj, part)
-        return obj
-
-    @staticmethod
-    def bad(name: str, value, expected: str) -> ValueError:
-        return ValueError(f"{name} {value!r}: expected {expected}")
-
-    def integer(self, name: str, lo: int, hi: int | None = None, optional: bool = False) -> None:
-        v = self.get(name)
-        if v is None and optional:
-            return
-        ok = isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= lo and (hi is None or v <= hi)
-        if not ok:
-            rng = f"an integer >= {lo}" if hi is None else f"an integer in [{lo}, {hi}]"
-            raise self.bad(name, v, rng + (" or None" if optional else ""))
-
-    def number(self, name: str, lo: float, hi: float | None = None, *, lo_open: bool = True,
-               optional: bool = False) -> None:
-        v = self.get(name)
-        if v is None and optional:
-            return
-        ok = isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
-        ok = ok and (v > lo if lo_open else v >= lo) and (hi is None or v <= hi)
-        if not ok:
-            rng = f"{'>' if lo_open else '>='} {lo:g}" if hi is None else \
-                f"in {'(' if lo_open else '['}{lo:g}, {hi:g}]"
-            raise self.bad(name, v, f"a finite number {rng}" + (" or None" if optional else ""))
-
-    def flag(self, name: str) -> None:
-        if not isinstance(self.get(name), bool):
-            raise self.bad(name, self.get(name), "a bool (true or false)")
 
 
 @dataclass
@@ -114,7 +73,7 @@ class MapperConfig:
     marcher, the losses, the optimiser and its schedule. max_steps / max_time only shape the
     learning-rate decay here (`Mapper.train(seconds)` decides how long to train)."""
 
-    grid: Literal["virus", "ngp"] = "virus"
+    grid: Literal["virus", "ngp"] = "virus"  # occupancy grid for ray marching: virus (Bayesian) or ngp (Instant-NGP)
     # stereo (depth triangulated from the cameras' own tracks, docs/method.md 3.7) is on by
     # default: common areas no test or tuning used, 180 s, mean of 3 rooms: 0.370 / 0.511 m
     # against 0.397 / 0.699 without it (docs/decisions.md D31)
@@ -132,8 +91,8 @@ class MapperConfig:
     # "Mapping while driving"). Offline it stays off: more steps but worse maps there (README,
     # "Time to map": the step-counted grid warm-up ends before the field knows the room)
     max_samples_per_step: int | None = None
-    max_samples_per_step_driving: int | None = 32768
-    seed: int = 0
+    max_samples_per_step_driving: int | None = 32768  # the same while mapping while driving (frames arrive after the first step)
+    seed: int = 0  # seed of everything random
     image_scale: float = 0.5  # training image resolution relative to the recording
     device: str = "auto"  # auto | cpu | cuda
     min_opacity: float = 0.5  # scan rays with lower opacity give no point (docs/method.md 3.1)
@@ -207,10 +166,7 @@ class MapperConfig:
         integer("ngp_grid.warmup_steps", 0)
         integer("ngp_grid.chunk_size", 1)
         number("ngp_grid.decay", 0.0, 1.0)
-        number("ngp_grid.step_size", 0.0)
-        number("ngp_grid.min_alpha", 0.0, 1.0)
-        if not self.ngp_grid.min_alpha < 1.0:
-            raise bad("ngp_grid.min_alpha", self.ngp_grid.min_alpha, "a finite number in (0, 1)")
+        number("ngp_grid.min_alpha", 0.0, 1.0, hi_open=True)
         for i, beta in enumerate(self.optim.betas):
             if not (isinstance(beta, numbers.Real) and not isinstance(beta, bool) and 0.0 <= beta < 1.0):
                 raise bad(f"optim.betas[{i}]", beta, "a number in [0, 1)")

@@ -90,7 +90,7 @@ class EvaluationConfig:
     map_voxel_m: float = 0.03  # footprint drawn for each map point (its voxel size)
     lidar_angle_range_deg: float = 360.0  # LiDAR horizontal range centred on the robot heading
     uss_arc_step_deg: float = 1.0  # spacing of the points on the USS arc
-    inlier_m: float = INLIER_M
+    inlier_m: float = INLIER_M  # m: a scan point closer than this to the ground truth is an inlier
     zones: tuple[Zone, ...] = DEFAULT_ZONES
     sensors: tuple[str, ...] = SENSOR_NAMES  # which instantaneous sensors to score
     gt: tuple[GtProtocol, ...] = ("map",)  # ground-truth protocols (docs/method.md 6.7); the first is the primary;

@@ -23,7 +23,7 @@ from virus_nerf.scene_box import SceneBox
 class FieldConfig:
     """Hyper-parameters of the field; see `paper()` and `cpu_default()` for the two presets."""
 
-    n_levels: int = 16
+    n_levels: int = 16  # L hash levels
     n_features: int = 2  # F per level
     log2_table_size: int = 16  # T = 2^log2 entries per hashed level
     base_resolution: int = 16  # cells per axis of the coarsest level

@@ -7,14 +7,14 @@ drawn among the currently occupied cells (with replacement, as in Instant-NGP). 
 Instant-NGP's EMA kernel, every cell decays and takes the new density where it has one:
     value <- max(decay * value, sigma)     (sigma = 0 for cells not evaluated this time),
 and a cell is occupied where value > min(mean of all values, sigma_max), sigma_max being the
-density at which one marching step of `step_size` metres has alpha = min_alpha (0.01).
+density at which one step of the ray marcher (`march.step_size`) has alpha = min_alpha (0.01).
 Before the first update every cell is occupied, so the untrained field is marched everywhere.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 
@@ -24,18 +24,14 @@ from virus_nerf.scene_box import SceneBox
 
 @dataclass(frozen=True)
 class NgpGridConfig:
+    """Instant-NGP grid parameters (the ablation's baseline grid)."""
+
     max_resolution: int = 128  # cells along the longest box axis (GridSpec.from_box)
     decay: float = 0.95  # per update
     warmup_steps: int = 256  # training steps during which every cell is evaluated
     update_interval: int = 16  # training steps between updates (used by the trainer)
-    step_size: float = 0.01  # metres: the ray marcher's step; sets sigma_max
     min_alpha: float = 0.01  # alpha of one marching step at sigma_max
     chunk_size: int = 65536  # points per density_fn call
-
-    @property
-    def sigma_max(self) -> float:
-        """1/m: density whose alpha over one marching step is min_alpha (-ln(1-0.01)/step)."""
-        return -math.log(1.0 - self.min_alpha) / self.step_size
 
 
 class NgpGrid(OccupancyGrid):
@@ -45,23 +41,22 @@ class NgpGrid(OccupancyGrid):
         self,
         box: SceneBox | GridSpec,
         config: NgpGridConfig | None = None,
-        step_size: float | None = None,
+        step_size: float = 0.01,
         device: torch.device | str = "cpu",
     ) -> None:
         """Cells over `box` (GridSpec.from_box with config.max_resolution), or over a given spec.
 
-        step_size (metres), if given, replaces config.step_size: pass the ray marcher's step so
-        that sigma_max matches what is actually marched.
+        step_size (metres): the ray marcher's step (the Mapper passes march.step_size), so that
+        sigma_max matches what is actually marched.
         """
-        config = config or NgpGridConfig()
-        if step_size is not None:
-            config = replace(config, step_size=float(step_size))
-        self.config = config
-        if not self.config.step_size > 0 or not 0 < self.config.min_alpha < 1:
+        self.config = config or NgpGridConfig()
+        if not step_size > 0 or not 0 < self.config.min_alpha < 1:
             raise ValueError(
-                f"NgpGridConfig needs step_size > 0 m and 0 < min_alpha < 1, got "
-                f"{self.config.step_size} and {self.config.min_alpha}"
+                f"NgpGrid needs step_size > 0 m and 0 < min_alpha < 1, got {step_size} and {self.config.min_alpha}"
             )
+        self.step_size = float(step_size)
+        # 1/m: the density whose alpha over one marching step is min_alpha (-ln(1 - 0.01) / step)
+        self.sigma_max = -math.log(1.0 - self.config.min_alpha) / self.step_size
         if isinstance(box, GridSpec):
             self.spec = box
         else:
@@ -79,7 +74,7 @@ class NgpGrid(OccupancyGrid):
     @property
     def threshold(self) -> float:
         """1/m: min(mean value, sigma_max), the occupancy threshold of the current values."""
-        return min(float(self.values.mean()), self.config.sigma_max)
+        return min(float(self.values.mean()), self.sigma_max)
 
     def cells_to_update(self, step: int, generator: torch.Generator) -> torch.Tensor:
         """Flat cell indices (K,) int64 to evaluate at training step `step`."""

@@ -6,6 +6,8 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
+from virus_nerf.checks import Checks
+
 
 def _logit(p: float) -> float:
     return math.log(p / (1.0 - p))
@@ -75,38 +77,37 @@ class VirusGridConfig:
     threshold_mode: Literal["mean", "fixed"] = "mean"
 
     def __post_init__(self) -> None:
-        checks = {
-            "max_resolution": self.max_resolution >= 1,
-            "logodds_min/logodds_max": self.logodds_min < 0.0 < self.logodds_max,
-            "init_probability": 0.5 < self.init_probability < 1.0,
-            "prior_probability": 0.0 < self.prior_probability < 0.5,
-            "warmup_steps": self.warmup_steps >= 1,
-            "warmup_steps_driving": self.warmup_steps_driving >= 1,
-            "warmup_budget_share": self.warmup_budget_share is None or 0.0 < self.warmup_budget_share <= 1.0,
-            "update_interval": self.update_interval >= 1,
-            "rays_per_update": self.rays_per_update >= 0,
-            "depth_share": 0.0 <= self.depth_share <= 1.0,
-            "init": self.init in ("sensors", "none"),
-            "init_zone_samples": self.init_zone_samples >= 1,
-            "init_stereo": self.init_stereo in ("off", "free", "depth"),
-            "nerf_update_source": self.nerf_update_source in ("resample", "forward"),
-            "std_per_m": self.std_per_m >= 0.0,
-            "std_floor": self.std_floor > 0.0,
-            "false_rate": self.false_rate > 0.0,
-            "hit_probability": 0.0 < self.hit_probability < 1.0,
-            "stop_length": self.stop_length > 0.0,
-            "max_increment": self.max_increment > 0.0,
-            "zeta": self.zeta > 0.0,
-            "nerf_points_per_ray": self.nerf_points_per_ray >= 1,
-            "pos_noise_per_m": self.pos_noise_per_m >= 0.0,
-            "threshold_step": self.threshold_step > 0.0,
-            "threshold_alpha": 0.0 < self.threshold_alpha < 1.0,
-            "sigma_floor": self.sigma_floor > 0.0,
-            "threshold_mode": self.threshold_mode in ("mean", "fixed"),
-        }
-        bad = [name for name, ok in checks.items() if not ok]
-        if bad:
-            raise ValueError(f"VirusGridConfig: invalid value for {', '.join(bad)}: {self}")
+        check = Checks(self, "virus_grid.")
+        integer, number, choice = check.integer, check.number, check.choice
+        integer("max_resolution", 1)
+        number("logodds_min", -math.inf, 0.0, hi_open=True)
+        number("logodds_max", 0.0)
+        number("init_probability", 0.5, 1.0, hi_open=True)
+        number("prior_probability", 0.0, 0.5, hi_open=True)
+        integer("warmup_steps", 1)
+        integer("warmup_steps_driving", 1)
+        number("warmup_budget_share", 0.0, 1.0, optional=True)
+        integer("update_interval", 1)
+        integer("rays_per_update", 0)
+        number("depth_share", 0.0, 1.0, lo_open=False)
+        choice("init", ("sensors", "none"))
+        integer("init_zone_samples", 1)
+        check.flag("init_uss_free")
+        choice("init_stereo", ("off", "free", "depth"))
+        choice("nerf_update_source", ("resample", "forward"))
+        number("std_per_m", 0.0, lo_open=False)
+        number("std_floor", 0.0)
+        number("false_rate", 0.0)
+        number("hit_probability", 0.0, 1.0, hi_open=True)
+        number("stop_length", 0.0)
+        number("max_increment", 0.0)
+        number("zeta", 0.0)
+        integer("nerf_points_per_ray", 1)
+        number("pos_noise_per_m", 0.0, lo_open=False)
+        number("threshold_step", 0.0)
+        number("threshold_alpha", 0.0, 1.0, hi_open=True)
+        number("sigma_floor", 0.0)
+        choice("threshold_mode", ("mean", "fixed"))
 
     @property
     def sigma_threshold_max(self) -> float:

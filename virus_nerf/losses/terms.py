@@ -165,10 +165,10 @@ class LossWeights:
     10 m room: 0.5, 0.5, 1.0 with colour 1.0; configs/paper.json restores them).
     """
 
-    colour: float = 0.3189
-    irs: float = 1.0379
-    uss: float = 0.0505
-    rgbd: float = 1.0
+    colour: float = 0.3189  # photometric term
+    irs: float = 1.0379  # IRS depth term
+    uss: float = 0.0505  # one-sided USS depth term
+    rgbd: float = 1.0  # RGB-D depth term
     # triangulated camera depth (the stereo sensor), per ray down-weighted by its noise against
     # stereo_sigma_ref (weighted_depth_loss)
     stereo: float = 1.0

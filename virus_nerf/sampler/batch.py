@@ -25,9 +25,9 @@ class BatchShares:
     """Shares of the batch drawn from IRS-zone pixels, USS-cone pixels and tracked pixels with a
     triangulated depth (the `stereo` sensor); the rest are random pixels."""
 
-    irs: float = 0.4
-    uss: float = 0.4
-    stereo: float = 0.1
+    irs: float = 0.4  # of the batch, from IRS-zone pixels
+    uss: float = 0.4  # from USS-cone pixels
+    stereo: float = 0.1  # from tracked pixels with a triangulated depth
 
 
 @dataclass

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from virus_nerf.checks import Checks
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.stereo import triangulation as tri
 from virus_nerf.stereo.tracking import StackTracker, TrackerConfig, Views, track_points
@@ -34,23 +35,23 @@ class StereoConfig:
     max_reproj_px: float = 0.5  # a view further than this from its point's projection is dropped
     min_parallax_deg: float = 1.0  # largest angle between a point's viewing rays
     min_range: float = 0.3  # m from the camera
-    max_range: float = 12.0
+    max_range: float = 12.0  # m from the camera
     max_rel_sigma: float = 0.03  # range standard deviation / range
     # while driving (frames added one by one), the tracks that ended become targets every this
     # many frames (10: about one second of two cameras at 4.8 Hz)
     refresh_frames: int = 10
 
     def __post_init__(self) -> None:
-        checks = {
-            "pair_max_dt": self.pair_max_dt >= 0.0, "min_views": self.min_views >= 2,
-            "sigma_px": self.sigma_px > 0.0, "max_reproj_px": self.max_reproj_px > 0.0,
-            "min_parallax_deg": self.min_parallax_deg >= 0.0,
-            "min_range/max_range": 0.0 <= self.min_range < self.max_range,
-            "max_rel_sigma": self.max_rel_sigma > 0.0, "refresh_frames": self.refresh_frames >= 1,
-        }
-        bad = [name for name, ok in checks.items() if not ok]
-        if bad:
-            raise ValueError(f"stereo: invalid value for {', '.join(bad)}: {self}")
+        check = Checks(self, "stereo.")
+        check.number("pair_max_dt", 0.0, lo_open=False)
+        check.integer("min_views", 2)
+        check.number("sigma_px", 0.0)
+        check.number("max_reproj_px", 0.0)
+        check.number("min_parallax_deg", 0.0, lo_open=False)
+        check.number("min_range", 0.0, lo_open=False)
+        check.number("max_range", self.min_range)
+        check.number("max_rel_sigma", 0.0)
+        check.integer("refresh_frames", 1)
 
 
 @dataclass

@@ -9,24 +9,26 @@ failed start never leaves a half-made folder behind.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import os
 import shutil
 import sys
 from pathlib import Path
-from typing import Literal
+from typing import Annotated
 
+import tyro
+
+from virus_nerf.config_flags import FlagSpec, apply_flags, flag_names, flag_tree
 from virus_nerf.errors import (
     DataFormatError,
     UsageError,
-    one_line,
     renamed_flag,
     require_int,
-    require_number,
 )
 from virus_nerf.sampler.batch import SENSORS
-from virus_nerf.trainer.config import check_device
+from virus_nerf.trainer.config import TrainConfig, check_device
 from virus_nerf.trainer.run_folder import (
     CHECKPOINT,
     CONFIG,
@@ -43,34 +45,26 @@ from virus_nerf.trainer.run_folder import (
 )
 from virus_nerf.utils.io import write_json_atomic
 
+# ---------------------------------------------------------------------------- flags
+# The config fields whose `train` flag is not the one derived from the field (config_flags.py):
+# --sensors takes a comma-separated list, --playback is playback_speed's flag (the old name
+# --playback-speed is a parameter of `train`), evaluation.gt is set by `train --gt` and the
+# evaluation zones (a list of objects) by a config file only.
+TRAIN_FLAG_SPECS: dict[str, FlagSpec | None] = {
+    "sensors": FlagSpec(type=str, metavar="NAMES", help=f"Sensors to train on, comma-separated, of {','.join(SENSORS)}."),
+    "max_steps": FlagSpec(help="Training steps. Alone (no --max-time, no --config, no --resume) it also sets "
+                               "max_time None: a run bounded by steps, bit-reproducible on CPU."),
+    "playback_speed": FlagSpec(name="playback", help="Online mode: recording seconds per training second (the "
+                                                     "frame feeder's speed, as map-bag's --playback on the wall clock)."),
+    "evaluation.gt": None,
+    "evaluation.zones": None,
+}
+TrainFlags = flag_tree(TrainConfig, TRAIN_FLAG_SPECS)
+NO_FLAGS = TrainFlags()  # `train` called with no config flag (never changed: train_flags copies)
 
-def _check_train_flags(
-    sensors: str | None,
-    max_time: float | None,
-    max_steps: int | None,
-    batch_size: int | None,
-    seed: int | None,
-    playback_speed: float | None,
-    image_scale: float | None,
-    eval_interval: float | None,
-) -> tuple[str, ...] | None:
-    """Ranges of the `train` flags, each error naming its flag; returns the parsed --sensors."""
-    if max_time is not None:
-        require_number("--max-time", max_time, 0.0)
-    if max_steps is not None:
-        require_int("--max-steps", max_steps, 1)
-    if batch_size is not None:
-        require_int("--batch-size", batch_size, 1)
-    if seed is not None:
-        require_int("--seed", seed, 0, 2**32 - 1)
-    if playback_speed is not None:
-        require_number("--playback", playback_speed, 0.0)
-    if image_scale is not None:
-        require_number("--image-scale", image_scale, 0.0, 1.0)
-    if eval_interval is not None:
-        require_number("--eval-interval", eval_interval, 0.0, lo_open=False)
-    if sensors is None:
-        return None
+
+def _parse_sensors(sensors: str) -> tuple[str, ...]:
+    """--sensors camera,uss,irs -> ("camera", "uss", "irs"); a bad name is one line naming the flag."""
     names = tuple(s.strip() for s in sensors.split(","))
     unknown = [s for s in names if s not in SENSORS]
     if unknown or not any(names):
@@ -79,59 +73,38 @@ def _check_train_flags(
     return tuple(dict.fromkeys(names))
 
 
-def _resolve_config(
-    config: Path | None,
-    grid: str | None,
-    sensors: str | None,
-    max_time: float | None,
-    max_steps: int | None,
-    batch_size: int | None,
-    seed: int | None,
-    online: bool,
-    odometry_poses: bool,
-    playback_speed: float | None,
-    image_scale: float | None,
-    eval_interval: float | None,
-    base=None,
-    gt: str | None = None,
-):
-    """The run's TrainConfig: `base` (or the --config file, or the defaults) with the flags on top."""
-    from virus_nerf.config_io import load_json_config
+def train_flags(knobs: dict, gt: str | None = None, playback_speed: float | None = None) -> tuple[dict, dict]:
+    """The config fields the `train` flags give (a nested dict, a section a dict) and, for each
+    dotted field, the flag that gave it (for error messages): the derived flags in `knobs`, --gt
+    and the deprecated --playback-speed."""
     from virus_nerf.evaluation.evaluate import parse_gt_flag
-    from virus_nerf.trainer.config import TrainConfig
 
-    sensor_names = _check_train_flags(sensors, max_time, max_steps, batch_size, seed, playback_speed, image_scale,
-                                      eval_interval)
-    protocols = parse_gt_flag(gt) if gt is not None else None
+    given = copy.deepcopy(dict(knobs))
+    flags = flag_names(given, TRAIN_FLAG_SPECS)
+    if "sensors" in given:
+        given["sensors"] = _parse_sensors(given["sensors"])
+    if playback_speed is not None:
+        given["playback_speed"] = renamed_flag("--playback", given.get("playback_speed"), "--playback-speed",
+                                               playback_speed)
+        flags["playback_speed"] = "--playback-speed"
+    if gt is not None:
+        given.setdefault("evaluation", {})["gt"] = parse_gt_flag(gt)
+        flags["evaluation.gt"] = "--gt"
+    return given, flags
+
+
+def _resolve_config(config: Path | None, given: dict, flags: dict, base=None) -> TrainConfig:
+    """The run's TrainConfig: `base` (the run's own on --resume), or the --config file, or the
+    defaults, with the fields the flags give on top; a flag not given keeps the value below it."""
+    from virus_nerf.config_io import load_json_config
+
     if config is not None:
         cfg = load_json_config(TrainConfig, config)
     else:
         cfg = base if base is not None else TrainConfig()
-    overrides = {
-        "grid": grid,
-        "sensors": sensor_names,
-        "max_steps": max_steps,
-        "batch_size": batch_size,
-        "seed": seed,
-        "playback_speed": playback_speed,
-        "image_scale": image_scale,
-        "eval_interval": eval_interval,
-    }
-    changes = {k: v for k, v in overrides.items() if v is not None}
-    if max_time is not None:
-        changes["max_time"] = max_time
-    elif max_steps is not None and config is None and base is None:
-        changes["max_time"] = None  # --max-steps alone: a step-bounded, bit-reproducible run
-    if online:
-        changes["online"] = True
-    if odometry_poses:
-        changes["odometry_poses"] = True
-    if protocols is not None:
-        changes["evaluation"] = dataclasses.replace(cfg.evaluation, gt=protocols)
-    try:
-        return dataclasses.replace(cfg, **changes)
-    except ValueError as exc:  # a flag that clashes with the config file (flags are checked above)
-        raise UsageError(f"{config or 'flags'}: {one_line(exc)}") from None
+    if given.get("max_steps") is not None and "max_time" not in given and config is None and base is None:
+        given = {**given, "max_time": None}  # --max-steps alone: a step-bounded, bit-reproducible run
+    return apply_flags(cfg, given, flags)
 
 
 # ---------------------------------------------------------------------------- checks on inputs
@@ -432,22 +405,12 @@ def train(
     out: Path,
     data: Path | None = None,
     room: str | None = None,
-    grid: Literal["virus", "ngp"] | None = None,
-    sensors: str | None = None,
-    max_time: float | None = None,
-    max_steps: int | None = None,
-    batch_size: int | None = None,
-    seed: int | None = None,
-    online: bool = False,
-    odometry_poses: bool = False,
-    playback: float | None = None,
-    image_scale: float | None = None,
-    eval_interval: float | None = None,
     config: Path | None = None,
     resume: bool = False,
     quiet: bool = False,
     gt: str | None = None,
     playback_speed: float | None = None,
+    knobs: Annotated[TrainFlags, tyro.conf.arg(name="")] = NO_FLAGS,  # type: ignore[valid-type]
 ) -> None:
     """Train a VIRUS-NeRF (or Instant-NGP) on a recording, then evaluate its 2D scans.
 
@@ -461,22 +424,18 @@ def train(
     --resume reach config.json only once the resumed run has made its first step. One process
     trains in OUT at a time (OUT/run.lock); a second is refused with the first one's pid.
 
+    Every knob of the run's config (config.json) has a flag derived from its field, grouped by
+    section: --batch-size, --optim.lr, --march.step-size, --virus-grid.warmup-steps and so on.
+    The short flags are these derived flags themselves (a top-level field has no section), but
+    for three: --sensors takes a comma-separated list, --playback sets playback_speed and --gt
+    sets evaluation.gt. A flag given replaces that one value of the --config file (or of the
+    run's config.json with --resume), which replaces the default; a value out of range is
+    refused naming the flag. The evaluation zones are set in a config file only.
+
     Args:
         out: New run folder (with --resume: the run to continue).
         data: Dataset folder in the ETHZ format (holds camera_intrinsics.CSV and ROOM/); required unless --resume.
         room: Room folder name inside DATA (e.g. office); required unless --resume.
-        grid: Occupancy grid for ray marching: virus (Bayesian, default) or ngp (Instant-NGP).
-        sensors: Comma-separated sensors to train on: camera,uss,irs,rgbd,stereo (default camera,uss,irs,stereo).
-        max_time: Seconds of training (evaluation excluded); default 120 unless --max-steps is given.
-        max_steps: Training steps; alone, it makes the run bit-reproducible on CPU.
-        batch_size: Rays per step (default 2048).
-        seed: Seed for everything random (default 0).
-        online: Replay the recording by its timestamps (frames appear as the clock passes them).
-        odometry_poses: Train on the odometry poses instead of the optimised ones.
-        playback: Online mode: recording seconds per training second (the frame feeder's speed, as
-            map-bag's --playback on the wall clock; default 1).
-        image_scale: Training image resolution relative to the recording, in (0, 1] (default 0.5).
-        eval_interval: Seconds of training between NeRF-scan evaluations (0: only at the end).
         config: JSON config file (a run's config.json works); flags given here override it.
         resume: Continue the run in OUT from its checkpoint.
         quiet: No progress bar.
@@ -487,9 +446,10 @@ def train(
             the map to OUT/map/, score nothing; also chosen, with a note, when the recording has no
             LiDAR map and --gt is not given).
         playback_speed: Deprecated: the old name of --playback.
+        knobs: The config's knobs (config.json's fields), given ones only.
     """
     out = Path(out)
-    playback_speed = renamed_flag("--playback", playback, "--playback-speed", playback_speed)
+    given, flags = train_flags(knobs, gt, playback_speed)
     watch_parent()
     if room is not None and (not room.strip() or "/" in room or "\\" in room or room in (".", "..")):
         raise UsageError(f"--room {room!r}: expected the name of a room folder inside --data (e.g. office)")
@@ -501,15 +461,13 @@ def train(
         if room is not None and room != info.room:
             raise UsageError(f"--room {room}: the run in {out} was trained on room {info.room!r}; "
                              "omit --data and --room with --resume")
-        cfg = _resolve_config(config, grid, sensors, max_time, max_steps, batch_size, seed, online,
-                              odometry_poses, playback_speed, image_scale, eval_interval, base=saved_cfg, gt=gt)
+        cfg = _resolve_config(config, given, flags, base=saved_cfg)
         run_training(Path(info.data), info.room, out, cfg, quiet=quiet or None, resume=True)
         return
     if data is None or room is None:
         raise UsageError(f"{'--data' if data is None else '--room'} is required: give --data DIR --room NAME "
                          "(or --resume to continue the run in --out)")
-    cfg = _resolve_config(config, grid, sensors, max_time, max_steps, batch_size, seed, online, odometry_poses,
-                          playback_speed, image_scale, eval_interval, gt=gt)
+    cfg = _resolve_config(config, given, flags)
     run_training(data, room, out, cfg, quiet=True if quiet else None, auto_gt=gt is None)
 
 

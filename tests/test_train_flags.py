@@ -1,0 +1,141 @@
+"""`train`'s flags come from the config dataclasses (virus_nerf/config_flags.py): every knob has
+one (`--optim.lr`, `--virus-grid.warmup-steps`), its help the field's comment; a flag given
+replaces that one value of the --config file, a flag not given keeps it; a bad value is one
+line naming the flag (the dataclass checks are the only range checks)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from helpers import run_cli, tiny_train_config
+
+from virus_nerf.config_io import load_json_config, to_dict
+from virus_nerf.grid.virus import VirusGridConfig
+from virus_nerf.trainer.command import _resolve_config, train_flags
+from virus_nerf.trainer.config import TrainConfig
+
+PREFIX = "virus-nerf: error: "
+
+
+def resolve(*argv: str, config=None, base=None) -> TrainConfig:
+    """The TrainConfig `train ARGV` would run, parsed as the command line parses it."""
+    import tyro
+
+    from virus_nerf.trainer.command import TrainFlags
+
+    knobs = tyro.cli(TrainFlags, args=list(argv), default=TrainFlags())
+    given, flags = train_flags(knobs)
+    return _resolve_config(config, given, flags, base=base)
+
+
+def test_a_flag_given_replaces_one_value_and_one_not_given_keeps_the_files(tmp_path):
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps({"batch_size": 128, "max_time": 30.0,
+                                "optim": {"lr": 0.001, "lr_decay_to": 0.2},
+                                "virus_grid": {"warmup_steps": 50, "zeta": 0.5}}))
+    cfg = resolve("--optim.lr", "0.005", "--virus-grid.warmup-steps", "500", "--max-steps", "9", config=path)
+    assert cfg.optim.lr == 0.005 and cfg.optim.lr_decay_to == 0.2  # the section's other value: the file's
+    assert cfg.virus_grid.warmup_steps == 500 and cfg.virus_grid.zeta == 0.5
+    assert cfg.batch_size == 128 and cfg.max_steps == 9
+    assert cfg.max_time == 30.0  # --max-steps with a --config: the file's time budget stays
+    assert cfg.march == TrainConfig().march  # no flag, not in the file: the default
+    assert resolve(config=path) == load_json_config(TrainConfig, path)  # no flag: the file as it is
+    assert resolve() == TrainConfig()
+
+
+def test_the_short_flags_are_the_derived_ones_and_keep_their_meaning():
+    cfg = resolve("--max-steps", "7", "--sensors", "camera,irs,camera", "--grid", "ngp", "--online",
+                  "--playback", "2", "--odometry-poses", "--image-scale", "1", "--seed", "3", "--batch-size", "64",
+                  "--eval-interval", "5")
+    assert (cfg.max_steps, cfg.max_time) == (7, None)  # --max-steps alone: a step-bounded run
+    assert cfg.sensors == ("camera", "irs") and cfg.grid == "ngp" and cfg.online and cfg.odometry_poses
+    assert (cfg.playback_speed, cfg.image_scale, cfg.seed, cfg.batch_size, cfg.eval_interval) == (2.0, 1.0, 3, 64, 5.0)
+    assert resolve("--max-steps", "7", "--max-time", "60").max_time == 60.0
+    resumed = resolve("--max-steps", "7", base=TrainConfig(max_time=30.0))
+    assert resumed.max_time == 30.0  # with --resume, the run's own budget stays
+    assert resolve("--no-online", base=TrainConfig(online=True)).online is False
+    base = TrainConfig(virus_grid=VirusGridConfig(warmup_budget_share=0.5))
+    cfg = resolve("--virus-grid.warmup-budget-share", "None", base=base)
+    assert cfg.virus_grid.warmup_budget_share is None  # None given is a value, not "unset"
+    cfg = resolve("--optim.betas", "0.8", "0.9", "--field.color-hidden", "32", "--stereo.tracker.window", "9")
+    assert cfg.optim.betas == (0.8, 0.9) and cfg.field.color_hidden == (32,) and cfg.stereo.tracker.window == 9
+
+
+def test_a_nested_flag_reaches_config_json(tiny_office, tmp_path):
+    """Checked by hand: the run's config.json holds the flag's value, the file's value where no
+    flag was given, and the defaults below both."""
+    path = tmp_path / "small.json"
+    small = tiny_train_config(max_steps=2)
+    path.write_text(json.dumps(to_dict(small)))
+    code, _, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", tmp_path / "run",
+                            "--config", path, "--quiet", "--optim.lr", "0.005", "--virus-grid.rays-per-update", "32"])
+    assert code == 0, err
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["optim"]["lr"] == 0.005 and saved["virus_grid"]["rays_per_update"] == 32  # the flags
+    assert saved["virus_grid"]["warmup_steps"] == 16 and saved["batch_size"] == 128  # the file's
+    assert saved["optim"]["lr_decay_to"] == 0.1 and saved["march"]["near"] == 0.05  # the defaults
+    assert "step_size" not in saved["ngp_grid"]  # removed: the marcher's step sets the NGP threshold
+
+
+@pytest.mark.parametrize("extra, line", [
+    (("--optim.lr", "-1"), "--optim.lr -1.0: expected a finite number > 0"),
+    (("--optim.lr", "abc"), "--optim.lr 'abc': expected a number"),
+    (("--virus-grid.warmup-steps", "0"), "--virus-grid.warmup-steps 0: expected an integer >= 1"),
+    (("--virus-grid.threshold-alpha", "1"), "--virus-grid.threshold-alpha 1.0: expected a finite number in (0, 1)"),
+    (("--stereo.max-range", "0.1"), "--stereo.max-range 0.1: expected a finite number > 0.3"),
+    (("--march.backend", "gpu"), "--march.backend 'gpu': expected 'auto', 'numba' or 'torch'"),
+    (("--march.step-size", "0"), "--march.step-size 0.0: expected a finite number >= 0.0001"),
+    (("--evaluation.n-rays", "0"), "--evaluation.n-rays 0: expected an integer in [1, 1000000]"),
+    (("--field.log2-table-size", "40"), "--field.log2-table-size: log2_table_size must be in [4, 30], got 40"),
+    (("--shares.irs", "0.7", "--shares.uss", "0.7"),
+     "--shares.irs 0.7 + --shares.uss 0.7 + shares.stereo 0.1: expected a sum <= 1"),
+    (("--max-time", "None"), "max_steps and --max-time are both None"),
+    (("--virus-grid.init", "all"), "invalid choice 'all' for argument '--virus-grid.init'"),
+])
+def test_a_bad_flag_is_one_line_naming_it(tmp_path, extra, line):
+    code, _, err = run_cli(["train", "--data", tmp_path / "no-data", "--room", "office", "--out", tmp_path / "run",
+                            *extra])
+    assert code == 2 and err.count("\n") == 1 and err.startswith(PREFIX) and line in err, err
+    assert "Traceback" not in err and not (tmp_path / "run").exists()
+
+
+def test_a_flag_clashing_with_the_config_file_names_the_flag(tmp_path):
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps({"shares": {"irs": 0.5}}))
+    code, _, err = run_cli(["train", "--data", tmp_path / "no-data", "--room", "office", "--out", tmp_path / "run",
+                            "--config", path, "--shares.uss", "0.6"])
+    assert code == 2 and "shares.irs 0.5 + --shares.uss 0.6 + shares.stereo 0.1: expected a sum <= 1" in err, err
+
+
+def test_help_lists_every_knob_with_its_comment():
+    code, out, err = run_cli(["train", "--help"])
+    assert code == 0 and err == ""
+    assert "--optim.lr FLOAT" in out and "Adam's learning rate" in out
+    assert "--virus-grid.warmup-steps INT" in out and "training steps (not updates) of the decay init -> prior." in out
+    assert "(default: 330)" in out and "virus-grid options" in out
+
+    def paths(doc: dict, prefix: str = ""):
+        for key, value in doc.items():
+            if isinstance(value, dict):
+                yield from paths(value, f"{prefix}{key}.")
+            else:
+                yield prefix + key
+
+    flags = {"playback_speed": "--playback", "evaluation.gt": "--gt", "evaluation.zones": None}
+    for path in paths(to_dict(TrainConfig())):
+        flag = flags.get(path, "--" + path.replace("_", "-"))
+        assert flag is None or f" {flag} " in out or f" {flag}," in out, path
+
+
+def test_an_old_config_with_a_removed_key_still_loads(tmp_path, capsys):
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps({"ngp_grid": {"step_size": 0.01, "warmup_steps": 64}}))
+    cfg = load_json_config(TrainConfig, path)
+    assert cfg.ngp_grid.warmup_steps == 64
+    note = capsys.readouterr().err
+    assert note.count("\n") == 1 and f"{path}: key 'ngp_grid.step_size' ignored (no longer read" in note
+    path.write_text(json.dumps({"ngp_grid": {"step_size": 0.01, "warmup_steps": -1}}))
+    with pytest.raises(ValueError, match="ngp_grid.warmup_steps -1"):
+        load_json_config(TrainConfig, path)
+    assert capsys.readouterr().err == ""  # a bad file: the error alone
