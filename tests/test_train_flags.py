@@ -139,3 +139,14 @@ def test_an_old_config_with_a_removed_key_still_loads(tmp_path, capsys):
     with pytest.raises(ValueError, match="ngp_grid.warmup_steps -1"):
         load_json_config(TrainConfig, path)
     assert capsys.readouterr().err == ""  # a bad file: the error alone
+
+
+def test_a_comment_after_a_field_describes_the_next_field_only():
+    """A block comment shared by fields (free_uss, free_depth, free_margin) ends at the next
+    comment: `weights.distortion` gets its own comment, not the block above it."""
+    from virus_nerf.config_flags import field_comments
+    from virus_nerf.losses import LossWeights
+
+    comments = field_comments(LossWeights)
+    assert comments["free_margin"].startswith("line-of-sight emptiness")
+    assert comments["distortion"].startswith("interval distortion")

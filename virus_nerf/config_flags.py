@@ -147,14 +147,18 @@ def field_comments(cls: type) -> dict[str, str]:
                                 tokenize.DEDENT):
                 code.add(tok.start[0])
         above: list[str] = []
+        after_field = False  # a comment block after a field starts afresh (it describes the next one)
         for number, line in enumerate(source.splitlines(), 1):
             m = re.match(r" {4}(\w+)\s*:", line)
             if m and m.group(1) in own and number not in strings:
                 out[m.group(1)] = comments.get(number) or " ".join(above)
                 if number in comments:
                     above = []
+                after_field = True
             elif number in comments and number not in code:
+                if after_field:
+                    above, after_field = [], False
                 above.append(comments[number])
             else:
-                above = []
+                above, after_field = [], False
     return {name: text for name, text in out.items() if text}

@@ -28,7 +28,7 @@ class VirusGridConfig:
     logodds_max: float = 4.0  # clamp (p ~ 0.982)
     init_probability: float = 0.55  # slightly above 0.5: everything is marched at first
     prior_probability: float = 0.49  # where unsupported cells end after the warm-up (empty)
-    # training steps (not updates) of the decay init -> prior; short enough that Table I's 75 s
+    # training steps (not updates) of the decay init -> prior. Short enough that Table I's 75 s
     # runs finish it (docs/decisions.md D4)
     warmup_steps: int = 330
     # while mapping while driving (frames keep arriving): a cell first seen after the warm-up can
