@@ -27,9 +27,8 @@ class MarchConfig:
     near: float = 0.05  # start of every ray, in front of the lens
     max_samples: int = 256  # per ray, after occupancy skipping
     # training: samples behind a transmittance below this get no gradient pass (a density-only
-    # pass finds them first); 0 renders every sample with gradients. 1e-4 (Instant-NGP's early
-    # termination): the same map per step as 0 and about half the CPU time per step at 2048-4096
-    # rays; 1e-3 lost quality (docs/method.md 10, README "Time to map")
+    # pass finds them first). 0 renders every sample with gradients; 1e-4 is Instant-NGP's early
+    # termination (docs/method.md 10, docs/decisions.md D12)
     min_transmittance: float = 1e-4
     backend: str = "auto"  # marching and compositing: auto (numba on CPU, torch on CUDA) | numba | torch
 
@@ -42,13 +41,13 @@ class MarchConfig:
 class OptimConfig:
     """The Adam optimiser and its learning-rate decay."""
 
-    lr: float = 0.0094  # Adam's learning rate; from the tuning study (paper 5e-3 on a GPU with 4096 rays; see README)
+    lr: float = 0.0094  # Adam's learning rate; from the tuning study (docs/decisions.md D11; the paper's 5e-3 is a GPU's)
     eps: float = 1e-15  # Adam's epsilon
     betas: tuple[float, float] = (0.9, 0.99)  # Adam's decay rates of the moment estimates
     lr_decay_to: float = 0.1  # exponential decay to this fraction of lr at max_steps/max_time
     # the same while mapping while driving (frames added after the first step: --online,
-    # map-bag): 1 = a constant lr, since new frames keep arriving and a decayed lr leaves the
-    # last part of the drive half-trained (README, "Mapping while driving")
+    # map-bag). 1 = a constant lr: new frames keep arriving, and a decayed lr leaves the last part
+    # of the drive half-trained (D25)
     lr_decay_driving: float = 1.0
 
 
@@ -74,22 +73,17 @@ class MapperConfig:
     learning-rate decay here (`Mapper.train(seconds)` decides how long to train)."""
 
     grid: Literal["virus", "ngp"] = "virus"  # occupancy grid for ray marching: virus (Bayesian) or ngp (Instant-NGP)
-    # stereo (depth triangulated from the cameras' own tracks, docs/method.md 3.7) is on by
-    # default: common areas no test or tuning used, 180 s, mean of 3 rooms: 0.370 / 0.511 m
-    # against 0.397 / 0.699 without it (docs/decisions.md D31)
+    # sensors trained on: camera, uss, irs, rgbd, stereo. The stereo sensor (depth triangulated
+    # from the cameras' own tracks, docs/method.md 3.7) is on by default (docs/decisions.md D31)
     sensors: tuple[str, ...] = ("camera", "uss", "irs", "stereo")
     max_steps: int | None = None  # stop after this many steps (None: no step limit)
     max_time: float | None = 120.0  # seconds of training, evaluation excluded (None: no limit)
     batch_size: int = 2048  # rays per step (at most, with max_samples_per_step)
-    # cap on a step's samples, like Instant-NGP's fixed sample budget per step: while rays are
+    # cap on a step's samples, like Instant-NGP's fixed sample budget per step. While rays are
     # long (the grid's warm-up, a large room, the first frames online) a step takes fewer rays,
-    # min(batch_size, cap / the last step's samples per ray), at least batch_size / 8. None:
-    # always batch_size rays. max_samples_per_step_driving replaces it while mapping while driving
-    # (frames arrive after the first step): 32768 (2048 rays x 16 samples) nearly doubles the steps
-    # of a 40 s drive at playback x1 (the grid stays in its warm-up all drive, 16-67 samples per
-    # ray) and gave 0.172 +- 0.043 m against 0.209 +- 0.023 without it (5 seeds, README
-    # "Mapping while driving"). Offline it stays off: more steps but worse maps there (README,
-    # "Time to map": the step-counted grid warm-up ends before the field knows the room)
+    # min(batch_size, cap / the last step's samples per ray), at least batch_size / 8; None:
+    # always batch_size rays. Off offline (D24); max_samples_per_step_driving replaces it while
+    # mapping while driving (32768 = 2048 rays x 16 samples, D23)
     max_samples_per_step: int | None = None
     max_samples_per_step_driving: int | None = 32768  # the same while mapping while driving (frames arrive after the first step)
     seed: int = 0  # seed of everything random
