@@ -9,6 +9,12 @@ the LiDAR map at camera height (zone 3, `map` ground truth). The peak resident m
 
     python benchmarks/bench_extent.py --scenes common,warehouse --sim-seeds 61,62,63 --out benchmarks/results/extent.json
 
+Modes (--modes, default fitted,grow): fitted, grow (the box grown to hold what the robot sensed,
+the default of `extent.mode` grow) and grow_reach (the first design: the reach around every
+camera). --grow-config merges a JSON object into the grow runs' config (a variant, e.g.
+'{"extent": {"margin_m": 0.2}}'); --keep keeps each run's output folder (metrics, maps,
+checkpoint) under a folder for a look afterwards.
+
 Rooms: the simulated rooms under benchmarks/.data (made by bench_time_to_map.py's `ensure_data`).
 """
 
@@ -28,15 +34,28 @@ sys.path.insert(0, str(HERE))
 
 from bench_time_to_map import DEFAULT_DATA, ensure_data  # noqa: E402
 
-MODES = {"fitted": {}, "grow": {"extent": {"mode": "grow"}}}
+# grow: the box grown to hold what the robot sensed (the default, D39); grow_reach: the first
+# design, the reach around every camera grown 2 m at a time (D38)
+MODES = {"fitted": {}, "grow": {"extent": {"mode": "grow"}},
+         "grow_reach": {"extent": {"mode": "grow", "grow_from": "reach", "grow_step_m": 2.0}}}
+
+
+def merged(base: dict, extra: dict) -> dict:
+    """`base` with `extra` merged in, nested objects key by key."""
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
 
 
 def run_once(data: Path, room: str, mode: str, playback: float, seed: int, work: Path,
-             steps: int | None = None) -> dict:
+             steps: int | None = None, extra: dict | None = None) -> dict:
     """One online training (or, with `steps`, an offline one of that many steps: bit-reproducible,
-    so a busy machine changes its wall time only); its zone-3 metrics, wall time and peak memory."""
+    so a busy machine changes its wall time only); its zone-3 metrics, wall time and peak memory.
+    `extra`: merged into the mode's config (--grow-config)."""
     cfg = work / f"{mode}.json"
-    cfg.write_text(json.dumps({**MODES[mode], **({} if steps is None else {"max_time": None, "max_steps": steps})}))
+    doc = merged(MODES[mode], extra or {})
+    cfg.write_text(json.dumps({**doc, **({} if steps is None else {"max_time": None, "max_steps": steps})}))
     out = work / f"run_{data.name}_{mode}_{seed}"
     cmd = [sys.executable, "-m", "virus_nerf.cli", "train", "--data", str(data), "--room", room, "--out", str(out),
            "--gt", "map", "--seed", str(seed), "--config", str(cfg), "--quiet"]
@@ -64,27 +83,40 @@ def main() -> None:
     ap.add_argument("--train-seed", type=int, default=0)
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--out", type=Path)
+    ap.add_argument("--modes", default="fitted,grow", help="comma-separated subset of " + ",".join(MODES))
+    ap.add_argument("--grow-config", type=json.loads, default={},
+                    help='JSON object merged into the grow runs\' config, e.g. \'{"extent": {"margin_m": 0.2}}\'')
+    ap.add_argument("--keep", type=Path, help="keep each run's output folder under this folder")
     args = ap.parse_args()
+    modes = args.modes.split(",")
+    if set(modes) - set(MODES):
+        raise SystemExit(f"--modes {args.modes!r}: expected a subset of {','.join(MODES)}")
+    if not isinstance(args.grow_config, dict):
+        raise SystemExit(f"--grow-config {args.grow_config!r}: expected a JSON object")
     results = []
     with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp) if args.keep is None else args.keep
+        work.mkdir(parents=True, exist_ok=True)
         for scene in args.scenes.split(","):
             for sim_seed in (int(s) for s in args.sim_seeds.split(",")):
                 data = ensure_data(args.data, scene, sim_seed)
                 from virus_nerf.data.ethz import load_recording
 
                 drive_s = load_recording(data, scene).duration
-                for mode in MODES:
-                    r = run_once(data, scene, mode, args.playback, args.train_seed, Path(tmp), args.steps)
+                for mode in modes:
+                    extra = args.grow_config if mode.startswith("grow") else None
+                    r = run_once(data, scene, mode, args.playback, args.train_seed, work, args.steps, extra)
                     r.update(scene=scene, sim_seed=sim_seed, mode=mode, drive_s=round(drive_s, 1))
                     results.append(r)
                     print(json.dumps(r), flush=True)
     summary = {}
     for scene in args.scenes.split(","):
-        for mode in MODES:
+        for mode in modes:
             rows = [r for r in results if r["scene"] == scene and r["mode"] == mode]
             summary[f"{scene}/{mode}"] = {k: round(sum(r[k] for r in rows) / len(rows), 3)
                                           for k in ("acc_mean", "cov_mean", "peak_rss_mb", "steps")}
-    doc = {"command": " ".join(sys.argv), "playback": None if args.steps else args.playback, "steps": args.steps, "gt": "map, zone3", "runs": results,
+    doc = {"command": " ".join(sys.argv), "playback": None if args.steps else args.playback, "steps": args.steps, "gt": "map, zone3",
+           "grow_config": args.grow_config, "threads": os.environ.get("OMP_NUM_THREADS"), "runs": results,
            "mean": summary}
     print(json.dumps(summary, indent=1))
     if args.out:

@@ -44,7 +44,16 @@ from virus_nerf.engine.views import MapViews
 from virus_nerf.errors import UsageError
 from virus_nerf.field.field import NerfField
 from virus_nerf.grid.base import GridSpec, GridUpdateBatch
-from virus_nerf.grid.extent import field_config_for_frame, field_frame, inside_frame, needed_box
+from virus_nerf.grid.extent import (
+    SensedSupport,
+    camera_margin_m,
+    field_config_for_frame,
+    field_frame,
+    grows_from_sensors,
+    holding_box,
+    inside_frame,
+    needed_box,
+)
 from virus_nerf.losses import LossTerms, distortion_loss, line_of_sight_terms, total_loss
 from virus_nerf.render.marching import ray_box_interval
 from virus_nerf.sampler.batch import BatchSampler, RayBatch, recent_frame_odds
@@ -75,7 +84,8 @@ class Mapper(MapViews):
     frames' full resolution (frames are resized by config.image_scale). box: the scene box in
     metres: with `extent.mode` fitted the field's and grid's frame for the mapper's life (the
     room's extent, e.g. from a floor plan or a previous map); with grow the box around the first
-    frame (grid/extent.py first_box), which grows as frames arrive (grid/extent.py).
+    frame (grid/extent.py first_box), which grows as frames arrive to hold the camera positions
+    and the points the depth sensors measured (or the reach around every camera; grid/extent.py).
     """
 
     def __init__(self, config: MapperConfig, intrinsics: Mapping[int, Intrinsics], box: SceneBox):
@@ -97,6 +107,10 @@ class Mapper(MapViews):
         self.field = NerfField(self.frame, field_cfg, generator=field_gen).to(self.device)
         self.grid = build_grid(config, box, self.device, GridSpec.from_cell(box, ext.grid_cell_m)
                                if ext.mode == "grow" else None)
+        # grow, sensed: the points the depth sensors measured, counted per support cell
+        self._support = SensedSupport(ext, self.frame, (box.lo[2], box.hi[2])) \
+            if ext.mode == "grow" and grows_from_sensors(ext, config.sensors) else None
+        self._stereo_counted = 0  # stereo points already counted in _support
         self.model = SceneModel(
             self.field, self.grid, config.march.step_size, config.march.near, config.march.max_samples,
             config.min_opacity, config.march.backend, config.march.min_transmittance,
@@ -154,18 +168,19 @@ class Mapper(MapViews):
         depth = None
         if self.store.depths_mm is not None and frame.depth is not None:
             depth = resize_depth_mm(np.asarray(frame.depth, dtype=np.float32), size)
-        self._grow_for(np.asarray(frame.cam_to_world, dtype=np.float64)[None, :3, 3], np.array([frame.time]))
+        self._check_inside(np.asarray(frame.cam_to_world, dtype=np.float64)[None, :3, 3], np.array([frame.time]))
         row = self.store.append(frame.stack_id, self.frames, float(frame.time), np.asarray(frame.cam_to_world),
                                 resize_rgb(frame.rgb, size), depth, float(frame.uss_range),
                                 np.asarray(frame.irs_range, dtype=np.float64))
+        self._grow_for(self.store, np.array([row]))
         self.track_image(row, frame.rgb)
         return row
 
-    def _grow_for(self, positions: np.ndarray, times: np.ndarray) -> None:
-        """With `extent.mode` grow: the box (and the grid) grown to hold every camera position
-        (K, 3) plus the reach; a position outside the field's frame is a one-line UsageError."""
+    def _check_inside(self, positions: np.ndarray, times: np.ndarray) -> None:
+        """With `extent.mode` grow: a camera position (K, 3) outside the field's frame is a
+        one-line UsageError naming the frame's time."""
         ext = self.config.extent
-        if ext.mode != "grow" or not len(positions):
+        if ext.mode != "grow":
             return
         for p, t in zip(positions, times, strict=True):
             if not inside_frame(p, self.frame):
@@ -173,9 +188,31 @@ class Mapper(MapViews):
                     f"frame at time {float(t):.3f} s: camera at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m lies outside "
                     f"the map's frame {self.frame.lo}..{self.frame.hi} (extent.frame_m {ext.frame_m:g} m around "
                     "the first frame); expected a drive within it (a larger extent.frame_m maps a larger area)")
+
+    def _grow_for(self, store: FrameStore, rows: np.ndarray) -> None:
+        """With `extent.mode` grow: the box (and the grid) grown to hold the camera positions of
+        `store`'s `rows` plus the camera margin and, with sensed growth, their IRS returns (counted
+        in the support cells first; grid/extent.py)."""
+        ext = self.config.extent
+        if ext.mode != "grow" or not len(rows):
+            return
+        if self._support is not None and "irs" in self.config.sensors:
+            rays = irs_zone_rays(store, rows, 1).valid()
+            if len(rays):
+                self._support.add((rays.origins + rays.directions * rays.ranges[:, None]).double().numpy())
+        self._grow_to(store.cam_to_world[rows, :3, 3])
+
+    def _grow_to(self, positions: np.ndarray) -> None:
+        """Grow the box (and the grid) to hold camera positions (K, 3) + the camera margin and
+        the supported sensed points + margin_m."""
+        ext = self.config.extent
         box = self.box
-        for corner in (positions.min(axis=0), positions.max(axis=0)):
-            box = needed_box(box, corner, ext, self.frame) or box
+        margin = camera_margin_m(ext, self.config.sensors)
+        if len(positions):
+            for corner in (positions.min(axis=0), positions.max(axis=0)):
+                box = needed_box(box, corner, ext, self.frame, margin) or box
+        if self._support is not None and (sensed := self._support.bounds()) is not None:
+            box = holding_box(box, sensed[0] - ext.margin_m, sensed[1] + ext.margin_m, ext, self.frame) or box
         if box is not self.box:
             self.grid.grow(box)
             self.box = box
@@ -199,7 +236,8 @@ class Mapper(MapViews):
         if store.intrinsics != self.store.intrinsics:
             raise ValueError(f"store intrinsics {store.intrinsics} differ from the mapper's {self.store.intrinsics}")
         picked = np.arange(len(store)) if rows is None else np.asarray(rows)
-        self._grow_for(store.cam_to_world[picked, :3, 3], store.times[picked])
+        self._check_inside(store.cam_to_world[picked, :3, 3], store.times[picked])
+        self._grow_for(store, picked)
         if rows is None and self.frames == 0:
             self._sampler = BatchSampler(store, self.config.sensors, self.config.shares, self.stereo)
             return
@@ -207,8 +245,16 @@ class Mapper(MapViews):
 
     def set_stereo(self, depth: StereoDepth | None) -> None:
         """Triangulated depth targets (stereo.StereoDepth) for the frames added so far, rows in
-        the mapper's store order; used by the `stereo` sensor's share of each batch."""
+        the mapper's store order; used by the `stereo` sensor's share of each batch. With sensed
+        growth the box grows to hold the new triangulated points (grid/extent.py)."""
         self.stereo = depth
+        if self._support is not None and depth is not None:
+            points = np.asarray(depth.points)
+            if len(points) < self._stereo_counted:  # a new set, not the old one extended: count it all
+                self._stereo_counted = 0
+            if self._support.add(points[self._stereo_counted:]):
+                self._grow_to(np.zeros((0, 3)))
+            self._stereo_counted = len(points)
         if self._sampler is not None:
             self._sampler.stereo = depth
 

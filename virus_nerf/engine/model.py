@@ -166,7 +166,7 @@ def start_box(recording: Recording, config: MapperConfig) -> SceneBox:
 
     first = min(((float(st.times[i]), st.cam_to_world[i, :3, 3]) for st in recording.stacks.values()
                  for i in st.indices("train")[:1]), key=lambda tp: tp[0])
-    return first_box(first[1], config.extent)
+    return first_box(first[1], config.extent, config.sensors)
 
 
 def build_grid(config: MapperConfig, box: SceneBox, device: torch.device, spec: GridSpec | None = None) -> OccupancyGrid:

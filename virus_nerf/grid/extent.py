@@ -4,10 +4,16 @@
 the LiDAR map and the whole drive (engine/model.py fit_scene_box); the field's hash encoding and
 the occupancy grid both span it.
 
-`grow` (a robot in a room it has never seen): the Mapper starts from a box around its first
-frame, the camera position grown by `reach_m` horizontally (the USS's 8 m reach) and the
-no-map box's +-1.5 m vertically, and the box grows whenever a new frame's position plus `reach_m`
-leaves it, by whole grid cells and at least `grow_step_m` at a time. Two things keep that exact:
+`grow` (a robot in a room it has never seen): the Mapper starts from a small box around its first
+frame and grows it, by whole grid cells, to hold what the robot has sensed (`grow_from` sensed,
+the default): every camera position and every horizontal support cell (`support_cell_m`) with at
+least `support_points` points the depth sensors measured (the cameras' stereo triangulations, the
+IRS zones' returns), each grown by `margin_m`. So the box ends just behind the walls the robot
+saw, as the fitted box does, and holds no space beyond them where the field is untrained
+(docs/extent.md, D39). Without the stereo sensor (the only one that ranges as far as the cameras
+see) it grows by `reach_m` around every camera position instead (`grow_from` reach, the first
+design, D38). The box's height is the first camera's +- `height_m` (z is fixed). Two things keep
+growing exact:
 
 - the occupancy grid's cells keep their size (`grid_cell_m`) and position; growing pads the cell
   array on its sides, every existing cell keeps its value (`GridSpec.grown`, `OccupancyGrid.grow`);
@@ -15,9 +21,10 @@ leaves it, by whole grid cells and at least `grow_step_m` at a time. Two things 
   first box) that never moves, with its resolutions set in metres (`field_coarse_m`,
   `field_fine_m`), so a point's features do not change when the box grows.
 
-Memory is bounded: the hash tables have a fixed size, the grid has one float per cell of the
-area driven (plus `reach_m`), at most the frame's cube. Frames beyond the frame cube are refused
-with a one-line error naming the frame (a larger `frame_m` maps a larger area).
+Memory is bounded: the hash tables have a fixed size, the grid has one float per cell of the box,
+the support counts one byte per support cell of the frame, the box at most the frame's cube.
+Frames beyond the frame cube are refused with a one-line error naming the frame (a larger
+`frame_m` maps a larger area).
 """
 
 from __future__ import annotations
@@ -31,6 +38,7 @@ import numpy as np
 from virus_nerf.scene_box import SceneBox
 
 EXTENT_MODES = ("fitted", "grow")
+GROW_FROM = ("sensed", "reach")
 
 
 @dataclass(frozen=True)
@@ -38,9 +46,16 @@ class ExtentConfig:
     """How the Mapper bounds its map (module docstring), metres."""
 
     mode: str = "fitted"  # fitted | grow
-    reach_m: float = 8.0  # grow: horizontal margin around every camera position (the URM37's reach)
+    # grow: what the box grows to hold: "sensed" the camera positions and the points the depth
+    # sensors measured (stereo, IRS), each + margin_m; "reach" every camera position + reach_m.
+    # sensed needs the stereo sensor (the IRS alone sees 4 m); without it the box grows by reach
+    grow_from: str = "sensed"
+    reach_m: float = 8.0  # grow, reach: horizontal margin around every camera position (the URM37's reach)
+    margin_m: float = 0.1  # grow, sensed: margin around the camera positions and the supported points
+    support_cell_m: float = 0.16  # grow, sensed: horizontal cells in which sensed points are counted
+    support_points: int = 3  # grow, sensed: points a support cell needs before the box holds it
     height_m: float = 1.5  # grow: the box spans the first camera's height +- this
-    grow_step_m: float = 2.0  # grow: the box grows by at least this much on a side (fewer re-allocations)
+    grow_step_m: float = 0.08  # grow: the box grows by at least this much on a side (fewer re-allocations)
     grid_cell_m: float = 0.08  # grow: occupancy grid cell (fitted: the longest box axis / max_resolution)
     frame_m: float = 64.0  # grow: side of the field's fixed cube, centred on the first box
     field_coarse_m: float = 0.6  # grow: coarsest hash level's cell (fitted office: 10 m / 16)
@@ -49,8 +64,13 @@ class ExtentConfig:
     def __post_init__(self) -> None:
         if self.mode not in EXTENT_MODES:
             raise ValueError(f"extent.mode {self.mode!r}: expected one of {', '.join(EXTENT_MODES)}")
-        for name in ("reach_m", "height_m", "grow_step_m", "grid_cell_m", "frame_m", "field_coarse_m",
-                     "field_fine_m"):
+        if self.grow_from not in GROW_FROM:
+            raise ValueError(f"extent.grow_from {self.grow_from!r}: expected one of {', '.join(GROW_FROM)}")
+        p = self.support_points
+        if isinstance(p, bool) or not isinstance(p, int) or not 1 <= p <= 255:
+            raise ValueError(f"extent.support_points {p!r}: expected a whole number from 1 to 255")
+        for name in ("reach_m", "margin_m", "support_cell_m", "height_m", "grow_step_m", "grid_cell_m", "frame_m",
+                     "field_coarse_m", "field_fine_m"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
                 raise ValueError(f"extent.{name} {v!r}: expected a positive number of metres")
@@ -59,11 +79,23 @@ class ExtentConfig:
                              f"{self.field_coarse_m}")
 
 
-def first_box(camera_position: np.ndarray, cfg: ExtentConfig) -> SceneBox:
-    """The box around the first frame: its camera position +- reach (x, y) and +- height (z),
-    whole grid cells on a side."""
+def grows_from_sensors(cfg: ExtentConfig, sensors) -> bool:
+    """True when the grown box follows the sensed points (`grow_from` sensed and the stereo
+    sensor trained), False when it follows the reach around every camera."""
+    return cfg.grow_from == "sensed" and "stereo" in tuple(sensors)
+
+
+def camera_margin_m(cfg: ExtentConfig, sensors) -> float:
+    """The horizontal margin the box keeps around every camera position."""
+    return cfg.margin_m if grows_from_sensors(cfg, sensors) else cfg.reach_m
+
+
+def first_box(camera_position: np.ndarray, cfg: ExtentConfig, sensors=()) -> SceneBox:
+    """The box around the first frame: its camera position +- the camera margin (x, y; the reach,
+    or with sensed growth `margin_m`) and +- height (z), whole grid cells on a side."""
     p = np.asarray(camera_position, dtype=np.float64).reshape(3)
-    half = np.array([cfg.reach_m, cfg.reach_m, cfg.height_m])
+    m = camera_margin_m(cfg, sensors)
+    half = np.array([m, m, cfg.height_m])
     n = np.ceil(2 * half / cfg.grid_cell_m - 1e-9)  # cells per axis
     lo = p - n * cfg.grid_cell_m / 2
     return SceneBox(tuple(lo), tuple(lo + n * cfg.grid_cell_m))
@@ -81,13 +113,22 @@ def field_config_for_frame(field, cfg: ExtentConfig):
                                max_resolution=max(1, round(cfg.frame_m / cfg.field_fine_m)))
 
 
-def needed_box(box: SceneBox, camera_position: np.ndarray, cfg: ExtentConfig, frame: SceneBox) -> SceneBox | None:
+def needed_box(box: SceneBox, camera_position: np.ndarray, cfg: ExtentConfig, frame: SceneBox,
+               margin_m: float | None = None) -> SceneBox | None:
     """The grown box once a frame at `camera_position` arrives, or None when `box` already holds
-    its reach. Grows each side that is short by at least `grow_step_m`, by whole cells of
-    `grid_cell_m` (so cells keep their places), never beyond the field's frame (x, y); z is fixed."""
+    the camera +- `margin_m` (default: the reach) horizontally (`holding_box`)."""
     p = np.asarray(camera_position, dtype=np.float64).reshape(3)
+    m = cfg.reach_m if margin_m is None else margin_m
+    return holding_box(box, p[:2] - m, p[:2] + m, cfg, frame)
+
+
+def holding_box(box: SceneBox, want_lo: np.ndarray, want_hi: np.ndarray, cfg: ExtentConfig,
+                frame: SceneBox) -> SceneBox | None:
+    """The grown box that holds the horizontal interval `want_lo`..`want_hi` (2,), or None when
+    `box` already does. Grows each side that is short by at least `grow_step_m`, by whole cells
+    of `grid_cell_m` (so cells keep their places), never beyond the field's frame; z is fixed."""
     lo, hi = np.array(box.lo, dtype=np.float64), np.array(box.hi, dtype=np.float64)
-    want_lo, want_hi = p[:2] - cfg.reach_m, p[:2] + cfg.reach_m
+    want_lo, want_hi = np.asarray(want_lo, dtype=np.float64), np.asarray(want_hi, dtype=np.float64)
     short_lo, short_hi = want_lo < lo[:2] - 1e-9, want_hi > hi[:2] + 1e-9
     if not (short_lo.any() or short_hi.any()):
         return None
@@ -108,3 +149,50 @@ def needed_box(box: SceneBox, camera_position: np.ndarray, cfg: ExtentConfig, fr
 def inside_frame(camera_position: np.ndarray, frame: SceneBox) -> bool:
     p = np.asarray(camera_position, dtype=np.float64).reshape(3)
     return bool(np.all(p >= np.asarray(frame.lo)) and np.all(p <= np.asarray(frame.hi)))
+
+
+class SensedSupport:
+    """Points the depth sensors measured, counted per horizontal support cell of the field's
+    frame (`support_cell_m`, one byte each, saturating at 255); `bounds` is the horizontal extent
+    of the cells with at least `support_points` points, so a stray point (a wrong triangulation)
+    does not grow the box. Points outside the frame or outside the box's height are not counted
+    (the map cannot hold them)."""
+
+    def __init__(self, cfg: ExtentConfig, frame: SceneBox, z_range: tuple[float, float]):
+        self.cell = float(cfg.support_cell_m)
+        self.need = int(cfg.support_points)
+        self.lo = np.asarray(frame.lo[:2], dtype=np.float64)
+        self.shape = tuple(int(n) for n in np.ceil(np.asarray(frame.size[:2]) / self.cell - 1e-9))
+        self.z_range = (float(z_range[0]), float(z_range[1]))
+        self.counts = np.zeros(self.shape, dtype=np.uint8)
+        self._lo_cell: np.ndarray | None = None  # (2,) int, lowest supported cell index per axis
+        self._hi_cell: np.ndarray | None = None
+
+    def add(self, points: np.ndarray) -> bool:
+        """Count world points (N, 3) m; True when the supported extent grew."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        p = p[np.isfinite(p).all(axis=1) & (p[:, 2] >= self.z_range[0]) & (p[:, 2] <= self.z_range[1])]
+        ij = np.floor((p[:, :2] - self.lo) / self.cell).astype(np.int64)
+        ij = ij[((ij >= 0) & (ij < np.asarray(self.shape))).all(axis=1)]
+        if not len(ij):
+            return False
+        flat, n = np.unique(ij[:, 0] * self.shape[1] + ij[:, 1], return_counts=True)
+        counts = self.counts.reshape(-1)
+        counts[flat] = np.minimum(counts[flat].astype(np.int64) + n, 255).astype(np.uint8)
+        ok = flat[counts[flat] >= self.need]
+        if not len(ok):
+            return False
+        cells = np.stack([ok // self.shape[1], ok % self.shape[1]], axis=1)
+        lo, hi = cells.min(axis=0), cells.max(axis=0)
+        if self._lo_cell is not None:
+            lo, hi = np.minimum(lo, self._lo_cell), np.maximum(hi, self._hi_cell)
+            if (lo == self._lo_cell).all() and (hi == self._hi_cell).all():
+                return False
+        self._lo_cell, self._hi_cell = lo, hi
+        return True
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(lo, hi) (2,) m: the horizontal extent of the supported cells; None before any."""
+        if self._lo_cell is None:
+            return None
+        return self.lo + self._lo_cell * self.cell, self.lo + (self._hi_cell + 1) * self.cell

@@ -40,13 +40,13 @@ REPORT = "stream.json"
 STARTUP_WAIT_S = 1.0  # bag seconds the first frames wait for every stack's camera_info
 
 
-def initial_box(positions: np.ndarray, extent) -> SceneBox:
+def initial_box(positions: np.ndarray, extent, sensors=()) -> SceneBox:
     """The scene box of a stream: the room is not known in advance, so the box starts around the
     first frame's camera (grid/extent.py first_box) and the mapper grows it as the robot drives
     (`extent.mode` grow, docs/extent.md)."""
     from virus_nerf.grid.extent import first_box
 
-    return first_box(np.asarray(positions, dtype=np.float64).reshape(-1, 3)[0], extent)
+    return first_box(np.asarray(positions, dtype=np.float64).reshape(-1, 3)[0], extent, sensors)
 
 
 @dataclass
@@ -234,7 +234,7 @@ class StreamRun:
         # the extent is unknown: the box grows from the first frame (grid/extent.py)
         cfg = dataclasses.replace(self.config, max_steps=None, max_time=max(self.drive_s / self.playback, 1e-3),
                                   extent=dataclasses.replace(self.config.extent, mode="grow"))
-        box = self.box(np.stack([f.frame.cam_to_world[:3, 3] for f in first]), cfg.extent)
+        box = self.box(np.stack([f.frame.cam_to_world[:3, 3] for f in first]), cfg.extent, cfg.sensors)
         self.mapper = Mapper(cfg, dict(self.sync.intrinsics), box)
         (self.out / SNAPSHOTS).mkdir(parents=True)
         write_json_atomic(self.out / SNAPSHOTS / "config.json", to_dict(cfg))
