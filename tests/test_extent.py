@@ -64,7 +64,7 @@ def test_the_box_grows_by_whole_cells_and_at_least_the_step_and_stops_at_the_fra
 
 
 def test_sensed_growth_needs_the_stereo_sensor_and_starts_from_the_margin():
-    ext = dataclasses.replace(EXT, margin_m=0.3)  # grow_from sensed (the default)
+    ext = dataclasses.replace(EXT, grow_from="sensed", margin_m=0.3)
     assert grows_from_sensors(ext, ("camera", "irs", "stereo"))
     assert not grows_from_sensors(ext, ("camera", "uss", "irs"))  # the IRS alone: the reach
     assert not grows_from_sensors(dataclasses.replace(ext, grow_from="reach"), ("camera", "stereo"))
@@ -79,7 +79,7 @@ def test_sensed_growth_needs_the_stereo_sensor_and_starts_from_the_margin():
 
 
 def test_the_support_counts_points_per_cell_and_bounds_the_cells_with_enough():
-    ext = ExtentConfig(mode="grow", support_cell_m=0.5, support_points=2)
+    ext = ExtentConfig(mode="grow", grow_from="sensed", support_cell_m=0.5, support_points=2)
     frame = SceneBox((-2.0, -2.0, -1.0), (2.0, 2.0, 1.0))  # 8 x 8 support cells
     sup = SensedSupport(ext, frame, (-0.5, 0.5))
     assert sup.counts.shape == (8, 8) and sup.bounds() is None

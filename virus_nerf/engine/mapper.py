@@ -208,11 +208,13 @@ class Mapper(MapViews):
         ext = self.config.extent
         box = self.box
         margin = camera_margin_m(ext, self.config.sensors)
+        # sensed: single cells (a wall's distance); reach: grow_step_m at a time (fewer re-allocations)
+        step = ext.grid_cell_m if grows_from_sensors(ext, self.config.sensors) else None
         if len(positions):
             for corner in (positions.min(axis=0), positions.max(axis=0)):
-                box = needed_box(box, corner, ext, self.frame, margin) or box
+                box = needed_box(box, corner, ext, self.frame, margin, step) or box
         if self._support is not None and (sensed := self._support.bounds()) is not None:
-            box = holding_box(box, sensed[0] - ext.margin_m, sensed[1] + ext.margin_m, ext, self.frame) or box
+            box = holding_box(box, sensed[0] - ext.margin_m, sensed[1] + ext.margin_m, ext, self.frame, step) or box
         if box is not self.box:
             self.grid.grow(box)
             self.box = box

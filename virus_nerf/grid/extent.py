@@ -46,16 +46,17 @@ class ExtentConfig:
     """How the Mapper bounds its map (module docstring), metres."""
 
     mode: str = "fitted"  # fitted | grow
-    # grow: what the box grows to hold: "sensed" the camera positions and the points the depth
-    # sensors measured (stereo, IRS), each + margin_m; "reach" every camera position + reach_m.
-    # sensed needs the stereo sensor (the IRS alone sees 4 m); without it the box grows by reach
-    grow_from: str = "sensed"
+    # grow: what the box grows to hold: "reach" every camera position + reach_m (the default:
+    # while driving, the better choice in large rooms, docs/decisions.md D39); "sensed" the camera
+    # positions and the points the depth sensors measured (stereo, IRS), each + margin_m, by
+    # single grid cells (better in small rooms and offline; needs the stereo sensor)
+    grow_from: str = "reach"
     reach_m: float = 8.0  # grow, reach: horizontal margin around every camera position (the URM37's reach)
     margin_m: float = 0.1  # grow, sensed: margin around the camera positions and the supported points
     support_cell_m: float = 0.16  # grow, sensed: horizontal cells in which sensed points are counted
     support_points: int = 3  # grow, sensed: points a support cell needs before the box holds it
     height_m: float = 1.5  # grow: the box spans the first camera's height +- this
-    grow_step_m: float = 0.08  # grow: the box grows by at least this much on a side (fewer re-allocations)
+    grow_step_m: float = 2.0  # grow, reach: the box grows by at least this much on a side (fewer re-allocations)
     grid_cell_m: float = 0.08  # grow: occupancy grid cell (fitted: the longest box axis / max_resolution)
     frame_m: float = 64.0  # grow: side of the field's fixed cube, centred on the first box
     field_coarse_m: float = 0.6  # grow: coarsest hash level's cell (fitted office: 10 m / 16)
@@ -114,26 +115,27 @@ def field_config_for_frame(field, cfg: ExtentConfig):
 
 
 def needed_box(box: SceneBox, camera_position: np.ndarray, cfg: ExtentConfig, frame: SceneBox,
-               margin_m: float | None = None) -> SceneBox | None:
+               margin_m: float | None = None, step_m: float | None = None) -> SceneBox | None:
     """The grown box once a frame at `camera_position` arrives, or None when `box` already holds
     the camera +- `margin_m` (default: the reach) horizontally (`holding_box`)."""
     p = np.asarray(camera_position, dtype=np.float64).reshape(3)
     m = cfg.reach_m if margin_m is None else margin_m
-    return holding_box(box, p[:2] - m, p[:2] + m, cfg, frame)
+    return holding_box(box, p[:2] - m, p[:2] + m, cfg, frame, step_m)
 
 
 def holding_box(box: SceneBox, want_lo: np.ndarray, want_hi: np.ndarray, cfg: ExtentConfig,
-                frame: SceneBox) -> SceneBox | None:
+                frame: SceneBox, step_m: float | None = None) -> SceneBox | None:
     """The grown box that holds the horizontal interval `want_lo`..`want_hi` (2,), or None when
-    `box` already does. Grows each side that is short by at least `grow_step_m`, by whole cells
-    of `grid_cell_m` (so cells keep their places), never beyond the field's frame; z is fixed."""
+    `box` already does. Grows each side that is short by at least `step_m` (default
+    `grow_step_m`), by whole cells of `grid_cell_m` (so cells keep their places), never beyond the
+    field's frame; z is fixed."""
     lo, hi = np.array(box.lo, dtype=np.float64), np.array(box.hi, dtype=np.float64)
     want_lo, want_hi = np.asarray(want_lo, dtype=np.float64), np.asarray(want_hi, dtype=np.float64)
     short_lo, short_hi = want_lo < lo[:2] - 1e-9, want_hi > hi[:2] + 1e-9
     if not (short_lo.any() or short_hi.any()):
         return None
     cell = cfg.grid_cell_m
-    step = math.ceil(cfg.grow_step_m / cell - 1e-9)  # cells
+    step = math.ceil((cfg.grow_step_m if step_m is None else step_m) / cell - 1e-9)  # cells
     add_lo = np.where(short_lo, np.maximum(np.ceil((lo[:2] - want_lo) / cell - 1e-9), step), 0)
     add_hi = np.where(short_hi, np.maximum(np.ceil((want_hi - hi[:2]) / cell - 1e-9), step), 0)
     # never beyond the frame: only whole cells that fit inside it
