@@ -143,6 +143,14 @@ class Recording:
         out[:3, 3] = (1 - a) * poses[j - 1, :3, 3] + a * poses[j, :3, 3]
         return out
 
+    def camera_poses(self, label: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Camera-to-world (N, 4, 4) and stack id (N,) of every sample (or of those with split
+        label `label`), stack by stack in the recording's stack order."""
+        stacks = list(self.stacks.values())
+        rows = [np.arange(len(st.times)) if label is None else st.indices(label) for st in stacks]
+        return (np.concatenate([st.cam_to_world[r] for st, r in zip(stacks, rows, strict=True)]),
+                np.concatenate([np.full(len(r), st.stack_id) for st, r in zip(stacks, rows, strict=True)]))
+
     @property
     def duration(self) -> float:
         t = np.concatenate([s.times for s in self.stacks.values()])

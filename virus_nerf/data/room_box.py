@@ -22,7 +22,7 @@ def fit_scene_box(recording: Recording, margin: float = 0.1) -> SceneBox:
     grids' coordinate frame and bounds the marching; no density, colour or occupancy comes from
     it. A room never seen grows its box instead (`extent.mode` grow, grid/extent.py).
     """
-    cams = np.concatenate([s.cam_to_world[:, :3, 3] for s in recording.stacks.values()])
+    cams = recording.camera_poses()[0][:, :3, 3]
     if recording.map_path is not None:
         pts = recording.lidar_map()
         lo = np.percentile(pts, 0.1, axis=0)

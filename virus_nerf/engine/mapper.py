@@ -50,6 +50,7 @@ from virus_nerf.grid.extent import (
     field_config_for_frame,
     field_frame,
     grows_from_sensors,
+    growth_step_m,
     holding_box,
     inside_frame,
     needed_box,
@@ -208,8 +209,7 @@ class Mapper(MapViews):
         ext = self.config.extent
         box = self.box
         margin = camera_margin_m(ext, self.config.sensors)
-        # sensed: single cells (a wall's distance); reach: grow_step_m at a time (fewer re-allocations)
-        step = ext.grid_cell_m if grows_from_sensors(ext, self.config.sensors) else None
+        step = growth_step_m(ext, self.config.sensors)
         if len(positions):
             for corner in (positions.min(axis=0), positions.max(axis=0)):
                 box = needed_box(box, corner, ext, self.frame, margin, step) or box

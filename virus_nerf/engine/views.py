@@ -20,7 +20,7 @@ from virus_nerf.grid.virus import VirusGrid
 from virus_nerf.maps.extract import camera_height, check_raster, occupancy_map, probability_map
 from virus_nerf.maps.observed import frames_observed
 from virus_nerf.maps.occupancy import raster_shape
-from virus_nerf.maps.scans import FieldOfView, Scan2D, horizontal_directions, points_from_ranges
+from virus_nerf.maps.scans import FieldOfView, Scan2D, points_from_ranges, scan_ranges
 
 
 @dataclass(frozen=True)
@@ -45,13 +45,11 @@ class MapViews:
         """NeRF 360 deg horizontal scans (maps.scans.Scan2D, world x, y in metres) from each
         pose's position: poses (N, 4, 4) camera-to-world, (4, 4), or positions (N, 3)."""
         positions = _positions(poses)
-        dirs = horizontal_directions(n_rays)
         out = []
         self.field.eval()
         try:
             for p in positions:
-                origins = np.broadcast_to(p, dirs.shape).copy()
-                r = self.model.ranges(origins, dirs)
+                _, dirs, r = scan_ranges(self.model, p, n_rays)
                 out.append(Scan2D("NeRF", points_from_ranges(p[:2], dirs, r), p[:2], FieldOfView.full(p[:2])))
         finally:
             self.field.train()

@@ -10,17 +10,15 @@ from virus_nerf.maps.scans import (
     FieldOfView,
     RangeModel,
     Scan2D,
-    horizontal_directions,
     points_from_ranges,
     scan_angles,
+    scan_ranges,
 )
 
 
 def model_scan(model: RangeModel, test_point: TestPoint, n_rays: int = 512, name: str = "NeRF") -> Scan2D:
     """360 deg horizontal scan of `model` from the test point's scan origin (same rays as the GT)."""
-    dirs = horizontal_directions(n_rays)  # (N, 3)
-    origins = np.broadcast_to(test_point.origin, dirs.shape).copy()  # (N, 3)
-    r = np.asarray(model.ranges(origins, dirs), dtype=np.float64).reshape(-1)
+    _, dirs, r = scan_ranges(model, test_point.origin, n_rays)  # (N, 3), (N,)
     if r.shape != (n_rays,):
         raise ValueError(f"model {name!r} returned {r.shape} ranges for {n_rays} rays")
     ok = np.isfinite(r) & (r > 0)

@@ -13,7 +13,6 @@ import numpy as np
 from virus_nerf.errors import UsageError
 from virus_nerf.maps import extract
 from virus_nerf.maps.extract import check_raster
-from virus_nerf.maps.occupancy import raster_shape
 
 KINDS = ("map", "prob", "grid3d", "esdf", "scans", "cloud", "images")
 DEFAULT_KINDS = ("map", "prob", "grid3d", "esdf", "scans")  # cloud and images render many camera rays
@@ -108,19 +107,16 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
 
     box = trainer.mapper.box
     lo, hi = np.asarray(box.lo[:2], float), np.asarray(box.hi[:2], float)
-    nx, ny = raster_shape(lo, hi, resolution)
-    if {"map", "prob", "esdf"} & set(kinds):
-        check_raster("--resolution", lo, hi, resolution)
     summary: dict = {"kinds": list(kinds), "resolution": resolution, "origin": [float(lo[0]), float(lo[1]), 0.0]}
     done = []
     seen = None
     if {"map", "esdf", "prob"} & set(kinds):
-        seen = training_observed(trainer.recording, lo, (nx, ny), resolution)  # (nx, ny) [ix, iy]
+        raster = check_raster("--resolution", lo, hi, resolution)  # (nx, ny), refused before any work if too large
+        seen = training_observed(trainer.recording, lo, raster, resolution)  # (nx, ny) [ix, iy]
         summary["observed"] = round(observed.observed_share(seen), 4)
-    recording = trainer.recording
+    poses, stack_ids = trainer.recording.camera_poses()  # every frame, stack by stack
     if "map" in kinds or "esdf" in kinds:
-        positions = np.concatenate([s.cam_to_world[:, :3, 3] for s in recording.stacks.values()])
-        m = extract.occupancy_map(trainer.mapper.model, positions, lo, hi, resolution, n_rays, max_poses, seen)
+        m = extract.occupancy_map(trainer.mapper.model, poses[:, :3, 3], lo, hi, resolution, n_rays, max_poses, seen)
         if "map" in kinds:
             maps.write_map_server(m, folder, "map")
             _write_png(folder / "map.png", m.image)
@@ -135,7 +131,7 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
         prob3 = grid.probability.detach().cpu().numpy()
         spec = grid.spec
         if "prob" in kinds:
-            height = extract.camera_height(*recording_poses(recording))
+            height = extract.camera_height(poses, stack_ids)
             maps.write_map_server(extract.probability_map(prob3, spec.box.lo, spec.box.hi, height, band, lo, hi,
                                                           resolution, seen), folder, "prob")
             summary["prob_map"] = {"height": height, "band": band, "projection": "max over layers in the band"}
@@ -166,7 +162,7 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
         summary["cloud_points"] = len(xyz)
         done.append(f"cloud.pcd/.ply ({len(xyz)} points)")
     if "images" in kinds:
-        from virus_nerf.evaluation.testpoints import MAIN_STACK
+        from virus_nerf.sensors.rig import MAIN_STACK
 
         stack = trainer.recording.stacks.get(MAIN_STACK) or next(iter(trainer.recording.stacks.values()))
         intr = stack.intrinsics.scaled(image_scale)
@@ -190,18 +186,9 @@ def training_observed(recording, lo: np.ndarray, shape: tuple[int, int], resolut
     """(nx, ny) bool [ix, iy]: map pixels the training frames' sensors looked at (maps/observed.py)."""
     from virus_nerf.maps.observed import frames_observed
 
-    stacks = list(recording.stacks.values())
-    rows = [st.indices("train") for st in stacks]
-    return frames_observed(np.concatenate([st.cam_to_world[r] for st, r in zip(stacks, rows, strict=True)]),
-                           np.concatenate([np.full(len(r), st.stack_id) for st, r in zip(stacks, rows, strict=True)]),
-                           {st.stack_id: st.intrinsics for st in stacks}, lo, shape, resolution)
-
-
-def recording_poses(recording) -> tuple[np.ndarray, np.ndarray]:
-    """Every frame's camera-to-world (N, 4, 4) and stack id (N,), stack by stack."""
-    stacks = list(recording.stacks.values())
-    return (np.concatenate([s.cam_to_world for s in stacks]),
-            np.concatenate([np.full(len(s.cam_to_world), s.stack_id) for s in stacks]))
+    poses, stack_ids = recording.camera_poses("train")
+    return frames_observed(poses, stack_ids, {s: st.intrinsics for s, st in recording.stacks.items()}, lo, shape,
+                           resolution)
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:

@@ -85,11 +85,9 @@ def render_rays(model, origins: np.ndarray, directions: np.ndarray, chunk: int =
 
 def scan_points(model, position: np.ndarray, n_rays: int) -> np.ndarray:
     """A 360 deg horizontal scan at `position` (3,) -> hit points (M, 3), world frame (docs/method.md 6.3)."""
-    from virus_nerf.maps.scans import horizontal_directions
+    from virus_nerf.maps.scans import scan_ranges
 
-    dirs = horizontal_directions(n_rays)
-    origins = np.broadcast_to(np.asarray(position, dtype=np.float64), dirs.shape).copy()
-    r = np.asarray(model.ranges(origins, dirs), dtype=np.float64)
+    origins, dirs, r = scan_ranges(model, position, n_rays)
     ok = np.isfinite(r) & (r > 0)
     return origins[ok] + dirs[ok] * r[ok, None]
 

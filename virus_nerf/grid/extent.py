@@ -91,6 +91,12 @@ def camera_margin_m(cfg: ExtentConfig, sensors) -> float:
     return cfg.margin_m if grows_from_sensors(cfg, sensors) else cfg.reach_m
 
 
+def growth_step_m(cfg: ExtentConfig, sensors) -> float:
+    """The least a short side grows by: one grid cell when the box follows the sensed points (it
+    ends a margin behind a wall), `grow_step_m` with the reach (fewer re-allocations)."""
+    return cfg.grid_cell_m if grows_from_sensors(cfg, sensors) else cfg.grow_step_m
+
+
 def first_box(camera_position: np.ndarray, cfg: ExtentConfig, sensors=()) -> SceneBox:
     """The box around the first frame: its camera position +- the camera margin (x, y; the reach,
     or with sensed growth `margin_m`) and +- height (z), whole grid cells on a side."""

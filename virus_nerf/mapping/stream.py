@@ -115,6 +115,8 @@ class StreamRun:
         self.newest: float | None = None  # recording time of the newest frame given to the mapper
         self.start: float | None = None  # monotonic time of the first message
         self.r0 = self.t0 = 0.0  # receive time and stamp of the first message
+        # the frame feeder on the receive clock (releases messages) and on the stamps (the lag)
+        self.released = self.stamped = Playback(0.0, playback)  # from 0 until the first message
         self.behind = 0.0  # recording seconds the newest message was released after it was due
         self.report = StreamReport()
 
@@ -125,7 +127,7 @@ class StreamRun:
     def lag(self, now: float) -> float:
         """Recording seconds between the scaled wall clock and the newest frame (the first message
         stands in before the first frame)."""
-        return Playback(self.t0, self.playback).recording_time(now) - (self.newest if self.newest is not None else self.t0)
+        return self.stamped.recording_time(now) - (self.newest if self.newest is not None else self.t0)
 
     # ------------------------------------------------------------------ the loop
     def run(self, messages) -> StreamReport:
@@ -158,7 +160,8 @@ class StreamRun:
         received = msg.received_s if msg.received_s is not None else msg.time_s
         if self.start is None:
             self.start, self.r0, self.t0 = time.monotonic(), received, msg.time_s
-        return Playback(self.r0, self.playback).elapsed_at(received)  # released by the receive clock
+            self.released, self.stamped = Playback(received, self.playback), Playback(msg.time_s, self.playback)
+        return self.released.elapsed_at(received)
 
     def _wait(self, due: float) -> None:
         """Train (or sleep, before the first frame) until `due`; snapshots on the way."""

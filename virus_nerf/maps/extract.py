@@ -23,7 +23,7 @@ from virus_nerf.maps.occupancy import (
     scale_map,
     scan_occupancy,
 )
-from virus_nerf.maps.scans import horizontal_directions
+from virus_nerf.maps.scans import scan_ranges
 from virus_nerf.sensors.rig import MAIN_STACK
 
 
@@ -62,11 +62,10 @@ def camera_height(cam_to_world: np.ndarray, stack_ids: np.ndarray, default: floa
 def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int):
     """360 deg model scans from camera `positions` (N, 3) -> a trinary OccupancyMap2D over the
     (x, y) box [lo, hi] (maps.occupancy.scan_occupancy: passed cells free, end cells occupied)."""
-    dirs = horizontal_directions(n_rays)
     origins_all, dirs_all, ranges_all = [], [], []
     for p in np.asarray(positions, dtype=np.float64).reshape(-1, 3):
-        origins = np.broadcast_to(p, dirs.shape).copy()
-        ranges_all.append(model.ranges(origins, dirs))
+        origins, dirs, ranges = scan_ranges(model, p, n_rays)
+        ranges_all.append(ranges)
         origins_all.append(origins[:, :2])
         dirs_all.append(dirs[:, :2])
     if not ranges_all:

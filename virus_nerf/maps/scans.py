@@ -105,3 +105,12 @@ def points_from_ranges(origin_xy: np.ndarray, directions: np.ndarray, ranges: np
     r = np.asarray(ranges, dtype=np.float64).reshape(-1)
     ok = np.isfinite(r) & (r > 0)
     return np.asarray(origin_xy, dtype=np.float64)[None, :2] + directions[ok, :2] * r[ok, None]
+
+
+def scan_ranges(model: RangeModel, position: np.ndarray, n_rays: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A model's 360 deg horizontal scan from `position` (3,) m: ray origins (N, 3), unit
+    directions (N, 3) and ranges (N,) float64 m (NaN: no hit); the same rays for every consumer
+    (maps, exports, the Mapper's scans, the evaluation)."""
+    dirs = horizontal_directions(n_rays)
+    origins = np.broadcast_to(np.asarray(position, dtype=np.float64).reshape(3), dirs.shape).copy()
+    return origins, dirs, np.asarray(model.ranges(origins, dirs), dtype=np.float64).reshape(-1)
