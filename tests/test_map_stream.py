@@ -45,16 +45,19 @@ def tiny_cfg(tmp_path_factory) -> Path:
     return path
 
 
-def _stream(bag: Path, poses: str, cfg=None, **kw):
+def _stream(bag: Path, poses: str, cfg=None, source=None, **kw):
     """Every message of `bag` through a LiveSync (no mapper, no clock) -> (frames, sync)."""
     cfg = cfg or default_topics()
     with BagReader(bag) as reader:
-        source = make_pose_source(poses, cfg, bag, present=lambda t: t in reader.topics, **kw)
-        sync = LiveSync(cfg, source, bag)
-        frames = []
-        for topic, msg in reader.iter_topics(sync.topics()):
-            frames += sync.push(topic, msg)
-        frames += sync.finish()
+        source = source or make_pose_source(poses, cfg, bag, present=lambda t: t in reader.topics, **kw)
+        try:
+            sync = LiveSync(cfg, source, bag)
+            frames = []
+            for topic, msg in reader.iter_topics(sync.topics()):
+                frames += sync.push(topic, msg)
+            frames += sync.finish()
+        finally:
+            source.close()
     return frames, sync
 
 
@@ -102,6 +105,24 @@ def test_streamed_frames_are_the_importers(bags, tmp_path, poses):
         np.testing.assert_array_equal(np.stack([f.irs_range for f in got]), st.irs_range)
         for i in (0, len(st) // 2, len(st) - 1):
             assert np.array_equal(got[i].rgb, st.image(i))
+
+
+def test_kiss_icp_in_its_worker_process_gives_the_in_process_poses(bags):
+    """The registration moved to a worker process (it holds the GIL): the same frames, the same
+    poses to the last bit, and the worker ends with the stream."""
+    from virus_nerf.data.bags.live import KissPoses
+
+    cfg = default_topics()
+    local, _ = _stream(bags["ros1"], "lidar-odometry",
+                       source=KissPoses(cfg.lidar.topic, cfg.lidar, None, bags["ros1"], worker=False))
+    worker = KissPoses(cfg.lidar.topic, cfg.lidar, None, bags["ros1"])
+    proc = worker.worker._proc
+    remote, _ = _stream(bags["ros1"], "lidar-odometry", source=worker)
+    assert len(remote) == len(local) > 0
+    for a, b in zip(local, remote, strict=True):
+        assert a.frame.time == b.frame.time and a.frame.stack_id == b.frame.stack_id
+        np.testing.assert_array_equal(a.frame.cam_to_world, b.frame.cam_to_world)
+    assert not proc.is_alive()
 
 
 def test_lidar_odometry_and_wheel_odometry_streams(bags, tiny_office, tmp_path):

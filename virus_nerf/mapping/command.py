@@ -207,7 +207,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
     poses = pose_args["poses"]
     tcfg = read_topics(topics) if topics else default_topics()
     cfg = cfg if cfg is not None else TrainConfig()
-    with BagReader(bag) as reader:
+    with BagReader(bag) as reader, ExitStack() as owned:
         plan = _plan(reader, tcfg, "csv" if poses == "odometry" else poses)
         if poses == "odometry":
             reader.require(odometry_topic, "odometry", "--odometry-topic")
@@ -217,6 +217,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
         source = make_pose_source(poses, tcfg, bag, present=lambda t: t in reader.topics,
                                   poses_file=pose_args["poses_file"], tf_parent=pose_args["tf_parent"],
                                   tf_child=child, odometry_topic=odometry_topic)
+        owned.callback(source.close)  # KISS-ICP's worker process ends with the stream
         sync = LiveSync(tcfg, source, bag, intrinsics=plan.intrinsics, with_depth="rgbd" in cfg.sensors,
                         max_silence_s=max_silence)
         first, last = reader.span_s

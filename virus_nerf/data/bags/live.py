@@ -133,6 +133,9 @@ class PoseSource:
         """Why there is no pose yet, for the error when none comes (empty: no known reason)."""
         return ""
 
+    def close(self) -> None:
+        """Release what the source holds (a worker process); the stream calls it at its end."""
+
 
 class TrackPoses(PoseSource):
     """A pose track that grows message by message (KISS-ICP, odometry); interpolated as PoseTrack."""
@@ -192,18 +195,29 @@ class OdometryPoses(TrackPoses):
 
 class KissPoses(TrackPoses):
     """KISS-ICP registering each LiDAR scan as it arrives (kiss_icp.KissICP.register_frame), with
-    the importer's range filter and float32 points, so the poses are those of its first pass."""
+    the importer's range filter and float32 points, so the poses are those of its first pass.
 
-    def __init__(self, topic: str, lidar: LidarConfig, settings: KissIcpSettings | None, bag: Path) -> None:
-        from kiss_icp.kiss_icp import KissICP
+    With `worker` (default) the registration runs in a process of its own (kiss_worker.py): the
+    scan is decoded and filtered here, sent, and its pose collected when a frame needs it, so
+    the mapper trains while the scan registers. A frame waits for a pose whose scan is still being
+    registered; at the end of the bag every pending pose is collected."""
 
-        from virus_nerf.data.bags.odometry import _kiss_config
+    def __init__(self, topic: str, lidar: LidarConfig, settings: KissIcpSettings | None, bag: Path,
+                 worker: bool = True) -> None:
+        from virus_nerf.data.bags.kiss_worker import KissWorker
 
         super().__init__()
         self.topics, self.describe, self.bag = (topic,), f"KISS-ICP on {topic}", bag
         self.lidar, self.settings = lidar, settings or KissIcpSettings()
-        self.icp = KissICP(_kiss_config(self.settings))
+        self.worker = KissWorker(self.settings) if worker else None
+        if self.worker is None:
+            from kiss_icp.kiss_icp import KissICP
+
+            from virus_nerf.data.bags.odometry import _kiss_config
+
+            self.icp = KissICP(_kiss_config(self.settings))
         self.band: tuple[float, float] | None = None  # drop_floor_ceiling_m: heights kept (first scan)
+        self.last_sent = -math.inf
 
     def add(self, topic: str, msg: Message) -> None:
         pts = m.decode_cloud(msg.msg, m.Where(self.bag, topic, msg.index))
@@ -216,10 +230,47 @@ class KissPoses(TrackPoses):
                 floor, ceiling = horizontal_planes(pts)
                 self.band = (floor + s.drop_floor_ceiling_m, ceiling - s.drop_floor_ceiling_m)
             pts = pts[(pts[:, 2] > self.band[0]) & (pts[:, 2] < self.band[1])]
-        if self.times and msg.time_s <= self.times[-1]:
+        if msg.time_s <= self.last_sent:
             return  # a repeated stamp (the importer keeps one scan per stamp)
-        self.icp.register_frame(pts, np.empty(0))
-        self.append(msg.time_s, np.array(self.icp.last_pose, dtype=np.float64))
+        self.last_sent = msg.time_s
+        if self.worker is None:
+            self.icp.register_frame(pts, np.empty(0))
+            self.append(msg.time_s, np.array(self.icp.last_pose, dtype=np.float64))
+            return
+        self.worker.send(msg.time_s, pts)  # float32-exact values: the worker casts back to float64
+        self._collect()
+
+    def _collect(self, block: bool = False) -> None:
+        if self.worker is not None:
+            for t, pose in self.worker.poll(block):
+                self.append(t, pose)
+
+    def newest_s(self) -> float:
+        """Stamp of the newest scan received (its pose may still be registering): the source has
+        not stopped while scans come."""
+        return max(super().newest_s(), self.last_sent)
+
+    def decided(self, t: float, tolerance_s: float, clock_s: float) -> bool:
+        self._collect()
+        if TrackPoses.newest_s(self) >= t:
+            return True
+        if self.worker is not None and self.worker.pending:
+            if self.worker.pending[-1] >= t and clock_s != math.inf:
+                return False  # the pose at or after `t` is being registered: the frame waits for it
+            if clock_s > t + tolerance_s:
+                self._collect(block=True)  # every pose up to the clock, then decide as without a worker
+                return True
+            return False
+        return clock_s > t + tolerance_s
+
+    def at(self, t: float, tolerance_s: float) -> np.ndarray | None:
+        self._collect()
+        return super().at(t, tolerance_s)
+
+    def close(self) -> None:
+        if self.worker is not None:
+            self.worker.close()
+            self.worker = None
 
 
 class TfPoses(PoseSource):
