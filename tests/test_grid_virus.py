@@ -283,6 +283,59 @@ def test_the_mapper_tells_the_grid_its_budget_share(tiny_office, tmp_path):
     assert not trainer.mapper.grid.occupied.all(), "past half the budget the untouched cells are empty"
 
 
+def test_a_column_first_seen_while_driving_restarts_its_warmup_from_p_init():
+    # warm-up 100 steps while driving; column (2, 3) is first looked at at step 100, when every
+    # cell is already at the prior: it goes back to p_init and decays again over the next 100
+    # steps, evidence kept; a column in view at step 0 follows the run's clock; hand-computed
+    cfg = _config(max_resolution=8, update_interval=10, warmup_steps_driving=100, warmup_restart="view")
+    g = torch.Generator().manual_seed(0)
+    grid = VirusGrid(CUBE, cfg)
+    seen_at_start = np.zeros((8, 8), dtype=bool)
+    seen_at_start[0, 0] = True
+    assert grid.restart_warmup_in_view(seen_at_start, 0) == 0  # frames there from the start: the run's clock
+    grid.update(100, None, None, g, driving=True)
+    assert torch.allclose(grid.logodds, torch.tensor(L_PRIOR), atol=1e-6)
+    with torch.no_grad():
+        grid.logodds[2, 3, 5] += 1.0  # evidence in the column, kept through the restart
+    late = np.zeros((8, 8), dtype=bool)
+    late[2, 3] = late[0, 0] = True
+    assert grid.restart_warmup_in_view(late, 100) == 1  # (0, 0) was seen before: not restarted
+    grid.update(100, None, None, g, driving=True)
+    col = grid.logodds[2, 3].clone()
+    assert torch.allclose(col[[0, 1, 2, 3, 4, 6, 7]], torch.tensor(L_INIT), atol=1e-6)
+    assert col[5] == pytest.approx(L_INIT + 1.0, abs=1e-6)
+    assert torch.allclose(grid.logodds[0, 0], torch.tensor(L_PRIOR), atol=1e-6)
+    assert grid.occupied[2, 3].all() and not grid.warmup_done
+    grid.update(150, None, None, g, driving=True)  # half of its own warm-up
+    assert grid.logodds[2, 3, 0] == pytest.approx(L_INIT + 0.5 * (L_PRIOR - L_INIT), abs=1e-6)
+    assert grid.logodds[4, 4, 4] == pytest.approx(L_PRIOR, abs=1e-6)
+    state = grid.state_dict()
+    again = VirusGrid(CUBE, cfg)
+    again.load_state_dict(state)
+    for g_ in (grid, again):
+        g_.update(200, None, None, g, driving=True)
+        assert g_.logodds[2, 3, 0] == pytest.approx(L_PRIOR, abs=1e-6)
+        assert g_.logodds[2, 3, 5] == pytest.approx(L_PRIOR + 1.0, abs=1e-6)
+        assert g_.warmup_done
+
+
+def test_grown_columns_start_unseen_and_restart_when_looked_at():
+    cfg = _config(max_resolution=8, warmup_steps_driving=100, warmup_restart="view")
+    g = torch.Generator().manual_seed(0)
+    grid = VirusGrid(GridSpec.from_cell(SceneBox((0, 0, 0), (0.8, 0.8, 0.8)), 0.1), cfg)
+    grid.restart_warmup_in_view(np.ones((8, 8), dtype=bool), 0)
+    grid.update(100, None, None, g, driving=True)
+    grid.grow(SceneBox((0, 0, 0), (1.2, 0.8, 0.8)))  # four new columns of x
+    assert grid.logodds.shape == (12, 8, 8)
+    assert torch.allclose(grid.logodds, torch.tensor(L_PRIOR), atol=1e-6), "new cells: the run's clock"
+    view = np.zeros((12, 8), dtype=bool)
+    view[5:, :] = True  # the old columns 5..7 were seen; 8..11 are new
+    assert grid.restart_warmup_in_view(view, 120) == 4 * 8
+    grid.update(120, None, None, g, driving=True)
+    assert torch.allclose(grid.logodds[8:], torch.tensor(L_INIT), atol=1e-6)
+    assert torch.allclose(grid.logodds[:8], torch.tensor(L_PRIOR), atol=1e-6)
+
+
 def test_evidence_holds_a_cell_up_through_the_warmup():
     cfg = _config(max_resolution=40, warmup_steps=256)
     grid = VirusGrid(BAR, cfg)

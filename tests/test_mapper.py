@@ -7,6 +7,7 @@ import dataclasses
 import importlib.util
 import io
 import json
+import math
 
 import numpy as np
 import pytest
@@ -322,6 +323,42 @@ def test_newest_frames_get_their_share_of_the_batch_only_while_driving():
     assert again._frame_odds(again.schedule) is None
     again.add_frame(_frame(20.0))
     np.testing.assert_allclose(again._frame_odds(again.schedule), odds)
+
+
+def test_a_camera_turning_to_new_space_while_driving_restarts_those_columns_warmup():
+    # warmup_restart "view": frames at the first step look along +x; a frame added while driving
+    # looks along -x, so the columns behind the start get their warm-up back (p_init), and the
+    # columns seen from the start keep the run's clock
+    grid_cfg = dataclasses.replace(tiny_train_config().virus_grid, warmup_restart="view", warmup_steps_driving=4,
+                                   update_interval=2)
+    mapper = _mapper(virus_grid=grid_cfg)
+    mapper.add_frame(_frame(0.0))
+    mapper.train(600.0, steps=1)
+    mapper.add_frame(_frame(1.0))  # driving from here
+    mapper.train(600.0, steps=5)  # past the driving warm-up: untouched cells at the prior
+    grid = mapper.grid
+    spec = grid.spec
+    centre_x = spec.box.lo[0] + (np.arange(spec.resolution[0]) + 0.5) * spec.cell_size[0]
+    behind = int(np.flatnonzero(centre_x < -0.5)[0])  # a column behind the start, never looked at
+    ahead = int(np.flatnonzero(centre_x > 0.5)[0])
+    iy = spec.resolution[1] // 2
+    prior = math.log(0.49 / 0.51)
+    assert grid.logodds[behind, iy, 0] == pytest.approx(prior, abs=1e-5)
+    turned = _frame(2.0)
+    turned.cam_to_world[:3, :3] = [[0, 0, -1.0], [1.0, 0, 0], [0, -1.0, 0]]  # looking along -x
+    mapper.add_frame(turned)
+    told = []
+    restart = grid.restart_warmup_in_view
+    grid.restart_warmup_in_view = lambda viewed, step: told.append((viewed.copy(), step)) or restart(viewed, step)
+    mapper.train(600.0, steps=2)  # one grid update
+    viewed, step = told[-1]
+    assert step == mapper.step and viewed[behind, iy] and not viewed[ahead, iy]
+    # two steps into its own 4-step warm-up: p_init moved half-way (one update at the restart step)
+    assert grid.logodds[behind, iy, 0] > prior + 0.1
+    assert grid._restart_step[behind, iy] == step and grid._restart_step[ahead, iy] == -1
+    again = Mapper(mapper.config, mapper.intrinsics, mapper.box)
+    again.load_state(mapper.state())
+    assert again._viewed_frames == mapper.frames
 
 
 def test_learning_rate_decays_offline_and_stays_while_driving():

@@ -56,6 +56,7 @@ from virus_nerf.grid.extent import (
     needed_box,
 )
 from virus_nerf.losses import LossTerms, distortion_loss, line_of_sight_terms, total_loss
+from virus_nerf.maps.observed import frames_observed
 from virus_nerf.render.marching import ray_box_interval
 from virus_nerf.sampler.batch import BatchSampler, RayBatch, recent_frame_odds
 from virus_nerf.sampler.frames import FrameStore, resize_depth_mm, resize_rgb
@@ -134,6 +135,7 @@ class Mapper(MapViews):
         self._prior_skip = False  # an old checkpoint without the count: frames present count as done
         self._warm = False
         self._frames_at_start: int | None = None  # frames present at the first step
+        self._viewed_frames = 0  # frames whose camera views the grid was given (warmup_restart)
         self.stereo: StereoDepth | None = None  # triangulated depth targets of the store's rows
         self._stereo_feed: StereoFeed | None = None  # fed by track_image (mapping while driving)
 
@@ -378,9 +380,31 @@ class Mapper(MapViews):
         self.rays += stats.n_rays
         self.last_samples_per_ray = stats.n_samples / max(1, stats.n_rays)
         if self.step % self.grid.update_interval == 0:
+            self._restart_warmup_in_view()
             self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator,
                              driving=schedule.driving, budget_progress=progress)
         return terms
+
+    def _restart_warmup_in_view(self) -> None:
+        """virus_grid.warmup_restart "view": the grid columns in the camera view wedges of the
+        frames added since the last grid update (maps/observed.py, 12 m), for the grid to restart
+        the warm-up of those seen for the first time after the first step (frames present at the
+        first step count as seen at step 0)."""
+        grid = self.grid
+        if getattr(grid.config, "warmup_restart", "run") != "view" or not self.driving:
+            return  # offline every frame is there from the first step: nothing to restart
+        at_start = self._frames_at_start or 0
+        for first, last, step in ((self._viewed_frames, at_start, 0), (max(self._viewed_frames, at_start),
+                                                                        self.frames, self.step)):
+            if first >= last:
+                continue
+            rows = np.arange(first, last)
+            spec = grid.spec
+            cell = spec.cell_size
+            viewed = frames_observed(self.store.cam_to_world[rows], self.store.stack_ids[rows], self.intrinsics,
+                                     np.asarray(spec.box.lo[:2]), spec.resolution[:2], (float(cell[0]), float(cell[1])))
+            grid.restart_warmup_in_view(viewed, step)
+        self._viewed_frames = self.frames
 
     @property
     def schedule(self) -> StepSchedule:
@@ -458,6 +482,7 @@ class Mapper(MapViews):
             "box": self.box.to_dict(),
             "prior_frames": self._prior_done,
             "frames_at_start": self._frames_at_start,
+            "viewed_frames": self._viewed_frames,
             "visible_share": self.model.visible_share,  # picks the next step's render path
         }
 
@@ -481,6 +506,8 @@ class Mapper(MapViews):
         self.generator.set_state(state["torch_generator"])
         self.model.visible_share = float(state.get("visible_share", 1.0))
         self._frames_at_start = state.get("frames_at_start")
+        # a state without it (an older one): the frames it was trained on count as given
+        self._viewed_frames = int(state.get("viewed_frames", state.get("prior_frames") or 0))
         if "prior_frames" in state:
             self._prior_done, self._prior_skip = int(state["prior_frames"]), False
         else:  # written before the count existed: the grid had the prior of every frame present

@@ -73,7 +73,13 @@ class VirusGrid(OccupancyGrid):
         self._lo, self._size, self._res = spec_arrays(self.spec)
         # (rx, ry, rz) float32 log-odds; flat index = (ix * ry + iy) * rz + iz (base.cell_index)
         self._logodds = torch.full(self.spec.resolution, self.config.logodds_init, dtype=torch.float32)
-        self._decay_applied = 0.0  # warm-up offset already added to every cell
+        self._decay_applied = 0.0  # warm-up offset of the run's clock (every cell follows it ...)
+        # ... but columns a camera first looked at after the start (restart_warmup_in_view): per
+        # column (rx, ry) the step its own warm-up started (-1: the run's clock) and the offset
+        # added to it; None until the first such column
+        self._restart_step: np.ndarray | None = None
+        self._column_applied: np.ndarray | None = None
+        self._viewed: np.ndarray | None = None  # (rx, ry) bool: in some training frame's view
         self._last_step = -1
         self._n_updates = 0
         self.last_nerf_update: NerfUpdateInfo | None = None
@@ -92,7 +98,9 @@ class VirusGrid(OccupancyGrid):
         """True once every cell has had the warm-up's whole offset (p_init moved to p_prior): until
         then cells nothing has updated are still occupied."""
         c = self.config
-        return abs(self._decay_applied - (c.logodds_prior - c.logodds_init)) < 1e-6
+        full = c.logodds_prior - c.logodds_init
+        columns_done = self._column_applied is None or bool(np.all(np.abs(self._column_applied - full) < 1e-6))
+        return abs(self._decay_applied - full) < 1e-6 and columns_done
 
     @property
     def logodds(self) -> torch.Tensor:
@@ -166,22 +174,58 @@ class VirusGrid(OccupancyGrid):
         """Move every cell to the warm-up offset of `step` (a function of steps, not updates);
         over `warmup_steps_driving` steps instead while `driving`, or over `warmup_budget_share` of
         the run's budget when that is set and the run has one (the offset is applied as a
-        difference, so a switch moves every cell by the same amount and keeps its evidence)."""
+        difference, so a switch moves every cell by the same amount and keeps its evidence). A
+        column whose warm-up restarted (restart_warmup_in_view) follows its own clock from then."""
         c = self.config
+        length = c.warmup_steps_driving if driving else c.warmup_steps
         if c.warmup_budget_share is not None and budget_progress is not None and not driving:
             done = min(1.0, budget_progress / c.warmup_budget_share)
         else:
-            length = c.warmup_steps_driving if driving else c.warmup_steps
             done = min(step, length) / length
-        target = (c.logodds_prior - c.logodds_init) * done
-        delta = target - self._decay_applied
-        if delta != 0.0:
-            # numpy in place (single-threaded): torch's intra-op threads cost ~30 ms here on a
-            # busy 2-core machine against ~0.5 ms for one thread
-            flat = self._logodds.view(-1).numpy()
-            np.add(flat, np.float32(delta), out=flat)
-            np.clip(flat, c.logodds_min, c.logodds_max, out=flat)
-            self._decay_applied = target
+        full = c.logodds_prior - c.logodds_init
+        target = full * done
+        if self._restart_step is None:
+            delta = target - self._decay_applied
+            if delta != 0.0:
+                # numpy in place (single-threaded): torch's intra-op threads cost ~30 ms here on a
+                # busy 2-core machine against ~0.5 ms for one thread
+                flat = self._logodds.view(-1).numpy()
+                np.add(flat, np.float32(delta), out=flat)
+                np.clip(flat, c.logodds_min, c.logodds_max, out=flat)
+        else:
+            own = self._restart_step >= 0
+            column_done = np.minimum(np.maximum(step - self._restart_step, 0), length) / length
+            column_target = np.where(own, full * column_done, target).astype(np.float32)  # (rx, ry)
+            delta = column_target - self._column_applied
+            if np.any(delta != 0.0):
+                cells = self._logodds.numpy()  # (rx, ry, rz), shares memory
+                np.add(cells, delta[:, :, None], out=cells)
+                np.clip(cells, c.logodds_min, c.logodds_max, out=cells)
+                self._column_applied = column_target
+        self._decay_applied = target
+
+    def restart_warmup_in_view(self, viewed: np.ndarray, step: int) -> int:
+        """Columns (rx, ry) bool `viewed` that a training frame's camera now looks at: each one
+        seen for the first time after step 0 starts its warm-up again, from p_init (its evidence
+        kept), so a part of the room the robot reaches late is marched, and learnt by the field,
+        as the first part was (virus_grid.warmup_restart; docs/method.md 3.4). Columns in view at
+        step 0 follow the run's clock. Returns the number of columns restarted."""
+        viewed = np.asarray(viewed, dtype=bool)
+        rx, ry, _ = self.spec.resolution
+        if viewed.shape != (rx, ry):
+            raise ValueError(f"VirusGrid.restart_warmup_in_view: viewed {viewed.shape}, expected ({rx}, {ry})")
+        if self._viewed is None:
+            self._viewed = np.zeros((rx, ry), dtype=bool)
+        new = viewed & ~self._viewed
+        self._viewed |= viewed
+        if step <= 0 or not new.any():
+            return 0
+        if self._restart_step is None:
+            self._restart_step = np.full((rx, ry), -1, dtype=np.int32)
+            self._column_applied = np.full((rx, ry), self._decay_applied, dtype=np.float32)
+        self._restart_step[new] = step
+        self._occupied = None
+        return int(new.sum())
 
     def initialise(self, depth: SensorRays | None, free: SensorRays | None = None) -> int:
         """Prior knowledge before the first training step (config.init == "sensors").
@@ -319,18 +363,33 @@ class VirusGrid(OccupancyGrid):
         fill = float(np.clip(np.float32(c.logodds_init) + np.float32(self._decay_applied), c.logodds_min,
                              c.logodds_max))
         self._logodds = pad_cells(self._logodds, spec.resolution, offset, fill)
+        columns = (spec.resolution[0], spec.resolution[1], 1)
+        if self._viewed is not None:
+            self._viewed = pad_cells(torch.from_numpy(self._viewed[:, :, None]), columns, offset[:2] + (0,),
+                                     False)[:, :, 0].numpy()
+        if self._restart_step is not None:
+            self._restart_step = pad_cells(torch.from_numpy(self._restart_step[:, :, None]), columns,
+                                           offset[:2] + (0,), -1)[:, :, 0].numpy()
+            self._column_applied = pad_cells(torch.from_numpy(self._column_applied[:, :, None]), columns,
+                                             offset[:2] + (0,), float(self._decay_applied))[:, :, 0].numpy()
         self.spec = spec
         self._lo, self._size, self._res = spec_arrays(spec)
         self._occupied = None
 
     # ------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, torch.Tensor | int | float]:
-        return {
+        state = {
             "logodds": self._logodds.clone(),
             "decay_applied": float(self._decay_applied),
             "last_step": int(self._last_step),
             "n_updates": int(self._n_updates),
         }
+        if self._viewed is not None:
+            state["viewed"] = torch.from_numpy(self._viewed.copy())
+        if self._restart_step is not None:
+            state["restart_step"] = torch.from_numpy(self._restart_step.copy())
+            state["column_applied"] = torch.from_numpy(self._column_applied.copy())
+        return state
 
     def load_state_dict(self, state: dict) -> None:
         for key in ("logodds", "decay_applied", "last_step", "n_updates"):
@@ -347,6 +406,13 @@ class VirusGrid(OccupancyGrid):
         self._decay_applied = float(state["decay_applied"])
         self._last_step = int(state["last_step"])
         self._n_updates = int(state["n_updates"])
+        # absent in checkpoints of runs without a restarted column (and before the option)
+        self._viewed = state["viewed"].numpy().astype(bool).copy() if "viewed" in state else None
+        if "restart_step" in state:
+            self._restart_step = state["restart_step"].numpy().astype(np.int32).copy()
+            self._column_applied = state["column_applied"].numpy().astype(np.float32).copy()
+        else:
+            self._restart_step = self._column_applied = None
 
 
 def _check_rays(origins, directions, ranges, what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -38,6 +38,11 @@ class VirusGridConfig:
     # max_time, the larger share used, as the learning-rate decay) instead of after warmup_steps,
     # so a short and a long run both finish it; driving runs count steps (warmup_steps_driving).
     warmup_budget_share: float | None = None
+    # "view": while driving, a column of cells that a camera first looks at after the first step
+    # starts its warm-up again from p_init (evidence kept), so a part of the room reached late is
+    # marched and learnt as the first part was (otherwise it is already empty, and only the IRS
+    # brings it back); "run": one clock for every cell (docs/method.md 3.4)
+    warmup_restart: Literal["run", "view"] = "run"
     update_interval: int = 21  # training steps between grid updates (the trainer calls update)
     rays_per_update: int = 438  # rays per update, both kinds together (paper: ~1k)
     depth_share: float = 0.5  # share of rays_per_update for the Depth-Update (rest: NeRF)
@@ -87,6 +92,7 @@ class VirusGridConfig:
         integer("warmup_steps", 1)
         integer("warmup_steps_driving", 1)
         number("warmup_budget_share", 0.0, 1.0, optional=True)
+        choice("warmup_restart", ("run", "view"))
         integer("update_interval", 1)
         integer("rays_per_update", 0)
         number("depth_share", 0.0, 1.0, lo_open=False)

@@ -41,7 +41,8 @@ def observed_mask(
     """(nx, ny) bool indexed [ix, iy]: pixel centres inside some frame's horizontal view wedge.
 
     cam_to_world (N, 4, 4) camera poses (OpenCV axes: z = optical axis); half_fov (N,) rad;
-    lo (2,) world x, y of the raster's lower-left corner; shape (nx, ny) pixels of `resolution` m.
+    lo (2,) world x, y of the raster's lower-left corner; shape (nx, ny) pixels of `resolution` m
+    (one size, or (2,) sizes along x and y: the grid's near-cubic cells).
     A camera looking straight up or down (axis with no horizontal part) observes nothing.
     """
     nx, ny = int(shape[0]), int(shape[1])
@@ -55,17 +56,18 @@ def observed_mask(
     norm = np.linalg.norm(axis, axis=1)
     keep = norm > 1e-6
     heading = np.arctan2(axis[:, 1], axis[:, 0])
-    key = np.column_stack([np.round(pos / resolution), np.round(np.degrees(heading)), np.round(np.degrees(half), 1)])
+    res = np.broadcast_to(np.asarray(resolution, dtype=np.float64), (2,))
+    key = np.column_stack([np.round(pos / res), np.round(np.degrees(heading)), np.round(np.degrees(half), 1)])
     _, first = np.unique(key[keep], axis=0, return_index=True)
     lo = np.asarray(lo, dtype=np.float64)[:2]
     for k in np.flatnonzero(keep)[first]:
-        i0, j0 = np.floor((pos[k] - reach - lo) / resolution).astype(int)
-        i1, j1 = np.ceil((pos[k] + reach - lo) / resolution).astype(int)
+        i0, j0 = np.floor((pos[k] - reach - lo) / res).astype(int)
+        i1, j1 = np.ceil((pos[k] + reach - lo) / res).astype(int)
         i0, j0, i1, j1 = max(i0, 0), max(j0, 0), min(i1, nx), min(j1, ny)
         if i0 >= i1 or j0 >= j1:
             continue
-        dx = lo[0] + (np.arange(i0, i1) + 0.5) * resolution - pos[k, 0]  # (w,)
-        dy = lo[1] + (np.arange(j0, j1) + 0.5) * resolution - pos[k, 1]  # (h,)
+        dx = lo[0] + (np.arange(i0, i1) + 0.5) * res[0] - pos[k, 0]  # (w,)
+        dy = lo[1] + (np.arange(j0, j1) + 0.5) * res[1] - pos[k, 1]  # (h,)
         d2 = dx[:, None] ** 2 + dy[None, :] ** 2
         # inside the wedge: angle to the axis <= half, i.e. cos >= cos(half) (half < 90 deg)
         along = (dx[:, None] * axis[k, 0] + dy[None, :] * axis[k, 1]) / norm[k]
