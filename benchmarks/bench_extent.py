@@ -35,12 +35,10 @@ sys.path.insert(0, str(HERE))
 from bench_time_to_map import DEFAULT_DATA, ensure_data  # noqa: E402
 
 # grow: the default of extent.mode grow (the reach around every camera, D38/D39); grow_reach: the
-# same, spelt out; grow_sensed: the box grown to hold what the robot sensed (an option, D39);
-# grow_sensed_uss: the same and the open space ahead of each camera up to its USS echo (D41)
+# same, spelt out; grow_sensed: the box grown to hold what the robot sensed (an option, D39)
 MODES = {"fitted": {}, "grow": {"extent": {"mode": "grow"}},
          "grow_reach": {"extent": {"mode": "grow", "grow_from": "reach", "grow_step_m": 2.0}},
-         "grow_sensed": {"extent": {"mode": "grow", "grow_from": "sensed"}},
-         "grow_sensed_uss": {"extent": {"mode": "grow", "grow_from": "sensed_uss"}}}
+         "grow_sensed": {"extent": {"mode": "grow", "grow_from": "sensed"}}}
 
 
 def merged(base: dict, extra: dict) -> dict:

@@ -24,7 +24,6 @@ from virus_nerf.grid.extent import (
     grows_from_sensors,
     holding_box,
     needed_box,
-    uss_axis_points,
 )
 from virus_nerf.grid.ngp import NgpGrid
 from virus_nerf.grid.virus import VirusGrid, VirusGridConfig
@@ -132,23 +131,7 @@ def test_growing_keeps_every_cell_and_fills_new_ones_as_untouched(kind):
         grid.spec.grown(SceneBox((0.0, 0.0, 0.0), (1.0, 1.0, 0.5)))
 
 
-def test_uss_axis_points_at_the_echo_or_open_ahead():
-    # cameras at (1, 2) looking along +x (OpenCV z = world x) and at (0, 0) looking along -y,
-    # tilted down 30 deg (its axis on the floor still -y); echoes 3 m, none, 20 m (capped), and a
-    # camera looking straight down (no horizontal axis: no point); hand-computed
-    def cam(pos, z_axis):
-        pose = np.eye(4)
-        pose[:3, 2], pose[:3, 3] = z_axis, pos
-        return pose
-
-    down30 = (0.0, -math.cos(math.radians(30)), -math.sin(math.radians(30)))
-    poses = np.stack([cam((1, 2, 0.5), (1, 0, 0)), cam((0, 0, 0.5), down30), cam((1, 2, 0.5), (1, 0, 0)),
-                      cam((5, 5, 0.5), (0, 0, -1))])
-    pts = uss_axis_points(poses, np.array([3.0, np.nan, 20.0, 1.0]), open_m=12.0)
-    np.testing.assert_allclose(pts, [[4.0, 2.0], [0.0, -12.0], [13.0, 2.0]], atol=1e-12)
-
-
-@pytest.mark.parametrize("grow_from", ["reach", "sensed", "sensed_uss"])
+@pytest.mark.parametrize("grow_from", ["reach", "sensed"])
 def test_a_mapper_in_grow_mode_grows_as_it_drives_and_refuses_a_frame_outside_its_frame(tiny_office, grow_from):
     from helpers import tiny_train_config
 
@@ -176,9 +159,6 @@ def test_a_mapper_in_grow_mode_grows_as_it_drives_and_refuses_a_frame_outside_it
     lo, hi = np.asarray(mapper.box.lo), np.asarray(mapper.box.hi)
     m = 1.0 if grow_from == "reach" else ext.margin_m
     assert (positions[:, :2] - m >= lo[:2] - 1e-9).all() and (positions[:, :2] + m <= hi[:2] + 1e-9).all()
-    if grow_from == "sensed_uss":  # the point ahead of every camera at its echo (12 m without one) is inside
-        ahead = uss_axis_points(mapper.store.cam_to_world, mapper.store.uss_range)
-        assert (ahead - ext.margin_m >= lo[:2] - 1e-9).all() and (ahead + ext.margin_m <= hi[:2] + 1e-9).all()
     if grow_from == "sensed":  # every supported IRS return and stereo point lies inside, margin_m from the sides
         rays = irs_zone_rays(mapper.store, np.arange(mapper.frames), 1).valid()
         pts = (rays.origins + rays.directions * rays.ranges[:, None]).double().numpy()

@@ -54,7 +54,6 @@ from virus_nerf.grid.extent import (
     holding_box,
     inside_frame,
     needed_box,
-    uss_axis_points,
 )
 from virus_nerf.losses import LossTerms, distortion_loss, line_of_sight_terms, total_loss
 from virus_nerf.maps.observed import frames_observed
@@ -204,15 +203,11 @@ class Mapper(MapViews):
             rays = irs_zone_rays(store, rows, 1).valid()
             if len(rays):
                 self._support.add((rays.origins + rays.directions * rays.ranges[:, None]).double().numpy())
-        ahead = None
-        if self._support is not None and ext.grow_from == "sensed_uss" and "uss" in self.config.sensors:
-            ahead = uss_axis_points(store.cam_to_world[rows], store.uss_range[rows])
-        self._grow_to(store.cam_to_world[rows, :3, 3], ahead)
+        self._grow_to(store.cam_to_world[rows, :3, 3])
 
-    def _grow_to(self, positions: np.ndarray, ahead: np.ndarray | None = None) -> None:
-        """Grow the box (and the grid) to hold camera positions (K, 3) + the camera margin, the
-        supported sensed points + margin_m and the points `ahead` (K', 2) of the cameras
-        (grow_from sensed_uss) + margin_m."""
+    def _grow_to(self, positions: np.ndarray) -> None:
+        """Grow the box (and the grid) to hold camera positions (K, 3) + the camera margin and
+        the supported sensed points + margin_m."""
         ext = self.config.extent
         box = self.box
         margin = camera_margin_m(ext, self.config.sensors)
@@ -222,9 +217,6 @@ class Mapper(MapViews):
                 box = needed_box(box, corner, ext, self.frame, margin, step) or box
         if self._support is not None and (sensed := self._support.bounds()) is not None:
             box = holding_box(box, sensed[0] - ext.margin_m, sensed[1] + ext.margin_m, ext, self.frame, step) or box
-        if ahead is not None and len(ahead):
-            box = holding_box(box, ahead.min(axis=0) - ext.margin_m, ahead.max(axis=0) + ext.margin_m, ext,
-                              self.frame, step) or box
         if box is not self.box:
             self.grid.grow(box)
             self.box = box

@@ -38,8 +38,7 @@ import numpy as np
 from virus_nerf.scene_box import SceneBox
 
 EXTENT_MODES = ("fitted", "grow")
-GROW_FROM = ("sensed", "reach", "sensed_uss")
-OPEN_AHEAD_M = 12.0  # sensed_uss: how far ahead a camera whose USS heard no echo looks (the stereo's max range)
+GROW_FROM = ("sensed", "reach")
 
 
 @dataclass(frozen=True)
@@ -51,9 +50,6 @@ class ExtentConfig:
     # while driving, the better choice in large rooms, docs/decisions.md D39); "sensed" the camera
     # positions and the points the depth sensors measured (stereo, IRS), each + margin_m, by
     # single grid cells (better in small rooms and offline; needs the stereo sensor)
-    # "sensed_uss" the same plus, for every frame, the point on the camera's axis at its USS
-    # echo, or OPEN_AHEAD_M ahead when the USS (8 m) heard none: open space the cameras look into
-    # is held before stereo points reach its far walls (docs/extent.md)
     grow_from: str = "reach"
     reach_m: float = 8.0  # grow, reach: horizontal margin around every camera position (the URM37's reach)
     margin_m: float = 0.1  # grow, sensed: margin around the camera positions and the supported points
@@ -87,21 +83,7 @@ class ExtentConfig:
 def grows_from_sensors(cfg: ExtentConfig, sensors) -> bool:
     """True when the grown box follows the sensed points (`grow_from` sensed and the stereo
     sensor trained), False when it follows the reach around every camera."""
-    return cfg.grow_from in ("sensed", "sensed_uss") and "stereo" in tuple(sensors)
-
-
-def uss_axis_points(cam_to_world: np.ndarray, uss_range: np.ndarray, open_m: float = OPEN_AHEAD_M) -> np.ndarray:
-    """(K, 4, 4) camera poses (OpenCV: z = optical axis, along which the USS looks, sensors/rig.py)
-    and their USS ranges (K,) m (NaN: no echo) -> (K', 2) horizontal points on each axis at the
-    echo, capped at `open_m`, or `open_m` ahead without an echo; cameras looking straight up or
-    down give none."""
-    poses = np.asarray(cam_to_world, dtype=np.float64).reshape(-1, 4, 4)
-    r = np.asarray(uss_range, dtype=np.float64).reshape(-1)
-    axis = poses[:, :2, 2]  # (K, 2) the optical axis on the floor
-    norm = np.linalg.norm(axis, axis=1)
-    keep = norm > 1e-6
-    reach = np.where(np.isfinite(r), np.minimum(r, open_m), open_m)
-    return (poses[keep, :2, 3] + axis[keep] / norm[keep, None] * reach[keep, None]).reshape(-1, 2)
+    return cfg.grow_from == "sensed" and "stereo" in tuple(sensors)
 
 
 def camera_margin_m(cfg: ExtentConfig, sensors) -> float:
