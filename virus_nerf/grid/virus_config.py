@@ -41,8 +41,8 @@ class VirusGridConfig:
     # "view": while driving, a column of cells that a camera first looks at after the first step
     # starts its warm-up again from p_init (evidence kept), so a part of the room reached late is
     # marched and learnt as the first part was (otherwise it is already empty, and only the IRS
-    # brings it back); "run": one clock for every cell (docs/method.md 3.4)
-    warmup_restart: Literal["run", "view"] = "run"
+    # brings it back; D41); "run": one clock for every cell, the paper's. Offline both are the same
+    warmup_restart: Literal["run", "view"] = "view"
     update_interval: int = 21  # training steps between grid updates (the trainer calls update)
     rays_per_update: int = 438  # rays per update, both kinds together (paper: ~1k)
     depth_share: float = 0.5  # share of rays_per_update for the Depth-Update (rest: NeRF)
