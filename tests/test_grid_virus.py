@@ -305,7 +305,7 @@ def test_a_column_first_seen_while_driving_restarts_its_warmup_from_p_init():
     assert torch.allclose(col[[0, 1, 2, 3, 4, 6, 7]], torch.tensor(L_INIT), atol=1e-6)
     assert col[5] == pytest.approx(L_INIT + 1.0, abs=1e-6)
     assert torch.allclose(grid.logodds[0, 0], torch.tensor(L_PRIOR), atol=1e-6)
-    assert grid.occupied[2, 3].all() and not grid.warmup_done
+    assert grid.occupied[2, 3].all() and grid.warmup_done  # the run's clock is done; the column runs its own
     grid.update(150, None, None, g, driving=True)  # half of its own warm-up
     assert grid.logodds[2, 3, 0] == pytest.approx(L_INIT + 0.5 * (L_PRIOR - L_INIT), abs=1e-6)
     assert grid.logodds[4, 4, 4] == pytest.approx(L_PRIOR, abs=1e-6)

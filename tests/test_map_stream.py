@@ -125,6 +125,23 @@ def test_kiss_icp_in_its_worker_process_gives_the_in_process_poses(bags):
     assert not proc.is_alive()
 
 
+def test_a_dead_kiss_icp_worker_is_one_line_not_a_hang():
+    """The worker process killed (out of memory, a crash in KISS-ICP): the next wait for a pose
+    raises at once, naming the worker, and closing does not wait on the scans it will not read."""
+    from virus_nerf.data.bags.kiss_worker import KissWorker
+    from virus_nerf.data.bags.odometry import KissIcpSettings
+
+    worker = KissWorker(KissIcpSettings())
+    worker._proc.terminate()
+    worker._proc.join(timeout=10.0)
+    for k in range(3):  # ~1 MB of scans into a pipe nobody reads
+        worker.send(float(k), np.zeros((30000, 3), dtype=np.float32))
+    with pytest.raises(RuntimeError, match="KISS-ICP worker process stopped .* 3 scan"):
+        worker.poll(block=True)
+    worker.close()
+    assert not worker._proc.is_alive()
+
+
 def test_lidar_odometry_and_wheel_odometry_streams(bags, tiny_office, tmp_path):
     """KISS-ICP registering scan by scan gives every frame a pose near the simulator's; a robot
     without LiDAR: nav_msgs/Odometry on /odom (here the LiDAR's true pose at each scan)."""

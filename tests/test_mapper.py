@@ -359,6 +359,19 @@ def test_a_camera_turning_to_new_space_while_driving_restarts_those_columns_warm
     again = Mapper(mapper.config, mapper.intrinsics, mapper.box)
     again.load_state(mapper.state())
     assert again._viewed_frames == mapper.frames
+    # a state written before the restart existed: its frames count as seen at step 0, so a frame
+    # looking where they looked restarts nothing
+    legacy_state = mapper.state()
+    legacy_state.pop("viewed_frames")
+    legacy_state["grid"] = {k: v for k, v in legacy_state["grid"].items()
+                            if k not in ("viewed", "restart_step", "column_applied")}
+    legacy = Mapper(mapper.config, mapper.intrinsics, mapper.box)
+    legacy.load_state(legacy_state)
+    for f in (_frame(0.0), _frame(1.0), turned):
+        legacy.add_frame(f)
+    legacy.add_frame(dataclasses.replace(_frame(3.0), cam_to_world=_frame(0.0).cam_to_world))
+    legacy.train(600.0, steps=2)
+    assert legacy.grid._restart_step is None or (legacy.grid._restart_step == -1).all()
 
 
 def test_learning_rate_decays_offline_and_stays_while_driving():

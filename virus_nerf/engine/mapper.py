@@ -136,6 +136,7 @@ class Mapper(MapViews):
         self._warm = False
         self._frames_at_start: int | None = None  # frames present at the first step
         self._viewed_frames = 0  # frames whose camera views the grid was given (warmup_restart)
+        self._seen_at_start = 0  # frames that count as seen at step 0 besides those at the first step
         self.stereo: StereoDepth | None = None  # triangulated depth targets of the store's rows
         self._stereo_feed: StereoFeed | None = None  # fed by track_image (mapping while driving)
 
@@ -393,7 +394,7 @@ class Mapper(MapViews):
         grid = self.grid
         if getattr(grid.config, "warmup_restart", "run") != "view" or not self.driving:
             return  # offline every frame is there from the first step: nothing to restart
-        at_start = self._frames_at_start or 0
+        at_start = max(self._frames_at_start or 0, self._seen_at_start)
         for first, last, step in ((self._viewed_frames, at_start, 0), (max(self._viewed_frames, at_start),
                                                                         self.frames, self.step)):
             if first >= last:
@@ -506,8 +507,10 @@ class Mapper(MapViews):
         self.generator.set_state(state["torch_generator"])
         self.model.visible_share = float(state.get("visible_share", 1.0))
         self._frames_at_start = state.get("frames_at_start")
-        # a state without it (an older one): the frames it was trained on count as given
-        self._viewed_frames = int(state.get("viewed_frames", state.get("prior_frames") or 0))
+        # a state without it (written before the restart existed): the frames it was trained on
+        # count as seen at step 0 when the grid first hears of them
+        self._viewed_frames = int(state.get("viewed_frames", 0))
+        self._seen_at_start = 0 if "viewed_frames" in state else int(state.get("prior_frames") or 0)
         if "prior_frames" in state:
             self._prior_done, self._prior_skip = int(state["prior_frames"]), False
         else:  # written before the count existed: the grid had the prior of every frame present

@@ -95,12 +95,11 @@ class VirusGrid(OccupancyGrid):
 
     @property
     def warmup_done(self) -> bool:
-        """True once every cell has had the warm-up's whole offset (p_init moved to p_prior): until
-        then cells nothing has updated are still occupied."""
+        """True once the run's warm-up clock has applied its whole offset (p_init moved to p_prior):
+        until then cells nothing has updated are still occupied. Columns whose warm-up restarted
+        while driving (restart_warmup_in_view) run their own, local clocks; they do not count."""
         c = self.config
-        full = c.logodds_prior - c.logodds_init
-        columns_done = self._column_applied is None or bool(np.all(np.abs(self._column_applied - full) < 1e-6))
-        return abs(self._decay_applied - full) < 1e-6 and columns_done
+        return abs(self._decay_applied - (c.logodds_prior - c.logodds_init)) < 1e-6
 
     @property
     def logodds(self) -> torch.Tensor:

@@ -19,23 +19,26 @@ from virus_nerf.data.bags.odometry import KissIcpSettings
 
 def _serve(scans, poses, settings: KissIcpSettings) -> None:
     """Worker loop: (time, float32 points (N, 3)) from `scans` -> (time, pose (4, 4), error) to
-    `poses`, until None arrives."""
-    from kiss_icp.kiss_icp import KissICP
+    `poses`, until None arrives. Ctrl-C is the mapping process's to handle (it closes the worker)."""
+    import signal
 
-    from virus_nerf.data.bags.odometry import _kiss_config
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    t = None
+    try:
+        from kiss_icp.kiss_icp import KissICP
 
-    icp = KissICP(_kiss_config(settings))
-    while True:
-        item = scans.get()
-        if item is None:
-            return
-        t, pts = item
-        try:
+        from virus_nerf.data.bags.odometry import _kiss_config
+
+        icp = KissICP(_kiss_config(settings))
+        while True:
+            item = scans.get()
+            if item is None:
+                return
+            t, pts = item
             icp.register_frame(pts.astype(np.float64), np.empty(0))
             poses.put((t, np.array(icp.last_pose, dtype=np.float64), None))
-        except Exception as exc:  # noqa: BLE001 - sent to the mapping process, raised there
-            poses.put((t, None, f"{type(exc).__name__}: {exc}"))
-            return
+    except Exception as exc:  # noqa: BLE001 - sent to the mapping process, raised there
+        poses.put((t, None, f"{type(exc).__name__}: {exc}"))
 
 
 class KissWorker:
@@ -54,26 +57,33 @@ class KissWorker:
         self.pending.append(t)
 
     def poll(self, block: bool = False) -> list[tuple[float, np.ndarray]]:
-        """The poses done so far, in scan order; with `block`, waits for every pending scan."""
+        """The poses done so far, in scan order; with `block`, waits for every pending scan.
+        Raises RuntimeError (one line) when the worker failed or died."""
         out = []
         while self.pending:
             try:
-                t, pose, error = self._poses.get(block=block, timeout=60.0 if block else None)
+                t, pose, error = self._poses.get(block=block, timeout=0.5 if block else None)
             except queue.Empty:
+                if not self._proc.is_alive():
+                    raise RuntimeError(f"the KISS-ICP worker process stopped (exit code {self._proc.exitcode}) "
+                                       f"with {len(self.pending)} scan(s) unregistered") from None
                 if block:
-                    raise RuntimeError("KISS-ICP worker: no pose within 60 s") from None
+                    continue
                 break
             if error is not None:
-                raise RuntimeError(f"KISS-ICP worker: {error}")
+                raise RuntimeError(f"KISS-ICP failed: {error}")
             self.pending.pop(0)
             out.append((t, pose))
         return out
 
     def close(self) -> None:
+        """Stop the worker; never waits on a scan it will not read (a dead worker's full pipe)."""
+        self._scans.cancel_join_thread()
         if self._proc.is_alive():
             self._scans.put(None)
             self._proc.join(timeout=5.0)
         if self._proc.is_alive():
             self._proc.terminate()
+            self._proc.join(timeout=5.0)
         self._scans.close()
         self._poses.close()

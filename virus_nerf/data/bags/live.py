@@ -241,9 +241,14 @@ class KissPoses(TrackPoses):
         self._collect()
 
     def _collect(self, block: bool = False) -> None:
-        if self.worker is not None:
-            for t, pose in self.worker.poll(block):
-                self.append(t, pose)
+        if self.worker is None:
+            return
+        try:
+            done = self.worker.poll(block)
+        except RuntimeError as exc:  # the stream stops with its map of the frames so far (StreamRun)
+            raise DataFormatError(self.bag, f"{self.describe}: {exc}") from None
+        for t, pose in done:
+            self.append(t, pose)
 
     def newest_s(self) -> float:
         """Stamp of the newest scan received (its pose may still be registering): the source has
