@@ -178,11 +178,13 @@ def test_online_trainer_gives_the_mapper_only_frames_the_clock_passed(tiny_offic
     rec = load_recording(tiny_office, "office")
     trainer = Trainer(rec, tiny_train_config(online=True, max_steps=None, max_time=5.0), tmp_path, quiet=True)
     trainer.train_step()
-    assert trainer.mapper.frames == len(trainer.available_frames()) == 1
+    # the first step fed the frames its clock (0 s) had passed: the first one; the clock has moved
+    # on during the step (how far depends on the machine's load), so more may be available now
+    assert trainer.mapper.frames == 1 <= len(trainer.available_frames())
     times = np.sort(trainer.store.times)
     trainer.mapper.seconds = (times[5] - times[0]) / trainer.config.playback_speed + 1e-6
     trainer.train_step()
-    assert trainer.mapper.frames == len(trainer.available_frames()) >= 6
+    assert 6 <= trainer.mapper.frames <= len(trainer.available_frames())
     assert np.all(np.diff(trainer.mapper.store.times) >= 0), "frames arrive in time order"
 
 
