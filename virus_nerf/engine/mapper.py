@@ -395,17 +395,20 @@ class Mapper(MapViews):
         if getattr(grid.config, "warmup_restart", "run") != "view" or not self.driving:
             return  # offline every frame is there from the first step: nothing to restart
         at_start = max(self._frames_at_start or 0, self._seen_at_start)
-        for first, last, step in ((self._viewed_frames, at_start, 0), (max(self._viewed_frames, at_start),
-                                                                        self.frames, self.step)):
-            if first >= last:
-                continue
-            rows = np.arange(first, last)
-            spec = grid.spec
-            cell = spec.cell_size
-            viewed = frames_observed(self.store.cam_to_world[rows], self.store.stack_ids[rows], self.intrinsics,
-                                     np.asarray(spec.box.lo[:2]), spec.resolution[:2], (float(cell[0]), float(cell[1])))
-            grid.restart_warmup_in_view(viewed, step)
+        if self._viewed_frames < at_start:  # the frames of the first step: seen at step 0
+            grid.restart_warmup_in_view(self._viewed_columns(self._viewed_frames, at_start), 0)
+        if max(self._viewed_frames, at_start) < self.frames:
+            grid.restart_warmup_in_view(self._viewed_columns(max(self._viewed_frames, at_start), self.frames),
+                                        self.step)
         self._viewed_frames = self.frames
+
+    def _viewed_columns(self, first: int, last: int) -> np.ndarray:
+        """(rx, ry) bool: the grid columns inside the view wedges of store rows first..last-1."""
+        spec = self.grid.spec
+        rows = np.arange(first, last)
+        cell = spec.cell_size
+        return frames_observed(self.store.cam_to_world[rows], self.store.stack_ids[rows], self.intrinsics,
+                               np.asarray(spec.box.lo[:2]), spec.resolution[:2], (float(cell[0]), float(cell[1])))
 
     @property
     def schedule(self) -> StepSchedule:

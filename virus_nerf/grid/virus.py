@@ -362,15 +362,17 @@ class VirusGrid(OccupancyGrid):
         fill = float(np.clip(np.float32(c.logodds_init) + np.float32(self._decay_applied), c.logodds_min,
                              c.logodds_max))
         self._logodds = pad_cells(self._logodds, spec.resolution, offset, fill)
-        columns = (spec.resolution[0], spec.resolution[1], 1)
+
+        def pad_columns(values: np.ndarray, column_fill) -> np.ndarray:  # (rx, ry) -> (RX, RY)
+            out = np.full(spec.resolution[:2], column_fill, dtype=values.dtype)
+            out[offset[0] : offset[0] + values.shape[0], offset[1] : offset[1] + values.shape[1]] = values
+            return out
+
         if self._viewed is not None:
-            self._viewed = pad_cells(torch.from_numpy(self._viewed[:, :, None]), columns, offset[:2] + (0,),
-                                     False)[:, :, 0].numpy()
+            self._viewed = pad_columns(self._viewed, False)
         if self._restart_step is not None:
-            self._restart_step = pad_cells(torch.from_numpy(self._restart_step[:, :, None]), columns,
-                                           offset[:2] + (0,), -1)[:, :, 0].numpy()
-            self._column_applied = pad_cells(torch.from_numpy(self._column_applied[:, :, None]), columns,
-                                             offset[:2] + (0,), float(self._decay_applied))[:, :, 0].numpy()
+            self._restart_step = pad_columns(self._restart_step, -1)
+            self._column_applied = pad_columns(self._column_applied, self._decay_applied)
         self.spec = spec
         self._lo, self._size, self._res = spec_arrays(spec)
         self._occupied = None
