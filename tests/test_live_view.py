@@ -117,6 +117,32 @@ def test_trajectory_and_scan_values(recording):
     np.testing.assert_allclose(scan[0], [[10.0, 5.0], [20.0, 15.0]], atol=1e-5)
 
 
+def test_default_layout(recording):
+    """The recording's last blueprint (sent when camera 3 first appeared) has a view for each map,
+    the world, both cameras and the ranges, and its time panel follows the newest data."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(recording)
+    blueprints = reader.blueprints()
+    assert len(blueprints) == 3  # at the start, at camera 1's first frame, at camera 3's
+    layouts = []  # per blueprint: (view name -> origin, the time panel's play states)
+    for store in blueprints:
+        views, play_states = {}, []
+        for chunk in reader.stream(store=store):
+            batch = chunk.to_record_batch()
+            if "ViewBlueprint:space_origin" in batch.schema.names:
+                name = batch.column("ViewBlueprint:display_name").to_pylist()[-1][0]
+                views[name] = batch.column("ViewBlueprint:space_origin").to_pylist()[-1][0]
+            if chunk.entity_path == "/time_panel" and "TimePanelBlueprint:play_state" in batch.schema.names:
+                play_states += batch.column("TimePanelBlueprint:play_state").to_pylist()
+        layouts.append((views, play_states))
+    assert sorted(len(views) for views, _ in layouts) == [4, 5, 6]  # maps, world, ranges + cameras seen
+    views, play_states = max(layouts, key=lambda layout: len(layout[0]))
+    assert views == {"map": "map", "probability": "map", "world": "world", "camera 1": "world/camera_1/image",
+                     "camera 3": "world/camera_3/image", "ranges (m)": "ranges"}
+    assert play_states[-1] == [3]  # PlayState.Following
+
+
 def test_sensor_geometry():
     pts, z = irs_points(np.where(np.eye(8) > 0, 2.0, np.nan))
     assert pts.shape == (8, 3) and np.allclose(pts[:, 2], 2.0) and np.allclose(z, 2.0)

@@ -29,6 +29,11 @@ Entity paths (world: metres, right-handed, z up; S = the sensor stack id):
 
 The USS and IRS share their stack camera's origin and axes (sensors/rig.py), so they are
 children of world/camera_S and drawn from the camera's mount.
+
+The recording carries a default layout (`layout`): the map and the probability map with the
+scan and the robot on them, the 3D world, each camera's image, and the ranges over time; the
+time panel follows the newest data, so a viewer shows the map as it is now, and a saved .rrd
+opens at its end.
 """
 
 from __future__ import annotations
@@ -48,6 +53,27 @@ from virus_nerf.sensors.uss import USS_FOV_H_DEG, USS_FOV_V_DEG
 
 TIMELINE = "drive_time"
 DEFAULT_PORT = 9876
+
+
+def layout(stacks: list[int]):
+    """The viewer's default layout (a Rerun blueprint) for these sensor stacks: maps on the
+    left, the 3D world and the cameras on the right, the ranges
+    below; the time panel follows the newest frame on the drive_time timeline."""
+    import rerun.blueprint as rrb
+
+    maps = [rrb.Spatial2DView(origin="map", name=name, contents=[f"map/{image}", "map/scan", "map/robot"])
+            for name, image in (("map", "trinary"), ("probability", "probability"))]
+    cameras = [rrb.Spatial2DView(origin=f"world/camera_{s}/image", name=f"camera {s}") for s in stacks]
+    right = [rrb.Spatial3DView(origin="world", name="world")]
+    if cameras:
+        right.append(rrb.Horizontal(*cameras))
+    right.append(rrb.TimeSeriesView(origin="ranges", name="ranges (m)"))
+    return rrb.Blueprint(
+        rrb.Horizontal(rrb.Vertical(*maps), rrb.Vertical(*right, row_shares=[3, 2, 2][:len(right)]),
+                       column_shares=[2, 3]),
+        rrb.TimePanel(timeline=TIMELINE, play_state="following"),
+        collapse_panels=True,
+    )
 
 
 def _rerun():
@@ -136,6 +162,7 @@ class LiveView:
         sinks = [rr.GrpcSink(u) for u in urls] + ([rr.FileSink(str(save))] if save is not None else [])
         self.rec.set_sinks(*sinks)
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.rec.send_blueprint(layout([]))
         self._pinholes: set[int] = set()
         self._robot_stack: int | None = None
         self._trajectory: list[np.ndarray] = []  # (3,) robot positions, metres
@@ -176,6 +203,7 @@ class LiveView:
         small = intr.scaled(self.image_scale) if self.image_scale != 1 else intr
         if frame.stack_id not in self._pinholes:
             self._pinholes.add(frame.stack_id)
+            self.rec.send_blueprint(layout(sorted(self._pinholes)))  # a view for the new camera
             self.rec.log(f"{cam}/image", rr.Pinhole(image_from_camera=small.matrix, resolution=[small.width,
                          small.height], camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.3), static=True)
         rgb = np.asarray(frame.rgb)
