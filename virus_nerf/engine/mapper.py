@@ -106,8 +106,7 @@ class Mapper(MapViews):
         # size while the box grows (grid/extent.py); fitted: both span the given box
         self.frame = field_frame(box, ext) if ext.mode == "grow" else box
         field_cfg = field_config_for_frame(config.field, ext) if ext.mode == "grow" else config.field
-        self.field = NerfField(self.frame, field_cfg, generator=field_gen,
-                               learned_background=ext.mode == "grow" and ext.background == "learned").to(self.device)
+        self.field = NerfField(self.frame, field_cfg, generator=field_gen).to(self.device)
         self.grid = build_grid(config, box, self.device, GridSpec.from_cell(box, ext.grid_cell_m)
                                if ext.mode == "grow" else None)
         # grow, sensed: the points the depth sensors measured, counted per support cell

@@ -71,8 +71,7 @@ class SceneModel:
         """origins, directions (R, 3) -> RenderOutput (rgb (R,3), depth (R,), opacity (R,)).
 
         rgb_rays (R,) bool, optional: rays whose colour is needed; the others are rendered for
-        depth only (their samples' colour is 0 and carries no gradient). With a learned
-        background (extent.background) every ray's rgb adds (1 - opacity) * its colour.
+        depth only (their rgb is 0 and carries no gradient).
         """
         samples = march_rays(
             origins,
@@ -90,26 +89,19 @@ class SceneModel:
         dirs = directions[samples.ray_indices]  # (S, 3)
         rgb_mask = None if rgb_rays is None else rgb_rays[samples.ray_indices]  # (S,)
         if self.min_transmittance > 0 and torch.is_grad_enabled():
-            background = self._background(directions)
             if self.visible_share < TWO_PASS_BELOW:
-                return self._render_visible(origins.shape[0], samples, positions, dirs, rgb_mask, background)
-            return self._render_colour_visible(origins.shape[0], samples, positions, dirs, rgb_mask, background)
+                return self._render_visible(origins.shape[0], samples, positions, dirs, rgb_mask)
+            return self._render_colour_visible(origins.shape[0], samples, positions, dirs, rgb_mask)
         sigma, rgb = self.field(positions, dirs, rgb_mask)
-        out = composite(sigma, rgb, samples, n_rays=origins.shape[0], background=self._background(directions),
-                        backend=self.backend)
+        out = composite(sigma, rgb, samples, n_rays=origins.shape[0], background=None, backend=self.backend)
         stats = RenderStats(
             n_rays=origins.shape[0], n_samples=samples.n_samples, positions=positions.detach(),
             sigma=sigma.detach(), samples=samples, n_trained=samples.n_samples,
         )
         return out, stats
 
-    def _background(self, directions: torch.Tensor) -> torch.Tensor | None:
-        """(R, 3) colour beyond the box for rays of these directions (R, 3): the field's learned
-        background (field/background.py), or None (black)."""
-        return None if self.field.background is None else self.field.background(directions)
-
     def _render_visible(self, n_rays: int, samples: PackedSamples, positions: torch.Tensor, dirs: torch.Tensor,
-                        rgb_mask: torch.Tensor | None, background: torch.Tensor | None) -> tuple[RenderOutput, RenderStats]:
+                        rgb_mask: torch.Tensor | None) -> tuple[RenderOutput, RenderStats]:
         """Two passes: densities of all S samples without gradients, then the full field with
         gradients only on the samples still visible (T_j >= min_transmittance; a prefix of each
         ray). Behind a surface nothing reaches a loss (compositing.transmittance), so the
@@ -121,7 +113,7 @@ class SceneModel:
         visible = samples.select(keep)
         sub_mask = None if rgb_mask is None else rgb_mask[keep]
         sigma, rgb = self.field(positions[keep], dirs[keep], sub_mask)  # (V,), (V, 3)
-        out = composite(sigma, rgb, visible, n_rays=n_rays, background=background, backend=self.backend)
+        out = composite(sigma, rgb, visible, n_rays=n_rays, background=None, backend=self.backend)
         stats = RenderStats(
             n_rays=n_rays, n_samples=samples.n_samples, positions=positions.detach(), sigma=sigma_all,
             samples=visible, n_trained=visible.n_samples,
@@ -129,8 +121,7 @@ class SceneModel:
         return out, stats
 
     def _render_colour_visible(self, n_rays: int, samples: PackedSamples, positions: torch.Tensor,
-                               dirs: torch.Tensor, rgb_mask: torch.Tensor | None,
-                               background: torch.Tensor | None) -> tuple[RenderOutput, RenderStats]:
+                               dirs: torch.Tensor, rgb_mask: torch.Tensor | None) -> tuple[RenderOutput, RenderStats]:
         """One pass: densities of all S samples with gradients, the colour MLP only on the visible
         ones (T_j >= min_transmittance; hidden samples get rgb 0, which moves the render by less
         than their weights, < eps). Cheaper than `_render_visible` when most samples are visible
@@ -139,7 +130,7 @@ class SceneModel:
         keep = transmittance(sigma, samples) >= self.min_transmittance  # (S,) bool
         self.visible_share = float(keep.float().mean()) if keep.numel() else 1.0
         rgb = self.field.colour_at(h, idx, dirs, keep if rgb_mask is None else keep & rgb_mask)  # (S, 3)
-        out = composite(sigma, rgb, samples, n_rays=n_rays, background=background, backend=self.backend)
+        out = composite(sigma, rgb, samples, n_rays=n_rays, background=None, backend=self.backend)
         stats = RenderStats(
             n_rays=n_rays, n_samples=samples.n_samples, positions=positions.detach(), sigma=sigma.detach(),
             samples=samples, n_trained=samples.n_samples,

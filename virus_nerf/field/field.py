@@ -14,7 +14,6 @@ from dataclasses import asdict, dataclass, fields
 import torch
 from torch import nn
 
-from virus_nerf.field.background import DirectionalBackground
 from virus_nerf.field.hash_encoding import BACKENDS, HashEncoding, HashGridLayout
 from virus_nerf.field.sh import SH_DIM, sh_encode
 from virus_nerf.scene_box import SceneBox
@@ -126,12 +125,9 @@ class NerfField(nn.Module):
         config: FieldConfig | None = None,
         seed: int = 0,
         generator: torch.Generator | None = None,
-        learned_background: bool = False,
     ):
         """`generator` (CPU), when given, replaces `seed`; all parameters are drawn from it in a
-        fixed order (table, then the Linear layers front to back). `learned_background`: a colour
-        by view direction for what the rays find beyond the box (field/background.py; its table
-        starts grey and draws nothing from the generator); `background` is None without it."""
+        fixed order (table, then the Linear layers front to back)."""
         super().__init__()
         self.box = box
         self.config = config if config is not None else FieldConfig.cpu_default()
@@ -145,7 +141,6 @@ class NerfField(nn.Module):
                 nn.init.kaiming_uniform_(m.weight, a=math.sqrt(5.0), generator=gen)
                 if m.bias is not None:
                     nn.init.zeros_(m.bias)
-        self.background = DirectionalBackground() if learned_background else None
         # (3,) float32 box corner and size; buffers so .to(device) moves them; rebuilt from `box`.
         self.register_buffer("box_lo", torch.tensor(box.lo, dtype=torch.float32), persistent=False)
         self.register_buffer("box_size", torch.tensor(box.size, dtype=torch.float32), persistent=False)

@@ -39,7 +39,6 @@ from virus_nerf.scene_box import SceneBox
 
 EXTENT_MODES = ("fitted", "grow")
 GROW_FROM = ("sensed", "reach")
-BACKGROUNDS = ("black", "learned")
 
 
 @dataclass(frozen=True)
@@ -62,18 +61,12 @@ class ExtentConfig:
     frame_m: float = 64.0  # grow: side of the field's fixed cube, centred on the first box
     field_coarse_m: float = 0.6  # grow: coarsest hash level's cell (fitted office: 10 m / 16)
     field_fine_m: float = 0.02  # grow: finest hash level's cell (fitted office: 10 m / 512)
-    # grow: the colour a camera ray finds when it leaves the box: "black" (as with the fitted box),
-    # or "learned", a colour by view direction (field/background.py), so that a far wall the box
-    # does not hold yet is not painted as a false wall at the box's side
-    background: str = "black"
 
     def __post_init__(self) -> None:
         if self.mode not in EXTENT_MODES:
             raise ValueError(f"extent.mode {self.mode!r}: expected one of {', '.join(EXTENT_MODES)}")
         if self.grow_from not in GROW_FROM:
             raise ValueError(f"extent.grow_from {self.grow_from!r}: expected one of {', '.join(GROW_FROM)}")
-        if self.background not in BACKGROUNDS:
-            raise ValueError(f"extent.background {self.background!r}: expected one of {', '.join(BACKGROUNDS)}")
         p = self.support_points
         if isinstance(p, bool) or not isinstance(p, int) or not 1 <= p <= 255:
             raise ValueError(f"extent.support_points {p!r}: expected a whole number from 1 to 255")
