@@ -9,9 +9,9 @@ the LiDAR map at camera height (zone 3, `map` ground truth). The peak resident m
 
     python benchmarks/bench_extent.py --scenes common,warehouse --sim-seeds 61,62,63 --out benchmarks/results/extent.json
 
-Modes (--modes, default fitted,grow): fitted, grow (the box grown to hold what the robot sensed,
-the default of `extent.mode` grow) and grow_reach (the first design: the reach around every
-camera). --grow-config merges a JSON object into the grow runs' config (a variant, e.g.
+Modes (--modes, default fitted,grow): fitted, grow (the default of `extent.mode` grow: the box
+grown to hold what the robot sensed, D44), grow_sensed (the same, spelt out) and grow_reach (the
+first design: the reach around every camera). --grow-config merges a JSON object into the grow runs' config (a variant, e.g.
 '{"extent": {"margin_m": 0.2}}'); --keep keeps each run's output folder (metrics, maps,
 checkpoint) under a folder for a look afterwards.
 
@@ -34,8 +34,8 @@ sys.path.insert(0, str(HERE))
 
 from bench_time_to_map import DEFAULT_DATA, ensure_data  # noqa: E402
 
-# grow: the default of extent.mode grow (the reach around every camera, D38/D39); grow_reach: the
-# same, spelt out; grow_sensed: the box grown to hold what the robot sensed (an option, D39)
+# grow: the default of extent.mode grow (the box grown to hold what the robot sensed, D44);
+# grow_sensed: the same, spelt out; grow_reach: the reach around every camera (D38, an option)
 MODES = {"fitted": {}, "grow": {"extent": {"mode": "grow"}},
          "grow_reach": {"extent": {"mode": "grow", "grow_from": "reach", "grow_step_m": 2.0}},
          "grow_sensed": {"extent": {"mode": "grow", "grow_from": "sensed"}}}

@@ -46,11 +46,12 @@ class ExtentConfig:
     """How the Mapper bounds its map (module docstring), metres."""
 
     mode: str = "fitted"  # fitted | grow
-    # grow: what the box grows to hold: "reach" every camera position + reach_m (the default:
-    # while driving, the better choice in large rooms, docs/decisions.md D39); "sensed" the camera
-    # positions and the points the depth sensors measured (stereo, IRS), each + margin_m, by
-    # single grid cells (better in small rooms and offline; needs the stereo sensor)
-    grow_from: str = "reach"
+    # grow: what the box grows to hold: "sensed" (the default) the camera positions and the points
+    # the depth sensors measured (stereo, IRS), each + margin_m, by single grid cells (needs the
+    # stereo sensor; without it the reach); "reach" every camera position + reach_m (better
+    # coverage of a large room's far walls while driving, worse accuracy and safety, more memory;
+    # docs/decisions.md D44)
+    grow_from: str = "sensed"
     reach_m: float = 8.0  # grow, reach: horizontal margin around every camera position (the URM37's reach)
     margin_m: float = 0.1  # grow, sensed: margin around the camera positions and the supported points
     support_cell_m: float = 0.16  # grow, sensed: horizontal cells in which sensed points are counted

@@ -304,16 +304,18 @@ RAY_BYTES = 96
 
 
 def check_batch_memory(cfg, limit: int | None = None) -> None:
-    """Refuse, before any work, a --batch-size whose rays alone cannot fit in memory."""
+    """Refuse, before any work, a --batch-size whose rays alone would take more than half the
+    memory this process may use (utils.memory's rule: the rest holds the frames, the network
+    and, above all, the rays' samples, several times the rays' own bytes)."""
     from virus_nerf.utils.memory import memory_limit
 
     limit = memory_limit() if limit is None else limit
     need = cfg.batch_size * RAY_BYTES
-    if limit is not None and need > limit:
+    if limit is not None and need > limit / 2:
         raise UsageError(
             f"--batch-size {cfg.batch_size}: a step would need at least {need / 2**30:.1f} GiB for its rays "
             f"alone ({RAY_BYTES} bytes a ray before marching) and this machine has {limit / 2**30:.1f} GiB; "
-            f"expected at most {limit // RAY_BYTES} (the default is 2048)"
+            f"expected at most {limit // 2 // RAY_BYTES} (the default is 2048)"
         )
 
 
