@@ -31,6 +31,23 @@ def test_scan_occupancy_marks_path_free_and_end_occupied(tmp_path):
     assert "mode: trinary" in yaml.read_text()
 
 
+def test_a_grown_box_gets_one_raster_size_everywhere():
+    """A box grown by whole 8 cm cells from an odd corner: 5 cells = 0.4 m, 8 pixels of 5 cm,
+    though (hi - lo) / 0.05 comes out a hair above 8 in floating point. The scans' raster and the
+    observed mask must agree (before: the scans' raster was 9 x 9 and masking it raised an
+    IndexError in a warehouse run while driving)."""
+    from virus_nerf.maps.observed import apply_mask
+    from virus_nerf.maps.occupancy import raster_shape
+
+    lo = np.array([0.24198999999999998, -5.23161])
+    hi = lo + 5 * 0.08
+    assert (hi - lo)[0] / 0.05 > 8.0 and raster_shape(lo, hi, 0.05) == (8, 8)
+    m = scan_occupancy(np.array([lo + 0.2]), np.array([[1.0, 0.0]]), np.array([0.1]), lo, hi, 0.05)
+    assert m.image.shape == (8, 8)
+    masked = apply_mask(m.image, np.zeros((8, 8), dtype=bool), UNKNOWN)
+    assert np.all(masked == UNKNOWN)
+
+
 def test_missed_rays_mark_nothing():
     m = scan_occupancy(np.zeros((2, 2)) + 1, np.array([[1.0, 0], [0, 1]]), np.array([np.nan, -1.0]),
                        np.zeros(2), np.full(2, 2.0), 0.1)

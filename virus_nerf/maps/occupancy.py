@@ -56,7 +56,7 @@ def scan_occupancy(
     origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float
 ) -> OccupancyMap2D:
     """Occupancy raster from 2D scan rays. origins (N, 2), directions (N, 2) unit, ranges (N,) m."""
-    shape = np.ceil((hi - lo) / resolution).astype(int)  # (nx, ny)
+    shape = raster_shape(lo, hi, resolution)  # (nx, ny), as every other raster of the box (observed mask)
     passes = np.zeros(shape, dtype=np.int64)
     hits = np.zeros(shape, dtype=np.int64)
     ok = np.isfinite(ranges) & (ranges > 0)
