@@ -55,7 +55,10 @@ class ExtentConfig:
     reach_m: float = 8.0  # grow, reach: horizontal margin around every camera position (the URM37's reach)
     margin_m: float = 0.1  # grow, sensed: margin around the camera positions and the supported points
     support_cell_m: float = 0.16  # grow, sensed: horizontal cells in which sensed points are counted
-    support_points: int = 3  # grow, sensed: points a support cell needs before the box holds it
+    # grow, sensed: points a support cell needs before the box holds it. 1 (any measured point):
+    # a far wall the stereo sees from afar gets too few points per cell for more; 3 ignores a
+    # stray triangulation but leaves those walls outside the box (docs/decisions.md D45)
+    support_points: int = 1
     height_m: float = 1.5  # grow: the box spans the first camera's height +- this
     grow_step_m: float = 2.0  # grow, reach: the box grows by at least this much on a side (fewer re-allocations)
     grid_cell_m: float = 0.08  # grow: occupancy grid cell (fitted: the longest box axis / max_resolution)
@@ -163,8 +166,8 @@ def inside_frame(camera_position: np.ndarray, frame: SceneBox) -> bool:
 class SensedSupport:
     """Points the depth sensors measured, counted per horizontal support cell of the field's
     frame (`support_cell_m`, one byte each, saturating at 255); `bounds` is the horizontal extent
-    of the cells with at least `support_points` points, so a stray point (a wrong triangulation)
-    does not grow the box. Points outside the frame or outside the box's height are not counted
+    of the cells with at least `support_points` points (above 1, a stray point, a wrong
+    triangulation, does not grow the box). Points outside the frame or outside the box's height are not counted
     (the map cannot hold them)."""
 
     def __init__(self, cfg: ExtentConfig, frame: SceneBox, z_range: tuple[float, float]):
