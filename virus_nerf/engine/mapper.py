@@ -397,9 +397,9 @@ class Mapper(MapViews):
         at_start = max(self._frames_at_start or 0, self._seen_at_start)
         if self._viewed_frames < at_start:  # the frames of the first step: seen at step 0
             grid.restart_warmup_in_view(self._viewed_columns(self._viewed_frames, at_start), 0)
-        if max(self._viewed_frames, at_start) < self.frames:
-            grid.restart_warmup_in_view(self._viewed_columns(max(self._viewed_frames, at_start), self.frames),
-                                        self.step)
+        new = max(self._viewed_frames, at_start)  # the first frame that arrived while driving
+        if new < self.frames:
+            grid.restart_warmup_in_view(self._viewed_columns(new, self.frames), self.step)
         self._viewed_frames = self.frames
 
     def _viewed_columns(self, first: int, last: int) -> np.ndarray:

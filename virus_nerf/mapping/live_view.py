@@ -57,8 +57,8 @@ DEFAULT_PORT = 9876
 
 def layout(stacks: list[int]):
     """The viewer's default layout (a Rerun blueprint) for these sensor stacks: maps on the
-    left, the 3D world and the cameras on the right, the ranges
-    below; the time panel follows the newest frame on the drive_time timeline."""
+    left, the 3D world and the cameras on the right, the ranges below; the time panel follows
+    the newest frame on the drive_time timeline."""
     import rerun.blueprint as rrb
 
     maps = [rrb.Spatial2DView(origin="map", name=name, contents=[f"map/{image}", "map/scan", "map/robot"])
