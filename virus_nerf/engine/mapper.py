@@ -204,23 +204,9 @@ class Mapper(MapViews):
             rays = irs_zone_rays(store, rows, 1).valid()
             if len(rays):
                 self._support.add((rays.origins + rays.directions * rays.ranges[:, None]).double().numpy())
-        self._grow_to(store.cam_to_world[rows, :3, 3], store.cam_to_world[rows], store.stack_ids[rows])
+        self._grow_to(store.cam_to_world[rows, :3, 3])
 
-    def _view_ends(self, poses: np.ndarray, stacks: np.ndarray) -> np.ndarray:
-        """(M, 2) m: where the view wedges of cameras at `poses` (K, 4, 4) of `stacks` (K,) stop
-        (grid/extent.py view_ends)."""
-        from virus_nerf.maps.observed import camera_half_fov
-
-        axis = poses[:, :2, 2]
-        keep = np.linalg.norm(axis, axis=1) > 1e-6
-        if not keep.any():
-            return np.zeros((0, 2))
-        half = np.array([camera_half_fov(self.intrinsics[int(s)].width, self.intrinsics[int(s)].fx)
-                         for s in np.asarray(stacks)[keep]])
-        return self._support.view_ends(poses[keep, :2, 3], np.arctan2(axis[keep, 1], axis[keep, 0]), half,
-                                       self.config.extent.view_reach_m)
-
-    def _grow_to(self, positions: np.ndarray, poses: np.ndarray | None = None, stacks: np.ndarray | None = None) -> None:
+    def _grow_to(self, positions: np.ndarray) -> None:
         """Grow the box (and the grid) to hold camera positions (K, 3) + the camera margin and
         the supported sensed points + margin_m."""
         ext = self.config.extent
@@ -232,10 +218,6 @@ class Mapper(MapViews):
                 box = needed_box(box, corner, ext, self.frame, margin, step) or box
         if self._support is not None and (sensed := self._support.bounds()) is not None:
             box = holding_box(box, sensed[0] - ext.margin_m, sensed[1] + ext.margin_m, ext, self.frame, step) or box
-        if self._support is not None and ext.view_reach_m > 0 and poses is not None and len(poses):
-            ends = self._view_ends(poses, stacks)
-            if len(ends):
-                box = holding_box(box, ends.min(axis=0), ends.max(axis=0), ext, self.frame, step) or box
         if box is not self.box:
             self.grid.grow(box)
             self.box = box
@@ -246,17 +228,11 @@ class Mapper(MapViews):
         if "stereo" not in self.config.sensors:
             return
         if self._stereo_feed is None:
-            ext = self.config.extent
-            bound = dataclasses.replace(self.config.stereo, max_range=ext.open_tracks_m) \
-                if self._support is not None and ext.open_tracks_m > 0 else None
-            self._stereo_feed = StereoFeed(self.intrinsics, self.store.intrinsics, self.config.stereo, bound)
+            self._stereo_feed = StereoFeed(self.intrinsics, self.store.intrinsics, self.config.stereo)
         store = self.store
         depth = self._stereo_feed.add(row, int(store.stack_ids[row]), float(store.times[row]),
                                       store.cam_to_world[row], rgb)
         if depth is not None:
-            feed = self._stereo_feed
-            if feed.bound_cfg is not None and len(feed.bound_points) and self._support.add(feed.bound_points):
-                self._grow_to(np.zeros((0, 3)))
             self.set_stereo(depth)
 
     def add_store(self, store: FrameStore, rows: np.ndarray | None = None) -> None:
@@ -372,9 +348,6 @@ class Mapper(MapViews):
             if "rgbd" in sensors:
                 has_depth |= torch.isfinite(batch.rgbd_range)
             rgb_rays = ~has_depth
-        if self._support is not None and c.extent.exit_support_m > 0:
-            backed = self._exit_backed(batch)
-            rgb_rays = backed if rgb_rays is None else rgb_rays & backed
         out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator, rgb_rays=rgb_rays)
         terms = total_loss(
             c.weights,
@@ -412,26 +385,6 @@ class Mapper(MapViews):
             self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator,
                              driving=schedule.driving, budget_progress=progress)
         return terms
-
-    def _exit_backed(self, batch: RayBatch) -> torch.Tensor:
-        """(B,) bool: the rays that leave the grown box through its floor or ceiling, or pass a
-        supported cell (+- one cell) in their last `extent.exit_support_m` metres inside it: the
-        rays whose colour the box can explain (grid/extent.py)."""
-        box = self.grid.spec.box
-        _, t_exit = ray_box_interval(batch.origins, batch.directions, self.grid.spec, 0.0, math.inf)
-        t_exit = t_exit.clamp(min=0.0).cpu().numpy()  # (B,)
-        o = batch.origins.double().cpu().numpy()  # (B, 3)
-        d = batch.directions.double().cpu().numpy()
-        z = o[:, 2] + d[:, 2] * t_exit
-        through_z = (z <= box.lo[2] + 1e-6) | (z >= box.hi[2] - 1e-6)
-        support = self._support
-        dh = np.linalg.norm(d[:, :2], axis=1).clip(min=1e-9)  # horizontal metres per metre of ray
-        step = support.cell / 2 / dh  # (B,) t per half cell horizontally
-        k = np.arange(int(math.ceil(self.config.extent.exit_support_m / (support.cell / 2))) + 1)
-        t = np.clip(t_exit[:, None] - k[None, :] * step[:, None], 0.0, None)  # (B, K)
-        xy = o[:, None, :2] + d[:, None, :2] * t[..., None]  # (B, K, 2)
-        backed = through_z | support.near_supported(xy).any(axis=1)
-        return torch.from_numpy(backed).to(self.device)
 
     def _restart_warmup_in_view(self) -> None:
         """virus_grid.warmup_restart "view": the grid columns in the camera view wedges of the

@@ -59,26 +59,6 @@ class ExtentConfig:
     # a far wall the stereo sees from afar gets too few points per cell for more; 3 ignores a
     # stray triangulation but leaves those walls outside the box (docs/decisions.md D45)
     support_points: int = 1
-    # grow, sensed: a camera ray trains colour only where it passes a supported cell (+- one cell)
-    # in its last `exit_support_m` inside the box, or leaves through the box's floor or ceiling: a
-    # ray that leaves through a side where no sensor has measured anything yet sees a wall beyond
-    # the box, and its colour would paint a false surface at the box's side (docs/extent.md).
-    # 0: every ray trains colour
-    exit_support_m: float = 0.0
-    # grow, sensed: a side of the box moves out to a column of support cells only when that column
-    # and the two inside it hold at least this many supported cells between them: a wall gives
-    # many, a few stray triangulations behind it do not stretch the box. 1: any supported cell
-    side_cells: int = 1
-    # grow, sensed, while driving: the box also holds the points of the stereo tracks still
-    # followed, triangulated at every refresh with their views tested one by one out to this
-    # range (a far wall the robot drives at: its tracks end late, its early views are far).
-    # 0: only the stereo targets (tracks that ended, every view within stereo.max_range)
-    open_tracks_m: float = 0.0
-    # grow, sensed: the box also holds the cameras' horizontal view wedges out to this reach,
-    # each ray of a wedge stopped at the first cell the depth sensors measured (+- one cell):
-    # space the cameras look into before the stereo can range it (a far wall straight ahead).
-    # 0: off
-    view_reach_m: float = 0.0
     height_m: float = 1.5  # grow: the box spans the first camera's height +- this
     grow_step_m: float = 2.0  # grow, reach: the box grows by at least this much on a side (fewer re-allocations)
     grid_cell_m: float = 0.08  # grow: occupancy grid cell (fitted: the longest box axis / max_resolution)
@@ -99,18 +79,6 @@ class ExtentConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
                 raise ValueError(f"extent.{name} {v!r}: expected a positive number of metres")
-        c = self.side_cells
-        if isinstance(c, bool) or not isinstance(c, int) or c < 1:
-            raise ValueError(f"extent.side_cells {c!r}: expected a whole number >= 1")
-        o = self.open_tracks_m
-        if isinstance(o, bool) or not isinstance(o, int | float) or not math.isfinite(o) or o < 0:
-            raise ValueError(f"extent.open_tracks_m {o!r}: expected a number of metres >= 0 (0: off)")
-        v = self.view_reach_m
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-            raise ValueError(f"extent.view_reach_m {v!r}: expected a number of metres >= 0 (0: off)")
-        e = self.exit_support_m
-        if isinstance(e, bool) or not isinstance(e, int | float) or not math.isfinite(e) or e < 0:
-            raise ValueError(f"extent.exit_support_m {e!r}: expected a number of metres >= 0 (0: off)")
         if self.field_fine_m > self.field_coarse_m:
             raise ValueError(f"extent.field_fine_m {self.field_fine_m}: expected at most field_coarse_m "
                              f"{self.field_coarse_m}")
@@ -205,16 +173,12 @@ class SensedSupport:
     def __init__(self, cfg: ExtentConfig, frame: SceneBox, z_range: tuple[float, float]):
         self.cell = float(cfg.support_cell_m)
         self.need = int(cfg.support_points)
-        self.side_cells = int(cfg.side_cells)
         self.lo = np.asarray(frame.lo[:2], dtype=np.float64)
         self.shape = tuple(int(n) for n in np.ceil(np.asarray(frame.size[:2]) / self.cell - 1e-9))
         self.z_range = (float(z_range[0]), float(z_range[1]))
         self.counts = np.zeros(self.shape, dtype=np.uint8)
-        self._lo_cell: np.ndarray | None = None  # (2,) int, lowest cell index per axis the box holds
+        self._lo_cell: np.ndarray | None = None  # (2,) int, lowest supported cell index per axis
         self._hi_cell: np.ndarray | None = None
-        # supported cells per column along x (profile[0], indexed by the x cell) and along y
-        self._profile = (np.zeros(self.shape[0], np.int64), np.zeros(self.shape[1], np.int64))
-        self._near: np.ndarray | None = None  # (shape) bool: within one cell of a supported cell
 
     def add(self, points: np.ndarray) -> bool:
         """Count world points (N, 3) m; True when the supported extent grew."""
@@ -226,18 +190,12 @@ class SensedSupport:
             return False
         flat, n = np.unique(ij[:, 0] * self.shape[1] + ij[:, 1], return_counts=True)
         counts = self.counts.reshape(-1)
-        before = counts[flat].copy()
         counts[flat] = np.minimum(counts[flat].astype(np.int64) + n, 255).astype(np.uint8)
-        if ((before < self.need) & (counts[flat] >= self.need)).any():
-            self._near = None  # new supported cells
-        new = flat[(before < self.need) & (counts[flat] >= self.need)]  # cells supported from now on
-        if not len(new):
+        ok = flat[counts[flat] >= self.need]
+        if not len(ok):
             return False
-        np.add.at(self._profile[0], new // self.shape[1], 1)
-        np.add.at(self._profile[1], new % self.shape[1], 1)
-        lo, hi = self._sides()
-        if lo is None:
-            return False
+        cells = np.stack([ok // self.shape[1], ok % self.shape[1]], axis=1)
+        lo, hi = cells.min(axis=0), cells.max(axis=0)
         if self._lo_cell is not None:
             lo, hi = np.minimum(lo, self._lo_cell), np.maximum(hi, self._hi_cell)
             if (lo == self._lo_cell).all() and (hi == self._hi_cell).all():
@@ -245,61 +203,8 @@ class SensedSupport:
         self._lo_cell, self._hi_cell = lo, hi
         return True
 
-    def _sides(self) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """The outermost columns (cell index per axis, low and high) whose three columns inwards
-        hold at least `side_cells` supported cells, the column itself at least one; (None,
-        None) before any."""
-        lo, hi = np.zeros(2, np.int64), np.zeros(2, np.int64)
-        for axis, prof in enumerate(self._profile):
-            filled = np.flatnonzero(prof)
-            if not len(filled):
-                return None, None
-            cum = np.concatenate([[0], np.cumsum(prof)])
-            n = len(prof)
-            inward_lo = cum[np.minimum(filled + 3, n)] - cum[filled]  # (F,) cells in the column and 2 above
-            inward_hi = cum[filled + 1] - cum[np.maximum(filled - 2, 0)]
-            ok_lo, ok_hi = filled[inward_lo >= self.side_cells], filled[inward_hi >= self.side_cells]
-            if not len(ok_lo):
-                return None, None
-            lo[axis], hi[axis] = ok_lo[0], ok_hi[-1]
-        return lo, hi
-
     def bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(lo, hi) (2,) m: the horizontal extent of the supported cells; None before any."""
         if self._lo_cell is None:
             return None
         return self.lo + self._lo_cell * self.cell, self.lo + (self._hi_cell + 1) * self.cell
-
-    def near_supported(self, xy: np.ndarray) -> np.ndarray:
-        """(...) bool: the horizontal points `xy` (..., 2) m lie in a supported cell or one of
-        its 8 neighbours; False outside the frame."""
-        from scipy import ndimage
-
-        if self._near is None:
-            supported = self.counts >= self.need
-            self._near = ndimage.binary_dilation(supported, structure=np.ones((3, 3), bool))
-        xy = np.asarray(xy, dtype=np.float64)
-        ij = np.floor((xy - self.lo) / self.cell).astype(np.int64)
-        inside = ((ij >= 0) & (ij < np.asarray(self.shape))).all(axis=-1)
-        out = np.zeros(xy.shape[:-1], dtype=bool)
-        out[inside] = self._near[ij[inside][:, 0], ij[inside][:, 1]]
-        return out
-
-    def view_ends(self, positions: np.ndarray, headings: np.ndarray, half_fov: np.ndarray, reach_m: float,
-                  rays: int = 25) -> np.ndarray:
-        """(K * rays, 2) m: where the horizontal rays of K camera view wedges (positions (K, 2) m,
-        headings (K,) rad of the optical axes, half_fov (K,) rad) stop: at the last free half
-        cell before a measured cell (`near_supported`), or at `reach_m`."""
-        pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
-        if not len(pos):
-            return np.zeros((0, 2))
-        frac = np.linspace(-1.0, 1.0, rays)
-        ang = np.asarray(headings, dtype=np.float64)[:, None] + np.asarray(half_fov, dtype=np.float64)[:, None] * frac
-        d = np.stack([np.cos(ang), np.sin(ang)], axis=-1).reshape(-1, 2)  # (R, 2)
-        o = np.repeat(pos, rays, axis=0)  # (R, 2)
-        t = np.arange(1, int(math.ceil(reach_m / (self.cell / 2))) + 1) * (self.cell / 2)
-        t = np.minimum(t, reach_m)  # (S,)
-        blocked = self.near_supported(o[:, None, :] + d[:, None, :] * t[None, :, None])  # (R, S)
-        first = np.where(blocked.any(axis=1), blocked.argmax(axis=1), len(t))  # first blocked sample
-        t_end = np.where(first > 0, t[np.maximum(first - 1, 0)], 0.0)
-        return o + d * t_end[:, None]

@@ -101,27 +101,17 @@ def _merge(parts: list[StereoDepth]) -> StereoDepth:
 
 class StereoFeed:
     """A StereoBuilder fed frame by frame while driving: every `refresh_frames` frames, the
-    targets of the tracks that ended so far (None between refreshes). With `bound_cfg`, each
-    refresh also leaves in `bound_points` the points of every track, open or ended, whose views
-    pass that config's filters one by one: what bounds the map's box (grid/extent.py), sooner
-    than the targets (a wall the robot drives at stays in view, and its tracks end late)."""
+    targets of the tracks that ended so far (None between refreshes)."""
 
     def __init__(self, intrinsics: dict[int, Intrinsics], train_intrinsics: dict[int, Intrinsics],
-                 cfg: StereoConfig, bound_cfg: StereoConfig | None = None):
+                 cfg: StereoConfig):
         self.builder = StereoBuilder(intrinsics, train_intrinsics, cfg)
-        self.bound_cfg = bound_cfg
-        self.bound_points = np.zeros((0, 3), np.float32)  # (N, 3) m, of the last refresh
         self.frames = 0
 
     def add(self, frame: int, stack: int, time: float, cam_to_world: np.ndarray, rgb: np.ndarray) -> StereoDepth | None:
         self.builder.add(frame, stack, time, cam_to_world, rgb)
         self.frames += 1
-        if self.frames % self.builder.cfg.refresh_frames != 0:
-            return None
-        if self.bound_cfg is not None:
-            track, views, uv = self.builder.views.arrays()
-            self.bound_points = self.builder._triangulate(track, views, uv, self.bound_cfg, whole=False).points
-        return self.builder.flush()
+        return self.builder.flush() if self.frames % self.builder.cfg.refresh_frames == 0 else None
 
 
 class StereoBuilder:
@@ -183,17 +173,13 @@ class StereoBuilder:
             t.active_ids, t.active_uv = np.zeros(0, dtype=np.int64), np.zeros((0, 2))
         return self.flush()
 
-    def _triangulate(self, track: np.ndarray, frame: np.ndarray, uv: np.ndarray, cfg: StereoConfig | None = None,
-                     whole: bool = True) -> StereoDepth:
-        """Targets of the tracks among these views (track (V,), frame (V,), uv (V, 2) px), with
-        `cfg`'s filters (default the builder's). `whole`: a point is kept only when every view
-        passes the range and sigma tests (depth targets); else the views that pass keep it."""
-        cfg = self.cfg if cfg is None else cfg
+    def _triangulate(self, track: np.ndarray, frame: np.ndarray, uv: np.ndarray) -> StereoDepth:
+        """Targets of the tracks among these views (track (V,), frame (V,), uv (V, 2) px)."""
         if len(track) == 0:
             return StereoDepth.empty()
         # tracks with enough views, renumbered 0..T-1
         counts = np.bincount(track)
-        keep = counts[track] >= cfg.min_views
+        keep = counts[track] >= self.cfg.min_views
         track, frame, uv = track[keep], frame[keep], uv[keep]
         if len(track) == 0:
             return StereoDepth.empty()
@@ -211,30 +197,29 @@ class StereoBuilder:
         for _ in range(2):  # drop views far from the point, then triangulate again
             proj, p_cam = tri.project_views(points[track], world_to_cam, k)
             err = np.linalg.norm(proj - uv, axis=1)
-            good = np.isfinite(err) & (err < cfg.max_reproj_px) & (p_cam[:, 2] > 0)
+            good = np.isfinite(err) & (err < self.cfg.max_reproj_px) & (p_cam[:, 2] > 0)
             n_good = np.bincount(track[good], minlength=n_tracks)
-            good &= n_good[track] >= cfg.min_views
+            good &= n_good[track] >= self.cfg.min_views
             track_g, centres_g, rays_g = track[good], centres[good], rays[good]
             points = tri.midpoint(track_g, centres_g, rays_g, n_tracks)
-            points[n_good < cfg.min_views] = np.nan
+            points[n_good < self.cfg.min_views] = np.nan
         view_ok = good & np.isfinite(points[track]).all(axis=1)
         track, frame, uv, poses, world_to_cam, k, centres, stacks = (
             a[view_ok] for a in (track, frame, uv, poses, world_to_cam, k, centres, stacks))
         if len(track) == 0:
             return StereoDepth.empty()
-        cov = tri.covariance(track, points, world_to_cam, k, cfg.sigma_px, n_tracks)
+        cov = tri.covariance(track, points, world_to_cam, k, self.cfg.sigma_px, n_tracks)
         parallax = tri.max_parallax_deg(track, points, centres, n_tracks)
         offset = points[track] - centres  # (V, 3)
         dist = np.linalg.norm(offset, axis=1)
         u_dir = offset / dist[:, None]
         with np.errstate(invalid="ignore"):
             sigma = np.sqrt(np.einsum("vi,vij,vj->v", u_dir, cov[track], u_dir))
-        ok = (parallax[track] >= cfg.min_parallax_deg) & (dist >= cfg.min_range) & \
-             (dist <= cfg.max_range) & np.isfinite(sigma) & (sigma <= cfg.max_rel_sigma * dist)
+        ok = (parallax[track] >= self.cfg.min_parallax_deg) & (dist >= self.cfg.min_range) & \
+             (dist <= self.cfg.max_range) & np.isfinite(sigma) & (sigma <= self.cfg.max_rel_sigma * dist)
         # a point is kept whole or not at all: every view must pass the range and sigma tests
-        if whole:
-            track_ok = np.bincount(track, weights=~ok, minlength=n_tracks) == 0
-            ok = track_ok[track]
+        track_ok = np.bincount(track, weights=~ok, minlength=n_tracks) == 0
+        ok = track_ok[track]
         track, frame, uv, stacks, sigma, dist = (a[ok] for a in (track, frame, uv, stacks, sigma, dist))
         # each view -> a target along its own ray, in the training image's pixel coordinates
         scale = np.array([self.train_intrinsics[int(st)].width / self.intrinsics[int(st)].width for st in stacks])
