@@ -41,7 +41,10 @@ def test_first_box_is_the_reach_around_the_first_camera_in_whole_cells():
     np.testing.assert_allclose(frame.lo, (-9.0, -8.0, -9.5))
     from virus_nerf.field.field import FieldConfig
 
-    cfg = field_config_for_frame(FieldConfig(), ExtentConfig(mode="grow"))  # 64 m cube, 0.6 m .. 2 cm cells
+    cfg = field_config_for_frame(FieldConfig(), ExtentConfig(mode="grow"))  # 64 m cube, 1.14 m .. 3.6 cm cells
+    assert (cfg.base_resolution, cfg.max_resolution) == (56, 1778)  # round(64 / 1.14), round(64 / 0.036)
+    office = ExtentConfig(mode="grow", field_coarse_m=0.6, field_fine_m=0.02)  # the sizes before D46
+    cfg = field_config_for_frame(FieldConfig(), office)
     assert (cfg.base_resolution, cfg.max_resolution) == (107, 3200)
 
 
@@ -146,7 +149,7 @@ def test_a_mapper_in_grow_mode_grows_as_it_drives_and_refuses_a_frame_outside_it
     mapper = Mapper.for_recording(rec, cfg)
     order = rec.frame_order(("train",))
     first = rec.stacks[order[0][0]].cam_to_world[order[0][1], :3, 3]
-    np.testing.assert_allclose(mapper.box.center[:2], first[:2], atol=0.08)
+    np.testing.assert_allclose(mapper.box.center[:2], first[:2], atol=ext.grid_cell_m)
     frame_before = (mapper.frame.lo, mapper.frame.hi)
     positions = []
     for s, i in order:
@@ -172,7 +175,7 @@ def test_a_mapper_in_grow_mode_grows_as_it_drives_and_refuses_a_frame_outside_it
         want_lo = np.minimum(s_lo - ext.margin_m, positions[:, :2].min(axis=0) - m)
         want_hi = np.maximum(s_hi + ext.margin_m, positions[:, :2].max(axis=0) + m)
         assert (lo[:2] > want_lo - ext.grow_step_m - 1e-9).all() and (hi[:2] < want_hi + ext.grow_step_m + 1e-9).all()
-    assert tuple(mapper.grid.spec.resolution[:2]) == tuple(np.rint((hi - lo)[:2] / 0.08).astype(int))
+    assert tuple(mapper.grid.spec.resolution[:2]) == tuple(np.rint((hi - lo)[:2] / ext.grid_cell_m).astype(int))
     assert (mapper.frame.lo, mapper.frame.hi) == frame_before
     mapper.train(60.0, steps=2)
     assert mapper.step == 4 and math.isfinite(mapper.last_loss)

@@ -61,10 +61,15 @@ class ExtentConfig:
     support_points: int = 1
     height_m: float = 1.5  # grow: the box spans the first camera's height +- this
     grow_step_m: float = 2.0  # grow, reach: the box grows by at least this much on a side (fewer re-allocations)
-    grid_cell_m: float = 0.08  # grow: occupancy grid cell (fitted: the longest box axis / max_resolution)
+    # grow: occupancy grid cell. 11 cm, between the fitted 10 m office's 8 cm and the fitted 18 m
+    # common area's 14 cm, measured better than both while driving (docs/decisions.md D46)
+    grid_cell_m: float = 0.11  # grow: occupancy grid cell (fitted: the longest box axis / max_resolution)
     frame_m: float = 64.0  # grow: side of the field's fixed cube, centred on the first box
-    field_coarse_m: float = 0.6  # grow: coarsest hash level's cell (fitted office: 10 m / 16)
-    field_fine_m: float = 0.02  # grow: finest hash level's cell (fitted office: 10 m / 512)
+    # grow: the field's coarsest and finest hash levels' cells, those the fitted box gives the 18 m
+    # common area (18.2 m / 16, / 512), not the 10 m office's (0.6 m, 2 cm): a 2 cm finest level
+    # over a large room overloads the 2^16-entry tables (D46)
+    field_coarse_m: float = 1.14  # grow: coarsest hash level's cell
+    field_fine_m: float = 0.036  # grow: finest hash level's cell
 
     def __post_init__(self) -> None:
         if self.mode not in EXTENT_MODES:
