@@ -11,9 +11,9 @@ the LiDAR map at camera height (zone 3, `map` ground truth). The peak resident m
 
 Modes (--modes, default fitted,grow): fitted, grow (the default of `extent.mode` grow: the box
 grown to hold what the robot sensed, D44), grow_sensed (the same, spelt out) and grow_reach (the
-first design: the reach around every camera). --grow-config merges a JSON object into the grow runs' config (a variant, e.g.
-'{"extent": {"margin_m": 0.2}}'); --keep keeps each run's output folder (metrics, maps,
-checkpoint) under a folder for a look afterwards.
+first design: the reach around every camera). --grow-config merges a JSON object into the grow
+runs' config (a variant, e.g. '{"extent": {"margin_m": 0.2}}'); --keep keeps each run's output
+folder (metrics, maps, checkpoint) under a folder for a look afterwards.
 
 Rooms: the simulated rooms under benchmarks/.data (made by bench_time_to_map.py's `ensure_data`).
 """

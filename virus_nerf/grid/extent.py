@@ -172,8 +172,8 @@ class SensedSupport:
     """Points the depth sensors measured, counted per horizontal support cell of the field's
     frame (`support_cell_m`, one byte each, saturating at 255); `bounds` is the horizontal extent
     of the cells with at least `support_points` points (above 1, a stray point, a wrong
-    triangulation, does not grow the box). Points outside the frame or outside the box's height are not counted
-    (the map cannot hold them)."""
+    triangulation, does not grow the box). Points outside the frame or outside the box's height
+    are not counted (the map cannot hold them)."""
 
     def __init__(self, cfg: ExtentConfig, frame: SceneBox, z_range: tuple[float, float]):
         self.cell = float(cfg.support_cell_m)
