@@ -173,13 +173,15 @@ def main(argv: list[str] | None = None) -> None:
     are left for bugs."""
     _keep_large_allocations()
 
-    from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError
+    from virus_nerf.errors import DataFormatError, NotWrittenError, OutputExistsError, UsageError
 
     argv = sys.argv[1:] if argv is None else list(argv)
     run = _parse(argv)
     try:
         run()
-    except (UsageError, DataFormatError, OutputExistsError) as exc:
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGINT/SIGTERM of a command that stops cleanly
+        _interrupted(exc)
+    except (UsageError, DataFormatError, OutputExistsError, NotWrittenError) as exc:
         _fail(str(exc))
     except OSError as exc:
         if exc.filename is None:
@@ -194,6 +196,17 @@ def main(argv: list[str] | None = None) -> None:
                   "free some space and run the command again (a training continues from its last checkpoint "
                   "with --resume)")
         _fail(f"{where}: {exc.strerror or exc}")
+
+
+def _interrupted(exc: KeyboardInterrupt) -> NoReturn:
+    """A stop asked for by a signal: exit 128 + the signal (130 Ctrl-C, 143 SIGTERM) with no
+    traceback; one line unless the command already said where its outputs are (utils/stop.py)."""
+    from virus_nerf.utils.stop import Stopped, exit_code_of
+
+    if not (isinstance(exc, Stopped) and exc.reported):
+        what = exc.name if isinstance(exc, Stopped) else "Ctrl-C"
+        print(f"virus-nerf: interrupted ({what})", file=sys.stderr)
+    raise SystemExit(exit_code_of(exc))
 
 
 _DISK_FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}

@@ -43,6 +43,19 @@ class OutputExistsError(FileExistsError):
         self.path = Path(path)
 
 
+class NotWrittenError(OSError):
+    """Final outputs that could not be written (a full disk, ENOSPC): one line naming what was not
+    written and what was kept (utils/io.py `Outputs`, which writes the small files first)."""
+
+    def __init__(self, message: str, errno_: int | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.errno = errno_
+
+    def __str__(self) -> str:
+        return self.message
+
+
 class UsageError(ValueError):
     """A mistake on the command line or in a config file, found before any work is done.
 

@@ -38,8 +38,8 @@ POSES = ("lidar-odometry", "tf", "csv", "odometry")
 
 
 def map_bag(
-    bag: Annotated[Path, tyro.conf.Positional],
-    out: Path,
+    bag: Annotated[Path | None, tyro.conf.Positional] = None,
+    out: Path | None = None,
     playback: float = 1.0,
     snapshot_every: float = 10.0,
     topics: Path | None = None,
@@ -60,6 +60,7 @@ def map_bag(
     rerun_connect: str | None = None,
     rerun_save: Path | None = None,
     out_bag: Path | None = None,
+    resume: bool = False,
 ) -> None:
     """Map a ROS bag while playing it in real time: snapshots every few seconds, a final map.
 
@@ -70,7 +71,10 @@ def map_bag(
     snapshot.json; one progress line each, with the lag), map/ (the final map and mapper.pt) and
     stream.json (frames, dropped frames by reason, lag, where a stream stopped). Bad data (a topic
     that stops, a clock that goes backwards, a pose jump over 1 m) stops the stream: the final map
-    of what was made is written, then the one-line error and exit code 2.
+    of what was made is written, then the one-line error and exit code 2. SIGINT or SIGTERM stops
+    it the same way (exit 130 / 143; a second signal stops at once); after SIGKILL or a power cut,
+    --resume writes the final map from the last snapshot. A full disk: the maps and stream.json
+    are written before mapper.pt, what did not fit is named in one line, exit 2.
 
     Args:
         bag: ROS bag (ROS 1 .bag, a ROS 2 bag folder, or a bare ROS 2 .mcap/.db3 file).
@@ -103,7 +107,17 @@ def map_bag(
         rerun_save: Record the live view into this new .rrd file (play it later with `rerun FILE`).
         out_bag: New folder for a rosbag2 (MCAP) of the maps as they grow (/map, /map_probability,
             nav_msgs/OccupancyGrid) and the robot's /tf, for RViz 2 and Foxglove.
+        resume: Finish the map-bag in --out that was killed (SIGKILL, a power cut): its final map
+            (OUT/map/) from its last snapshot and the mapper state saved with it, and stream.json
+            marked stopped; the stream is not continued (BAG and the other flags are not needed).
     """
+    if out is None:
+        raise UsageError("--out is required: give --out DIR (a new folder; with --resume the killed run's folder)")
+    if resume:
+        _finish(Path(out))
+        return
+    if bag is None:
+        raise UsageError("BAG is required: give the ROS bag to map (or --resume --out DIR to finish a killed run)")
     require_number("--playback", playback, 0.0)
     require_number("--snapshot-every", snapshot_every, 0.0)
     require_number("--resolution", resolution, 0.0)
@@ -143,12 +157,37 @@ def map_bag(
     maps = dict(resolution=resolution, n_rays=n_rays, max_poses=max_poses)
     sinks = dict(rerun=rerun, rerun_connect=rerun_connect, rerun_save=rerun_save, out_bag=out_bag)
     pose_args = dict(poses=poses, poses_file=poses_file, tf_parent=tf_parent, tf_child=tf_child)
-    if import_first:
-        _import_then_replay(bag, out, playback, snapshot_every, topics, cfg, pose_args, maps, sinks)
-        return
-    stream_map_bag(bag, out, playback, snapshot_every, topics, cfg, pose_args, maps, sinks,
-                   odometry_topic=odometry_topic, first_snapshot=first_snapshot, max_lag=max_lag,
-                   max_silence=max_silence)
+    from virus_nerf.utils.stop import stop_on_signals
+
+    with stop_on_signals():  # SIGINT/SIGTERM: the final map, stream.json, one line, exit 130/143
+        if import_first:
+            _import_then_replay(bag, out, playback, snapshot_every, topics, cfg, pose_args, maps, sinks)
+            return
+        stream_map_bag(bag, out, playback, snapshot_every, topics, cfg, pose_args, maps, sinks,
+                       odometry_topic=odometry_topic, first_snapshot=first_snapshot, max_lag=max_lag,
+                       max_silence=max_silence)
+
+
+def _finish(out: Path) -> None:
+    """map-bag --resume: the final map of a killed stream in OUT (mapping/stream.py finish_killed)."""
+    from virus_nerf.mapping.stream import finish_killed
+    from virus_nerf.trainer.run_folder import RunLock
+
+    if not out.is_dir():
+        raise UsageError(f"--resume --out {out}: no such folder; expected the --out of a map-bag that was killed")
+    if not (out / "snapshots").is_dir() and not (out / "stream.json").is_file():
+        raise UsageError(f"--resume --out {out}: not a map-bag output folder (no snapshots/, no stream.json)")
+    with RunLock(out, "--out"):  # not while the map-bag that writes it still runs
+        finish_killed(out)
+
+
+def make_out(out: Path) -> None:
+    """OUT, made by this process alone: another map-bag that made it meanwhile (both passed the
+    check before their start-up) is a one-line refusal naming --out, not the OS's "File exists"."""
+    try:
+        out.mkdir(parents=True)
+    except FileExistsError:
+        raise OutputExistsError(out) from None
 
 
 def open_sinks(stack: ExitStack, rerun: bool, rerun_connect: str | None, rerun_save: Path | None,
@@ -175,18 +214,25 @@ def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: f
                         pose_args: dict, maps: dict, sinks: dict) -> None:
     """The whole bag imported into OUT/recording, then replayed (--import-first)."""
     from virus_nerf.mapping.replay import replay
+    from virus_nerf.utils.stop import Stopped
 
     import_bag = _importer()
-    out.mkdir(parents=True)
+    make_out(out)
     try:
         imported = import_bag(bag, out / "recording", topics=topics, **pose_args)
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)  # nothing written yet but the partial import
         raise
-    with ExitStack() as stack:
-        live, ros_bag = open_sinks(stack, **sinks)
-        report = replay(out / "recording", out, playback, snapshot_every, cfg, room=imported.room, **maps,
-                        live=live, ros_bag=ros_bag)
+    try:
+        with ExitStack() as stack:
+            live, ros_bag = open_sinks(stack, **sinks)
+            report = replay(out / "recording", out, playback, snapshot_every, cfg, room=imported.room, **maps,
+                            live=live, ros_bag=ros_bag)
+    except Stopped as exc:
+        exc.reported = True
+        final = f"final map in {out / 'map'}" if (out / "map").is_dir() else "no map was made yet"
+        print(f"map-bag: stopped by {exc.name}; {final}; the recording imported in {out / 'recording'}")
+        raise
     print(f"map-bag: {report.frames} frames, {report.steps} steps in {report.wall_s:.1f} s; "
           f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}{sinks_note(sinks)}")
 
@@ -202,6 +248,8 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
     from virus_nerf.data.bags.topics import default_topics, read_topics
     from virus_nerf.mapping.stream import StreamRun, summary, warm_up
     from virus_nerf.trainer.config import TrainConfig
+    from virus_nerf.trainer.run_folder import RunLock
+    from virus_nerf.utils.stop import Stopped
 
     require_ros_extra(pose_args["poses"])
     poses = pose_args["poses"]
@@ -222,7 +270,8 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
                         max_silence_s=max_silence)
         first, last = reader.span_s
         warm_step_s = warm_up(cfg)
-        out.mkdir(parents=True)
+        make_out(out)
+        owned.enter_context(RunLock(out, "--out"))  # map-bag --resume waits for this process to end
         run = None
         try:
             with ExitStack() as stack:
@@ -232,9 +281,18 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
                                 live=live, ros_bag=ros_bag, warm_step_s=warm_step_s, **maps)
                 report = run.run(reader.iter_topics(sync.topics()))
         except BaseException as exc:
-            if run_made_nothing(out):
+            nothing = run_made_nothing(out)
+            if nothing:
                 shutil.rmtree(out, ignore_errors=True)
-            elif isinstance(exc, DataFormatError | KeyboardInterrupt) and run is not None:
+            if isinstance(exc, Stopped):
+                exc.reported = True
+                if nothing or run is None or run.report.final is None:
+                    print(f"map-bag: stopped by {exc.name} before the first frame was mapped; nothing was kept")
+                else:
+                    print(f"map-bag: stopped by {exc.name} at {run.report.stopped_at_s or 0.0:.2f} s of "
+                          f"{max(last - first, 0.0):.1f} s of the bag; {summary(run.report)}; final map in "
+                          f"{run.report.final}, report in {out / 'stream.json'}")
+            elif not nothing and isinstance(exc, DataFormatError | KeyboardInterrupt) and run is not None:
                 at = _at(exc) if isinstance(exc, DataFormatError) else f"{run.report.stopped_at_s or 0.0:.2f} s"
                 print(f"map-bag: stopped at {at} of {max(last - first, 0.0):.1f} s of the bag; "
                       f"{summary(run.report)}; final map of what was made in {out / 'map'}")

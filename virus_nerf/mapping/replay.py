@@ -145,27 +145,43 @@ def replay(
     feeder = Playback(times[0], playback)  # on the wall clock
     start = time.monotonic()
     next_frame, next_snapshot = 1, snapshot_every
-    while True:
-        now = time.monotonic() - start
-        while next_frame < len(order) and feeder.elapsed_at(times[next_frame]) <= now:
-            add(next_frame)
-            next_frame += 1
-        if next_frame == len(order):
-            break
-        if now >= next_snapshot:
-            folder = out / SNAPSHOTS / f"{len(written) + 1:04d}_{now:.1f}s"
-            info = snapshot(folder, times[next_frame - 1])
-            written.append(folder)
-            log(_progress_line(f"snapshot {len(written)}", now, times[next_frame - 1] - times[0], drive_s, info,
-                               folder))
-            next_snapshot = (math.floor(now / snapshot_every) + 1) * snapshot_every  # skip any missed
-        wait_frame = feeder.elapsed_at(times[next_frame]) - now
-        budget = min(train_slice, wait_frame, next_snapshot - now)
-        if budget > 0:
-            mapper.train(budget)
+
+    def final() -> None:
+        """The final map, small files first: OUT/map/'s maps, then mapper.pt (utils/io.py Outputs)."""
+        from virus_nerf.utils.io import Outputs, save_torch_atomic
+
+        wall_s = time.monotonic() - start
+        outputs, made = Outputs(), {}
+        if outputs.write(out / FINAL, lambda: made.update(info=snapshot(out / FINAL, times[next_frame - 1]))):
+            log(_progress_line("final map", wall_s, times[next_frame - 1] - times[0], drive_s, made["info"],
+                               out / FINAL))
+        outputs.write(out / FINAL / "mapper.pt", lambda: save_torch_atomic(mapper.state(), out / FINAL / "mapper.pt"))
+        outputs.check("free some space; the snapshots in " + str(out / SNAPSHOTS) + " are whole")
+
+    try:
+        while True:
+            now = time.monotonic() - start
+            while next_frame < len(order) and feeder.elapsed_at(times[next_frame]) <= now:
+                add(next_frame)
+                next_frame += 1
+            if next_frame == len(order):
+                break
+            if now >= next_snapshot:
+                folder = out / SNAPSHOTS / f"{len(written) + 1:04d}_{now:.1f}s"
+                info = snapshot(folder, times[next_frame - 1])
+                written.append(folder)
+                log(_progress_line(f"snapshot {len(written)}", now, times[next_frame - 1] - times[0], drive_s, info,
+                                   folder))
+                next_snapshot = (math.floor(now / snapshot_every) + 1) * snapshot_every  # skip any missed
+            wait_frame = feeder.elapsed_at(times[next_frame]) - now
+            budget = min(train_slice, wait_frame, next_snapshot - now)
+            if budget > 0:
+                mapper.train(budget)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM (utils/stop.py): the map of the frames so far
+        final()
+        raise
     wall_s = time.monotonic() - start
-    info = snapshot(out / FINAL, times[-1], with_state=True)
-    log(_progress_line("final map", wall_s, drive_s, drive_s, info, out / FINAL))
+    final()
     return ReplayReport(tuple(written), out / FINAL, mapper.frames, mapper.step, mapper.seconds, wall_s)
 
 

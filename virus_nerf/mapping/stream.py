@@ -14,7 +14,15 @@ scene box around the first frame, grown as the robot drives (`initial_box`, docs
 
 Bad data (`live.StreamError` and any `DataFormatError` of a message) stops the stream: the map made
 so far is written to OUT/map/ as the final map, OUT/stream.json says where it stopped, and the
-error is raised again (map-bag: exit code 2 with the one-line error).
+error is raised again (map-bag: exit code 2 with the one-line error). SIGINT and SIGTERM
+(utils/stop.py `Stopped`) stop it the same way and the command exits 130 / 143.
+
+What a kill (SIGKILL, a power cut) leaves is consistent: every snapshot folder appears whole (built
+under a temporary name), and after each one OUT/snapshots/mapper.pt (the mapper's state, naming its
+snapshot) and OUT/stream.json (the report so far, `running` true) are replaced atomically.
+`finish_killed` (map-bag --resume) makes the final map of such a run from its last snapshot. The
+final outputs are written small first (OUT/map/'s maps, stream.json, then mapper.pt), so a full
+disk costs the least (utils/io.py `Outputs`).
 """
 
 from __future__ import annotations
@@ -35,8 +43,10 @@ from virus_nerf.data.playback import Playback
 from virus_nerf.errors import DataFormatError
 from virus_nerf.mapping.replay import FINAL, SNAPSHOTS, _progress_line, _publish
 from virus_nerf.scene_box import SceneBox
+from virus_nerf.utils.stop import Stopped
 
 REPORT = "stream.json"
+STATE = "mapper.pt"  # the mapper's state: OUT/snapshots/mapper.pt during the run, OUT/map/mapper.pt at the end
 STARTUP_WAIT_S = 1.0  # bag seconds the first frames wait for every stack's camera_info
 
 
@@ -62,8 +72,9 @@ class StreamReport:
     first_snapshot_s: float | None = None  # wall seconds from the first message to the first snapshot
     dropped: dict[str, int] = field(default_factory=dict)  # reason -> colour frames
     lag_s: list[float] = field(default_factory=list)  # at each snapshot
-    stopped: str | None = None  # the error that stopped the stream
+    stopped: str | None = None  # the error (or signal) that stopped the stream
     stopped_at_s: float | None = None  # bag seconds since the first message
+    running: bool = False  # true in the report written at each snapshot while the stream runs
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -119,6 +130,7 @@ class StreamRun:
         self.released = self.stamped = Playback(0.0, playback)  # from 0 until the first message
         self.behind = 0.0  # recording seconds the newest message was released after it was due
         self.report = StreamReport()
+        self._warned: set[str] = set()
 
     # ------------------------------------------------------------------ clock
     def now(self) -> float:
@@ -147,8 +159,8 @@ class StreamRun:
             self.report.stopped_at_s = getattr(exc, "at_s", None)
             self._close()
             raise
-        except KeyboardInterrupt:  # the operator stops the robot's mapping: keep the map
-            self.report.stopped = "interrupted (Ctrl-C)"
+        except KeyboardInterrupt as exc:  # the operator (Ctrl-C) or the robot (SIGTERM) stops it: keep the map
+            self.report.stopped = f"interrupted ({exc.name if isinstance(exc, Stopped) else 'Ctrl-C'})"
             self.report.stopped_at_s = None if self.sync.t0 is None else self.sync.rel(self.sync.clock)
             self._close()
             raise
@@ -260,13 +272,19 @@ class StreamRun:
         k = len(self.report.snapshots) + 1
         folder = self.out / SNAPSHOTS / f"{k:04d}_{now:.1f}s"
         lag = self.lag(now)
-        info = self._snapshot(folder, self.newest)
+        try:
+            info = self._snapshot(folder, self.newest)
+        except OSError as exc:  # a full disk: the map is still in memory, the final map comes first
+            self._warn("snapshot", f"snapshot {k}: {exc.filename or folder}: could not be written "
+                       f"({exc.strerror or exc}); mapping goes on")
+        else:
+            self.report.snapshots.append(str(folder))
+            self.report.lag_s.append(round(lag, 3))
+            if self.report.first_snapshot_s is None:
+                self.report.first_snapshot_s = round(self.now(), 3)
+            self.log(self._line(f"snapshot {k}", now, info, folder, lag))
+            self._save_progress(folder)
         self.train_next = self.now()  # the snapshot's time is not the messages'
-        self.report.snapshots.append(str(folder))
-        self.report.lag_s.append(round(lag, 3))
-        if self.report.first_snapshot_s is None:
-            self.report.first_snapshot_s = round(self.now(), 3)
-        self.log(self._line(f"snapshot {k}", now, info, folder, lag))
         after = self.now()  # the next one on the grid after this one was written (missed ones skipped)
         self.next_snapshot += self.snapshot_every * max(1, math.floor((after - self.next_snapshot) / self.snapshot_every) + 1)
         return True
@@ -284,25 +302,57 @@ class StreamRun:
         dropped = sum(self.sync.dropped_total().values())
         return f"{head}, lag {lag:.2f} s, {dropped} dropped -> {tail}"
 
+    def _warn(self, kind: str, line: str) -> None:
+        """One warning per kind of failure (a full disk would repeat it at every snapshot)."""
+        if kind not in self._warned:
+            self._warned.add(kind)
+            self.log(f"warning: {line} (said once)")
+
+    def _save_progress(self, folder: Path) -> None:
+        """After snapshot `folder`: the mapper's state (naming the snapshot) and the report so far,
+        each replaced atomically, so a kill leaves a consistent pair (finish_killed reads them)."""
+        from virus_nerf.utils.io import save_torch_atomic, write_json_atomic
+
+        r = self.report
+        r.dropped = dict(self.sync.dropped_total())
+        r.frames, r.steps, r.train_s, r.wall_s = self.mapper.frames, self.mapper.step, self.mapper.seconds, self.now()
+        r.running = True
+        try:
+            write_json_atomic(self.out / REPORT, r.as_dict())
+            save_torch_atomic({"snapshot": folder.name, "mapper": self.mapper.state()}, self.out / SNAPSHOTS / STATE)
+        except OSError as exc:
+            self._warn("state", f"{exc.filename}: could not be written ({exc.strerror or exc}); mapping goes on")
+        finally:
+            r.running = False
+
     def _close(self) -> None:
-        """The final map of what was made (none when no frame reached the mapper) and the report."""
-        from virus_nerf.utils.io import write_json_atomic
+        """The final map of what was made (none when no frame reached the mapper) and the report,
+        small files first: OUT/map/'s maps, OUT/stream.json, then OUT/map/mapper.pt. What does not
+        fit is named in one NotWrittenError after the rest was written."""
+        from virus_nerf.utils.io import Outputs, save_torch_atomic, write_json_atomic
 
         r = self.report
         if self.mapper is None and self.held:  # the bag ended (or stopped) during the start-up wait
             frames, self.held = self.held, []
             self._make_mapper(frames)
         r.dropped = dict(self.sync.dropped_total())
+        outputs = Outputs()
         if self.mapper is not None:
             now = self.now()
             lag = self.lag(now)
-            info = self._snapshot(self.out / FINAL, self.newest if self.newest is not None else self.t0,
-                                  with_state=True)
-            r.final = str(self.out / FINAL)
+            final = self.out / FINAL
+            made = {}
+            if outputs.write(final, lambda: made.update(info=self._snapshot(
+                    final, self.newest if self.newest is not None else self.t0))):
+                r.final = str(final)
+                self.log(self._line("final map", now, made["info"], final, lag))
             r.frames, r.steps, r.train_s, r.wall_s = self.mapper.frames, self.mapper.step, self.mapper.seconds, now
-            self.log(self._line("final map", now, info, self.out / FINAL, lag))
         if self.out.is_dir():
-            write_json_atomic(self.out / REPORT, r.as_dict())
+            outputs.write(self.out / REPORT, lambda: write_json_atomic(self.out / REPORT, r.as_dict()))
+        if self.mapper is not None:
+            state = self.out / FINAL / STATE
+            outputs.write(state, lambda: save_torch_atomic(self.mapper.state(), state))
+        outputs.check("free some space; the snapshots in " + str(self.out / SNAPSHOTS) + " are whole")
 
 
 def summary(report: StreamReport) -> str:
@@ -312,3 +362,81 @@ def summary(report: StreamReport) -> str:
     lag = (f"; lag at snapshots median {statistics.median(report.lag_s):.2f} s, max {max(report.lag_s):.2f} s"
            if report.lag_s else "")
     return f"{report.frames} frames, {dropped} dropped{f' ({reasons})' if reasons else ''}{lag}"
+
+
+def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport:
+    """The final map of a streaming run that was killed (SIGKILL, a power cut) from what it saved:
+    OUT/map/ is a copy of its newest snapshot (map.*, prob.*, snapshot.json) with OUT/snapshots/
+    mapper.pt when that state belongs to this snapshot; OUT/stream.json (the report of that
+    snapshot) is marked stopped. Small files first, as at a normal end (utils/io.py `Outputs`).
+    The caller holds OUT's lock; a run that ended or never made a snapshot is refused."""
+    import json
+    import shutil
+
+    import torch
+
+    from virus_nerf.errors import UsageError
+    from virus_nerf.utils.io import (
+        Outputs,
+        new_output_dir,
+        remove_stale_partials,
+        remove_stale_temps,
+        save_torch_atomic,
+        write_json_atomic,
+    )
+
+    out = Path(out)
+    report_path = out / REPORT
+    try:
+        doc = json.loads(report_path.read_text()) if report_path.is_file() else None
+    except (OSError, ValueError):
+        doc = None  # cannot be: written atomically; then the snapshots alone say what was made
+    if doc is not None and not doc.get("running", False) and (out / FINAL).is_dir():
+        raise UsageError(f"--resume --out {out}: the stream ended (final map in {out / FINAL}, {report_path}); "
+                         "nothing to finish")
+    for name in (REPORT, f"{SNAPSHOTS}/{STATE}", f"{FINAL}/{STATE}"):
+        remove_stale_temps(out / name)  # left by the killed process (the lock proves it is gone)
+    remove_stale_partials(out / FINAL, owned=True)
+    snaps = sorted(p for p in (out / SNAPSHOTS).glob("[0-9]*") if p.is_dir()) if (out / SNAPSHOTS).is_dir() else []
+    if not snaps:
+        raise UsageError(f"--resume --out {out}: the stream was stopped before its first snapshot; there is no map "
+                         "to finish (run map-bag again into a new --out)")
+    last = snaps[-1]
+    report = StreamReport()
+    if doc is not None:
+        known = {f.name for f in dataclasses.fields(StreamReport)}
+        report = StreamReport(**{k: v for k, v in doc.items() if k in known})
+    report.snapshots = [str(p) for p in snaps]  # every whole snapshot (the report may predate the last)
+    report.running = False
+    report.stopped = report.stopped or f"killed after snapshot {len(snaps)} ({last.name})"
+    final = out / FINAL
+    state_path, state = out / SNAPSHOTS / STATE, None
+    if state_path.is_file():
+        try:
+            saved = torch.load(state_path, map_location="cpu", weights_only=False)
+            state = saved["mapper"] if saved.get("snapshot") == last.name else None
+        except Exception:  # noqa: BLE001 - written atomically; a foreign or damaged file is left alone
+            state = None
+    written = final.is_dir()  # the killed process wrote its final map whole (not its report)
+    info = json.loads(((final if written else last) / "snapshot.json").read_text())
+    report.frames, report.steps, report.train_s = info["frames"], info["steps"], info["seconds"]
+    outputs = Outputs()
+
+    def copy_map() -> None:
+        if written:
+            return
+        with new_output_dir(final) as tmp:
+            for p in sorted(last.iterdir()):
+                if p.is_file():
+                    shutil.copyfile(p, tmp / p.name)
+
+    if outputs.write(final, copy_map):
+        report.final = str(final)
+    outputs.write(report_path, lambda: write_json_atomic(report_path, report.as_dict()))
+    if state is not None and not written:
+        outputs.write(final / STATE, lambda: save_torch_atomic(state, final / STATE))
+    outputs.check("free some space and run map-bag --resume again")
+    note = "" if (final / STATE).is_file() else f" (no mapper state of {last.name} was saved)"
+    log(f"map-bag: the stream in {out} was stopped after snapshot {len(snaps)}; final map (that snapshot's) in "
+        f"{final}{note}, report in {report_path}")
+    return report

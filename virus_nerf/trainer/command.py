@@ -224,9 +224,9 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
             lock.folder = out
             try:
                 trainer = Trainer(recording, cfg, out, quiet=quiet)
-                summary = trainer.fit()
+                summary = _fit(trainer)
             except BaseException:
-                if not (out / CHECKPOINT).is_file():
+                if not (out / CHECKPOINT).is_file() and not (out / MAP_DIR).is_dir():
                     shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
                 raise
         warnings = map_warnings(trainer)
@@ -240,6 +240,8 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         result = _final_evaluation(trainer, out)
         trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
         safety = map_safety_of(trainer, cfg)
+        if (out / MAP_DIR).is_dir():  # the map an interrupted online run left: this run's map now
+            trainer.mapper.snapshot(out / MAP_DIR, replace=True)
         write_run_plots(out, result, trainer.eval_history, replace=resume)  # plots first: metrics.json marks the end
         if resume and to_dict(cfg) != _saved_config(out):
             write_json_atomic(out / CONFIG, to_dict(cfg))  # a finished run's resume: evaluated with it
@@ -258,7 +260,63 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         f"({summary.steps_per_s:.2f} steps/s, {summary.samples_per_s / 1e6:.3f} M samples/s); "
         f"results in {out}"
     )
+    _check_final_checkpoint(trainer, [out / PLOTS, out / METRICS])
     return doc
+
+
+def _fit(trainer, started=None):
+    """trainer.fit(); stopped by SIGINT/SIGTERM (online runs, utils/stop.py): the map and the
+    checkpoint are kept first (`keep_stopped_run`)."""
+    from virus_nerf.utils.stop import Stopped
+
+    try:
+        return trainer.fit(started)
+    except Stopped as exc:
+        keep_stopped_run(trainer, exc)
+        raise
+
+
+def keep_stopped_run(trainer, exc) -> None:
+    """An online run stopped by a signal: OUT/map/ (map.pgm/.yaml/.png, prob.*, snapshot.json;
+    small, written first), then checkpoint.pt (large), then one line saying where they are and how
+    to continue. No metrics.json: the run stays resumable (`train --resume` trains on and scores
+    it). What does not fit (a full disk) is named in one NotWrittenError instead (exit 2)."""
+    from virus_nerf.utils.io import Outputs
+
+    out, mapper = trainer.run_dir, trainer.mapper
+    exc.reported = True
+    if mapper.step == 0 or not mapper.frames:
+        kept = (f"the run stays as it was (continue with `virus-nerf train --resume --out {out}`)"
+                if (out / CHECKPOINT).is_file() else "nothing to keep")
+        print(f"train: stopped by {exc.name} before the first training step; {kept}")
+        return
+    outputs = Outputs()
+    outputs.write(out / MAP_DIR, lambda: mapper.snapshot(out / MAP_DIR, replace=True))  # the run's lock is held
+    outputs.write(out / CHECKPOINT, trainer.save_checkpoint)
+    outputs.check(f"free some space and continue with `virus-nerf train --resume --out {out}`")
+    drive = ""
+    if trainer.config.online:
+        drive = f", drive at {trainer.playback.recording_time(mapper.seconds) - trainer.t0:.1f} of " \
+                f"{trainer.duration:.1f} s"
+    print(f"train: stopped by {exc.name} at step {mapper.step} ({mapper.seconds:.1f} s of training{drive}); "
+          f"map in {out / MAP_DIR}, checkpoint in {out / CHECKPOINT}; continue with "
+          f"`virus-nerf train --resume --out {out}`")
+
+
+def _check_final_checkpoint(trainer, kept) -> None:
+    """An online run whose final checkpoint did not fit (Trainer.fit kept going): named now that
+    the map and the results are written."""
+    from virus_nerf.errors import NotWrittenError
+
+    exc = trainer.checkpoint_error
+    if exc is None:
+        return
+    have = ", ".join(str(p) for p in kept if p.exists()) or "nothing"
+    earlier = (trainer.run_dir / CHECKPOINT).is_file()
+    raise NotWrittenError(
+        f"{trainer.run_dir / CHECKPOINT}: could not be written ({exc.strerror or exc}); kept: {have}"
+        f"{' and the earlier checkpoint' if earlier else ''}; free some space and run `virus-nerf train --resume "
+        f"--out {trainer.run_dir}` to train {'its last steps' if earlier else 'it'} again", exc.errno)
 
 
 def _resume(out: Path, recording, cfg, quiet):
@@ -295,7 +353,7 @@ def _resume(out: Path, recording, cfg, quiet):
         if to_dict(cfg) != _saved_config(out):
             write_json_atomic(out / CONFIG, to_dict(cfg))
 
-    return trainer, trainer.fit(started)
+    return trainer, _fit(trainer, started)
 
 
 # bytes a ray takes in a step before it is marched (the sampler's indices and draws, the
@@ -342,7 +400,7 @@ def _finish_without_ground_truth(trainer, out: Path, cfg, summary, resume: bool,
     from virus_nerf.trainer.run_folder import train_summary_block
     from virus_nerf.utils.io import write_json_atomic
 
-    info = trainer.mapper.snapshot(out / MAP_DIR, replace=resume)
+    info = trainer.mapper.snapshot(out / MAP_DIR, replace=resume or (out / MAP_DIR).is_dir())
     doc = metrics_document({}, cfg.evaluation.zones, train_summary_block(cfg, summary), gt=None, warnings=warnings)
     write_json_atomic(out / METRICS, doc)
     for w in warnings:
@@ -351,6 +409,7 @@ def _finish_without_ground_truth(trainer, out: Path, cfg, summary, resume: bool,
         f"trained {summary.steps} steps in {summary.seconds:.1f} s; no ground truth (--gt none): no metrics "
         f"computed; map ({info.map_known:.1%} known) in {out / MAP_DIR}"
     )
+    _check_final_checkpoint(trainer, [out / MAP_DIR, out / METRICS])
     return doc
 
 
@@ -464,13 +523,25 @@ def train(
             raise UsageError(f"--room {room}: the run in {out} was trained on room {info.room!r}; "
                              "omit --data and --room with --resume")
         cfg = _resolve_config(config, given, flags, base=saved_cfg)
-        run_training(Path(info.data), info.room, out, cfg, quiet=quiet or None, resume=True)
+        with _stops(cfg):
+            run_training(Path(info.data), info.room, out, cfg, quiet=quiet or None, resume=True)
         return
     if data is None or room is None:
         raise UsageError(f"{'--data' if data is None else '--room'} is required: give --data DIR --room NAME "
                          "(or --resume to continue the run in --out)")
     cfg = _resolve_config(config, given, flags)
-    run_training(data, room, out, cfg, quiet=True if quiet else None, auto_gt=gt is None)
+    with _stops(cfg):
+        run_training(data, room, out, cfg, quiet=True if quiet else None, auto_gt=gt is None)
+
+
+def _stops(cfg):
+    """Online (mapping while driving, a robot's process): SIGINT and SIGTERM keep the map and the
+    checkpoint (keep_stopped_run) and exit 130 / 143; offline runs keep the old behaviour."""
+    import contextlib
+
+    from virus_nerf.utils.stop import stop_on_signals
+
+    return stop_on_signals() if cfg.online else contextlib.nullcontext()
 
 
 def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: str | None = None) -> None:
@@ -499,6 +570,10 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     # replaced once the new ones are complete); `.<plots>.partial-<pid>-*` of dead attempts go
     remove_stale_partials(plots_dir_for(out))
     redo = plots_dir_for(out).exists()
+    open_run(run, "--run")
+    # a run a `train` still works in is said to be so (with or without a checkpoint yet), before
+    # its files are read; nothing is written into a run that cannot be evaluated
+    RunLock(Path(run), "--run").probe()
     trainer, cfg, _ = load_trained(run, "--run")
     lock = RunLock(Path(run), "--run").acquire()  # not while a `train` (or another evaluate) works in it
     try:

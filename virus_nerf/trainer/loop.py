@@ -81,6 +81,7 @@ class Trainer:
         self.eval_history: list[EvalPoint] = []
         self._prepared = False
         self.startup_s: float | None = None  # process start -> first step (set by prepare)
+        self.checkpoint_error: OSError | None = None  # the final checkpoint did not fit (online)
         self.grid_init_s = 0.0
 
     @property
@@ -311,7 +312,14 @@ class Trainer:
                     self.save_checkpoint()
                     checkpoints = Every.after(c.checkpoint_every, self.mapper.seconds)
             wall_s = since_process_start()
-            self.save_checkpoint()
+            try:
+                self.save_checkpoint()
+            except OSError as exc:
+                if not c.online:
+                    raise
+                # online (a robot's map): the map and the results are written first, then this
+                # is named (trainer/command.py); the last periodic checkpoint stays
+                self.checkpoint_error = exc
         finally:
             log.close()
         return TrainSummary(self.mapper.step, self.mapper.seconds, self.mapper.samples, self.startup_s, wall_s)

@@ -243,7 +243,8 @@ class RunLock:
 
     `fcntl.flock` on RUN/run.lock; the kernel releases it when the process exits or is killed,
     so there is never a stale lock to remove. The holder writes its pid into the file, and a
-    second process is refused with a one-line UsageError naming the folder and that pid.
+    second process is refused with a one-line UsageError naming the folder, that pid and, where
+    the system tells (Linux), what it does ("the run is still training").
     Where flock does not exist (Windows) the lock is a no-op.
     """
 
@@ -267,19 +268,44 @@ class RunLock:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
-            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
-            os.close(fd)
-            who = f"pid {holder}" if holder.isdigit() else "another process"
-            raise UsageError(
-                f"{self.flag} {self.folder}: the run is in use by another virus-nerf process ({who}); "
-                "wait for it to end or stop it, then run again"
-            ) from None
+            self._refuse(fd)
         mine = f"{os.getpid()}\n".encode()
         if os.pread(fd, 64, 0) != mine:  # unchanged when this process held it before
             os.ftruncate(fd, 0)
             os.pwrite(fd, mine, 0)
         self._fd = fd
         return self
+
+    def probe(self) -> None:
+        """Refuse as `acquire` would while another process holds the lock, but take nothing and
+        write nothing (a command that only reads the run checks this before it reads)."""
+        import os
+
+        try:
+            import fcntl
+
+            fd = os.open(self.folder / LOCK, os.O_RDONLY)
+        except (ImportError, OSError):  # not POSIX, or no lock file: nobody works in the run
+            return
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError:
+            self._refuse(fd)
+        os.close(fd)  # drops the shared lock
+
+    def _refuse(self, fd: int):
+        """The one-line refusal naming the holder's pid and command (closes `fd`)."""
+        import os
+
+        holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        os.close(fd)
+        pid = int(holder) if holder.isdigit() else None
+        who = f"pid {pid}" if pid else "another process"
+        command = _command_of(pid) if pid else None
+        doing = _DOING.get(command or "")
+        what = f"{doing} (`virus-nerf {command}`, {who})" if doing else f"in use by another virus-nerf process ({who})"
+        raise UsageError(f"{self.flag} {self.folder}: the run is {what}; wait for it to end or stop it, "
+                         "then run again") from None
 
     def release(self) -> None:
         import os
@@ -293,6 +319,23 @@ class RunLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+# what a lock holder's command does, for the refusal ("the run is still training (...)")
+_DOING = {"train": "still training", "map-bag": "still being mapped"}
+
+
+def _command_of(pid: int) -> str | None:
+    """The virus-nerf subcommand process `pid` runs (from /proc/PID/cmdline: the word after
+    `virus-nerf` or `-m virus_nerf.cli`); None where it cannot be told (not Linux, another program)."""
+    try:
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().decode("utf-8", "replace").split("\0")
+    except OSError:
+        return None
+    for k, arg in enumerate(argv[:-1]):
+        if arg == "virus_nerf.cli" or Path(arg).name == "virus-nerf":
+            return next((a for a in argv[k + 1:] if a and not a.startswith("-")), None)
+    return None
 
 
 def _check_same_shapes(path: Path, saved: dict, now: dict) -> None:

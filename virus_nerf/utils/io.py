@@ -195,3 +195,50 @@ def remove_stale_partials(path: str | Path, *, owned: bool = False) -> list[Path
             shutil.rmtree(p, ignore_errors=True)
             removed.append(p)
     return removed
+
+
+class Outputs:
+    """A command's final outputs, written in the order given (the small, important files first:
+    the map, the report; the large state last), so that a full disk costs the least: an OSError
+    in one is remembered and the next are still tried; `check()` then raises one
+    NotWrittenError naming what was not written and what was kept (exit code 2)."""
+
+    def __init__(self) -> None:
+        self.kept: list[Path] = []
+        self.failed: list[tuple[Path, OSError]] = []
+
+    def write(self, path: str | Path, write) -> bool:
+        """Call write() for the output `path`; False (remembered) when it raises an OSError."""
+        try:
+            write()
+        except OSError as exc:
+            self.failed.append((Path(path), exc))
+            return False
+        self.kept.append(Path(path))
+        return True
+
+    def check(self, hint: str = "") -> None:
+        from virus_nerf.errors import NotWrittenError
+
+        if not self.failed:
+            return
+        path, exc = self.failed[0]
+        reason = exc.strerror or str(exc)
+        more = "".join(f"; {p} neither" for p, _ in self.failed[1:])
+        kept = ", ".join(str(p) for p in self.kept) or "nothing"
+        raise NotWrittenError(f"{path}: could not be written ({reason}){more}; kept: {kept}"
+                              f"{'; ' + hint if hint else ''}", exc.errno)
+
+
+def save_torch_atomic(obj: Any, path: str | Path) -> None:
+    """torch.save(obj) into `path` whole or not at all: serialised in memory, then written under
+    a temporary name and renamed (torch.save straight into a file reports a full disk as a
+    RuntimeError `unexpected pos`)."""
+    import io
+
+    import torch
+
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buffer.getbuffer())

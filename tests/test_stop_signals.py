@@ -1,0 +1,352 @@
+"""A mapping process a robot stops (issue 39, items 1, 2 and 5): SIGINT and SIGTERM to `map-bag`
+and `train --online` keep the final map with one line and exit 130 / 143; SIGKILL leaves whole
+snapshots and a mapper state that `map-bag --resume` turns into the final map; no child process
+outlives its parent; a full disk costs the large mapper state, never the map; `evaluate` on a run
+still training and a second `map-bag` into the same --out say so in one line.
+
+The real commands run in subprocesses on the tiny simulated office (a 3 s drive) at a slow playback
+so that a signal lands mid-drive."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+from helpers import run_cli, tiny_train_config
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc, sends POSIX signals")
+
+MAP_FILES = {"map.pgm", "map.yaml", "map.png", "prob.pgm", "prob.yaml", "prob.png", "snapshot.json"}
+
+
+# ------------------------------------------------------------------------------ helpers
+def _children(pid: int) -> list[int]:
+    """Live processes whose parent is `pid` (from /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"  # a zombie has ended (it waits for init to reap it)
+
+
+def _marked(pid: int) -> list[int]:
+    """Processes whose command line names `pid` as their parent (the KISS-ICP worker's marker)."""
+    out = []
+    for cmd in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            argv = cmd.read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"virus_nerf.data.bags.kiss_worker" in argv and str(pid).encode() in argv and _alive(int(cmd.parent.name)):
+            out.append(int(cmd.parent.name))
+    return out
+
+
+def _none_survive(pids: list[int], parent: int, within_s: float = 5.0) -> None:
+    deadline = time.time() + within_s
+    while time.time() < deadline and (any(_alive(p) for p in pids) or _marked(parent)):
+        time.sleep(0.1)
+    assert not [p for p in pids if _alive(p)] and not _marked(parent), "a child process outlived its parent"
+
+
+def _start(argv: list, cwd: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "virus_nerf.cli", *map(str, argv)], cwd=cwd,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for(cond, proc: subprocess.Popen, timeout_s: float = 120.0) -> None:
+    deadline = time.time() + timeout_s
+    while not cond():
+        assert proc.poll() is None, f"ended early ({proc.returncode}): {proc.stderr.read()}"
+        assert time.time() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+def _snapshots(out: Path) -> list[Path]:
+    folder = out / "snapshots"
+    return sorted(p for p in folder.glob("[0-9]*") if p.is_dir()) if folder.is_dir() else []
+
+
+@pytest.fixture(scope="module")
+def drive(tiny_office, tmp_path_factory) -> dict:
+    """The tiny office as a ROS 1 bag, its LiDAR poses, and a tiny training config."""
+    pytest.importorskip("rosbags")
+    from virus_nerf.config_io import to_dict
+    from virus_nerf.data.bags.writer import write_bag
+    from virus_nerf.data.ethz import load_recording
+    from virus_nerf.data.writer import write_poses
+
+    d = tmp_path_factory.mktemp("stop_drive")
+    times, poses = load_recording(tiny_office, "office")._lidar_pose_track
+    write_poses(d / "lidar.csv", times, poses)
+    cfg = d / "cfg.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config(sensors=("camera", "uss", "irs")))))
+    return {"bag": write_bag(tiny_office, d / "drive.bag", ros_version=1), "csv": d / "lidar.csv", "cfg": cfg}
+
+
+def _map_bag(drive: dict, out: Path, playback: float = 0.3, poses=("--poses", "lidar-odometry")) -> list:
+    return ["map-bag", drive["bag"], "--out", out, "--playback", playback, "--snapshot-every", "1", "--config",
+            drive["cfg"], "--n-rays", "32", "--max-poses", "3", "--max-lag", "100", *poses]
+
+
+# ------------------------------------------------------------------------------ the mechanism
+def test_the_first_signal_stops_cleanly_and_the_second_at_once(tmp_path):
+    """utils/stop.py in a process of its own: the first SIGTERM raises Stopped (its clean-up runs),
+    a second one during that clean-up ends the process at once with 143 and one line."""
+    script = textwrap.dedent("""
+        import sys, time
+        from virus_nerf.utils.stop import Stopped, stop_on_signals
+        with stop_on_signals():
+            try:
+                print("ready", flush=True)
+                time.sleep(60)
+            except Stopped as exc:  # the final outputs are written inside the block
+                print(f"cleaning up after {exc.name}", flush=True)
+                time.sleep(60)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    proc.send_signal(signal.SIGTERM)
+    assert proc.stdout.readline().strip() == "cleaning up after SIGTERM"
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=10) == 130
+    assert proc.stderr.read() == "virus-nerf: SIGINT again: stopped at once (files written so far are whole)\n"
+
+
+def test_ctrl_c_outside_a_mapping_command_is_one_line_not_a_traceback(monkeypatch):
+    import virus_nerf.cli as cli
+
+    def interrupted(argv):
+        def run():
+            raise KeyboardInterrupt
+        return run
+
+    monkeypatch.setattr(cli, "_parse", interrupted)
+    code, out, err = run_cli(["simulate"])
+    assert (code, out, err) == (130, "", "virus-nerf: interrupted (Ctrl-C)\n")
+
+
+# ------------------------------------------------------------------------------ map-bag
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_map_bag_stopped_by_a_signal_keeps_the_map_in_one_line(drive, tmp_path, sig):
+    """SIGTERM after the first snapshot, SIGINT as soon as the mapper has its first frames (before
+    any snapshot): the final map (with mapper.pt), stream.json, one line, exit 143 / 130, nothing on
+    stderr, and the KISS-ICP worker ends with the process (before: SIGTERM left no map and two
+    orphans, SIGINT a 30-57 line traceback)."""
+    out = tmp_path / "out"
+    proc = _start(_map_bag(drive, out), tmp_path)
+    if sig == "SIGTERM":
+        _wait_for(lambda: _snapshots(out), proc)
+    else:
+        _wait_for(lambda: (out / "snapshots" / "config.json").is_file(), proc)
+    children = _children(proc.pid)
+    assert children, "the KISS-ICP worker runs as a child process"
+    proc.send_signal(getattr(signal, sig))
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + getattr(signal, sig), stderr
+    assert stderr == ""
+    last = stdout.splitlines()[-1]
+    assert last.startswith(f"map-bag: stopped by {sig} at ") and last.endswith(
+        f"final map in {out / 'map'}, report in {out / 'stream.json'}"), last
+    assert MAP_FILES | {"mapper.pt"} == {p.name for p in (out / "map").iterdir()}
+    report = json.loads((out / "stream.json").read_text())
+    assert report["stopped"] == f"interrupted ({sig})" and report["final"] == str(out / "map")
+    assert report["running"] is False and report["frames"] >= 1
+    assert json.loads((out / "map" / "snapshot.json").read_text())["frames"] == report["frames"]
+    _none_survive(children, proc.pid)
+
+
+def test_map_bag_killed_then_resume_writes_the_final_map(drive, tmp_path):
+    """SIGKILL after the second snapshot: whole snapshots and the mapper state of the last one; the
+    worker dies with its parent; `map-bag --resume --out OUT` makes OUT/map/ from them (that
+    snapshot's map and state) and stream.json; a second --resume and a folder without any snapshot
+    are refused in one line."""
+    out = tmp_path / "out"
+    proc = _start(_map_bag(drive, out), tmp_path)
+    _wait_for(lambda: len(_snapshots(out)) >= 2 and (out / "snapshots" / "mapper.pt").is_file(), proc)
+    children = _children(proc.pid)
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=60)
+    _none_survive(children, proc.pid)
+    assert not (out / "map").exists()
+    progress = json.loads((out / "stream.json").read_text())
+    assert progress["running"] is True and progress["final"] is None
+    import torch
+
+    state = torch.load(out / "snapshots" / "mapper.pt", map_location="cpu", weights_only=False)
+    snaps = _snapshots(out)
+    assert state["snapshot"] in {p.name for p in snaps}
+
+    code, stdout, stderr = run_cli(["map-bag", "--resume", "--out", out])
+    assert code == 0, stderr
+    last = snaps[-1]
+    assert stdout == (f"map-bag: the stream in {out} was stopped after snapshot {len(snaps)}; final map (that "
+                      f"snapshot's) in {out / 'map'}"
+                      f"{'' if state['snapshot'] == last.name else f' (no mapper state of {last.name} was saved)'}"
+                      f", report in {out / 'stream.json'}\n")
+    for name in MAP_FILES:
+        assert (out / "map" / name).read_bytes() == (last / name).read_bytes(), name
+    if state["snapshot"] == last.name:
+        saved = torch.load(out / "map" / "mapper.pt", map_location="cpu", weights_only=False)
+        assert saved["step"] == state["mapper"]["step"] == json.loads((last / "snapshot.json").read_text())["steps"]
+    report = json.loads((out / "stream.json").read_text())
+    assert report["running"] is False and report["final"] == str(out / "map")
+    assert report["stopped"] == f"killed after snapshot {len(snaps)} ({last.name})"
+    assert report["snapshots"] == [str(p) for p in snaps]
+
+    code, _, stderr = run_cli(["map-bag", "--resume", "--out", out])
+    assert code == 2 and stderr == (f"virus-nerf: error: --resume --out {out}: the stream ended (final map in "
+                                    f"{out / 'map'}, {out / 'stream.json'}); nothing to finish\n")
+    early = tmp_path / "early"
+    (early / "snapshots").mkdir(parents=True)
+    (early / "snapshots" / "config.json").write_text("{}")
+    code, _, stderr = run_cli(["map-bag", "--resume", "--out", early])
+    assert code == 2 and "the stream was stopped before its first snapshot; there is no map" in stderr
+    assert stderr.count("\n") == 1 and sorted(p.name for p in early.iterdir()) == ["run.lock", "snapshots"]
+
+
+# ------------------------------------------------------------------------------ a full disk
+def test_map_bag_on_a_full_disk_keeps_the_map_and_names_the_state(drive, tmp_path, monkeypatch):
+    """No room for the mapper state (the large file): mapping goes on with one warning, the final
+    map and stream.json are written, mapper.pt is named in one line, exit 2 (before: a 35-line torch
+    RuntimeError, no map/, no stream.json)."""
+    import virus_nerf.utils.io as io_mod
+
+    def full(obj, path):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(io_mod, "save_torch_atomic", full)
+    out = tmp_path / "out"
+    code, stdout, stderr = run_cli(_map_bag(drive, out, playback=2.0, poses=("--poses", "csv", "--poses-file",
+                                                                             drive["csv"])))
+    assert code == 2 and stderr == (
+        f"virus-nerf: error: {out / 'map' / 'mapper.pt'}: could not be written (No space left on device); kept: "
+        f"{out / 'map'}, {out / 'stream.json'}; free some space; the snapshots in {out / 'snapshots'} are whole\n")
+    assert stdout.count("warning:") == 1 and "snapshots/mapper.pt: could not be written" in stdout
+    assert MAP_FILES == {p.name for p in (out / "map").iterdir()}
+    assert json.loads((out / "stream.json").read_text())["final"] == str(out / "map")
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounts a small tmpfs (root only)")
+def test_map_bag_on_a_real_full_tmpfs(drive, tmp_path):
+    """--out on a 6 MB tmpfs: the maps (a few hundred KB) fit, the ~28 MB mapper state does not."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=6m", "tmpfs", str(disk)], capture_output=True).returncode:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        out = disk / "out"
+        proc = _start(_map_bag(drive, out, playback=2.0, poses=("--poses", "csv", "--poses-file", drive["csv"])),
+                      tmp_path)
+        stdout, stderr = proc.communicate(timeout=300)
+        assert proc.returncode == 2 and stderr.count("\n") == 1, stderr
+        assert stderr.startswith(f"virus-nerf: error: {out / 'map' / 'mapper.pt'}: could not be written (No space "
+                                 f"left on device); kept: {out / 'map'}, {out / 'stream.json'}"), stderr
+        assert MAP_FILES == {p.name for p in (out / "map").iterdir()}
+        assert json.loads((out / "stream.json").read_text())["running"] is False
+        assert not list(out.rglob(".*.tmp")), "no temporary left behind"
+    finally:
+        subprocess.run(["umount", str(disk)], check=False)
+
+
+# ------------------------------------------------------------------------------ train --online, evaluate
+def test_train_online_stopped_keeps_map_and_checkpoint_and_evaluate_says_it_trains(tiny_office, tmp_path):
+    """While an online run trains (no checkpoint yet) `evaluate` says it is still training; SIGINT
+    then writes OUT/map/ and checkpoint.pt, one line how to continue, exit 130, and no metrics.json
+    (the run stays resumable)."""
+    from virus_nerf.config_io import to_dict
+
+    cfg = tmp_path / "online.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config(sensors=("camera", "uss", "irs"), max_steps=None,
+                                                        max_time=100.0, online=True, playback_speed=0.1,
+                                                        checkpoint_every=1000.0))))
+    out = tmp_path / "run"
+    proc = _start(["train", "--data", tiny_office, "--room", "office", "--out", out, "--config", cfg, "--quiet"],
+                  tmp_path)
+    log = out / "train_log.csv"
+    _wait_for(lambda: log.is_file() and len(log.read_text().splitlines()) >= 3, proc)
+    assert not (out / "checkpoint.pt").exists()
+    code, _, stderr = run_cli(["evaluate", "--run", out])
+    assert code == 2 and stderr == (f"virus-nerf: error: --run {out}: the run is still training (`virus-nerf train`, "
+                                    f"pid {proc.pid}); wait for it to end or stop it, then run again\n")
+    children = _children(proc.pid)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and stderr == "", stderr
+    assert stdout.startswith("train: stopped by SIGINT at step ") and stdout.count("\n") == 1
+    assert stdout.rstrip().endswith(f"map in {out / 'map'}, checkpoint in {out / 'checkpoint.pt'}; continue with "
+                                    f"`virus-nerf train --resume --out {out}`")
+    assert MAP_FILES == {p.name for p in (out / "map").iterdir()}
+    assert (out / "checkpoint.pt").is_file() and not (out / "metrics.json").exists()
+    _none_survive(children, proc.pid)
+
+
+# ------------------------------------------------------------------------------ two map-bag, one --out
+def test_a_second_map_bag_into_the_same_out_is_one_line(drive, tmp_path, monkeypatch):
+    """Both passed the check before their start-up; the other one made OUT during this one's warm-up:
+    one line naming the folder and --out (before: the bare OS text "File exists"), and the other's
+    folder untouched."""
+    import virus_nerf.mapping.stream as stream
+
+    out = tmp_path / "out"
+
+    def other_made_it(cfg):
+        (out / "snapshots").mkdir(parents=True)
+        return 0.1
+
+    monkeypatch.setattr(stream, "warm_up", other_made_it)
+    code, _, stderr = run_cli(_map_bag(drive, out, poses=("--poses", "csv", "--poses-file", drive["csv"])))
+    assert code == 2 and stderr == (f"virus-nerf: error: {out}: output folder already exists; choose a new --out "
+                                    "(nothing was overwritten)\n")
+    assert [p.name for p in out.iterdir()] == ["snapshots"]
+
+
+def test_train_online_on_a_full_disk_writes_the_map_before_naming_the_checkpoint(tiny_office, tmp_path,
+                                                                                  monkeypatch):
+    """The final checkpoint (the large file) does not fit: the map and metrics.json are written, the
+    checkpoint is named in one line, exit 2 (before: the run ended at the checkpoint, no map)."""
+    import pathlib
+
+    from virus_nerf.config_io import to_dict
+
+    cfg = tmp_path / "online.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config(sensors=("camera", "uss", "irs"), max_steps=None,
+                                                        max_time=100.0, online=True, playback_speed=3.0,
+                                                        checkpoint_every=1000.0))))
+    real = pathlib.Path.write_bytes
+
+    def full(self, data):
+        if self.name.startswith(".checkpoint.pt."):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, data)
+
+    monkeypatch.setattr(pathlib.Path, "write_bytes", full)
+    out = tmp_path / "run"
+    code, stdout, stderr = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", out, "--config", cfg,
+                                    "--quiet", "--gt", "none"])
+    assert code == 2 and stderr == (
+        f"virus-nerf: error: {out / 'checkpoint.pt'}: could not be written (No space left on device); kept: "
+        f"{out / 'map'}, {out / 'metrics.json'}; free some space and run `virus-nerf train --resume --out {out}` to "
+        "train it again\n")
+    assert MAP_FILES == {p.name for p in (out / "map").iterdir()} and not (out / "checkpoint.pt").exists()
+    assert f"map ({json.loads((out / 'map' / 'snapshot.json').read_text())['map_known']:.1%} known)" in stdout

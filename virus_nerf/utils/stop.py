@@ -1,0 +1,78 @@
+"""Stopping a long-running command cleanly on SIGINT or SIGTERM (issue 39).
+
+A robot's launch system stops a process with SIGINT (Ctrl-C, ROS launch), then SIGTERM
+(`systemctl stop`, `docker stop`), then SIGKILL. Inside `stop_on_signals()` the first SIGINT or
+SIGTERM raises `Stopped` in the main thread (a KeyboardInterrupt, so every `except
+KeyboardInterrupt` that keeps the map treats both alike); the command writes its final outputs,
+prints one line saying where they are, marks the exception `reported` and lets it rise to the CLI,
+which exits 128 + the signal number (130, 143) without a traceback. A second signal while the
+outputs are being written stops the process at once (exit 128 + signal; every file is written
+atomically, so what was written before is whole). A Ctrl-C outside such a block is a plain
+KeyboardInterrupt: one line and exit 130 (cli.py).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+SIGNALS = tuple(s for s in (getattr(signal, "SIGINT", None), getattr(signal, "SIGTERM", None)) if s is not None)
+
+
+class Stopped(KeyboardInterrupt):
+    """The process was asked to stop (SIGINT or SIGTERM): end with the outputs written so far."""
+
+    def __init__(self, signum: int = signal.SIGINT) -> None:
+        self.signum = int(signum)
+        self.reported = False  # the command printed its one line: the CLI adds nothing
+        super().__init__(self.name)
+
+    @property
+    def name(self) -> str:
+        try:
+            return signal.Signals(self.signum).name
+        except ValueError:  # pragma: no cover - not a known signal number
+            return f"signal {self.signum}"
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+def exit_code_of(exc: KeyboardInterrupt) -> int:
+    """130 for a plain Ctrl-C, 128 + the signal for `Stopped`."""
+    return exc.exit_code if isinstance(exc, Stopped) else 128 + signal.SIGINT
+
+
+def _at_once(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signature
+    """The second signal: no more clean-up (the first one's outputs are being written)."""
+    name = signal.Signals(signum).name
+    os.write(2, f"virus-nerf: {name} again: stopped at once (files written so far are whole)\n".encode())
+    os._exit(128 + signum)
+
+
+def _first(signum, frame) -> None:  # noqa: ARG001
+    for s in SIGNALS:
+        signal.signal(s, _at_once)
+    raise Stopped(signum)
+
+
+@contextmanager
+def stop_on_signals() -> Iterator[None]:
+    """SIGINT and SIGTERM raise `Stopped` inside the block (main thread only; elsewhere a no-op);
+    the final outputs are written inside it (a second signal there stops at once). The old
+    handlers are back when the block ends, however it ends."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {s: signal.getsignal(s) for s in SIGNALS}
+    for s in SIGNALS:
+        signal.signal(s, _first)
+    try:
+        yield
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
