@@ -115,8 +115,16 @@ def test_demo_end_to_end(tmp_path: Path):
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["train"]["grid"] == "virus" and doc["train"]["sensors"] == ["camera", "uss", "irs", "stereo"]
     # the planner-safety figure and the warnings (a 4 s run ends in the grid's warm-up) in the report too
-    shares = " | ".join("-" if b["free_share"] is None else f"{b['free_share']:.3f}" for b in doc["safety"]["zones"].values())
-    assert "## Can a planner trust the map?" in report and f"| {shares} |" in report
+    def pct(v):
+        return "-" if v is None else f"{100 * v:.1f} %"
+
+    safety = doc["safety"]
+    shares = " | ".join(pct(b["free_share"]) for b in safety["zones"].values())
+    assert "## Can a planner trust the map?" in report
+    assert f"| the map (`map.pgm`) | {shares} | {pct(safety['free_recall'])} |" in report
+    lidar = safety["anchors"]["lidar"]
+    assert f"| LiDAR 2D map | {' | '.join(pct(b['free_share']) for b in lidar['zones'].values())} |" in report
+    assert "(run/plots/map_safety.png)" in report and (out / "run" / "plots" / "map_safety.png").is_file()
     assert all(f"**Warning:** {w}" in report for w in doc["warnings"]) and doc["warnings"]
     for image in ("metrics_bars.png",):
         assert (out / "run" / "plots" / image).is_file()

@@ -8,7 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from virus_nerf.evaluation.safety import map_safety, obstacle_pixels, safety_document, safety_line
+from virus_nerf.evaluation.safety import (
+    judge_map,
+    map_safety,
+    obstacle_pixels,
+    safety_document,
+    safety_line,
+)
 from virus_nerf.maps.observed import apply_mask, camera_half_fov, observed_mask, observed_share
 from virus_nerf.maps.occupancy import FREE, OCCUPIED, UNKNOWN, to_image
 
@@ -76,10 +82,16 @@ def test_obstacles_marked_free_counted_per_zone_with_the_inlier_tolerance():
     unknown = free.copy()
     unknown[:, 4] = UNKNOWN  # unknown next to the wall: not free for sure
     assert zones(unknown)[2] == (math.inf, 10, 0)
-    doc = safety_document(map_safety(free, origin, res, wall, path), 0.25, "map", res)
+    walled = free.copy()
+    walled[:, 5] = OCCUPIED
+    doc = safety_document(judge_map(free, origin, res, wall, path), 0.25, "map", res,
+                          {"lidar": judge_map(walled, origin, res, wall, path)})
     assert doc["zones"]["1m"] == {"obstacles": 0, "marked_free": 0, "free_share": None}
     assert doc["zones"]["all"]["free_share"] == 1.0 and doc["observed"] == 0.25
+    # the path at x = -1 m lies outside the 1 m raster: no true free pixel is on it, no recall
+    assert doc["free_recall"] is None and doc["anchors"]["lidar"]["zones"]["all"]["free_share"] == 0.0
     assert "all 100.0%" in safety_line(doc) and "1m -" in safety_line(doc)
+    assert "LiDAR 2D map: 1m -, 2m 0.0%, all 0.0%" in safety_line(doc)
 
 
 def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share(tiny_office, tmp_path):
@@ -101,6 +113,11 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     assert z["1m"]["obstacles"] <= z["2m"]["obstacles"] <= z["all"]["obstacles"] and z["all"]["obstacles"] > 100
     for block in z.values():
         assert 0 <= block["marked_free"] <= block["obstacles"]
+    assert 0.0 < safety["free_recall"] <= 1.0
+    assert set(safety["anchors"]) == {"sensors", "lidar"}
+    for anchor in safety["anchors"].values():
+        assert anchor["zones"]["all"]["obstacles"] == z["all"]["obstacles"] and 0.0 <= anchor["free_recall"] <= 1.0
+    assert (run / "plots" / "map_safety.png").is_file()
     assert "map safety (map ground truth)" in out
     # export: the map, ESDF and probability map are unknown / NaN / 0.5 outside the observed wedges
     code, _, err = run_cli(["export", "--run", run, "--out", tmp_path / "export", "--what", "map,esdf,prob"])
@@ -114,3 +131,25 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     unseen = np.isnan(esdf)
     assert summary["observed"] == pytest.approx(1.0 - unseen.mean(), abs=1e-4)
     assert (image[unseen] == UNKNOWN).all() and (prob[unseen] == 128).all()  # p = 0.5 -> round(127.5)
+
+
+def test_true_free_space_near_the_path_keeps_clear_of_obstacles_and_stays_on_the_path_side():
+    from virus_nerf.evaluation.safety import free_recall, true_free_near_path
+
+    res, origin = 0.1, (0.0, 0.0)
+    obst = np.zeros((10, 20), dtype=bool)  # rows = y 0.95 .. 0.05 (row 0 on top), columns x 0.05 .. 1.95
+    obst[:, 10] = True  # a wall at x 1.0-1.1 m, every row
+    path = np.array([[0.25, 0.45]])  # on the left of the wall
+    free = true_free_near_path(obst, origin, res, path, within=3.0, clearance=0.15)
+    # left of the wall: columns whose centre is more than 0.15 m from the wall pixel's centre,
+    # i.e. columns 0..8 (0.2 m from column 10 for column 8, 0.1 m for column 9); the right side
+    # (columns 11..19) is cut off by the wall, so it is not the path's free space
+    expected = np.zeros_like(obst)
+    expected[:, :9] = True
+    np.testing.assert_array_equal(free, expected)
+    near = true_free_near_path(obst, origin, res, path, within=0.5, clearance=0.15)
+    assert near[4, 2] and not near[4, 8]  # (0.25, 0.55) is 0.1 m from the path; (0.85, 0.55) 0.61 m
+    image = np.full(obst.shape, UNKNOWN, dtype=np.uint8)
+    image[:, :3] = FREE  # a third of the 9 free columns
+    assert free_recall(image, FREE, free) == pytest.approx(3 / 9)
+    assert free_recall(image, FREE, np.zeros_like(obst)) is None

@@ -20,6 +20,7 @@ from virus_nerf.grid.virus import VirusGrid
 from virus_nerf.maps.extract import camera_height, check_raster, occupancy_map, probability_map
 from virus_nerf.maps.observed import frames_observed
 from virus_nerf.maps.occupancy import raster_shape
+from virus_nerf.maps.planner import RangeEvidence
 from virus_nerf.maps.scans import FieldOfView, Scan2D, points_from_ranges, scan_ranges
 
 
@@ -59,7 +60,8 @@ class MapViews:
         """The current 2D occupancy map (maps.occupancy.OccupancyMap2D, trinary, over the box's
         x, y): NeRF scans from up to `max_poses` camera positions of the frames added so far
         (evenly spread), cells a scan passed free, end cells occupied, the rest unknown; and
-        unknown wherever no sensor looked (`observed`), whatever the NeRF says there. The same
+        unknown wherever no sensor looked (`observed`), whatever the NeRF says there; then
+        occupied where the frames' IRS hits and unexplained USS echoes lie (maps/planner.py). The same
         extraction as `virus-nerf export` (maps/extract.py)."""
         for name, v, lo in (("n_rays", n_rays, 0), ("max_poses", max_poses, 0)):
             if isinstance(v, bool) or not isinstance(v, int | float) or not v > lo or not math.isfinite(v):
@@ -68,9 +70,16 @@ class MapViews:
         self.field.eval()
         try:
             return occupancy_map(self.model, self.store.cam_to_world[:, :3, 3], lo, hi, resolution, int(n_rays),
-                                 int(max_poses), self.observed(resolution))
+                                 int(max_poses), self.observed(resolution), self.range_evidence())
         finally:
             self.field.train()
+
+    def range_evidence(self) -> RangeEvidence:
+        """What the frames' IRS and USS measured at camera height (maps/planner.py), for the
+        sensors the mapper trains with."""
+        st = self.store
+        return RangeEvidence.of_frames(st.cam_to_world, st.uss_range, st.irs_range, self.camera_height(),
+                                       tuple(self.config.sensors))
 
     def _raster_box(self, what: str, resolution) -> tuple[np.ndarray, np.ndarray]:
         """The box's (x, y) corners, once `resolution` is checked (maps.extract.check_raster)."""

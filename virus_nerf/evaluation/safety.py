@@ -7,6 +7,13 @@ is asked whether it marks that pixel free with no occupied or unknown pixel with
 metres (so a wall placed a pixel or two off, inside the paper's 10 cm inlier distance, is not a
 miss). Obstacle pixels are grouped by their distance to the robot's path (the training cameras'
 positions): within 1 m, within 2 m, and all. Lower is safer; 0 means no known obstacle is free.
+
+A map that marks nothing free is safe and useless, so beside it stands the map's free recall
+(issue 42): of the true free pixels within 3 m of the path, more than 0.15 m from every obstacle
+and connected to the path, the share the map marks free. Both figures are also given for two
+anchors on the same raster: the classic inverse-sensor map of the robot's USS and IRS alone
+(maps/evidence.py, no NeRF) and the 2D map a LiDAR robot has, carved by the LiDAR's own scans at
+camera height at the same positions as the map's scans.
 """
 
 from __future__ import annotations
@@ -18,6 +25,8 @@ import numpy as np
 
 SAFETY_ZONES_M = (1.0, 2.0, math.inf)  # obstacle distance to the robot's path
 SAFETY_TOLERANCE_M = 0.1  # the paper's inlier distance
+FREE_NEAR_PATH_M = 3.0  # free recall: true free space this close to the path ...
+FREE_CLEARANCE_M = 0.15  # ... and at least this far from every obstacle
 
 
 @dataclass(frozen=True)
@@ -55,6 +64,38 @@ def free_for_sure(image: np.ndarray, free_value: int, resolution: float, toleran
     return binary_erosion(free, structure=disk, border_value=1)
 
 
+def true_free_near_path(obstacles: np.ndarray, origin: tuple[float, float], resolution: float,
+                        path_xy: np.ndarray, within: float = FREE_NEAR_PATH_M,
+                        clearance: float = FREE_CLEARANCE_M) -> np.ndarray:
+    """(H, W) bool: the free space a planner needs from the map, from the ground truth alone.
+
+    Pixels more than `clearance` m from every ground-truth obstacle pixel (`obstacles`, (H, W)
+    bool), within `within` m of the path (P, 2) and connected (4-neighbours) to a pixel the path
+    passes through; the connection keeps out the space behind walls, the clearance closes the
+    gaps between a wall's LiDAR points.
+    """
+    from scipy.ndimage import distance_transform_edt, label
+
+    h, w = obstacles.shape
+    clear = distance_transform_edt(~obstacles) * resolution > clearance if obstacles.any() \
+        else np.ones((h, w), dtype=bool)
+    path = np.asarray(path_xy, dtype=np.float64).reshape(-1, 2)
+    on_path = obstacle_pixels(path, origin, resolution, (h, w))  # pixels the path passes through
+    if not on_path.any():
+        return np.zeros((h, w), dtype=bool)
+    near = distance_transform_edt(~on_path) * resolution <= within
+    labels, _ = label(clear)
+    keep = np.unique(labels[on_path & clear])
+    keep = keep[keep > 0]
+    return near & clear & np.isin(labels, keep)
+
+
+def free_recall(image: np.ndarray, free_value: int, true_free: np.ndarray) -> float | None:
+    """Share of the true free pixels (`true_free_near_path`) that the map marks free; None if none."""
+    n = int(true_free.sum())
+    return float((np.asarray(image)[true_free] == free_value).sum() / n) if n else None
+
+
 def map_safety(image: np.ndarray, origin: tuple[float, float], resolution: float, obstacles_xy: np.ndarray,
                path_xy: np.ndarray, free_value: int = 254, zones: tuple[float, ...] = SAFETY_ZONES_M,
                tolerance: float = SAFETY_TOLERANCE_M) -> list[SafetyZone]:
@@ -75,22 +116,138 @@ def map_safety(image: np.ndarray, origin: tuple[float, float], resolution: float
     return [SafetyZone(float(z), int((dist <= z).sum()), int((missed & (dist <= z)).sum())) for z in zones]
 
 
-def safety_document(zones: list[SafetyZone], observed: float, gt: str, resolution: float) -> dict:
-    """metrics.json's "safety" block."""
-    return {
-        "gt": gt,
-        "resolution": resolution,
-        "tolerance_m": SAFETY_TOLERANCE_M,
-        "observed": round(float(observed), 4),
-        "zones": {("all" if math.isinf(z.within_m) else f"{z.within_m:g}m"): {
+@dataclass(frozen=True)
+class MapJudgement:
+    """A map's safety figures: obstacles marked free per zone and the free space it keeps."""
+
+    zones: list[SafetyZone]
+    free_recall: float | None  # share of the true free space near the path the map marks free
+
+    def block(self) -> dict:
+        return {"zones": {_zone_name(z.within_m): {
             "obstacles": z.obstacles, "marked_free": z.marked_free,
-            "free_share": None if z.free_share is None else round(z.free_share, 4)} for z in zones},
-    }
+            "free_share": None if z.free_share is None else round(z.free_share, 4)} for z in self.zones},
+            "free_recall": None if self.free_recall is None else round(self.free_recall, 4)}
+
+
+def _zone_name(within_m: float) -> str:
+    return "all" if math.isinf(within_m) else f"{within_m:g}m"
+
+
+def judge_map(image: np.ndarray, origin: tuple[float, float], resolution: float, obstacles_xy: np.ndarray,
+              path_xy: np.ndarray, free_value: int = 254) -> MapJudgement:
+    """`map_safety` and `free_recall` of a trinary map `image` (H, W) against ground-truth
+    obstacle points (K, 2) at camera height and the robot's path (P, 2), metres."""
+    obst = obstacle_pixels(obstacles_xy, origin, resolution, np.asarray(image).shape)
+    free = true_free_near_path(obst, origin, resolution, path_xy)
+    return MapJudgement(map_safety(image, origin, resolution, obstacles_xy, path_xy, free_value),
+                        free_recall(image, free_value, free))
+
+
+def safety_document(judgement: MapJudgement, observed: float, gt: str, resolution: float,
+                    anchors: dict[str, MapJudgement] | None = None) -> dict:
+    """metrics.json's "safety" block: the map's figures, and the same figures of the anchors
+    (the maps the robot's range sensors alone and a LiDAR give, judged on the same raster)."""
+    doc = {"gt": gt, "resolution": resolution, "tolerance_m": SAFETY_TOLERANCE_M,
+           "free_near_path_m": FREE_NEAR_PATH_M, "free_clearance_m": FREE_CLEARANCE_M,
+           "observed": round(float(observed), 4), **judgement.block()}
+    if anchors:
+        doc["anchors"] = {name: j.block() for name, j in anchors.items()}
+    return doc
+
+
+ANCHOR_LABELS = {"sensors": "USS + IRS alone", "lidar": "LiDAR 2D map"}
+
+
+def _figures(block: dict) -> str:
+    parts = [f"{name} " + ("-" if b["free_share"] is None else f"{b['free_share']:.1%}")
+             for name, b in block["zones"].items()]
+    recall = block.get("free_recall")
+    return ", ".join(parts) + "; free space kept " + ("-" if recall is None else f"{recall:.1%}")
 
 
 def safety_line(doc: dict) -> str:
-    """One line for the table: obstacles marked free per zone and the observed share."""
-    parts = [f"{name} " + ("-" if b["free_share"] is None else f"{b['free_share']:.1%}")
-             for name, b in doc["zones"].items()]
-    return (f"map safety ({doc['gt']} ground truth): obstacles the map marks free: {', '.join(parts)} "
-            f"(of obstacles within that distance of the path); map observed {doc['observed']:.1%}")
+    """One line for the table: obstacles marked free per zone, free recall, observed share, anchors."""
+    line = (f"map safety ({doc['gt']} ground truth): obstacles the map marks free: {_figures(doc)} "
+            f"(of obstacles within that distance of the path; free space within {doc.get('free_near_path_m', 3):g} m "
+            f"of it); map observed {doc['observed']:.1%}")
+    for name, block in doc.get("anchors", {}).items():
+        line += f"\n  beside it, {ANCHOR_LABELS.get(name, name)}: {_figures(block)}"
+    return line
+
+
+def safety_picture(image: np.ndarray, origin: tuple[float, float], resolution: float, obstacles_xy: np.ndarray,
+                   path_xy: np.ndarray, tolerance: float = SAFETY_TOLERANCE_M) -> np.ndarray:
+    """(H, W, 3) uint8 RGB: the map (free white, unknown grey, occupied black), the ground-truth
+    obstacles over it in blue, the ones it marks free in red, the path in green."""
+    from virus_nerf.maps.occupancy import FREE, OCCUPIED
+
+    image = np.asarray(image)
+    rgb = np.full(image.shape + (3,), 190, dtype=np.uint8)
+    rgb[image == FREE] = 255
+    rgb[image == OCCUPIED] = 0
+    obst = obstacle_pixels(obstacles_xy, origin, resolution, image.shape)
+    missed = obst & free_for_sure(image, FREE, resolution, tolerance)
+    rgb[obst] = (40, 80, 255)
+    rgb[missed] = (255, 0, 0)
+    rgb[obstacle_pixels(path_xy, origin, resolution, image.shape)] = (0, 160, 0)
+    return rgb
+
+
+def lidar_rays_2d(recording, times: np.ndarray, height: float, band: float):
+    """The reference a LiDAR robot has (issue 42): for each time (s), the LiDAR scan nearest in
+    time, its points within +-band of `height` as 2D rays from the LiDAR (maps.evidence.Rays2D)."""
+    from virus_nerf.evaluation.testpoints import nearest_index
+    from virus_nerf.maps.evidence import Rays2D
+    from virus_nerf.sensors.geometry import transform_points
+
+    out = Rays2D.empty()
+    if not len(recording.lidar_times):
+        return out
+    for k in sorted({nearest_index(recording.lidar_times, float(t)) for t in np.asarray(times).reshape(-1)}):
+        pose = recording.lidar_pose_at(float(recording.lidar_times[k]))  # (4, 4) LiDAR to world
+        pts = transform_points(pose, recording.lidar_scan(k).astype(np.float64))  # (M, 3) world
+        xy = pts[np.abs(pts[:, 2] - height) <= band, :2] - pose[None, :2, 3]
+        r = np.linalg.norm(xy, axis=1)
+        ok = r > 1e-6
+        out = out.concat(Rays2D(np.broadcast_to(pose[:2, 3], (int(ok.sum()), 2)).copy(), xy[ok] / r[ok, None], r[ok]))
+    return out
+
+
+@dataclass
+class RunSafety:
+    """A trained mapper's safety block (metrics.json) and its picture (`safety_picture`)."""
+
+    document: dict
+    picture: np.ndarray  # (H, W, 3) uint8
+
+
+def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> RunSafety | None:
+    """The safety of the mapper's 2D map (as its snapshots write it) against the recording's
+    LiDAR map at camera height (+-band m), beside its anchors; None without a LiDAR map or frames."""
+    from virus_nerf.evaluation.gt import height_slice
+    from virus_nerf.maps.evidence import sensor_rays_2d
+    from virus_nerf.maps.observed import apply_mask, observed_share
+    from virus_nerf.maps.occupancy import UNKNOWN, scan_occupancy
+
+    if recording.map_path is None or not mapper.frames:
+        return None
+    m = mapper.map2d(resolution)
+    height = mapper.camera_height()
+    obstacles = height_slice(recording.lidar_map(), height, band)
+    store = mapper.store
+    path = store.cam_to_world[:, :2, 3]
+    lo, hi = np.asarray(mapper.box.lo[:2]), np.asarray(mapper.box.hi[:2])
+    seen = mapper.observed(resolution)
+    sensors = sensor_rays_2d(store.cam_to_world, store.uss_range, store.irs_range, height,
+                             tuple(mapper.config.sensors))
+    sensor_map = scan_occupancy(sensors.origins, sensors.directions, sensors.ranges, lo, hi, resolution)
+    rows = np.linspace(0, len(store) - 1, min(30, len(store))).astype(int)  # the map's scan positions (spread_positions)
+    lidar = lidar_rays_2d(recording, store.times[rows], height, band)
+    lidar_map = scan_occupancy(lidar.origins, lidar.directions, lidar.ranges, lo, hi, resolution)
+    anchors = {"sensors": judge_map(apply_mask(sensor_map.image, seen, UNKNOWN), m.origin, resolution,
+                                    obstacles, path),
+               "lidar": judge_map(lidar_map.image, m.origin, resolution, obstacles, path)}
+    doc = safety_document(judge_map(m.image, m.origin, resolution, obstacles, path), observed_share(seen), "map",
+                          resolution, anchors)
+    return RunSafety(doc, safety_picture(m.image, m.origin, resolution, obstacles, path))

@@ -78,7 +78,7 @@ def demo(
         "",
         metrics_markdown_by_gt(RunMetrics.from_document(doc)),
         "",
-        *safety_markdown(doc),
+        *safety_markdown(doc, "run/plots/map_safety.png" if "map_safety.png" in plots else None),
         f"## Metrics per sensor and zone (paper Fig. 3; ground truth: {protocols[0]})",
         "",
         "![metric bars](run/plots/metrics_bars.png)",

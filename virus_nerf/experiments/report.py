@@ -44,18 +44,36 @@ def metrics_markdown_by_gt(metrics: RunMetrics, zones: Sequence[str] = ("zone1",
                         for p in metrics.by_gt)
 
 
-def safety_markdown(doc: Mapping[str, Any]) -> list[str]:
-    """Report lines for a metrics document's planner-safety block and warnings (none: no lines)."""
+def safety_markdown(doc: Mapping[str, Any], picture: str | None = None) -> list[str]:
+    """Report lines for a metrics document's planner-safety block (the map beside its anchors,
+    and the `picture` path if given) and warnings (none: no lines)."""
     lines: list[str] = []
     safety = doc.get("safety")
     if safety:
-        cells = " | ".join(_cell(b["free_share"]) for b in safety["zones"].values())
+        from virus_nerf.evaluation.safety import ANCHOR_LABELS
+
+        def pct(v: Any) -> str:
+            return "-" if v is None else f"{100 * v:.1f} %"
+
+        rows = [("the map (`map.pgm`)", safety), *((ANCHOR_LABELS.get(k, k), b)
+                                                   for k, b in safety.get("anchors", {}).items())]
+        zones = list(safety["zones"])
         lines += ["## Can a planner trust the map?", "",
-                  f"Share of the ground-truth obstacles ({safety['gt']}, camera height) that the 2D map marks free "
-                  f"(nothing but free within {safety['tolerance_m']:g} m), by distance to the robot's path; "
-                  f"{safety['observed']:.0%} of the map observed by some sensor (the rest stays unknown).", "",
-                  "| " + " | ".join(f"within {z}" if z != "all" else "all" for z in safety["zones"]) + " |",
-                  "|" + "---|" * len(safety["zones"]), f"| {cells} |", ""]
+                  f"Share of the ground-truth obstacles ({safety['gt']}, camera height) that a 2D map marks free "
+                  f"(nothing but free within {safety['tolerance_m']:g} m), by distance to the robot's path, and the "
+                  f"free space it keeps (of the true free space within {safety.get('free_near_path_m', 3):g} m of the "
+                  f"path and {safety.get('free_clearance_m', 0.15):g} m from obstacles, the share marked free); "
+                  f"{safety['observed']:.0%} of the map observed by some sensor (the rest stays unknown). Beside "
+                  "the map, the same figures of the range sensors' own map (no NeRF) and of a LiDAR's.", "",
+                  "| map | " + " | ".join(f"marked free, within {z}" if z != "all" else "marked free, all"
+                                         for z in zones) + " | free space kept |",
+                  "|---|" + "---|" * (len(zones) + 1)]
+        lines += [f"| {name} | " + " | ".join(pct(b["zones"][z]["free_share"]) for z in zones)
+                  + f" | {pct(b.get('free_recall'))} |" for name, b in rows]
+        lines.append("")
+        if picture:
+            lines += [f"![ground-truth obstacles over the map, the ones it marks free in red]({picture})", "",
+                      "Blue: ground-truth obstacles; red: the ones the map marks free; green: the path.", ""]
     for w in doc.get("warnings", []):
         lines += [f"**Warning:** {w}", ""]
     return lines

@@ -116,7 +116,9 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
         summary["observed"] = round(observed.observed_share(seen), 4)
     poses, stack_ids = trainer.recording.camera_poses()  # every frame, stack by stack
     if "map" in kinds or "esdf" in kinds:
-        m = extract.occupancy_map(trainer.mapper.model, poses[:, :3, 3], lo, hi, resolution, n_rays, max_poses, seen)
+        evidence = training_evidence(trainer.recording, extract.camera_height(poses, stack_ids), cfg.sensors)
+        m = extract.occupancy_map(trainer.mapper.model, poses[:, :3, 3], lo, hi, resolution, n_rays, max_poses, seen,
+                                  evidence)
         if "map" in kinds:
             maps.write_map_server(m, folder, "map")
             _write_png(folder / "map.png", m.image)
@@ -189,6 +191,18 @@ def training_observed(recording, lo: np.ndarray, shape: tuple[int, int], resolut
     poses, stack_ids = recording.camera_poses("train")
     return frames_observed(poses, stack_ids, {s: st.intrinsics for s, st in recording.stacks.items()}, lo, shape,
                            resolution)
+
+
+def training_evidence(recording, height: float, sensors: tuple[str, ...]):
+    """What the training frames' IRS and USS measured at camera `height` (maps/planner.py)."""
+    from virus_nerf.maps.planner import RangeEvidence
+
+    stacks = list(recording.stacks.values())
+    rows = [st.indices("train") for st in stacks]
+    return RangeEvidence.of_frames(np.concatenate([st.cam_to_world[r] for st, r in zip(stacks, rows, strict=True)]),
+                                   np.concatenate([st.uss_range[r] for st, r in zip(stacks, rows, strict=True)]),
+                                   np.concatenate([st.irs_range[r] for st, r in zip(stacks, rows, strict=True)]),
+                                   height, tuple(sensors))
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:

@@ -3,7 +3,8 @@
 
 The 2D map of a trained model is its own 360 deg scans at camera height from evenly spread
 camera positions, rasterised (maps/occupancy.py: passed cells free, end cells occupied), then
-unknown wherever no sensor looked (maps/observed.py). The probability map is the VIRUS grid's
+unknown wherever no sensor looked (maps/observed.py), occupied wherever the infrared or
+ultrasonic sensors touched an obstacle the scans called free (maps/planner.py). The probability map is the VIRUS grid's
 occupancy probability at camera height, 0.5 where no sensor looked. The caller chooses the
 positions and the observed mask (a run: the recording's frames; the Mapper: the frames it has).
 """
@@ -23,6 +24,7 @@ from virus_nerf.maps.occupancy import (
     scale_map,
     scan_occupancy,
 )
+from virus_nerf.maps.planner import RangeEvidence, planner_image
 from virus_nerf.maps.scans import scan_ranges
 from virus_nerf.sensors.rig import MAIN_STACK
 
@@ -75,11 +77,15 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
 
 
 def occupancy_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int,
-                  max_poses: int, observed: np.ndarray) -> OccupancyMap2D:
-    """The trinary 2D map: scans from up to `max_poses` of the camera `positions` (N, 3), then
-    unknown outside `observed` ((nx, ny) bool [ix, iy], maps/observed.py), whatever the model says."""
+                  max_poses: int, observed: np.ndarray, evidence: RangeEvidence | None = None) -> OccupancyMap2D:
+    """The trinary 2D map a planner reads: scans from up to `max_poses` of the camera `positions`
+    (N, 3), unknown outside `observed` ((nx, ny) bool [ix, iy], maps/observed.py) whatever the
+    model says, then occupied where the IRS and USS `evidence` touched what the scans called free
+    (maps/planner.py; None: the scans alone)."""
     m = scan_map(model, spread_positions(positions, max_poses), lo, hi, resolution, n_rays)
     m.image = apply_mask(m.image, observed, UNKNOWN)  # free only where a sensor looked
+    if evidence is not None:
+        m.image = planner_image(m.image, lo, resolution, evidence)
     return m
 
 

@@ -52,15 +52,19 @@ def from_image(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.flipud(np.asarray(image)).T)
 
 
-def scan_occupancy(
+def scan_counts(
     origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float
-) -> OccupancyMap2D:
-    """Occupancy raster from 2D scan rays. origins (N, 2), directions (N, 2) unit, ranges (N,) m."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """(passes, hits), each (nx, ny) int64 [ix, iy], of 2D scan rays over the box [lo, hi]:
+    how many rays ended in a pixel (hits) and how many sample points of rays passed through it
+    (every half pixel up to one pixel before the end; passes). origins (N, 2), directions (N, 2)
+    unit, ranges (N,) m (rays with a range that is not finite and positive are left out)."""
     shape = raster_shape(lo, hi, resolution)  # (nx, ny), as every other raster of the box (observed mask)
     passes = np.zeros(shape, dtype=np.int64)
     hits = np.zeros(shape, dtype=np.int64)
+    ranges = np.asarray(ranges, dtype=np.float64)
     ok = np.isfinite(ranges) & (ranges > 0)
-    o, d, r = origins[ok], directions[ok], ranges[ok]
+    o, d, r = np.asarray(origins)[ok], np.asarray(directions)[ok], ranges[ok]
     end = o + d * r[:, None]
     ij = np.floor((end - lo) / resolution).astype(int)
     inside = np.all((ij >= 0) & (ij < shape), axis=1)
@@ -73,7 +77,16 @@ def scan_occupancy(
     ij = np.floor((pts - lo) / resolution).astype(int)
     inside = np.all((ij >= 0) & (ij < shape), axis=1)
     np.add.at(passes, (ij[inside, 0], ij[inside, 1]), 1)
-    img = np.full(shape, UNKNOWN, dtype=np.uint8)
+    return passes, hits
+
+
+def scan_occupancy(
+    origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float
+) -> OccupancyMap2D:
+    """Occupancy raster from 2D scan rays. origins (N, 2), directions (N, 2) unit, ranges (N,) m:
+    passed pixels free, a pixel where at least half as many rays ended as passed occupied."""
+    passes, hits = scan_counts(origins, directions, ranges, lo, hi, resolution)
+    img = np.full(passes.shape, UNKNOWN, dtype=np.uint8)
     img[passes > 0] = FREE
     img[(hits > 0) & (hits >= 0.5 * passes)] = OCCUPIED
     return OccupancyMap2D(image=to_image(img), resolution=resolution, origin=(float(lo[0]), float(lo[1])))

@@ -239,10 +239,14 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
             trainer.evaluate_on(eval_recording)
         result = _final_evaluation(trainer, out)
         trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
-        safety = map_safety_of(trainer, cfg)
+        from virus_nerf.evaluation.safety import mapper_safety
+
+        run_safety = mapper_safety(trainer.mapper, trainer.recording, cfg.evaluation.height_band_m)
+        safety = None if run_safety is None else run_safety.document
         if (out / MAP_DIR).is_dir():  # the map an interrupted online run left: this run's map now
             trainer.mapper.snapshot(out / MAP_DIR, replace=True)
-        write_run_plots(out, result, trainer.eval_history, replace=resume)  # plots first: metrics.json marks the end
+        write_run_plots(out, result, trainer.eval_history, replace=resume,  # plots first: metrics.json marks the end
+                        safety_picture=None if run_safety is None else run_safety.picture)
         if resume and to_dict(cfg) != _saved_config(out):
             write_json_atomic(out / CONFIG, to_dict(cfg))  # a finished run's resume: evaluated with it
         doc = write_run_metrics(out, result, cfg, summary, safety=safety, warnings=warnings)
@@ -375,22 +379,6 @@ def check_batch_memory(cfg, limit: int | None = None) -> None:
             f"alone ({RAY_BYTES} bytes a ray before marching) and this machine has {limit / 2**30:.1f} GiB; "
             f"expected at most {limit // 2 // RAY_BYTES} (the default is 2048)"
         )
-
-
-def map_safety_of(trainer, cfg, resolution: float = 0.05) -> dict | None:
-    """metrics.json's "safety" block (evaluation/safety.py) of the mapper's 2D map (as its
-    snapshots write it) against the LiDAR map at camera height; None without a LiDAR map."""
-    from virus_nerf.evaluation.gt import height_slice
-    from virus_nerf.evaluation.safety import map_safety, safety_document
-    from virus_nerf.maps.observed import observed_share
-
-    recording, mapper = trainer.recording, trainer.mapper
-    if recording.map_path is None or not mapper.frames:
-        return None
-    m = mapper.map2d(resolution)
-    obstacles = height_slice(recording.lidar_map(), mapper.camera_height(), cfg.evaluation.height_band_m)
-    zones = map_safety(m.image, m.origin, resolution, obstacles, mapper.store.cam_to_world[:, :2, 3])
-    return safety_document(zones, observed_share(mapper.observed(resolution)), "map", resolution)
 
 
 def _finish_without_ground_truth(trainer, out: Path, cfg, summary, resume: bool, warnings=()) -> dict:

@@ -6,10 +6,13 @@ from pathlib import Path
 
 from virus_nerf.trainer.run_folder import EvalPoint
 
+SAFETY_PICTURE = "map_safety.png"
+
 
 def write_run_plots(run_dir: Path, result, eval_history: list[EvalPoint], max_maps: int = 8,
-                    replace: bool = False) -> list[Path]:
-    """RUN/plots/: scan maps at up to `max_maps` test points, metric bars, metric vs time.
+                    replace: bool = False, safety_picture=None) -> list[Path]:
+    """RUN/plots/: scan maps at up to `max_maps` test points, metric bars, metric vs time and,
+    given, the map's safety picture ((H, W, 3) uint8, evaluation.safety.safety_picture).
 
     Built in a temporary folder and renamed into place when every plot is written, so
     RUN/plots/ is never half made. An existing RUN/plots/ is refused unless `replace` (a
@@ -24,4 +27,9 @@ def write_run_plots(run_dir: Path, result, eval_history: list[EvalPoint], max_ma
         curve = plot_metric_vs_time({"NeRF": eval_history}, tmp / "metric_vs_time.png")
         if curve is not None:
             names.append(curve.name)
+        if safety_picture is not None:
+            from virus_nerf.maps.occupancy import write_png
+
+            write_png(tmp / SAFETY_PICTURE, safety_picture)
+            names.append(SAFETY_PICTURE)
     return [folder / n for n in names]

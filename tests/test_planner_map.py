@@ -1,0 +1,90 @@
+"""The planner's map (issue 42): the range sensors' evidence at camera height and the rules that
+turn the NeRF's free pixels occupied where the IRS or an unexplained USS echo touched something.
+Hand-computed cases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from test_map_safety import camera_looking
+
+from virus_nerf.maps.evidence import irs_rays_2d, sensor_rays_2d, uss_rays_2d
+from virus_nerf.maps.occupancy import FREE, OCCUPIED, UNKNOWN, from_image, to_image
+from virus_nerf.maps.planner import RangeEvidence, planner_image, unexplained_echoes, uss_arcs
+
+
+def test_irs_rays_at_camera_height_end_on_the_wall_they_measured():
+    # a camera at (1, 0.5), 0.4 m high, looking along +x at a wall: every zone reads z-depth 2 m.
+    # Sub-rays sit at elevations +-0.9375, +-2.8125, +-4.6875 ... deg (8 zones of 5.625 deg, 3
+    # sub-rays each); their hits lie 2 tan(elev) = 0.033, 0.098, 0.164 m off the camera height,
+    # so with a 0.1 m band two elevations a side stay: 4 x 24 azimuths = 96 rays
+    pose = camera_looking(1.0, 0.5, 0.0, z=0.4)
+    rays = irs_rays_2d(pose[None], np.full((1, 8, 8), 2.0), height=0.4, band=0.1)
+    assert len(rays) == 96
+    ends = rays.ends()
+    np.testing.assert_allclose(ends[:, 0], 3.0, atol=1e-9)  # z-depth 2 m ahead, whatever the azimuth
+    assert np.abs(ends[:, 1] - 0.5).max() == pytest.approx(2.0 * math.tan(math.radians(22.5 - 0.9375)))
+    np.testing.assert_allclose(rays.ranges, np.hypot(2.0, ends[:, 1] - 0.5))  # horizontal distance
+    np.testing.assert_allclose(rays.origins, np.tile([1.0, 0.5], (96, 1)))
+    # invalid zones give nothing; 0.5 m above the camera the hits with 2 tan(elev) in [0.4, 0.6]
+    # stay: elevations 12.1875, 14.0625, 15.9375 deg, 3 x 24 rays, still 2 m ahead
+    assert len(irs_rays_2d(pose[None], np.full((1, 8, 8), np.nan), 0.4)) == 0
+    up = irs_rays_2d(pose[None], np.full((1, 8, 8), 2.0), 0.9, band=0.1)
+    assert len(up) == 72
+    np.testing.assert_allclose(up.ends()[:, 0], 3.0, atol=1e-9)
+
+
+def test_a_uss_echo_is_a_fan_across_the_cone_ending_on_its_arc():
+    pose = camera_looking(0.0, 0.0, math.pi / 2)  # looking along +y
+    rays = uss_rays_2d(np.stack([pose, pose]), np.array([1.5, np.nan]), fan_step_deg=5.0)
+    assert len(rays) == 12  # 55 / 5 + 1 rays for the echo, none for the frame without one
+    ang = np.degrees(np.arctan2(rays.directions[:, 1], rays.directions[:, 0]))
+    np.testing.assert_allclose(ang, 90.0 + np.linspace(-27.5, 27.5, 12))
+    np.testing.assert_allclose(np.linalg.norm(rays.ends(), axis=1), 1.5)
+    both = sensor_rays_2d(pose[None], np.array([1.5]), np.full((1, 8, 8), np.nan), 0.5, ("camera", "uss", "irs"))
+    assert len(both) == 56  # 1 deg fan: 55 + 1 rays, no IRS reading
+    assert len(sensor_rays_2d(pose[None], np.array([1.5]), np.full((1, 8, 8), np.nan), 0.5, ("camera",))) == 0
+
+
+def test_an_echo_is_explained_by_an_occupied_pixel_near_its_arc():
+    res, lo = 0.1, np.array([0.0, 0.0])
+    occupied = np.zeros((40, 40), dtype=bool)  # [ix, iy]
+    occupied[30, 20] = True  # the pixel of (3.05, 2.05)
+    ev = RangeEvidence(np.zeros((0, 2)), np.array([[1.05, 2.05], [1.05, 2.05], [1.05, 2.05]]),
+                       np.array([0.0, 0.0, math.pi]), np.array([2.0, 1.7, 1.0]))
+    arcs = uss_arcs(ev)
+    assert arcs.shape == (3, 56, 2)
+    np.testing.assert_allclose(arcs[0, 27:29].mean(axis=0), [3.05, 2.05], atol=0.01)  # the arc's middle
+    # echo 0 ends on the pixel; echo 1's arc passes 0.3 m short of it; echo 2 looks the other way
+    np.testing.assert_array_equal(unexplained_echoes(occupied, arcs, lo, res, 0.1), [False, True, True])
+    np.testing.assert_array_equal(unexplained_echoes(occupied, arcs, lo, res, 0.35), [False, False, True])
+
+
+def test_the_planner_map_adds_irs_hits_and_unexplained_arcs_where_the_scans_said_free():
+    res, lo = 0.1, np.array([0.0, 0.0])
+    grid = np.full((40, 40), FREE, dtype=np.uint8)  # [ix, iy]
+    grid[:, 30:] = UNKNOWN  # y >= 3 m: no sensor looked
+    grid[30, 20] = OCCUPIED  # the NeRF's wall pixel at (3.05, 2.05)
+    image = to_image(grid)
+    ev = RangeEvidence(irs_hits=np.array([[0.55, 0.55]]),
+                       uss_origins=np.array([[1.05, 2.05], [2.05, 0.55]]), uss_yaw=np.array([0.0, math.pi / 2]),
+                       uss_range=np.array([2.0, 2.7]))
+    out = from_image(planner_image(image, lo, res, ev))
+    assert out[5, 5] == OCCUPIED  # the IRS hit
+    # echo 0 ends on the NeRF's pixel: explained, nothing added around (3.05, 2.05)
+    assert (out[25:40, 10:28] == grid[25:40, 10:28]).all()
+    # echo 1 (from (2.05, 0.55) looking +y, 2.7 m) meets nothing: its arc is occupied where free...
+    arc = uss_arcs(RangeEvidence(np.zeros((0, 2)), ev.uss_origins[1:], ev.uss_yaw[1:], ev.uss_range[1:]))[0]
+    ij = np.floor((arc - lo) / res).astype(int)
+    was_free = grid[ij[:, 0], ij[:, 1]] == FREE
+    assert was_free.any() and (~was_free).any()
+    assert (out[ij[was_free, 0], ij[was_free, 1]] == OCCUPIED).all()
+    # ...and stays unknown where no sensor looked (the middle of the arc, y up to 3.25 m)
+    assert (out[ij[~was_free, 0], ij[~was_free, 1]] == UNKNOWN).all()
+    assert out[20, 35] == UNKNOWN
+    changed = out != grid
+    assert changed.sum() == 1 + len({tuple(p) for p in ij[was_free]})  # nothing else moved
+    assert image[0, 0] == from_image(image)[0, 39]  # the input is untouched
+    assert (from_image(image) == grid).all()

@@ -1,0 +1,104 @@
+"""What the robot's own range sensors measured at camera height, as 2D rays (issue 42).
+
+A planner's map must not call free what the infrared and ultrasonic sensors touched: they exist
+for the obstacles a camera misses (thin legs, round objects, glass). Both become 2D rays in the
+world frame (origin, unit direction, range in metres) that `maps.occupancy.scan_occupancy`
+turns into a classic inverse-sensor map (Moravec and Elfes 1985: cells a ray passed free, its end
+cell occupied), the same rasteriser as the NeRF's scans:
+
+- IRS: every valid zone, on a 3 x 3 grid of sub-rays (as sampler/sensor_rays.irs_zone_rays), whose
+  hit point lies within +-`band` of the map's height: its end is an obstacle at that height. For
+  a camera at the map's height (the main stack, maps/extract.camera_height) the ray's height is
+  linear along it, so the space it passed at that height is free as well.
+- USS: the echo is the nearest surface anywhere in the 55 x 35 deg cone; at camera height the
+  horizontal slice of the cone is free up to the echo and the echo's arc holds the obstacle
+  somewhere along it (Elfes 1987's sonar model, without its angular weighting): a fan of rays one
+  per `fan_step_deg` across the cone's horizontal opening, each ending at the echo range. With no
+  echo nothing is claimed (the reading may have been absorbed).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from virus_nerf.sensors import irs, uss
+from virus_nerf.sensors.geometry import yaw_of
+
+SENSOR_BAND_M = 0.1  # IRS hits this close to the camera height count at camera height
+
+
+@dataclass(frozen=True)
+class Rays2D:
+    """Horizontal rays in the world frame."""
+
+    origins: np.ndarray  # (N, 2) m
+    directions: np.ndarray  # (N, 2) unit
+    ranges: np.ndarray  # (N,) m, finite and positive
+
+    def __len__(self) -> int:
+        return len(self.ranges)
+
+    @staticmethod
+    def empty() -> Rays2D:
+        return Rays2D(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+
+    def ends(self) -> np.ndarray:
+        """(N, 2) end points, m."""
+        return self.origins + self.directions * self.ranges[:, None]
+
+    def concat(self, other: Rays2D) -> Rays2D:
+        return Rays2D(np.concatenate([self.origins, other.origins]), np.concatenate([self.directions, other.directions]),
+                      np.concatenate([self.ranges, other.ranges]))
+
+
+def irs_rays_2d(cam_to_world: np.ndarray, irs_range: np.ndarray, height: float, band: float = SENSOR_BAND_M,
+                samples_per_axis: int = 3) -> Rays2D:
+    """The IRS sub-rays of frames (cam_to_world (F, 4, 4), irs_range (F, 8, 8) z-depth m, NaN
+    invalid) whose hit lies within +-band of `height`, projected on the floor (range = the
+    horizontal distance to the hit). Each zone is covered by samples_per_axis^2 rays
+    (sampler/sensor_rays.irs_zone_rays: the zone's z-depth becomes z / d_z along each)."""
+    poses = np.asarray(cam_to_world, dtype=np.float64).reshape(-1, 4, 4)
+    if not len(poses):
+        return Rays2D.empty()
+    s2 = samples_per_axis * samples_per_axis
+    dirs_cam = irs.zone_directions(samples_per_axis).reshape(-1, 3)  # (64 s^2, 3), zone-major
+    z = np.asarray(irs_range, dtype=np.float64).reshape(len(poses), irs.IRS_ZONES * irs.IRS_ZONES)  # (F, 64)
+    r = (np.repeat(z, s2, axis=1) / dirs_cam[None, :, 2]).reshape(-1)  # (F K,) along each ray
+    d = np.einsum("fij,kj->fki", poses[:, :3, :3], dirs_cam).reshape(-1, 3)  # (F K, 3) world
+    o = np.repeat(poses[:, :3, 3], len(dirs_cam), axis=0)  # (F K, 3)
+    ok = np.isfinite(r) & (r > 0)
+    o, d, r = o[ok], d[ok], r[ok]
+    end_z = o[:, 2] + d[:, 2] * r
+    flat = np.linalg.norm(d[:, :2], axis=1)  # (K,) horizontal part of the direction
+    keep = (np.abs(end_z - height) <= band) & (flat > 1e-6)
+    return Rays2D(o[keep, :2], d[keep, :2] / flat[keep, None], (r * flat)[keep])
+
+
+def uss_rays_2d(cam_to_world: np.ndarray, uss_range: np.ndarray, fan_step_deg: float = 1.0) -> Rays2D:
+    """A fan across each echo's horizontal opening (+-27.5 deg around the camera's heading),
+    every ray ending at the echo's range (uss_range (F,) radial m, NaN = no echo: no rays)."""
+    poses = np.asarray(cam_to_world, dtype=np.float64).reshape(-1, 4, 4)
+    r = np.asarray(uss_range, dtype=np.float64).reshape(-1)
+    ok = np.isfinite(r) & (r > 0)
+    if not ok.any():
+        return Rays2D.empty()
+    poses, r = poses[ok], r[ok]
+    half = np.deg2rad(uss.USS_FOV_H_DEG / 2)
+    n = int(np.ceil(uss.USS_FOV_H_DEG / fan_step_deg)) + 1
+    ang = (yaw_of(poses)[:, None] + np.linspace(-half, half, n)[None, :]).reshape(-1)  # (F A,)
+    origins = np.repeat(poses[:, :2, 3], n, axis=0)
+    return Rays2D(origins, np.column_stack([np.cos(ang), np.sin(ang)]), np.repeat(r, n))
+
+
+def sensor_rays_2d(cam_to_world: np.ndarray, uss_range: np.ndarray, irs_range: np.ndarray, height: float,
+                   sensors: tuple[str, ...], band: float = SENSOR_BAND_M) -> Rays2D:
+    """The IRS and USS rays of frames, for those of `sensors` the robot trained with: the rays of
+    a classic inverse-sensor map of the range sensors alone (no NeRF)."""
+    out = Rays2D.empty()
+    if "irs" in sensors:
+        out = out.concat(irs_rays_2d(cam_to_world, irs_range, height, band))
+    if "uss" in sensors:
+        out = out.concat(uss_rays_2d(cam_to_world, uss_range))
+    return out

@@ -1,0 +1,108 @@
+"""The map a planner reads (issue 42): the NeRF's scans, then what the robot's range sensors touched.
+
+The NeRF's 360 deg scans (maps/extract.py) keep the free space but miss what the colour loss
+does not hold at camera height: round objects in the open floor, thin table and chair legs,
+furniture ends. The robot carries the sensors made for exactly these, so two rules follow the
+scans, each only turning free pixels occupied (a planner's map may lose free space, never gain it):
+
+1. **IRS hits.** Every infrared sub-ray whose end lies at camera height (maps/evidence.py) marks
+   its end pixel occupied: the sensor touched a surface there.
+2. **Unexplained USS echoes.** An echo says "the nearest surface in this cone is at r". If the map
+   holds an occupied pixel within `USS_EXPLAINED_M` of the echo's horizontal arc, the echo is
+   explained and adds nothing; otherwise the obstacle lies somewhere on the arc and the map
+   does not know it, so the arc's free pixels become occupied (a leg, a pole or glass that the
+   cameras missed). Explained echoes are most of them, so the arcs cost little free space.
+
+Measured and not kept (docs/decisions.md D47): the VIRUS grid's probability above 0.5 as
+obstacles, more scan positions and rays, a softer scan hit rule, every USS arc occupied.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from virus_nerf.maps.evidence import SENSOR_BAND_M, irs_rays_2d
+from virus_nerf.maps.occupancy import FREE, OCCUPIED, from_image, to_image
+from virus_nerf.sensors import uss
+from virus_nerf.sensors.geometry import yaw_of
+
+USS_EXPLAINED_M = 0.1  # an echo whose arc passes this close to an occupied pixel is explained
+USS_ARC_STEP_DEG = 1.0  # points along an echo's arc
+
+
+@dataclass(frozen=True)
+class RangeEvidence:
+    """What the IRS and USS measured at camera height, in the world frame (metres)."""
+
+    irs_hits: np.ndarray  # (K, 2) IRS ray ends at camera height
+    uss_origins: np.ndarray  # (E, 2) USS positions of the echoes
+    uss_yaw: np.ndarray  # (E,) rad, the cone's heading
+    uss_range: np.ndarray  # (E,) m, radial echo range
+
+    @staticmethod
+    def empty() -> RangeEvidence:
+        return RangeEvidence(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+
+    @staticmethod
+    def of_frames(cam_to_world: np.ndarray, uss_range: np.ndarray, irs_range: np.ndarray, height: float,
+                  sensors: tuple[str, ...], band: float = SENSOR_BAND_M) -> RangeEvidence:
+        """The evidence of frames (cam_to_world (F, 4, 4), uss_range (F,) m, irs_range (F, 8, 8)
+        z-depth m) for the sensors in `sensors` (the ones the map was trained with; "irs" and
+        "uss" count) at camera `height` (m)."""
+        poses = np.asarray(cam_to_world, dtype=np.float64).reshape(-1, 4, 4)
+        irs = irs_rays_2d(poses, irs_range, height, band).ends() if "irs" in sensors else np.zeros((0, 2))
+        if "uss" not in sensors:
+            return RangeEvidence(irs, np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+        r = np.asarray(uss_range, dtype=np.float64).reshape(-1)
+        ok = np.isfinite(r) & (r > 0)
+        return RangeEvidence(irs, poses[ok, :2, 3].copy(), yaw_of(poses[ok]), r[ok])
+
+
+def _pixels(points: np.ndarray, lo: np.ndarray, resolution: float, shape: tuple[int, int]):
+    """(..., 2) world points -> ((..., 2) int [ix, iy] clipped into the raster, (...) bool inside)."""
+    ij = np.floor((np.asarray(points, dtype=np.float64) - lo) / resolution).astype(np.int64)
+    inside = (ij[..., 0] >= 0) & (ij[..., 0] < shape[0]) & (ij[..., 1] >= 0) & (ij[..., 1] < shape[1])
+    return np.clip(ij, 0, np.array(shape) - 1), inside
+
+
+def uss_arcs(evidence: RangeEvidence, step_deg: float = USS_ARC_STEP_DEG) -> np.ndarray:
+    """(E, A, 2) world points along each echo's horizontal arc (+-27.5 deg at its range)."""
+    half = np.deg2rad(uss.USS_FOV_H_DEG / 2)
+    a = evidence.uss_yaw[:, None] + np.linspace(-half, half, int(np.ceil(uss.USS_FOV_H_DEG / step_deg)) + 1)[None]
+    return evidence.uss_origins[:, None, :] + evidence.uss_range[:, None, None] * np.stack([np.cos(a), np.sin(a)], -1)
+
+
+def unexplained_echoes(occupied: np.ndarray, arcs: np.ndarray, lo: np.ndarray, resolution: float,
+                       explained_m: float = USS_EXPLAINED_M) -> np.ndarray:
+    """(E,) bool: echoes whose arc (E, A, 2) passes no pixel within `explained_m` of an
+    occupied pixel of `occupied` ((nx, ny) bool [ix, iy])."""
+    from scipy.ndimage import distance_transform_edt
+
+    if not len(arcs):
+        return np.zeros(0, dtype=bool)
+    near = distance_transform_edt(~occupied) * resolution <= explained_m + 1e-9 if occupied.any() \
+        else np.zeros(occupied.shape, dtype=bool)
+    ij, inside = _pixels(arcs, lo, resolution, occupied.shape)
+    return ~(near[ij[..., 0], ij[..., 1]] & inside).any(axis=1)
+
+
+def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence: RangeEvidence,
+                  explained_m: float = USS_EXPLAINED_M) -> np.ndarray:
+    """The planner's trinary map (H, W) (row 0 = largest y) from the NeRF's scan map `image`
+    (already unknown where no sensor looked) and the range evidence: IRS hits, then the arcs of
+    unexplained USS echoes, occupied where the scans said free. The input is not changed."""
+    grid = from_image(image).copy()  # [ix, iy]
+    lo = np.asarray(lo, dtype=np.float64)[:2]
+    ij, inside = _pixels(evidence.irs_hits, lo, resolution, grid.shape)
+    hit = np.zeros(grid.shape, dtype=bool)
+    hit[ij[inside, 0], ij[inside, 1]] = True
+    grid[hit & (grid == FREE)] = OCCUPIED
+    arcs = uss_arcs(evidence)
+    lost = unexplained_echoes(grid == OCCUPIED, arcs, lo, resolution, explained_m)
+    ij, inside = _pixels(arcs[lost], lo, resolution, grid.shape)
+    arc = np.zeros(grid.shape, dtype=bool)
+    arc[ij[inside, 0], ij[inside, 1]] = True
+    grid[arc & (grid == FREE)] = OCCUPIED
+    return to_image(grid)
