@@ -118,6 +118,9 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     for anchor in safety["anchors"].values():
         assert anchor["zones"]["all"]["obstacles"] == z["all"]["obstacles"] and 0.0 <= anchor["free_recall"] <= 1.0
     assert (run / "plots" / "map_safety.png").is_file()
+    # issue 42 item 5: a planner on the map finds paths and none of them passes a real obstacle
+    assert safety["planner"]["paths"] > 0 and safety["planner"]["crossing"] == 0, safety["planner"]
+    assert "paths between random free points pass a real obstacle" in out
     assert "map safety (map ground truth)" in out
     # export: the map, ESDF and probability map are unknown / NaN / 0.5 outside the observed wedges
     code, _, err = run_cli(["export", "--run", run, "--out", tmp_path / "export", "--what", "map,esdf,prob"])
@@ -153,3 +156,27 @@ def test_true_free_space_near_the_path_keeps_clear_of_obstacles_and_stays_on_the
     image[:, :3] = FREE  # a third of the 9 free columns
     assert free_recall(image, FREE, free) == pytest.approx(3 / 9)
     assert free_recall(image, FREE, np.zeros_like(obst)) is None
+
+
+def test_the_planner_check_finds_paths_and_counts_the_ones_through_a_wall_the_map_lost():
+    from virus_nerf.evaluation.safety import planner_check
+
+    res, origin = 0.1, (0.0, 0.0)
+    image = np.full((30, 60), FREE, dtype=np.uint8)  # a 6 x 3 m room, free inside...
+    image[[0, -1], :] = OCCUPIED
+    image[:, [0, -1]] = OCCUPIED
+    # ...split by a true wall at x = 3.05 m with no gap: every path from one side to the other crosses it
+    wall = np.column_stack([np.full(30, 3.05), 0.05 + 0.1 * np.arange(30)])
+    lost = planner_check(image, origin, res, wall, seed=3)
+    assert lost.paths == 50 and lost.crossing > 0
+    drawn = image.copy()
+    drawn[:, 30] = OCCUPIED  # the map holds the wall: the two halves are apart, no path crosses it
+    kept = planner_check(drawn, origin, res, wall, seed=3)
+    assert kept.crossing == 0 and 0 < kept.paths < 50  # goals on the other side are unreachable
+    # a robot of radius 0.3 m keeps its centre 0.3 m from anything not free: a 0.4 m corridor is shut
+    corridor = np.full((30, 60), OCCUPIED, dtype=np.uint8)
+    corridor[12:16, :] = FREE
+    assert planner_check(corridor, origin, res, np.zeros((0, 2))).paths == 0
+    corridor[8:21, :] = FREE  # 1.3 m wide: passable, nothing to cross
+    wide = planner_check(corridor, origin, res, np.zeros((0, 2)))
+    assert wide.paths == 50 and wide.crossing == 0

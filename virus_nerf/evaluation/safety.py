@@ -173,6 +173,10 @@ def safety_line(doc: dict) -> str:
             f"of it); map observed {doc['observed']:.1%}")
     for name, block in doc.get("anchors", {}).items():
         line += f"\n  beside it, {ANCHOR_LABELS.get(name, name)}: {_figures(block)}"
+    if "planner" in doc:
+        p = doc["planner"]
+        line += (f"\n  a planner (robot radius {p['radius_m']:g} m) on the map: {p['crossing']} of {p['paths']} "
+                 "paths between random free points pass a real obstacle")
     return line
 
 
@@ -250,4 +254,74 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
                "lidar": judge_map(lidar_map.image, m.origin, resolution, obstacles, path)}
     doc = safety_document(judge_map(m.image, m.origin, resolution, obstacles, path), observed_share(seen), "map",
                           resolution, anchors)
+    doc["planner"] = planner_check(m.image, m.origin, resolution, obstacles).block()
     return RunSafety(doc, safety_picture(m.image, m.origin, resolution, obstacles, path))
+
+
+PLANNER_RADIUS_M = 0.3  # the robot's radius for the planner's check
+PLANNER_STARTS, PLANNER_GOALS = 10, 5  # 10 starts, 5 goals each: up to 50 paths
+
+
+@dataclass(frozen=True)
+class PlannerCheck:
+    """Paths a planner finds on the map between random free points, and how many hit a real obstacle."""
+
+    paths: int  # paths found (start and goal connected in the map's free space)
+    crossing: int  # of them, paths passing closer than radius - tolerance to a ground-truth obstacle
+    radius_m: float
+
+    def block(self) -> dict:
+        return {"paths": self.paths, "crossing": self.crossing, "radius_m": self.radius_m}
+
+
+def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: float, obstacles_xy: np.ndarray,
+                  seed: int = 0, radius: float = PLANNER_RADIUS_M, tolerance: float = SAFETY_TOLERANCE_M,
+                  free_value: int = 254) -> PlannerCheck:
+    """Plan as a robot of `radius` m would on the map (H, W): its configuration space is the free
+    pixels farther than `radius` from every pixel that is not free (occupied or unknown alike).
+    Shortest 8-connected paths (Dijkstra, scipy.sparse.csgraph) from PLANNER_STARTS random
+    configuration-space pixels to PLANNER_GOALS random others each (seeded); a path crosses a
+    ground-truth obstacle (points (K, 2) m) when one of its pixels lies within radius - tolerance
+    of an obstacle pixel (the tolerance forgives a wall drawn a pixel or two off, as `map_safety`)."""
+    from scipy.ndimage import distance_transform_edt
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    image = np.asarray(image)
+    h, w = image.shape
+    space = distance_transform_edt(image == free_value) * resolution > radius  # (H, W) robot centre may be here
+    obst = obstacle_pixels(obstacles_xy, origin, resolution, (h, w))
+    danger = (distance_transform_edt(~obst) * resolution <= radius - tolerance) if obst.any() \
+        else np.zeros((h, w), dtype=bool)
+    nodes = np.flatnonzero(space.ravel())
+    if len(nodes) < 2:
+        return PlannerCheck(0, 0, radius)
+    index = np.full(h * w, -1, dtype=np.int64)
+    index[nodes] = np.arange(len(nodes))
+    r, c = np.divmod(nodes, w)
+    src, dst, cost = [], [], []
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        rr, cc = r + dr, c + dc
+        ok = (rr < h) & (cc >= 0) & (cc < w)
+        ok[ok] = space[rr[ok], cc[ok]]
+        src.append(index[nodes[ok]])
+        dst.append(index[rr[ok] * w + cc[ok]])
+        cost.append(np.full(int(ok.sum()), float(np.hypot(dr, dc))))
+    n = len(nodes)
+    graph = coo_matrix((np.concatenate(cost), (np.concatenate(src), np.concatenate(dst))), shape=(n, n)).tocsr()
+    rng = np.random.default_rng(seed)
+    starts = rng.choice(n, size=min(PLANNER_STARTS, n), replace=False)
+    dist, pred = dijkstra(graph, directed=False, indices=starts, return_predecessors=True)
+    paths = crossing = 0
+    for k in range(len(starts)):
+        goals = rng.choice(n - 1, size=min(PLANNER_GOALS, n - 1), replace=False)
+        for goal in goals + (goals >= starts[k]):  # any node but the start
+            if not np.isfinite(dist[k, goal]):
+                continue
+            paths += 1
+            v, hit = goal, False
+            while v >= 0 and not hit:
+                hit = bool(danger.flat[nodes[v]])
+                v = pred[k, v]
+            crossing += hit
+    return PlannerCheck(paths, crossing, radius)

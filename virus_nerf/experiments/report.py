@@ -71,6 +71,10 @@ def safety_markdown(doc: Mapping[str, Any], picture: str | None = None) -> list[
         lines += [f"| {name} | " + " | ".join(pct(b["zones"][z]["free_share"]) for z in zones)
                   + f" | {pct(b.get('free_recall'))} |" for name, b in rows]
         lines.append("")
+        if "planner" in safety:
+            p = safety["planner"]
+            lines += [f"A planner on the map (robot radius {p['radius_m']:g} m, shortest paths between random free "
+                      f"points): {p['crossing']} of {p['paths']} paths pass a real obstacle.", ""]
         if picture:
             lines += [f"![ground-truth obstacles over the map, the ones it marks free in red]({picture})", "",
                       "Blue: ground-truth obstacles; red: the ones the map marks free; green: the path.", ""]

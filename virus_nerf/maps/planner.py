@@ -10,8 +10,12 @@ scans, each only turning free pixels occupied (a planner's map may lose free spa
 2. **Unexplained USS echoes.** An echo says "the nearest surface in this cone is at r". If the map
    holds an occupied pixel within `USS_EXPLAINED_M` of the echo's horizontal arc, the echo is
    explained and adds nothing; otherwise the obstacle lies somewhere on the arc and the map
-   does not know it, so the arc's free pixels become occupied (a leg, a pole or glass that the
-   cameras missed). Explained echoes are most of them, so the arcs cost little free space.
+   does not know it (a leg, a pole or glass that the cameras missed). Where on the arc is settled
+   by the other echoes, as in sonar occupancy mapping (Elfes 1987): a pixel of an unexplained
+   arc becomes occupied when the unexplained arcs through it are at least `USS_ARC_VOTE` times
+   the cones that passed it as free space (closer than their echo by `USS_FREE_MARGIN_M`).
+   An obstacle on the arc stops every cone that meets it, so its pixels keep their votes; the
+   rest of a 55 deg arc lies in space other cones crossed, and stays free.
 
 Measured and not kept (docs/decisions.md D47): the VIRUS grid's probability above 0.5 as
 obstacles, more scan positions and rays, a softer scan hit rule, every USS arc occupied.
@@ -30,6 +34,8 @@ from virus_nerf.sensors.geometry import yaw_of
 
 USS_EXPLAINED_M = 0.1  # an echo whose arc passes this close to an occupied pixel is explained
 USS_ARC_STEP_DEG = 1.0  # points along an echo's arc
+USS_ARC_VOTE = 0.25  # an arc pixel is occupied when unexplained arcs >= this share of the cones that passed it
+USS_FREE_MARGIN_M = 0.1  # a cone passed a point this much closer than its echo
 
 
 @dataclass(frozen=True)
@@ -101,8 +107,29 @@ def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence
     grid[hit & (grid == FREE)] = OCCUPIED
     arcs = uss_arcs(evidence)
     lost = unexplained_echoes(grid == OCCUPIED, arcs, lo, resolution, explained_m)
-    ij, inside = _pixels(arcs[lost], lo, resolution, grid.shape)
-    arc = np.zeros(grid.shape, dtype=bool)
-    arc[ij[inside, 0], ij[inside, 1]] = True
-    grid[arc & (grid == FREE)] = OCCUPIED
+    votes = np.zeros(grid.shape, dtype=np.int64)  # unexplained arcs through each pixel
+    for e in np.flatnonzero(lost):
+        ij, inside = _pixels(arcs[e], lo, resolution, grid.shape)
+        ij = np.unique(ij[inside], axis=0)  # one vote a pixel and echo
+        votes[ij[:, 0], ij[:, 1]] += 1
+    cand = np.argwhere((votes > 0) & (grid == FREE))  # (M, 2) [ix, iy]
+    centres = lo + (cand + 0.5) * resolution
+    passed = cones_passing(centres, evidence)
+    occ = votes[cand[:, 0], cand[:, 1]] >= USS_ARC_VOTE * passed
+    grid[cand[occ, 0], cand[occ, 1]] = OCCUPIED
     return to_image(grid)
+
+
+def cones_passing(points: np.ndarray, evidence: RangeEvidence, margin: float = USS_FREE_MARGIN_M,
+                  chunk: int = 4096) -> np.ndarray:
+    """(M,) int: for each world point (M, 2), the echoes whose horizontal opening (+-27.5 deg)
+    holds it closer than the echo's range minus `margin`: cones that passed it as free space."""
+    half = np.deg2rad(uss.USS_FOV_H_DEG / 2)
+    out = np.zeros(len(points), dtype=np.int64)
+    for s in range(0, len(points), chunk):
+        d = points[s : s + chunk, None, :] - evidence.uss_origins[None, :, :]  # (m, E, 2)
+        dist = np.hypot(d[..., 0], d[..., 1])
+        ang = np.arctan2(d[..., 1], d[..., 0]) - evidence.uss_yaw[None, :]
+        ang = (ang + np.pi) % (2 * np.pi) - np.pi
+        out[s : s + chunk] = ((np.abs(ang) <= half) & (dist < evidence.uss_range[None, :] - margin)).sum(axis=1)
+    return out
