@@ -75,11 +75,13 @@ class MapViews:
             self.field.train()
 
     def range_evidence(self) -> RangeEvidence:
-        """What the frames' IRS and USS measured at camera height (maps/planner.py), for the
-        sensors the mapper trains with."""
+        """What the frames' IRS, USS and stereo measured at camera height (maps/planner.py), for
+        the sensors the mapper trains with."""
         st = self.store
+        stereo = getattr(self, "stereo", None)
         return RangeEvidence.of_frames(st.cam_to_world, st.uss_range, st.irs_range, self.camera_height(),
-                                       tuple(self.config.sensors))
+                                       tuple(self.config.sensors),
+                                       stereo_points=None if stereo is None else stereo.points)
 
     def _raster_box(self, what: str, resolution) -> tuple[np.ndarray, np.ndarray]:
         """The box's (x, y) corners, once `resolution` is checked (maps.extract.check_raster)."""

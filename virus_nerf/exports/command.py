@@ -116,7 +116,7 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
         summary["observed"] = round(observed.observed_share(seen), 4)
     poses, stack_ids = trainer.recording.camera_poses()  # every frame, stack by stack
     if "map" in kinds or "esdf" in kinds:
-        evidence = training_evidence(trainer.recording, extract.camera_height(poses, stack_ids), cfg.sensors)
+        evidence = training_evidence(trainer, extract.camera_height(poses, stack_ids), cfg)
         m = extract.occupancy_map(trainer.mapper.model, poses[:, :3, 3], lo, hi, resolution, n_rays, max_poses, seen,
                                   evidence)
         if "map" in kinds:
@@ -193,16 +193,23 @@ def training_observed(recording, lo: np.ndarray, shape: tuple[int, int], resolut
                            resolution)
 
 
-def training_evidence(recording, height: float, sensors: tuple[str, ...]):
-    """What the training frames' IRS and USS measured at camera `height` (maps/planner.py)."""
+def training_evidence(trainer, height: float, cfg):
+    """What the training frames' IRS, USS and stereo (the run's own sensors) measured at camera
+    `height` (maps/planner.py); the stereo's points are the training's (stereo/build.py's cache)."""
     from virus_nerf.maps.planner import RangeEvidence
 
+    recording = trainer.recording
+    stereo = None
+    if "stereo" in cfg.sensors:
+        from virus_nerf.stereo.build import stereo_depth
+
+        stereo = stereo_depth(recording, trainer.store.frame_list(), cfg.stereo).points
     stacks = list(recording.stacks.values())
     rows = [st.indices("train") for st in stacks]
     return RangeEvidence.of_frames(np.concatenate([st.cam_to_world[r] for st, r in zip(stacks, rows, strict=True)]),
                                    np.concatenate([st.uss_range[r] for st, r in zip(stacks, rows, strict=True)]),
                                    np.concatenate([st.irs_range[r] for st, r in zip(stacks, rows, strict=True)]),
-                                   height, tuple(sensors))
+                                   height, tuple(cfg.sensors), stereo_points=stereo)
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:

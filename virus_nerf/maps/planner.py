@@ -5,8 +5,9 @@ does not hold at camera height: round objects in the open floor, thin table and 
 furniture ends. The robot carries the sensors made for exactly these, so two rules follow the
 scans, each only turning free pixels occupied (a planner's map may lose free space, never gain it):
 
-1. **IRS hits.** Every infrared sub-ray whose end lies at camera height (maps/evidence.py) marks
-   its end pixel occupied: the sensor touched a surface there.
+1. **IRS hits and stereo points.** Every infrared sub-ray whose end lies at camera height
+   (maps/evidence.py) marks its end pixel occupied: the sensor touched a surface there; so does
+   every triangulated stereo point (issue 28's measured surfaces) within the same height band.
 2. **Unexplained USS echoes.** An echo says "the nearest surface in this cone is at r". If the map
    holds an occupied pixel within `USS_EXPLAINED_M` of the echo's horizontal arc, the echo is
    explained and adds nothing; otherwise the obstacle lies somewhere on the arc and the map
@@ -23,6 +24,7 @@ obstacles, more scan positions and rays, a softer scan hit rule, every USS arc o
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +48,7 @@ class RangeEvidence:
     uss_origins: np.ndarray  # (E, 2) USS positions of the echoes
     uss_yaw: np.ndarray  # (E,) rad, the cone's heading
     uss_range: np.ndarray  # (E,) m, radial echo range
+    stereo_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))  # (S, 2) at camera height
 
     @staticmethod
     def empty() -> RangeEvidence:
@@ -53,17 +56,22 @@ class RangeEvidence:
 
     @staticmethod
     def of_frames(cam_to_world: np.ndarray, uss_range: np.ndarray, irs_range: np.ndarray, height: float,
-                  sensors: tuple[str, ...], band: float = SENSOR_BAND_M) -> RangeEvidence:
+                  sensors: tuple[str, ...], band: float = SENSOR_BAND_M,
+                  stereo_points: np.ndarray | None = None) -> RangeEvidence:
         """The evidence of frames (cam_to_world (F, 4, 4), uss_range (F,) m, irs_range (F, 8, 8)
-        z-depth m) for the sensors in `sensors` (the ones the map was trained with; "irs" and
-        "uss" count) at camera `height` (m)."""
+        z-depth m) and of the stereo's world points (P, 3) for the sensors in `sensors` (the ones
+        the map was trained with; "irs", "uss" and "stereo" count) at camera `height` (m)."""
         poses = np.asarray(cam_to_world, dtype=np.float64).reshape(-1, 4, 4)
         irs = irs_rays_2d(poses, irs_range, height, band).ends() if "irs" in sensors else np.zeros((0, 2))
+        stereo = np.zeros((0, 2))
+        if "stereo" in sensors and stereo_points is not None:
+            pts = np.asarray(stereo_points, dtype=np.float64).reshape(-1, 3)
+            stereo = pts[np.abs(pts[:, 2] - height) <= band, :2]
         if "uss" not in sensors:
-            return RangeEvidence(irs, np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+            return RangeEvidence(irs, np.zeros((0, 2)), np.zeros(0), np.zeros(0), stereo)
         r = np.asarray(uss_range, dtype=np.float64).reshape(-1)
         ok = np.isfinite(r) & (r > 0)
-        return RangeEvidence(irs, poses[ok, :2, 3].copy(), yaw_of(poses[ok]), r[ok])
+        return RangeEvidence(irs, poses[ok, :2, 3].copy(), yaw_of(poses[ok]), r[ok], stereo)
 
 
 def _pixels(points: np.ndarray, lo: np.ndarray, resolution: float, shape: tuple[int, int]):
@@ -97,11 +105,11 @@ def unexplained_echoes(occupied: np.ndarray, arcs: np.ndarray, lo: np.ndarray, r
 def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence: RangeEvidence,
                   explained_m: float = USS_EXPLAINED_M) -> np.ndarray:
     """The planner's trinary map (H, W) (row 0 = largest y) from the NeRF's scan map `image`
-    (already unknown where no sensor looked) and the range evidence: IRS hits, then the arcs of
-    unexplained USS echoes, occupied where the scans said free. The input is not changed."""
+    (already unknown where no sensor looked) and the range evidence: IRS hits and stereo points,
+    then the voted arcs of unexplained USS echoes, occupied where the scans said free. The input is not changed."""
     grid = from_image(image).copy()  # [ix, iy]
     lo = np.asarray(lo, dtype=np.float64)[:2]
-    ij, inside = _pixels(evidence.irs_hits, lo, resolution, grid.shape)
+    ij, inside = _pixels(np.concatenate([evidence.irs_hits, evidence.stereo_points]), lo, resolution, grid.shape)
     hit = np.zeros(grid.shape, dtype=bool)
     hit[ij[inside, 0], ij[inside, 1]] = True
     grid[hit & (grid == FREE)] = OCCUPIED
