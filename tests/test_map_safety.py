@@ -121,6 +121,11 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     # issue 42 item 5: a planner on the map finds paths and none of them passes a real obstacle
     assert safety["planner"]["paths"] > 0 and safety["planner"]["crossing"] == 0, safety["planner"]
     assert "paths between random free points pass a real obstacle" in out
+    # `evaluate` judges the same map: the same safety block
+    code, out_eval, err = run_cli(["evaluate", "--run", run, "--out", tmp_path / "eval.json"])
+    assert code == 0, err
+    assert json.loads((tmp_path / "eval.json").read_text())["safety"] == safety
+    assert "map safety (map ground truth)" in out_eval
     assert "map safety (map ground truth)" in out
     # export: the map, ESDF and probability map are unknown / NaN / 0.5 outside the observed wedges
     code, _, err = run_cli(["export", "--run", run, "--out", tmp_path / "export", "--what", "map,esdf,prob"])

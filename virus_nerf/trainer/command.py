@@ -590,11 +590,18 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
     check_ground_truth_inputs(trainer.recording, cfg.evaluation.gt)
     result = _final_evaluation(trainer, run)
     summary = TrainSummary(trainer.mapper.step, trainer.mapper.seconds, trainer.mapper.samples)
+    from virus_nerf.evaluation.safety import mapper_safety, safety_line
+
+    trainer.prepare()  # the frames the run trained on and its stereo points (cached): the map `train` judged
+    run_safety = mapper_safety(trainer.mapper, trainer.recording, cfg.evaluation.height_band_m)
     write_plots(result, plots_dir_for(out), max_maps=8, replace=redo)
     if out.exists():  # another process finished the same evaluation meanwhile
         raise OutputExistsError(out)
-    result.write_json(out, train=train_summary_block(cfg, summary))
+    result.write_json(out, train=train_summary_block(cfg, summary),
+                      safety=None if run_safety is None else run_safety.document)
     print(result.table())
+    if run_safety is not None:
+        print(safety_line(run_safety.document))
     print(f"wrote {out} and {plots_dir_for(out)}/")
 
 
