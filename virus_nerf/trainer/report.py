@@ -30,6 +30,7 @@ def write_run_plots(run_dir: Path, result, eval_history: list[EvalPoint], max_ma
         if safety_picture is not None:
             from virus_nerf.maps.occupancy import write_png
 
-            write_png(tmp / SAFETY_PICTURE, safety_picture)
+            k = int(min(4, max(1, -(-800 // safety_picture.shape[1]))))  # whole pixels, ~800 px wide
+            write_png(tmp / SAFETY_PICTURE, safety_picture.repeat(k, axis=0).repeat(k, axis=1))
             names.append(SAFETY_PICTURE)
     return [folder / n for n in names]
