@@ -101,3 +101,16 @@ def test_stereo_points_at_camera_height_mark_their_pixels_occupied():
     image = np.full((10, 30), FREE, dtype=np.uint8)  # 3 x 1 m at 0.1 m
     out = from_image(planner_image(image, np.zeros(2), 0.1, ev))
     assert out[10, 0] == OCCUPIED and out[5, 3] == OCCUPIED and (out == OCCUPIED).sum() == 2
+
+
+def test_cones_passing_counts_the_echoes_whose_cone_held_a_point_before_its_echo():
+    from virus_nerf.maps.planner import cones_passing
+
+    ev = RangeEvidence(np.zeros((0, 2)), np.array([[0.0, 0.0], [0.0, 0.0], [4.0, 0.0]]),
+                       np.array([0.0, math.pi / 2, math.pi]), np.array([3.0, 3.0, 1.0]))
+    pts = np.array([[1.0, 0.0], [2.0, 1.0], [2.95, 0.0], [3.5, 0.0], [0.0, 1.0]])
+    # (1, 0): cone 0 (2.9 m reach); (2, 1): 26.6 deg off cone 0's axis, 2.24 m; (2.95, 0): beyond
+    # 3.0 - 0.1; (3.5, 0): cone 2 (looking -x from 4 m, 0.5 m < 0.9); (0, 1): cone 1
+    expected = [1, 1, 0, 1, 1]
+    np.testing.assert_array_equal(cones_passing(pts, ev), expected)
+    np.testing.assert_array_equal(cones_passing(pts, ev, pairs=2), expected)  # one point at a time

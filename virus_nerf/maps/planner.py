@@ -106,7 +106,8 @@ def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence
                   explained_m: float = USS_EXPLAINED_M) -> np.ndarray:
     """The planner's trinary map (H, W) (row 0 = largest y) from the NeRF's scan map `image`
     (already unknown where no sensor looked) and the range evidence: IRS hits and stereo points,
-    then the voted arcs of unexplained USS echoes, occupied where the scans said free. The input is not changed."""
+    then the voted arcs of unexplained USS echoes, occupied where the scans said free. The input
+    is not changed."""
     grid = from_image(image).copy()  # [ix, iy]
     lo = np.asarray(lo, dtype=np.float64)[:2]
     ij, inside = _pixels(np.concatenate([evidence.irs_hits, evidence.stereo_points]), lo, resolution, grid.shape)
@@ -129,11 +130,13 @@ def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence
 
 
 def cones_passing(points: np.ndarray, evidence: RangeEvidence, margin: float = USS_FREE_MARGIN_M,
-                  chunk: int = 4096) -> np.ndarray:
+                  pairs: int = 1 << 21) -> np.ndarray:
     """(M,) int: for each world point (M, 2), the echoes whose horizontal opening (+-27.5 deg)
-    holds it closer than the echo's range minus `margin`: cones that passed it as free space."""
+    holds it closer than the echo's range minus `margin`: cones that passed it as free space.
+    Points go in chunks of at most `pairs` point-echo pairs (bounded memory on long drives)."""
     half = np.deg2rad(uss.USS_FOV_H_DEG / 2)
     out = np.zeros(len(points), dtype=np.int64)
+    chunk = max(1, pairs // max(1, len(evidence.uss_range)))
     for s in range(0, len(points), chunk):
         d = points[s : s + chunk, None, :] - evidence.uss_origins[None, :, :]  # (m, E, 2)
         dist = np.hypot(d[..., 0], d[..., 1])
