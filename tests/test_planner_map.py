@@ -92,10 +92,10 @@ def test_the_planner_map_adds_irs_hits_and_unexplained_arcs_where_the_scans_said
 
 def test_stereo_points_at_camera_height_mark_their_pixels_occupied():
     pose = camera_looking(0.0, 0.0, 0.0, z=0.5)
-    pts = np.array([[1.05, 0.05, 0.55], [2.05, 0.05, 0.75], [0.55, 0.35, 0.42]])  # +0.05, +0.25, -0.08 m
+    pts = np.array([[1.05, 0.05, 0.55], [2.05, 0.05, 0.95], [0.55, 0.35, 0.22]])  # +0.05, +0.45, -0.28 m
     ev = RangeEvidence.of_frames(pose[None], np.array([np.nan]), np.full((1, 8, 8), np.nan), 0.5,
                                  ("camera", "stereo"), stereo_points=pts)
-    np.testing.assert_allclose(ev.stereo_points, [[1.05, 0.05], [0.55, 0.35]])  # the one 0.25 m up is left out
+    np.testing.assert_allclose(ev.stereo_points, [[1.05, 0.05], [0.55, 0.35]])  # the one 0.45 m up is left out (0.3 m band)
     assert len(RangeEvidence.of_frames(pose[None], np.array([np.nan]), np.full((1, 8, 8), np.nan), 0.5,
                                        ("camera",), stereo_points=pts).stereo_points) == 0  # not a sensor of the run
     image = np.full((10, 30), FREE, dtype=np.uint8)  # 3 x 1 m at 0.1 m

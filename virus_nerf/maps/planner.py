@@ -5,9 +5,10 @@ does not hold at camera height: round objects in the open floor, thin table and 
 furniture ends. The robot carries the sensors made for exactly these, so two rules follow the
 scans, each only turning free pixels occupied (a planner's map may lose free space, never gain it):
 
-1. **IRS hits and stereo points.** Every infrared sub-ray whose end lies at camera height
-   (maps/evidence.py) marks its end pixel occupied: the sensor touched a surface there; so does
-   every triangulated stereo point (issue 28's measured surfaces) within the same height band.
+1. **IRS hits and stereo points.** Every infrared sub-ray whose end lies within
+   `OBSTACLE_BAND_M` of camera height (maps/evidence.py) marks its end pixel occupied: the sensor
+   touched a surface there, one the robot's body (not only its cameras) would meet; so does every
+   triangulated stereo point (issue 28's measured surfaces) within the same height band.
 2. **Unexplained USS echoes.** An echo says "the nearest surface in this cone is at r". If the map
    holds an occupied pixel within `USS_EXPLAINED_M` of the echo's horizontal arc, the echo is
    explained and adds nothing; otherwise the obstacle lies somewhere on the arc and the map
@@ -19,7 +20,8 @@ scans, each only turning free pixels occupied (a planner's map may lose free spa
    rest of a 55 deg arc lies in space other cones crossed, and stays free.
 
 Measured and not kept (docs/decisions.md D47): the VIRUS grid's probability above 0.5 as
-obstacles, more scan positions and rays, a softer scan hit rule, every USS arc occupied.
+obstacles, more scan positions and rays, a softer scan hit rule, every USS arc occupied, a
+0.1 m or 0.2 m band for the IRS hits and stereo points.
 """
 
 from __future__ import annotations
@@ -29,11 +31,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from virus_nerf.maps.evidence import SENSOR_BAND_M, irs_rays_2d
+from virus_nerf.maps.evidence import irs_rays_2d
 from virus_nerf.maps.occupancy import FREE, OCCUPIED, from_image, to_image
 from virus_nerf.sensors import uss
 from virus_nerf.sensors.geometry import yaw_of
 
+OBSTACLE_BAND_M = 0.3  # IRS hits and stereo points this close to camera height are obstacles of the map
 USS_EXPLAINED_M = 0.1  # an echo whose arc passes this close to an occupied pixel is explained
 USS_ARC_STEP_DEG = 1.0  # points along an echo's arc
 USS_ARC_VOTE = 0.25  # an arc pixel is occupied when unexplained arcs >= this share of the cones that passed it
@@ -56,7 +59,7 @@ class RangeEvidence:
 
     @staticmethod
     def of_frames(cam_to_world: np.ndarray, uss_range: np.ndarray, irs_range: np.ndarray, height: float,
-                  sensors: tuple[str, ...], band: float = SENSOR_BAND_M,
+                  sensors: tuple[str, ...], band: float = OBSTACLE_BAND_M,
                   stereo_points: np.ndarray | None = None) -> RangeEvidence:
         """The evidence of frames (cam_to_world (F, 4, 4), uss_range (F,) m, irs_range (F, 8, 8)
         z-depth m) and of the stereo's world points (P, 3) for the sensors in `sensors` (the ones
