@@ -27,6 +27,7 @@ SAFETY_ZONES_M = (1.0, 2.0, math.inf)  # obstacle distance to the robot's path
 SAFETY_TOLERANCE_M = 0.1  # the paper's inlier distance
 FREE_NEAR_PATH_M = 3.0  # free recall: true free space this close to the path ...
 FREE_CLEARANCE_M = 0.15  # ... and at least this far from every obstacle
+MAP_POSES = 30  # the judged map's scan positions (Mapper.map2d's default)
 
 
 @dataclass(frozen=True)
@@ -231,12 +232,13 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
     LiDAR map at camera height (+-band m), beside its anchors; None without a LiDAR map or frames."""
     from virus_nerf.evaluation.gt import height_slice
     from virus_nerf.maps.evidence import sensor_rays_2d
+    from virus_nerf.maps.extract import spread_rows
     from virus_nerf.maps.observed import apply_mask, observed_share
     from virus_nerf.maps.occupancy import UNKNOWN, scan_occupancy
 
     if recording.map_path is None or not mapper.frames:
         return None
-    m = mapper.map2d(resolution)
+    m = mapper.map2d(resolution, max_poses=MAP_POSES)
     height = mapper.camera_height()
     obstacles = height_slice(recording.lidar_map(), height, band)
     store = mapper.store
@@ -246,7 +248,7 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
     sensors = sensor_rays_2d(store.cam_to_world, store.uss_range, store.irs_range, height,
                              tuple(mapper.config.sensors))
     sensor_map = scan_occupancy(sensors.origins, sensors.directions, sensors.ranges, lo, hi, resolution)
-    rows = np.linspace(0, len(store) - 1, min(30, len(store))).astype(int)  # the map's scan positions (spread_positions)
+    rows = spread_rows(len(store), MAP_POSES)  # the map's scan positions
     lidar = lidar_rays_2d(recording, store.times[rows], height, band)
     lidar_map = scan_occupancy(lidar.origins, lidar.directions, lidar.ranges, lo, hi, resolution)
     anchors = {"sensors": judge_map(apply_mask(sensor_map.image, seen, UNKNOWN), m.origin, resolution,

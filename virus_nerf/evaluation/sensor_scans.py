@@ -115,8 +115,7 @@ def irs_scan_2d(recording: Recording, test_point: TestPoint, band: float = 0.05)
 
 def uss_arc(cam_to_world: np.ndarray, range_m: float, step_deg: float = 1.0) -> np.ndarray:
     """(A, 2) points on the cone's horizontal arc at radial `range_m` around the camera heading."""
-    n = int(np.ceil(uss.USS_FOV_H_DEG / step_deg)) + 1
-    a = yaw_of(cam_to_world) + np.linspace(-USS_HALF_FOV_RAD, USS_HALF_FOV_RAD, n)
+    a = yaw_of(cam_to_world) + uss.fan_offsets(step_deg)
     return cam_to_world[:2, 3][None, :] + range_m * np.stack([np.cos(a), np.sin(a)], axis=1)
 
 

@@ -6,7 +6,7 @@ world frame (origin, unit direction, range in metres) that `maps.occupancy.scan_
 turns into a classic inverse-sensor map (Moravec and Elfes 1985: cells a ray passed free, its end
 cell occupied), the same rasteriser as the NeRF's scans:
 
-- IRS: every valid zone, on a 3 x 3 grid of sub-rays (as sampler/sensor_rays.irs_zone_rays), whose
+- IRS: every valid zone, on a 3 x 3 grid of sub-rays (sensors/irs.zone_rays, as in training), whose
   hit point lies within +-`band` of the map's height: its end is an obstacle at that height. For
   a camera at the map's height (the main stack, maps/extract.camera_height) the ray's height is
   linear along it, so the space it passed at that height is free as well.
@@ -58,16 +58,12 @@ def irs_rays_2d(cam_to_world: np.ndarray, irs_range: np.ndarray, height: float, 
     """The IRS sub-rays of frames (cam_to_world (F, 4, 4), irs_range (F, 8, 8) z-depth m, NaN
     invalid) whose hit lies within +-band of `height`, projected on the floor (range = the
     horizontal distance to the hit). Each zone is covered by samples_per_axis^2 rays
-    (sampler/sensor_rays.irs_zone_rays: the zone's z-depth becomes z / d_z along each)."""
+    (sensors/irs.zone_rays, as the training's IRS rays)."""
     poses = np.asarray(cam_to_world, dtype=np.float64).reshape(-1, 4, 4)
     if not len(poses):
         return Rays2D.empty()
-    s2 = samples_per_axis * samples_per_axis
-    dirs_cam = irs.zone_directions(samples_per_axis).reshape(-1, 3)  # (64 s^2, 3), zone-major
-    z = np.asarray(irs_range, dtype=np.float64).reshape(len(poses), irs.IRS_ZONES * irs.IRS_ZONES)  # (F, 64)
-    r = (np.repeat(z, s2, axis=1) / dirs_cam[None, :, 2]).reshape(-1)  # (F K,) along each ray
-    d = np.einsum("fij,kj->fki", poses[:, :3, :3], dirs_cam).reshape(-1, 3)  # (F K, 3) world
-    o = np.repeat(poses[:, :3, 3], len(dirs_cam), axis=0)  # (F K, 3)
+    origins, dirs, ranges = irs.zone_rays(poses, np.asarray(irs_range, dtype=np.float64), samples_per_axis)
+    o, d, r = origins.reshape(-1, 3), dirs.reshape(-1, 3), ranges.reshape(-1)  # (F K, ...)
     ok = np.isfinite(r) & (r > 0)
     o, d, r = o[ok], d[ok], r[ok]
     end_z = o[:, 2] + d[:, 2] * r
@@ -85,9 +81,9 @@ def uss_rays_2d(cam_to_world: np.ndarray, uss_range: np.ndarray, fan_step_deg: f
     if not ok.any():
         return Rays2D.empty()
     poses, r = poses[ok], r[ok]
-    half = np.deg2rad(uss.USS_FOV_H_DEG / 2)
-    n = int(np.ceil(uss.USS_FOV_H_DEG / fan_step_deg)) + 1
-    ang = (yaw_of(poses)[:, None] + np.linspace(-half, half, n)[None, :]).reshape(-1)  # (F A,)
+    offsets = uss.fan_offsets(fan_step_deg)  # (A,)
+    n = len(offsets)
+    ang = (yaw_of(poses)[:, None] + offsets[None, :]).reshape(-1)  # (F A,)
     origins = np.repeat(poses[:, :2, 3], n, axis=0)
     return Rays2D(origins, np.column_stack([np.cos(ang), np.sin(ang)]), np.repeat(r, n))
 

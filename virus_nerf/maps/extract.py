@@ -43,13 +43,16 @@ def check_raster(what: str, lo: np.ndarray, hi: np.ndarray, resolution) -> tuple
     return nx, ny
 
 
+def spread_rows(n: int, max_poses: int) -> np.ndarray:
+    """(M,) int: at most `max_poses` of the rows 0..n-1, evenly spread (the first and the last
+    always among them); none for n = 0."""
+    return np.linspace(0, n - 1, min(max_poses, n)).astype(int) if n else np.zeros(0, dtype=int)
+
+
 def spread_positions(positions: np.ndarray, max_poses: int) -> np.ndarray:
-    """(N, 3) camera positions -> at most `max_poses` of them, evenly spread over their order
-    (the first and the last always among them)."""
+    """(N, 3) camera positions -> at most `max_poses` of them (`spread_rows`)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    if not len(positions):
-        return positions
-    return positions[np.linspace(0, len(positions) - 1, min(max_poses, len(positions))).astype(int)]
+    return positions[spread_rows(len(positions), max_poses)]
 
 
 def camera_height(cam_to_world: np.ndarray, stack_ids: np.ndarray, default: float = 0.0) -> float:

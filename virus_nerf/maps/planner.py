@@ -86,8 +86,7 @@ def _pixels(points: np.ndarray, lo: np.ndarray, resolution: float, shape: tuple[
 
 def uss_arcs(evidence: RangeEvidence, step_deg: float = USS_ARC_STEP_DEG) -> np.ndarray:
     """(E, A, 2) world points along each echo's horizontal arc (+-27.5 deg at its range)."""
-    half = np.deg2rad(uss.USS_FOV_H_DEG / 2)
-    a = evidence.uss_yaw[:, None] + np.linspace(-half, half, int(np.ceil(uss.USS_FOV_H_DEG / step_deg)) + 1)[None]
+    a = evidence.uss_yaw[:, None] + uss.fan_offsets(step_deg)[None]  # (E, A)
     return evidence.uss_origins[:, None, :] + evidence.uss_range[:, None, None] * np.stack([np.cos(a), np.sin(a)], -1)
 
 

@@ -21,7 +21,11 @@ def _world_rays(store: FrameStore, frames: np.ndarray, dirs_cam: np.ndarray, ran
     """frames (F,), camera-frame unit directions (K, 3), ranges (F, K) m -> F*K world rays."""
     pose = store.cam_to_world[frames]  # (F, 4, 4)
     dirs = np.einsum("fij,kj->fki", pose[:, :3, :3], dirs_cam)  # (F, K, 3)
-    origins = np.broadcast_to(pose[:, None, :3, 3], dirs.shape)
+    return _as_rays(np.broadcast_to(pose[:, None, :3, 3], dirs.shape), dirs, ranges)
+
+
+def _as_rays(origins: np.ndarray, dirs: np.ndarray, ranges: np.ndarray) -> SensorRays:
+    """(F, K, 3) origins and directions, (F, K) ranges -> F*K float32 SensorRays."""
     return SensorRays(
         origins=torch.from_numpy(np.ascontiguousarray(origins.reshape(-1, 3), dtype=np.float32)),
         directions=torch.from_numpy(np.ascontiguousarray(dirs.reshape(-1, 3), dtype=np.float32)),
@@ -36,11 +40,8 @@ def irs_zone_rays(store: FrameStore, frames: np.ndarray | None = None, samples_p
     `SensorRays.valid()` to drop them).
     """
     frames = np.arange(len(store)) if frames is None else np.asarray(frames)
-    s2 = samples_per_axis * samples_per_axis
-    dirs_cam = irs.zone_directions(samples_per_axis).reshape(-1, 3)  # (64 s^2, 3), zone-major
-    z = store.irs_range[frames].reshape(len(frames), irs.IRS_ZONES * irs.IRS_ZONES)  # (F, 64)
-    ranges = np.repeat(z, s2, axis=1) / dirs_cam[None, :, 2]  # (F, 64 s^2)
-    return _world_rays(store, frames, dirs_cam, ranges)
+    origins, dirs, ranges = irs.zone_rays(store.cam_to_world[frames], store.irs_range[frames], samples_per_axis)
+    return _as_rays(origins, dirs, ranges)
 
 
 def stereo_target_rays(store: FrameStore, depth: StereoDepth, frames: np.ndarray,

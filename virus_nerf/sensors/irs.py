@@ -71,3 +71,18 @@ def zone_directions(samples_per_axis: int = 1) -> np.ndarray:
     s = samples_per_axis
     d = d.reshape(IRS_ZONES, s, IRS_ZONES, s, 3).transpose(0, 2, 1, 3, 4)
     return d.reshape(IRS_ZONES, IRS_ZONES, s * s, 3)
+
+
+def zone_rays(cam_to_world: np.ndarray, z_depth: np.ndarray, samples_per_axis: int = 3,
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World rays covering every zone of frames (cam_to_world (F, 4, 4), z_depth (F, 8, 8) m,
+    NaN = invalid) with samples_per_axis^2 rays each: origins (F, K, 3), unit directions
+    (F, K, 3) and ranges (F, K) m along each ray (the zone's z-depth over the ray's d_z), float64,
+    K = 64 s^2, zone-major."""
+    s2 = samples_per_axis * samples_per_axis
+    dirs_cam = zone_directions(samples_per_axis).reshape(-1, 3)  # (64 s^2, 3), zone-major
+    poses = np.asarray(cam_to_world).reshape(-1, 4, 4)
+    z = np.asarray(z_depth).reshape(len(poses), IRS_ZONE_COUNT)  # (F, 64)
+    ranges = np.repeat(z, s2, axis=1) / dirs_cam[None, :, 2]  # (F, K)
+    dirs = np.einsum("fij,kj->fki", poses[:, :3, :3], dirs_cam)  # (F, K, 3)
+    return np.broadcast_to(poses[:, None, :3, 3], dirs.shape), dirs, ranges

@@ -47,3 +47,10 @@ def cone_directions(n_h: int = 56, n_v: int = 36) -> np.ndarray:
     d = np.stack([np.tan(ax), np.tan(ay), np.ones_like(ax)], axis=-1).reshape(-1, 3)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     return d[in_cone(d)]
+
+
+def fan_offsets(step_deg: float = 1.0) -> np.ndarray:
+    """(A,) rad: bearings across the cone's horizontal opening (+-27.5 deg around its axis), edges
+    included, about `step_deg` apart: where the echo's arc lies at camera height."""
+    half = np.deg2rad(USS_FOV_H_DEG / 2)
+    return np.linspace(-half, half, int(np.ceil(USS_FOV_H_DEG / step_deg)) + 1)
