@@ -42,6 +42,45 @@ def test_a_raster_too_large_or_not_positive_is_one_line_naming_the_argument():
         check_raster("Mapper.map2d resolution", lo, hi, 0)
 
 
+def test_a_raster_whose_working_memory_cannot_fit_is_refused_before_any_work():
+    """The pixel cap alone let `export --resolution 0.001` compute for minutes and die in numpy:
+    the rasters' working memory (56 bytes a pixel, D48) is checked against half of memory."""
+    lo, hi = np.array([0.0, 0.0]), np.array([10.0, 5.0])
+    # 0.001 m: 10000 x 5000 = 50 M px, under the 100 M px cap; 50e6 * 56 B = 2.61 GiB
+    assert check_raster("--resolution", lo, hi, 0.001, limit=6 * 2**30) == (10000, 5000)  # 3 GiB allowed
+    with pytest.raises(UsageError, match=r"^--resolution 0.001: the 10000x5000 px map's rasters: would need 2.6 GiB "
+                                         r"and this machine has 4.0 GiB; expected a coarser resolution$"):
+        check_raster("--resolution", lo, hi, 0.001, limit=4 * 2**30)
+
+
+def test_scan_counts_in_chunks_are_the_counts_of_the_whole():
+    """Pass points go in chunks (bounded memory at a fine resolution); the counts are exact sums,
+    so any chunking gives the same raster: a chunk of one ray each against the whole at once."""
+    from virus_nerf.maps import occupancy
+
+    rng = np.random.default_rng(3)
+    origins = rng.uniform(1, 4, (50, 2))
+    ang = rng.uniform(-np.pi, np.pi, 50)
+    dirs = np.stack([np.cos(ang), np.sin(ang)], 1)
+    ranges = rng.uniform(0.2, 3.0, 50)
+    lo, hi = np.array([0.0, 0.0]), np.array([5.0, 5.0])
+    whole = occupancy.scan_counts(origins, dirs, ranges, lo, hi, 0.05)
+    old = occupancy.SCAN_POINTS_PER_CHUNK
+    try:
+        occupancy.SCAN_POINTS_PER_CHUNK = 7  # below one ray's points: every ray alone
+        chunked = occupancy.scan_counts(origins, dirs, ranges, lo, hi, 0.05)
+    finally:
+        occupancy.SCAN_POINTS_PER_CHUNK = old
+    assert np.array_equal(whole[0], chunked[0]) and np.array_equal(whole[1], chunked[1])
+    # one ray along +x from (1.01, 2.52) of 1.01 m at 0.05 m: points every 0.025 m while at least
+    # one pixel before the end (floor(0.96 / 0.025) = 38 points, x 1.01..1.935): pixels ix 20..38
+    # twice each (no point on a pixel edge); its end (x 2.02) in pixel 40
+    passes, hits = occupancy.scan_counts(np.array([[1.01, 2.52]]), np.array([[1.0, 0.0]]), np.array([1.01]),
+                                         lo, hi, 0.05)
+    assert hits[40, 50] == 1 and hits.sum() == 1
+    assert passes.sum() == 38 and passes[20, 50] == 2 and passes[38, 50] == 2 and passes[39, 50] == 0
+
+
 class _Wall:
     """A range model: a wall at x = 2 m, nothing elsewhere."""
 

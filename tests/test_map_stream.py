@@ -302,6 +302,14 @@ def test_map_bag_refuses_a_bag_without_images_or_odometry(bags, tmp_path):
         code, _, stderr = run_cli(["map-bag", *argv, "--out", tmp_path / "out"])
         assert code == 2 and stderr.count("\n") == 1 and message in stderr, stderr
         assert not (tmp_path / "out").exists()
+    # a config whose step could not fit in memory (issue 39): the marcher's worst case, before any work
+    big = tmp_path / "big.json"
+    big.write_text(json.dumps({"batch_size": 10**9}))
+    code, _, stderr = run_cli(["map-bag", bags["ros1"], "--poses", "csv", "--poses-file", bags["csv"], "--config", big,
+                               "--out", tmp_path / "out"])
+    assert code == 2 and stderr.count("\n") == 1, stderr
+    assert f"--config {big}: batch_size 1000000000: a step may march up to 256 samples a ray" in stderr, stderr
+    assert not (tmp_path / "out").exists()
 
 
 def _odometry_edit(truth, drop_lidar: bool = False):

@@ -391,8 +391,12 @@ def test_a_failed_resume_leaves_the_run_as_it_was(run_copy, monkeypatch):
     # a machine of 128 GiB (a lent GPU server has that much; the check must not depend on this one's)
     monkeypatch.setattr("virus_nerf.utils.memory.memory_limit", lambda: 128 * 2**30)
     code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--batch-size", "1000000000"])
-    one_line_error(code, err, "--batch-size 1000000000: a step would need at least 89.4 GiB for its rays alone",
-                   "this machine has 128.0 GiB; expected at most 715827882 ")  # 64 GiB / 96 bytes
+    one_line_error(code, err, "--batch-size 1000000000: a step may march up to 32 samples a ray (march.max_samples), "
+                   "66518.8 GiB at 2232 bytes a sample", "this machine has 128.0 GiB; expected at most 962134 ")
+    # the run's march.max_samples is 32: 64 GiB / (32 samples x 2232 bytes) = 962134.3 rays; 2 M rays
+    # alone (96 bytes each, the old bound) would have passed, their samples do not
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--batch-size", "2000000"])
+    one_line_error(code, err, "--batch-size 2000000: a step may march up to 32 samples a ray", "expected at most 962134 ")
     assert snapshot(run_copy) == before
 
     def out_of_memory(self):

@@ -143,6 +143,9 @@ def map_bag(
         from virus_nerf.trainer.config import TrainConfig
 
         cfg = load_json_config(TrainConfig, config)
+        from virus_nerf.trainer.command import check_batch_memory
+
+        check_batch_memory(cfg, what=f"--config {config}: batch_size")  # a step's samples must fit, as for `train`
     if out.exists():
         raise OutputExistsError(out)
     if rerun_save is not None and Path(rerun_save).suffix != ".rrd":

@@ -27,12 +27,21 @@ from virus_nerf.maps.occupancy import (
 from virus_nerf.maps.planner import RangeEvidence, planner_image
 from virus_nerf.maps.scans import scan_ranges
 from virus_nerf.sensors.rig import MAIN_STACK
+from virus_nerf.utils.memory import require_memory
+
+# working memory of the 2D rasters per pixel (scan counts, observed mask, planner votes, distance
+# transforms, the probability slice, the ESDF): the slope of `export --what map,prob,esdf`'s peak
+# RSS over pixels (office 81, D48): 19.0 M px 1.51 GB, 75.8 M px 4.45 GB, 53 bytes a pixel; the
+# scans' pass points and the view wedges go in chunks and do not grow with the raster
+RASTER_BYTES_PER_PIXEL = 56
 
 
-def check_raster(what: str, lo: np.ndarray, hi: np.ndarray, resolution) -> tuple[int, int]:
+def check_raster(what: str, lo: np.ndarray, hi: np.ndarray, resolution, limit: int | None = None) -> tuple[int, int]:
     """(nx, ny) of the (x, y) box [lo, hi] at `resolution`; a one-line UsageError naming `what`
     (the flag or argument) before anything is allocated for a resolution that is not a positive
-    number or makes the map larger than maps.occupancy.MAX_PIXELS."""
+    number, makes the map larger than maps.occupancy.MAX_PIXELS, or whose rasters' working memory
+    (RASTER_BYTES_PER_PIXEL) would not fit in half the memory this process may use (`limit`
+    bytes; None: utils.memory's)."""
     if isinstance(resolution, bool) or not isinstance(resolution, int | float) or not np.isfinite(resolution) \
             or resolution <= 0:
         raise UsageError(f"{what} {resolution!r}: expected a positive number of metres per pixel")
@@ -40,6 +49,8 @@ def check_raster(what: str, lo: np.ndarray, hi: np.ndarray, resolution) -> tuple
     if nx * ny > MAX_PIXELS:
         raise UsageError(f"{what} {resolution!r}: the {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} m box would be a "
                          f"{nx}x{ny} px map; expected at most {MAX_PIXELS // 1_000_000} M px (a coarser resolution)")
+    require_memory(f"{what} {resolution!r}: the {nx}x{ny} px map's rasters", nx * ny * RASTER_BYTES_PER_PIXEL,
+                   "a coarser resolution", limit)
     return nx, ny
 
 

@@ -27,6 +27,7 @@ import math
 import numpy as np
 
 OBSERVE_REACH_M = 12.0  # the stereo stage's max_range: the farthest metric evidence
+WINDOW_PIXELS_PER_CHUNK = 1 << 22  # a view wedge's pixels tested at once (~150 MB of float64 temporaries)
 
 
 def camera_half_fov(width: int, fx: float) -> float:
@@ -66,13 +67,15 @@ def observed_mask(
         i0, j0, i1, j1 = max(i0, 0), max(j0, 0), min(i1, nx), min(j1, ny)
         if i0 >= i1 or j0 >= j1:
             continue
-        dx = lo[0] + (np.arange(i0, i1) + 0.5) * res[0] - pos[k, 0]  # (w,)
         dy = lo[1] + (np.arange(j0, j1) + 0.5) * res[1] - pos[k, 1]  # (h,)
-        d2 = dx[:, None] ** 2 + dy[None, :] ** 2
-        # inside the wedge: angle to the axis <= half, i.e. cos >= cos(half) (half < 90 deg)
-        along = (dx[:, None] * axis[k, 0] + dy[None, :] * axis[k, 1]) / norm[k]
-        inside = (d2 <= reach * reach) & (along >= np.sqrt(d2) * math.cos(half[k]))
-        mask[i0:i1, j0:j1] |= inside
+        rows = max(1, WINDOW_PIXELS_PER_CHUNK // (j1 - j0))  # bounded memory at any resolution
+        for a in range(i0, i1, rows):
+            b = min(a + rows, i1)
+            dx = lo[0] + (np.arange(a, b) + 0.5) * res[0] - pos[k, 0]  # (w,)
+            d2 = dx[:, None] ** 2 + dy[None, :] ** 2
+            # inside the wedge: angle to the axis <= half, i.e. cos >= cos(half) (half < 90 deg)
+            along = (dx[:, None] * axis[k, 0] + dy[None, :] * axis[k, 1]) / norm[k]
+            mask[a:b, j0:j1] |= (d2 <= reach * reach) & (along >= np.sqrt(d2) * math.cos(half[k]))
     return mask
 
 

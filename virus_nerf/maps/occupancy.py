@@ -23,6 +23,7 @@ import numpy as np
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205
 OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.196
 MAX_PIXELS = 100_000_000  # a finer --resolution is refused (memory) before anything is computed
+SCAN_POINTS_PER_CHUNK = 1 << 22  # pass points rasterised at once (~200 MB): a fine raster's scans in chunks
 
 
 @dataclass
@@ -70,14 +71,28 @@ def scan_counts(
     inside = np.all((ij >= 0) & (ij < shape), axis=1)
     np.add.at(hits, (ij[inside, 0], ij[inside, 1]), 1)
     step = resolution / 2
-    n_steps = np.floor(np.maximum(r - resolution, 0) / step).astype(int)
-    ray = np.repeat(np.arange(len(r)), n_steps)
-    t = (np.arange(n_steps.sum()) - np.repeat(np.cumsum(n_steps) - n_steps, n_steps)) * step
-    pts = o[ray] + d[ray] * t[:, None]
-    ij = np.floor((pts - lo) / resolution).astype(int)
-    inside = np.all((ij >= 0) & (ij < shape), axis=1)
-    np.add.at(passes, (ij[inside, 0], ij[inside, 1]), 1)
+    n_steps = np.floor(np.maximum(r - resolution, 0) / step).astype(np.int64)  # (N,) pass points a ray
+    for rows in _bounded_chunks(n_steps, SCAN_POINTS_PER_CHUNK):  # bounded memory at any resolution
+        k = n_steps[rows]
+        ray = np.repeat(rows, k)
+        t = (np.arange(k.sum()) - np.repeat(np.cumsum(k) - k, k)) * step
+        pts = o[ray] + d[ray] * t[:, None]
+        ij = np.floor((pts - lo) / resolution).astype(int)
+        inside = np.all((ij >= 0) & (ij < shape), axis=1)
+        np.add.at(passes, (ij[inside, 0], ij[inside, 1]), 1)
     return passes, hits
+
+
+def _bounded_chunks(counts: np.ndarray, budget: int):
+    """Index arrays over consecutive rows of `counts` (N,) whose counts sum to at most `budget`
+    (a row over the budget alone goes alone): the pass points of a chunk of rays."""
+    ends = np.cumsum(counts)
+    start = 0
+    while start < len(counts):
+        base = ends[start - 1] if start else 0
+        stop = max(start + 1, int(np.searchsorted(ends, base + budget, side="right")))
+        yield np.arange(start, stop)
+        start = stop
 
 
 def scan_occupancy(

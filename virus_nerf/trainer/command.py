@@ -360,24 +360,27 @@ def _resume(out: Path, recording, cfg, quiet):
     return trainer, _fit(trainer, started)
 
 
-# bytes a ray takes in a step before it is marched (the sampler's indices and draws, the
-# RayBatch's 14 float32 values and int64 frame): a lower bound; its samples take more
-RAY_BYTES = 96
+# bytes of working memory a marched sample takes in a training step (its positions, the hash
+# encoding's levels and the MLPs' activations, forward and backward): the slope of peak RSS over
+# the samples of a step, benchmarks/bench_step_memory.py (results/step_memory_d48.json, D48)
+SAMPLE_BYTES = 2232
 
 
-def check_batch_memory(cfg, limit: int | None = None) -> None:
-    """Refuse, before any work, a --batch-size whose rays alone would take more than half the
-    memory this process may use (utils.memory's rule: the rest holds the frames, the network
-    and, above all, the rays' samples, several times the rays' own bytes)."""
+def check_batch_memory(cfg, limit: int | None = None, what: str = "--batch-size") -> None:
+    """Refuse, before any work, a --batch-size whose step could need more than half the memory
+    this process may use (utils.memory's rule). What a step needs grows with its samples, not its
+    rays: the bound is the marcher's worst case, every ray keeping march.max_samples samples (a
+    step in the grid's warm-up comes within a few times of it)."""
     from virus_nerf.utils.memory import memory_limit
 
     limit = memory_limit() if limit is None else limit
-    need = cfg.batch_size * RAY_BYTES
+    per_ray = cfg.march.max_samples * SAMPLE_BYTES
+    need = cfg.batch_size * per_ray
     if limit is not None and need > limit / 2:
         raise UsageError(
-            f"--batch-size {cfg.batch_size}: a step would need at least {need / 2**30:.1f} GiB for its rays "
-            f"alone ({RAY_BYTES} bytes a ray before marching) and this machine has {limit / 2**30:.1f} GiB; "
-            f"expected at most {limit // 2 // RAY_BYTES} (the default is 2048)"
+            f"{what} {cfg.batch_size}: a step may march up to {cfg.march.max_samples} samples a ray "
+            f"(march.max_samples), {need / 2**30:.1f} GiB at {SAMPLE_BYTES} bytes a sample, and this machine has "
+            f"{limit / 2**30:.1f} GiB; expected at most {int(limit // 2 // per_ray)} (the default is 2048)"
         )
 
 

@@ -9,8 +9,14 @@ from virus_nerf.errors import UsageError
 
 
 def memory_limit() -> int | None:
-    """Bytes of memory this process may use: the machine's RAM, or a smaller cgroup limit."""
+    """Bytes of memory this process may use: the machine's RAM, or a smaller cgroup limit or
+    address-space limit (`ulimit -v`, systemd's LimitAS=)."""
+    import resource
+
     limits = []
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        limits.append(int(soft))
     try:
         limits.append(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
     except (ValueError, OSError, AttributeError):
