@@ -56,6 +56,38 @@ def test_frame_store_grows_without_losing_frames():
         store.append(2, 0, 0.0, np.eye(4), images[0], None, 1.0, np.zeros((8, 8)))
 
 
+def test_a_spilled_store_keeps_its_frames_in_an_unlinked_file_and_trains_the_same(tmp_path):
+    """Issue 39: past the budget, a growing store's images live in a memory-mapped file, not in
+    anonymous memory; the file's name is gone at once (nothing left after a kill), the frames
+    read back bit-identically, and a mapper on a spilled store trains exactly as one without."""
+    frame_bytes = INTR.height * INTR.width * 3  # 2304
+    store = FrameStore.empty({1: INTR, 3: INTR})
+    store.spill_to(tmp_path / "spill", above_bytes=40 * frame_bytes)
+    images = []
+    for k in range(40):  # capacity 16 (in memory), 34 (in memory: 34 * 2304 <= the budget), 70 (spilled)
+        images.append(np.full((INTR.height, INTR.width, 3), 3 * k, dtype=np.uint8))
+        store.append(1 + 2 * (k % 2), k, float(k), np.eye(4), images[-1], None, float(k), np.full((8, 8), k))
+        spilled = isinstance(store._capacity["images"], np.memmap)
+        assert spilled == (k >= 34), k
+    assert np.array_equal(store.images, np.stack(images)) and np.array_equal(store.times, np.arange(40.0))
+    assert not isinstance(store._capacity["times"], np.memmap)  # only the pixels are spilled
+    assert list((tmp_path / "spill").iterdir()) == []
+
+    def trained(spill: bool) -> list[float]:
+        torch.manual_seed(0)
+        mapper = _mapper()
+        if spill:
+            mapper.spill_frames(tmp_path / "spill2", above_bytes=0)  # every buffer in a file
+        losses = []
+        for k in range(3):
+            mapper.add_frame(_frame(float(k), stack=1 + 2 * (k % 2)))
+            losses.append(mapper.train(600.0, steps=2).loss)
+        assert isinstance(mapper.store._capacity["images"], np.memmap) == spill
+        return losses
+
+    assert trained(True) == trained(False)
+
+
 def test_frames_not_added_are_never_sampled_and_each_gets_the_prior_once():
     mapper = _mapper()
     seen = []

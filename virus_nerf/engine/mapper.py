@@ -32,6 +32,7 @@ import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -59,7 +60,7 @@ from virus_nerf.losses import LossTerms, distortion_loss, line_of_sight_terms, t
 from virus_nerf.maps.observed import frames_observed
 from virus_nerf.render.marching import ray_box_interval
 from virus_nerf.sampler.batch import BatchSampler, RayBatch, recent_frame_odds
-from virus_nerf.sampler.frames import FrameStore, resize_depth_mm, resize_rgb
+from virus_nerf.sampler.frames import SPILL_ABOVE_BYTES, FrameStore, resize_depth_mm, resize_rgb
 from virus_nerf.sampler.sensor_rays import irs_zone_rays, stereo_target_rays, uss_cone_rays
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.sensors.camera import Intrinsics
@@ -163,6 +164,12 @@ class Mapper(MapViews):
     @property
     def frames(self) -> int:
         return len(self.store)
+
+    def spill_frames(self, folder: Path, above_bytes: int = SPILL_ABOVE_BYTES) -> None:
+        """Keep the growing store's images beyond `above_bytes` in a file under `folder` (a disk,
+        not a tmpfs) instead of RAM: mapping while driving for an hour stays within memory
+        (sampler.frames.FrameStore.spill_to)."""
+        self.store.spill_to(folder, above_bytes)
 
     def add_frame(self, frame: SyncFrame) -> int:
         """Add one synchronised frame (checked: stack, image shapes, pose, ranges); returns its row."""

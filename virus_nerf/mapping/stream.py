@@ -252,6 +252,7 @@ class StreamRun:
         box = self.box(np.stack([f.frame.cam_to_world[:3, 3] for f in first]), cfg.extent, cfg.sensors)
         self.mapper = Mapper(cfg, dict(self.sync.intrinsics), box)
         (self.out / SNAPSHOTS).mkdir(parents=True)
+        self.mapper.spill_frames(self.out)  # a long drive's frames beyond the budget go to disk
         write_json_atomic(self.out / SNAPSHOTS / "config.json", to_dict(cfg))
         if self.live is not None:
             self.live.start_time = first[0].frame.time

@@ -12,6 +12,7 @@ fixed one, and frames not yet appended cannot be drawn.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,6 +24,9 @@ from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics, pixel_directions
 from virus_nerf.sensors.irs import IRS_ZONE_COUNT
 from virus_nerf.stereo.build import FrameList
+
+
+SPILL_ABOVE_BYTES = 512 << 20  # a growing store's images beyond this go to a file (`FrameStore.spill_to`)
 
 
 @dataclass
@@ -72,6 +76,7 @@ class FrameStore:
     intrinsics: dict[int, Intrinsics]  # per stack, at training resolution
     footprints: dict[int, StackFootprints]
     _capacity: dict[str, np.ndarray] | None = field(default=None, repr=False)  # buffers behind the views
+    _spill: tuple[Path, int] | None = field(default=None, repr=False)  # (folder, bytes) of `spill_to`
 
     def __len__(self) -> int:
         return len(self.stack_ids)
@@ -115,6 +120,33 @@ class FrameStore:
                         other.images[r], depth, float(other.uss_range[r]), other.irs_range[r])
 
     _ARRAYS = ("stack_ids", "rows", "times", "cam_to_world", "images", "depths_mm", "uss_range", "irs_range")
+    _PIXELS = ("images", "depths_mm")  # the arrays that grow by a frame's pixels: the ones spilled
+
+    def spill_to(self, folder: Path, above_bytes: int = SPILL_ABOVE_BYTES) -> None:
+        """From now on, a growing store whose image (and depth) buffers would pass `above_bytes`
+        keeps them in files under `folder` (memory-mapped, unlinked at once: nothing stays on disk
+        when the process ends, however it ends) instead of in anonymous memory. The OS pages
+        them in and out, so an hour-long drive does not hold every frame in RAM (issue 39)."""
+        self._spill = (Path(folder), int(above_bytes))
+
+    def _buffer(self, name: str, arr: np.ndarray, cap: int) -> np.ndarray:
+        """A zeroed (cap, ...) buffer for array `name`: in memory, or a spilled file's map."""
+        shape = (cap,) + arr.shape[1:]
+        nbytes = int(np.prod(shape, dtype=np.int64)) * arr.dtype.itemsize
+        if self._spill is None or name not in self._PIXELS or nbytes <= self._spill[1]:
+            return np.zeros(shape, dtype=arr.dtype)
+        import tempfile
+
+        folder = self._spill[0]
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, path = tempfile.mkstemp(prefix=f".frames-{name}-", suffix=".bin", dir=folder)
+        try:
+            os.ftruncate(fd, nbytes)  # sparse: zero-filled, no disk written until a page is
+            buf = np.memmap(path, dtype=arr.dtype, mode="r+", shape=shape)
+        finally:
+            os.close(fd)
+            os.unlink(path)  # the map keeps the file's blocks; the name is gone (no litter after a kill)
+        return buf
 
     def _grow(self, n: int) -> None:
         """Make every array n rows long (views of buffers, reallocated at twice the size when full)."""
@@ -126,7 +158,7 @@ class FrameStore:
                 arr = getattr(self, name)
                 if arr is None:
                     continue
-                buf = np.zeros((cap,) + arr.shape[1:], dtype=arr.dtype)
+                buf = self._buffer(name, arr, cap)
                 buf[: len(arr)] = arr
                 fresh[name] = buf
             self._capacity = buffers = fresh

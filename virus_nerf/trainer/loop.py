@@ -75,6 +75,8 @@ class Trainer:
         self.quiet = (not sys.stderr.isatty()) if quiet is None else quiet
         box = start_box(recording, config)
         self.mapper = Mapper(config, {s: st.intrinsics for s, st in recording.stacks.items()}, box)
+        if config.online:  # the frames arrive one by one: a long drive's beyond the budget go to disk
+            self.mapper.spill_frames(self.run_dir)
         self._source: FrameStore | None = None  # every training frame, decoded on first use
         self._added: np.ndarray | None = None  # (F,) bool: source rows the mapper has
         self._gt = None
@@ -92,6 +94,8 @@ class Trainer:
             store = build_frame_store(
                 self.recording, ("train",), self.config.image_scale, with_depth="rgbd" in self.config.sensors,
                 cache_dir=self.run_dir / "cache", progress=not self.quiet,
+                # online, the mapper copies each frame as it arrives: the source stays on disk
+                mmap_above_bytes=0 if self.config.online else 1 << 30,
             )
             if len(store) == 0:
                 raise ValueError(f"{self.recording.room_dir}: no frames labelled 'train' in the split")
