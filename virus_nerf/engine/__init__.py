@@ -7,3 +7,6 @@ model: `SceneModel` (field + occupancy grid + marcher), the grid and device it r
 schedule: how long and how wide a step is, offline or while driving (`StepSchedule`)
 views: the map queries mixed into `Mapper` (scans, 2D maps, snapshots)
 """
+
+# its public modules; none is imported here, so `import virus_nerf.engine` loads nothing else
+__all__ = ["config", "mapper", "model", "schedule", "views"]

@@ -6,3 +6,6 @@ clouds: PCD (pypcd4) and PLY writers
 views: what the model renders at poses (360 deg scans, dense surface cloud, colour/depth images)
 command: the command itself (flags, checks, output folder)
 """
+
+# its public modules; none is imported here, so `import virus_nerf.exports` loads nothing else
+__all__ = ["clouds", "command", "grid3d", "views"]
