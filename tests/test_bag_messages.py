@@ -29,10 +29,10 @@ def test_bgr8_with_row_padding_becomes_rgb():
 def test_depth_16uc1_big_endian_and_32fc1_metres():
     d = np.array([[1000, 65535]], dtype=">u2")
     msg = NS(encoding="16UC1", height=1, width=2, step=4, is_bigendian=1, data=d.view(np.uint8).reshape(-1))
-    assert m.decode_depth(msg, m.IMAGE, WHERE).tolist() == [[1000, 65535]]
+    assert m.decode_depth(msg, m.IMAGE, WHERE).mm.tolist() == [[1000, 65535]]
     f = np.array([[1.2344, np.nan, -1.0]], dtype="<f4")
     msg = NS(encoding="32FC1", height=1, width=3, step=12, is_bigendian=0, data=f.view(np.uint8).reshape(-1))
-    assert m.decode_depth(msg, m.IMAGE, WHERE).tolist() == [[1234, 0, 0]]  # m -> mm, invalid -> 0
+    assert m.decode_depth(msg, m.IMAGE, WHERE).mm.tolist() == [[1234, 0, 0]]  # m -> mm, invalid -> 0
     with pytest.raises(DataFormatError, match="encoding 'rgb8'"):
         m.decode_depth(NS(encoding="rgb8"), m.IMAGE, WHERE)
 
@@ -46,11 +46,14 @@ def test_pointcloud2_with_intensity_field_and_nan_points():
 
 
 def test_uss_range_and_custom_fields():
-    assert m.decode_uss_us(NS(meas=3752), m.USS_TYPE, WHERE) == 3752.0
-    assert m.decode_uss_us(NS(range=0.75, max_range=4.0), m.RANGE, WHERE) == pytest.approx(3750.0)
-    assert m.decode_uss_us(NS(range=float("inf"), max_range=4.0), m.RANGE, WHERE) == 50000.0
+    assert m.decode_uss(NS(meas=3752), m.USS_TYPE, WHERE).echo_us == 3752.0
+    assert m.decode_uss(NS(meas=3752), m.USS_TYPE, WHERE).range_m == pytest.approx(0.7504)
+    assert m.decode_uss(NS(range=0.75, max_range=4.0), m.RANGE, WHERE).echo_us == pytest.approx(3750.0)
+    assert m.decode_uss(NS(range=0.75, max_range=4.0), m.RANGE, WHERE).range_m == pytest.approx(0.75)
+    no_echo = m.decode_uss(NS(range=float("inf"), max_range=4.0), m.RANGE, WHERE)
+    assert no_echo.echo_us == 50000.0 and np.isnan(no_echo.range_m)
     with pytest.raises(DataFormatError, match="no field 'meas'"):
-        m.decode_uss_us(NS(distance=1), m.USS_TYPE, WHERE)
+        m.decode_uss(NS(distance=1), m.USS_TYPE, WHERE)
     assert m.normalise_type("sensors/uss") == m.USS_TYPE and m.normalise_type("sensors/TOF") == m.TOF_TYPE
 
 

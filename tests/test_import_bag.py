@@ -307,7 +307,7 @@ def test_an_implausible_camera_info_is_one_line_naming_topic_message_and_field()
 
     where = Where(Path("robot.bag"), "/cam1/camera_info", 4)
     good = SimpleNamespace(k=[386.0, 0, 320.0, 0, 386.0, 240.0, 0, 0, 1], width=640, height=480)
-    assert decode_camera_info(good, where).fx == 386.0
+    assert decode_camera_info(good, where).intrinsics.fx == 386.0
     tiny = SimpleNamespace(k=[1e-9, 0, 320.0, 0, 386.0, 240.0, 0, 0, 1], width=640, height=480)
     with pytest.raises(DataFormatError, match=r"robot.bag.*topic /cam1/camera_info, message 5: camera matrix fx: "
                                               r"focal length 1e-09 px gives a 180.0 degree field of view"):

@@ -30,20 +30,16 @@ from virus_nerf.data.split import write_split as write_split_file
 from virus_nerf.errors import DataFormatError, UsageError
 from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics, image_side_problem, intrinsics_problem
-from virus_nerf.sensors.geometry import pose_matrix
+from virus_nerf.sensors.geometry import QUATERNION_NORM_TOLERANCE, pose_matrix
+from virus_nerf.sensors.irs import IRS_MAX_PLAUSIBLE_MM  # noqa: F401 - re-exported (its old home)
 from virus_nerf.utils.textfile import not_a_number, quoted
 
 PoseSource = Literal["optimised", "odometry"]
 POSE_COLUMNS = ("time", "x", "y", "z", "qx", "qy", "qz", "qw")
 TOF_COLUMNS = ("time",) + tuple(f"meas_{k}" for k in range(irs.IRS_ZONE_COUNT))
-# A pose quaternion must have unit norm within this tolerance: | |q| - 1 | <= 1e-3. Rounding
-# every component to 4 decimals moves |q| by at most ~1e-4, so any honest export passes (the
-# real sample is unit to 2e-9); a quaternion further off is a column mix-up or garbage, which
-# normalising would silently turn into a wrong rotation.
-QUATERNION_NORM_TOLERANCE = 1e-3
-# An IRS zone reading (mm) beyond 100 m cannot be a distance (the VL53L5CX reaches 4 m): it is a
-# unit mix-up or garbage, and is refused naming the row and zone rather than read as free space.
-IRS_MAX_PLAUSIBLE_MM = 100_000
+# QUATERNION_NORM_TOLERANCE (sensors/geometry.py) and IRS_MAX_PLAUSIBLE_MM (sensors/irs.py) are the
+# checks a pose or an IRS reading meets wherever it enters: here, in a bag and in a stream
+# (data/bags/messages.py). Re-exported under their old home.
 
 
 @dataclass
@@ -266,15 +262,11 @@ def read_tof(path: Path) -> tuple[np.ndarray, np.ndarray]:
     table = read_numeric_csv(path, TOF_COLUMNS)
     check_sorted_times(path, table["time"])
     mm = np.stack([table[f"meas_{k}"] for k in range(irs.IRS_ZONE_COUNT)], axis=1)
-    far = np.argwhere(np.abs(mm) > IRS_MAX_PLAUSIBLE_MM)  # (row, zone), row-major: the first row first
+    far = irs.implausible_zones(mm)  # (row, zone), row-major: the first row first
     if far.size:
         i, k = (int(v) for v in far[0])
-        raise DataFormatError(
-            path, f"{mm[i, k]:g} mm ({mm[i, k] / 1000:g} m) is beyond any IRS reading (> {IRS_MAX_PLAUSIBLE_MM} mm "
-                  f"= {IRS_MAX_PLAUSIBLE_MM // 1000} m); expected millimetres", row=i + 2, field=f"meas_{k}")
-    metres = mm / 1000.0
-    metres[~np.isfinite(mm) | (metres <= irs.IRS_MIN_VALID_M)] = np.nan
-    return table["time"], irs.grid_from_measurements(metres)
+        raise DataFormatError(path, irs.implausible_problem(float(mm[i, k])), row=i + 2, field=f"meas_{k}")
+    return table["time"], irs.grid_from_mm(mm)
 
 
 def _numbered_files(folder: Path, suffix: str) -> list[Path]:

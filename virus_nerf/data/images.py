@@ -78,8 +78,14 @@ def read_depth(path: Path, intr: Intrinsics) -> np.ndarray:
         raise DataFormatError(
             path, f"depth map ({raw.dtype}) has values {raw.min()}..{raw.max()}; expected uint16 millimetres 0..65535"
         )
-    depth = raw.astype(np.float32) / 1000.0
-    depth[np.isin(raw, DEPTH_INVALID_MM)] = np.nan
+    return depth_from_mm(raw)
+
+
+def depth_from_mm(mm: np.ndarray) -> np.ndarray:
+    """Depth in integer millimetres -> float32 metres, NaN where invalid (DEPTH_INVALID_MM): the one
+    rule for a .npy map here and for a depth message (data/bags/messages.py)."""
+    depth = mm.astype(np.float32) / 1000.0
+    depth[np.isin(mm, DEPTH_INVALID_MM)] = np.nan
     return depth
 
 

@@ -325,6 +325,8 @@ def _lidar_frame(reader, topic: str | None) -> str:
 
     if not topic or topic not in reader.topics:
         raise UsageError("--poses tf needs --tf-child FRAME (the bag has no LiDAR whose frame could be used)")
+    from virus_nerf.data.bags.messages import frame_id
+
     for msg in reader.iter_topic(topic):
-        return msg.msg.header.frame_id.lstrip("/")
+        return frame_id(msg.msg)
     raise UsageError("--poses tf needs --tf-child FRAME (the LiDAR topic has no messages)")

@@ -4,6 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
+# A pose quaternion must have unit norm within this tolerance: | |q| - 1 | <= 1e-3, wherever a pose
+# enters (a pose file, an Odometry or tf message). Rounding every component to 4 decimals moves |q|
+# by at most ~1e-4, so any honest export passes (the real sample is unit to 2e-9); a quaternion
+# further off is a column mix-up or garbage (zeros: an uninitialised publisher), which normalising
+# would silently turn into a wrong rotation.
+QUATERNION_NORM_TOLERANCE = 1e-3
+
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """(..., 4) unit quaternions (x, y, z, w) -> (..., 3, 3) rotation matrices."""

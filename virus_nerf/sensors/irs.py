@@ -21,6 +21,29 @@ IRS_ZONES = 8  # zones per axis
 IRS_ZONE_COUNT = IRS_ZONES * IRS_ZONES  # 64 ranges per reading
 IRS_MIN_VALID_M = 0.1  # readings at or below this are invalid (docs/method.md 4)
 IRS_MAX_RANGE_M = 4.0
+# A zone reading (mm) beyond 100 m cannot be a distance (the VL53L5CX reaches 4 m): it is a unit
+# mix-up or garbage, refused wherever a reading enters (a TOF file, a bag, a stream), naming the zone.
+IRS_MAX_PLAUSIBLE_MM = 100_000
+
+
+def implausible_zones(meas_mm: np.ndarray) -> np.ndarray:
+    """Indices (K, ndim) of the readings (mm) beyond IRS_MAX_PLAUSIBLE_MM, row-major (the first first)."""
+    return np.argwhere(np.abs(np.asarray(meas_mm)) > IRS_MAX_PLAUSIBLE_MM)
+
+
+def implausible_problem(value_mm: float) -> str:
+    """The refusal of a reading beyond IRS_MAX_PLAUSIBLE_MM, in one wording for files and messages."""
+    return (f"{value_mm:g} mm ({value_mm / 1000:g} m) is beyond any IRS reading (> {IRS_MAX_PLAUSIBLE_MM} mm "
+            f"= {IRS_MAX_PLAUSIBLE_MM // 1000} m); expected millimetres")
+
+
+def grid_from_mm(meas_mm: np.ndarray) -> np.ndarray:
+    """(..., 64) zone readings in mm, sensor order -> (..., 8, 8) metres in image zone order, NaN
+    where invalid (non-finite, or at or below IRS_MIN_VALID_M: 0 is the sensor's "no target")."""
+    mm = np.asarray(meas_mm, dtype=np.float64)
+    metres = mm / 1000.0
+    metres[~np.isfinite(mm) | (metres <= IRS_MIN_VALID_M)] = np.nan
+    return grid_from_measurements(metres)
 
 
 def grid_from_measurements(meas: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 from collections import Counter, deque
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,13 +46,12 @@ from virus_nerf.data.bags.odometry import (
     tf_track,
 )
 from virus_nerf.data.bags.reader import Message
+from virus_nerf.data.bags.sync import match_nearest
 from virus_nerf.data.bags.topics import LidarConfig, TopicsConfig
 from virus_nerf.data.ethz import MAX_JUMP_M
 from virus_nerf.data.frame import SyncFrame
 from virus_nerf.errors import DataFormatError
-from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics
-from virus_nerf.sensors.geometry import pose_matrix
 
 # MAX_JUMP_M (data/ethz.py): the robot moving further between two consecutive frames is a broken pose source
 JUMP_WINDOW_S = 1.0  # ... when they are at most this far apart in time
@@ -62,8 +62,8 @@ PARTNERS = ("depth", "uss", "tof")  # the importer's order: a dropped frame coun
 class StreamError(DataFormatError):
     """Bad data met while streaming; `at_s`: where (seconds since the bag's first message)."""
 
-    def __init__(self, bag: Path, problem: str, at_s: float) -> None:
-        super().__init__(bag, problem)
+    def __init__(self, bag: Path, problem: str, at_s: float, field: str | None = None) -> None:
+        super().__init__(bag, problem, field=field)
         self.at_s = at_s
 
 
@@ -93,13 +93,12 @@ class Recent:
         return self.newest_s >= t or clock_s > t + tolerance_s
 
     def nearest(self, t: float, tolerance_s: float):
-        """The value stamped nearest to `t` within the tolerance (ties: the earlier stamp), or None."""
-        best, best_d, best_t = None, math.inf, math.inf
-        for ti, v in self.items:
-            d = abs(ti - t)
-            if d < best_d or (d == best_d and ti < best_t):
-                best, best_d, best_t = v, d, ti
-        return best if best_d <= tolerance_s else None
+        """The value stamped nearest to `t` within the tolerance, or None: the importer's rule
+        (sync.match_nearest; ties to the earlier stamp)."""
+        if not self.items:
+            return None
+        k = int(match_nearest(np.array([t]), np.array([ti for ti, _ in self.items]), tolerance_s)[0])
+        return None if k < 0 else self.items[k][1]
 
     def prune(self, before_s: float) -> None:
         while self.items and self.items[0][0] < before_s:
@@ -220,10 +219,8 @@ class KissPoses(TrackPoses):
         self.last_sent = -math.inf
 
     def add(self, topic: str, msg: Message) -> None:
-        pts = m.decode_cloud(msg.msg, m.Where(self.bag, topic, msg.index))
-        r = np.linalg.norm(pts, axis=1)
-        pts = pts[(r >= self.lidar.min_range_m) & (r <= self.lidar.max_range_m)].astype(np.float32)
-        pts = pts.astype(np.float64)  # the importer's scans went through a float32 PCD
+        where = m.Where(self.bag, topic, msg.index)  # the importer's scan (float32, as its PCD holds it)
+        pts = m.decode_scan(msg.msg, where, self.lidar.min_range_m, self.lidar.max_range_m).astype(np.float64)
         s = self.settings
         if s.drop_floor_ceiling_m > 0:
             if self.band is None:
@@ -293,10 +290,7 @@ class TfPoses(PoseSource):
 
     def add(self, topic: str, msg: Message) -> None:
         static = "static" in topic
-        for tr in msg.msg.transforms:
-            tt, q = tr.transform.translation, tr.transform.rotation
-            pose = pose_matrix(np.array([tt.x, tt.y, tt.z]), np.array([q.x, q.y, q.z, q.w]))
-            item = Transform(m.stamp_s(tr), tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/"), pose, static)
+        for item in m.decode_tf(msg.msg, m.Where(self.bag, topic, msg.index), static):
             if static:
                 self.static[item.child] = item
             else:
@@ -404,22 +398,22 @@ class LiveSync:
             self.t0 = t
         self._check_clock(topic, msg)
         self.clock = max(self.clock, t)
-        if topic in self.poses.topics:
-            self.poses.add(topic, msg)
-        for s, role in self.roles.get(topic, ()):
-            where = m.Where(self.bag, topic, msg.index)
-            if role == "color":
-                self._color(s, msg, late)
-            elif role == "camera_info":
-                if s not in self.intrinsics:
-                    self.intrinsics[s] = m.decode_camera_info(msg.msg, where)
-            elif role == "uss":
-                self.buffers[(s, role)].add(t, float(uss.range_from_raw(np.array([m.decode_uss_us(msg.msg, msg.msgtype,
-                                                                                               where)]))[0]))
-            elif role == "tof":
-                self.buffers[(s, role)].add(t, _irs_grid(m.decode_tof(msg.msg, where)[0]))
-            else:  # depth: decoded only if the frame is made and wants it
-                self.buffers[(s, role)].add(t, msg)
+        with self._at(msg):
+            if topic in self.poses.topics:
+                self.poses.add(topic, msg)
+            for s, role in self.roles.get(topic, ()):
+                where = m.Where(self.bag, topic, msg.index)
+                if role == "color":
+                    self._color(s, msg, late)
+                elif role == "camera_info":
+                    if s not in self.intrinsics:
+                        self.intrinsics[s] = m.decode_camera_info(msg.msg, where).intrinsics
+                elif role == "uss":
+                    self.buffers[(s, role)].add(t, m.decode_uss(msg.msg, msg.msgtype, where).range_m)
+                elif role == "tof":
+                    self.buffers[(s, role)].add(t, m.decode_tof(msg.msg, where).grid_m())
+                else:  # depth: decoded only if the frame is made and wants it
+                    self.buffers[(s, role)].add(t, msg)
         self._check_silence()
         return self._release()
 
@@ -429,6 +423,15 @@ class LiveSync:
             raise self.error
         self.clock = math.inf
         return self._release()
+
+    @contextmanager
+    def _at(self, msg: Message):
+        """A message the decoders refuse (data/bags/messages.py: the importer's checks and words) stops
+        the stream as a StreamError at that message's bag time."""
+        try:
+            yield
+        except m.MessageError as exc:
+            raise StreamError(self.bag, exc.problem, self.rel(msg.time_s), field=exc.field) from None
 
     def _color(self, s: int, msg: Message, late: bool) -> None:
         t = msg.time_s
@@ -525,12 +528,9 @@ class LiveSync:
             self.dropped[s]["no camera_info"] += 1
             return None
         intr = self.intrinsics[s]
-        topic = self.cfg.stacks[s].color
-        where = m.Where(self.bag, topic, msg.index)
-        rgb = m.decode_color(msg.msg, msg.msgtype, where)
-        if rgb.shape[:2] != (intr.height, intr.width):
-            raise StreamError(self.bag, f"topic {topic}, message {msg.index + 1}: image is {rgb.shape[1]}x{rgb.shape[0]}; "
-                              f"the camera info of stack {s} says {intr.width}x{intr.height}", self.rel(t))
+        with self._at(msg):
+            rgb = m.decode_color(msg.msg, msg.msgtype, m.Where(self.bag, self.cfg.stacks[s].color, msg.index),
+                                 (intr.width, intr.height))
         depth = self._depth(s, partner.get("depth"), intr) if self.with_depth else None
         frame = SyncFrame(time=t, stack_id=s, rgb=rgb, cam_to_world=robot @ self.mount[s],
                           uss_range=partner.get("uss", math.nan),
@@ -541,14 +541,9 @@ class LiveSync:
         """(H, W) metres, NaN invalid (the importer's uint16 mm read back; all NaN without a depth topic)."""
         if msg is None:
             return np.full((intr.height, intr.width), np.nan, dtype=np.float32)
-        topic = self.cfg.stacks[s].depth
-        mm = m.decode_depth(msg.msg, msg.msgtype, m.Where(self.bag, topic, msg.index))
-        if mm.shape != (intr.height, intr.width):
-            raise StreamError(self.bag, f"topic {topic}, message {msg.index + 1}: depth map is {mm.shape[1]}x"
-                              f"{mm.shape[0]}; the colour image is {intr.width}x{intr.height}", self.rel(msg.time_s))
-        depth = mm.astype(np.float32) / 1000.0
-        depth[(mm == 0) | (mm == 65535)] = np.nan
-        return depth
+        with self._at(msg):
+            where = m.Where(self.bag, self.cfg.stacks[s].depth, msg.index)
+            return m.decode_depth(msg.msg, msg.msgtype, where, (intr.width, intr.height)).metres()
 
     def _prune(self) -> None:
         """Keep what the waiting images and the next ones (stamped after the last seen) can use."""
@@ -563,13 +558,6 @@ class LiveSync:
         for c in self.dropped.values():
             total.update(c)
         return total
-
-
-def _irs_grid(meas_mm: np.ndarray) -> np.ndarray:
-    """TOF zones (64,) mm in sensor order -> (8, 8) m in image zone order, NaN invalid (as data.ethz.read_tof)."""
-    metres = np.asarray(meas_mm, dtype=np.float64) / 1000.0
-    metres[~np.isfinite(metres) | (metres <= irs.IRS_MIN_VALID_M)] = np.nan
-    return irs.grid_from_measurements(metres)
 
 
 def make_pose_source(poses: str, cfg: TopicsConfig, bag: Path, *, present: Callable[[str], bool],

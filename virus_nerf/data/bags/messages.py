@@ -1,20 +1,34 @@
-"""ROS message types of the ETHZ robot and decoding of messages into numpy (docs/method.md 4).
+"""The ETHZ robot's message types (names, which role accepts which, a rosbags typestore that knows
+them) and one decoder per message kind: a deserialised ROS message -> typed values (docs/method.md 4).
 
-The two custom messages of the ETHZ recording are registered from their `.msg` text, so no ROS
-install is needed. Decoders take a message deserialised by `rosbags` (a dataclass) and return
-plain numpy values in the units the bag holds; the conversion to the layout's units happens
-in the importer. Every decoder raises `DataFormatError` naming the bag, topic and field.
+`import-bag` (stages.py, stack_writer.py), the stream (live.py) and a ROS 2 node call these
+decoders and nothing else, so a message refused on one path is refused on every path, in the same
+words. The rules a reading shares with the ETHZ layout's files (the IRS plausibility bound and zone
+order, a depth map's invalid values, the USS echo code, the unit quaternion) live once beside the
+sensor (sensors/irs.py, sensors/uss.py, data/images.py, sensors/geometry.py), called from here and
+from data/ethz.py.
+
+The decoders are pure: they read the message's fields as rosbags or rclpy deserialise them (no ROS
+install needed; the two custom messages are registered from their `.msg` text), return metres and
+seconds (where the layout stores another unit, the reading keeps that raw value too, so an import
+writes exactly what the message held), and raise `MessageError` naming the source, topic, message
+and field, and what was expected.
 """
 
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from virus_nerf.data.bags.odometry import Transform
+from virus_nerf.data.images import depth_from_mm
 from virus_nerf.errors import DataFormatError
+from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics, intrinsics_problem
+from virus_nerf.sensors.geometry import QUATERNION_NORM_TOLERANCE, pose_matrix
 
 # Custom messages of the ETHZ robot (ROS package `sensors`). USS: the echo time of the first
 # echo in microseconds (metres = meas / 5000, >= 50000 = no echo). TOF: the 64 zones of the
@@ -73,6 +87,30 @@ def normalise_type(name: str) -> str:
     return full
 
 
+# ------------------------------------------------------------------------------- decoding
+class MessageError(DataFormatError):
+    """A message that cannot be decoded or fails a check: `topic`, `index` (0-based) and `field`
+    name it; the text is "SOURCE, field 'F': topic T, message N: what is wrong; what was expected"."""
+
+    def __init__(self, source: str | Path, topic: str, index: int | None, problem: str,
+                 field: str | None = None) -> None:
+        self.topic, self.index = topic, index
+        at = f"topic {topic}" if index is None else f"topic {topic}, message {index + 1}"
+        super().__init__(source, f"{at}: {problem}", field=field)
+
+
+@dataclass(frozen=True)
+class Where:
+    """Where a message came from, for its errors: a bag (or a node's name), topic and index."""
+
+    source: str | Path
+    topic: str
+    index: int | None = None
+
+    def error(self, problem: str, field: str | None = None) -> MessageError:
+        return MessageError(self.source, self.topic, self.index, problem, field=field)
+
+
 def stamp_s(msg) -> float:
     """Header stamp in seconds (0.0 when the message has no header or an unset stamp)."""
     header = getattr(msg, "header", None)
@@ -81,51 +119,67 @@ def stamp_s(msg) -> float:
     return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
 
 
-class Where:
-    """Bag + topic (+ message index) for error messages."""
-
-    def __init__(self, bag: Path, topic: str, index: int) -> None:
-        self.bag, self.topic, self.index = bag, topic, index
-
-    def error(self, problem: str, field: str | None = None) -> DataFormatError:
-        return DataFormatError(self.bag, f"topic {self.topic}, message {self.index + 1}: {problem}", field=field)
+def frame_id(msg) -> str:
+    """The header's frame, without the leading '/' ROS 1 allowed (tf names frames without it)."""
+    return msg.header.frame_id.lstrip("/")
 
 
-def decode_color(msg, msgtype: str, where: Where) -> np.ndarray:
-    """Colour image -> (H, W, 3) uint8 RGB."""
+# ----------------------------------------------------------------------------------- images
+def decode_color(msg, msgtype: str, where: Where, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Image or CompressedImage -> (H, W, 3) uint8 RGB; size (width, height): the camera info's,
+    refused when the image differs."""
     if msgtype == COMPRESSED:
         rgb = _decompress(msg, where)
         if rgb.ndim == 2:
             rgb = np.repeat(rgb[..., None], 3, axis=2)
-        return np.ascontiguousarray(rgb[..., :3].astype(np.uint8))
-    enc = msg.encoding.lower()
-    channels = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}
-    if enc not in channels:
-        raise where.error(f"colour encoding {msg.encoding!r}; expected rgb8, bgr8, rgba8, bgra8 or mono8",
-                          field="encoding")
-    px = _pixels(msg, np.uint8, channels[enc], where)
-    if enc == "mono8":
-        return np.repeat(px, 3, axis=2)
-    if enc.startswith("bgr"):
-        px = px[..., 2::-1]
-    return np.ascontiguousarray(px[..., :3])
+        rgb = np.ascontiguousarray(rgb[..., :3].astype(np.uint8))
+    else:
+        enc = msg.encoding.lower()
+        channels = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}
+        if enc not in channels:
+            raise where.error(f"colour encoding {msg.encoding!r}; expected rgb8, bgr8, rgba8, bgra8 or mono8",
+                              field="encoding")
+        px = _pixels(msg, np.uint8, channels[enc], where)
+        if enc == "mono8":
+            rgb = np.repeat(px, 3, axis=2)
+        else:
+            rgb = np.ascontiguousarray((px[..., 2::-1] if enc.startswith("bgr") else px)[..., :3])
+    if size is not None and (rgb.shape[1], rgb.shape[0]) != tuple(size):
+        raise where.error(f"image is {rgb.shape[1]}x{rgb.shape[0]}; the camera info says {size[0]}x{size[1]}")
+    return rgb
 
 
-def decode_depth(msg, msgtype: str, where: Where) -> np.ndarray:
-    """Aligned depth -> (H, W) uint16 z-depth in mm, 0 = invalid (16UC1/mono16 as is, 32FC1 from m)."""
+@dataclass(frozen=True, eq=False)
+class DepthImage:
+    """An aligned depth image as the layout stores it (uint16 z-depth in mm, 0 and 65535 invalid)."""
+
+    mm: np.ndarray  # (H, W) uint16
+
+    def metres(self) -> np.ndarray:
+        """(H, W) float32 z-depth in metres, NaN invalid: data/images.py's rule for a .npy map."""
+        return depth_from_mm(self.mm)
+
+
+def decode_depth(msg, msgtype: str, where: Where, size: tuple[int, int] | None = None) -> DepthImage:
+    """Aligned depth: 16UC1/mono16 (mm) as is, 32FC1 from metres (non-finite or <= 0 -> 0), or a
+    16-bit PNG CompressedImage; size (width, height): the colour image's, refused when it differs."""
     if msgtype == COMPRESSED:
-        px = _decompress(msg, where)
-        if px.ndim != 2 or px.dtype != np.uint16:
+        mm = _decompress(msg, where)
+        if mm.ndim != 2 or mm.dtype != np.uint16:
             raise where.error("compressed depth must be a 16-bit single-channel PNG (mm)", field="format")
-        return px
-    enc = msg.encoding.lower()
-    if enc in ("16uc1", "mono16"):
-        return _pixels(msg, np.uint16, 1, where)[..., 0]
-    if enc == "32fc1":
-        m = _pixels(msg, np.float32, 1, where)[..., 0].astype(np.float64)
-        mm = np.where(np.isfinite(m) & (m > 0), np.round(m * 1000.0), 0.0)
-        return np.clip(mm, 0, 65534).astype(np.uint16)
-    raise where.error(f"depth encoding {msg.encoding!r}; expected 16UC1 (mm) or 32FC1 (m)", field="encoding")
+    else:
+        enc = msg.encoding.lower()
+        if enc in ("16uc1", "mono16"):
+            mm = _pixels(msg, np.uint16, 1, where)[..., 0]
+        elif enc == "32fc1":
+            m = _pixels(msg, np.float32, 1, where)[..., 0].astype(np.float64)
+            mm = np.clip(np.where(np.isfinite(m) & (m > 0), np.round(m * 1000.0), 0.0), 0, 65534).astype(np.uint16)
+        else:
+            raise where.error(f"depth encoding {msg.encoding!r}; expected 16UC1 (mm) or 32FC1 (m)", field="encoding")
+    if size is not None and (mm.shape[1], mm.shape[0]) != tuple(size):
+        raise where.error(f"depth map is {mm.shape[1]}x{mm.shape[0]}; the colour image is {size[0]}x{size[1]} "
+                          "(expected depth aligned to colour)")
+    return DepthImage(mm)
 
 
 def _pixels(msg, dtype, channels: int, where: Where) -> np.ndarray:
@@ -152,8 +206,22 @@ def _decompress(msg, where: Where) -> np.ndarray:
         raise where.error(f"compressed image ({msg.format!r}) cannot be decoded: {exc}", field="data") from None
 
 
-def decode_camera_info(msg, where: Where) -> Intrinsics:
-    """CameraInfo K (ROS 1 'K', ROS 2 'k') -> pinhole Intrinsics (distortion is not modelled)."""
+@dataclass(frozen=True)
+class CameraInfo:
+    """A pinhole camera and the distortion coefficients its message held (not modelled: the layout
+    is pinhole; `distorted` says whether an import should note them)."""
+
+    intrinsics: Intrinsics
+    distortion: tuple[float, ...] = ()
+
+    @property
+    def distorted(self) -> bool:
+        return bool(self.distortion) and max(abs(d) for d in self.distortion) > 1e-6
+
+
+def decode_camera_info(msg, where: Where) -> CameraInfo:
+    """CameraInfo K (ROS 1 'K', ROS 2 'k') and D -> the intrinsics, refused as an implausible
+    intrinsics file is (sensors/camera.py `intrinsics_problem`)."""
     k = np.asarray(msg.K if hasattr(msg, "K") else msg.k, dtype=np.float64).ravel()
     if k.size != 9 or not np.isfinite(k).all() or k[0] <= 0 or k[4] <= 0 or msg.width <= 0 or msg.height <= 0:
         raise where.error(f"camera matrix {k.tolist()} at {msg.width}x{msg.height} is not a valid pinhole camera",
@@ -162,10 +230,12 @@ def decode_camera_info(msg, where: Where) -> Intrinsics:
     if problem is not None:  # e.g. a camera driver that publishes K of another resolution, or zeros
         name, what = problem
         raise where.error(f"camera matrix {name}: {what}", field="K")
-    return Intrinsics(fx=float(k[0]), fy=float(k[4]), cx=float(k[2]), cy=float(k[5]),
-                      width=int(msg.width), height=int(msg.height))
+    d = np.asarray(getattr(msg, "D", getattr(msg, "d", ())), dtype=np.float64).ravel()
+    return CameraInfo(Intrinsics(fx=float(k[0]), fy=float(k[4]), cx=float(k[2]), cy=float(k[5]),
+                                 width=int(msg.width), height=int(msg.height)), tuple(float(v) for v in d))
 
 
+# ------------------------------------------------------------------------- range sensors
 def _field(msg, name: str, where: Where):
     """msg.name, or a named error when a custom message of the bag lacks the field."""
     if not hasattr(msg, name):
@@ -174,27 +244,58 @@ def _field(msg, name: str, where: Where):
     return getattr(msg, name)
 
 
-def decode_uss_us(msg, msgtype: str, where: Where) -> float:
-    """USS reading -> echo time in microseconds (sensors/msg/USS as is; Range m * 5000, no echo 50000)."""
+@dataclass(frozen=True)
+class UssReading:
+    """One ultrasonic reading; `echo_us` is what the layout's USS file stores (>= 50000: no echo)."""
+
+    echo_us: float
+
+    @property
+    def range_m(self) -> float:
+        """Radial range in metres, NaN = no echo (sensors/uss.py `range_from_raw`, as a USS file)."""
+        return float(uss.range_from_raw(np.array([self.echo_us]))[0])
+
+
+def decode_uss(msg, msgtype: str, where: Where) -> UssReading:
+    """sensors/msg/USS (echo time in us, as is) or sensor_msgs/Range (m * 5000; a non-finite, <= 0
+    or beyond max_range reading is no echo)."""
     if msgtype == USS_TYPE:
-        return float(_field(msg, "meas", where))
+        return UssReading(float(_field(msg, "meas", where)))
     r = float(msg.range)
     if not np.isfinite(r) or r <= 0 or (msg.max_range > 0 and r > float(msg.max_range)):
-        return 50000.0
-    return r * 5000.0
+        return UssReading(uss.USS_NO_ECHO_RAW)
+    return UssReading(r * uss.USS_RAW_PER_M)
 
 
-def decode_tof(msg, where: Where) -> tuple[np.ndarray, np.ndarray]:
-    """TOF -> meas (64,) mm in sensor order and stds (64,) mm (65535 where the message has none)."""
+@dataclass(frozen=True, eq=False)
+class TofReading:
+    """One IRS (ToF) reading; meas_mm/stds_mm are what the layout's TOF file stores."""
+
+    meas_mm: np.ndarray  # (64,) float64 mm, sensor order, 0 = invalid
+    stds_mm: np.ndarray  # (64,) float64 mm, 65535 = none
+
+    def grid_m(self) -> np.ndarray:
+        """(8, 8) z-depth in metres in image zone order, NaN invalid (sensors/irs.py, as a TOF file)."""
+        return irs.grid_from_mm(self.meas_mm)
+
+
+def decode_tof(msg, where: Where) -> TofReading:
+    """sensors/msg/TOF -> 64 zones in mm; a zone beyond 100 m is refused (irs.IRS_MAX_PLAUSIBLE_MM:
+    the TOF file's check); stds 65535 where the message has none."""
     meas = np.asarray(_field(msg, "meas", where), dtype=np.float64)
-    if meas.size != 64:
+    if meas.size != irs.IRS_ZONE_COUNT:
         raise where.error(f"has {meas.size} zones; expected 64 (8x8)", field="meas")
+    far = irs.implausible_zones(meas)
+    if far.size:
+        k = int(far[0, 0])
+        raise where.error(irs.implausible_problem(float(meas[k])), field=f"meas[{k}]")
     stds = np.asarray(getattr(msg, "stds", ()), dtype=np.float64)
-    if stds.size != 64:
-        stds = np.full(64, 65535.0)
-    return meas, stds
+    if stds.size != irs.IRS_ZONE_COUNT:
+        stds = np.full(irs.IRS_ZONE_COUNT, 65535.0)
+    return TofReading(meas, stds)
 
 
+# ---------------------------------------------------------------------------------- LiDAR
 _PCL_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
 
@@ -222,17 +323,42 @@ def decode_cloud(msg, where: Where) -> np.ndarray:
     return xyz[np.isfinite(xyz).all(axis=1)]
 
 
+def decode_scan(msg, where: Where, min_range_m: float, max_range_m: float) -> np.ndarray:
+    """PointCloud2 -> (M, 3) float32: the points within [min_range_m, max_range_m] of the sensor,
+    at the precision the layout's PCD files hold (what the importer writes and KISS-ICP registers)."""
+    pts = decode_cloud(msg, where)
+    r = np.linalg.norm(pts, axis=1)
+    return pts[(r >= min_range_m) & (r <= max_range_m)].astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------- poses
+def _check_pose(xyz: np.ndarray, quat: np.ndarray, where: Where, field: str) -> float:
+    """The quaternion's norm; a non-finite pose or a quaternion off unit norm by more than
+    QUATERNION_NORM_TOLERANCE (the pose files' check; zeros: an uninitialised publisher) is refused."""
+    norm = float(np.linalg.norm(quat))
+    if not (np.isfinite(xyz).all() and np.isfinite(quat).all()) or abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise where.error(f"pose {xyz.round(4).tolist()} / quaternion {quat.round(4).tolist()} is not finite or "
+                          f"not of unit norm (| |q| - 1 | <= {QUATERNION_NORM_TOLERANCE:g})", field=field)
+    return norm
+
+
 def decode_odometry(msg, where: Where) -> np.ndarray:
     """nav_msgs/Odometry -> (4, 4) pose of its child frame (the robot) in its header's frame;
-    the covariance and twist are not used. A non-finite pose or a quaternion far from unit norm
-    is refused (a zero quaternion is what an uninitialised odometry publishes)."""
-    from virus_nerf.sensors.geometry import pose_matrix
-
+    the covariance and twist are not used."""
     p, q = msg.pose.pose.position, msg.pose.pose.orientation
     xyz = np.array([p.x, p.y, p.z], dtype=np.float64)
     quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
-    norm = float(np.linalg.norm(quat))
-    if not (np.isfinite(xyz).all() and np.isfinite(quat).all()) or abs(norm - 1.0) > 1e-3:
-        raise where.error(f"pose {xyz.round(4).tolist()} / quaternion {quat.round(4).tolist()} is not finite or "
-                          "not of unit norm", field="pose.pose")
-    return pose_matrix(xyz, quat / norm)
+    return pose_matrix(xyz, quat / _check_pose(xyz, quat, where, "pose.pose"))
+
+
+def decode_tf(msg, where: Where, static: bool) -> list[Transform]:
+    """tf2_msgs/TFMessage -> one Transform (child in parent at its own stamp) per entry, frames
+    without a leading '/'; static: the message came on /tf_static."""
+    out = []
+    for k, tr in enumerate(msg.transforms):
+        tt, q = tr.transform.translation, tr.transform.rotation
+        xyz, quat = np.array([tt.x, tt.y, tt.z], dtype=np.float64), np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+        _check_pose(xyz, quat, where, f"transforms[{k}].transform")
+        pose = pose_matrix(xyz, quat)  # normalised inside, as before the check existed
+        out.append(Transform(stamp_s(tr), frame_id(tr), tr.child_frame_id.lstrip("/"), pose, static))
+    return out

@@ -44,19 +44,13 @@ def write_frames(run, matches: dict[int, StackMatch], intrinsics: dict[int, Intr
     topics = sorted({topic for topic, _ in targets})
     for topic, msg in run.reader.iter_topics(topics):
         for s, role, i in targets.get((topic, msg.index), ()):
-            intr, where = intrinsics[s], m.Where(run.reader.path, topic, msg.index)
+            size, where = (intrinsics[s].width, intrinsics[s].height), m.Where(run.reader.path, topic, msg.index)
             if role == "color":
-                rgb = m.decode_color(msg.msg, msg.msgtype, where)
-                if rgb.shape[:2] != (intr.height, intr.width):
-                    raise where.error(f"image is {rgb.shape[1]}x{rgb.shape[0]}; the camera info of stack {s} says "
-                                      f"{intr.width}x{intr.height}")
+                rgb = m.decode_color(msg.msg, msg.msgtype, where, size)
                 writer.write_png(meas / f"CAM{s}_color_image_raw" / f"img{i}.png", rgb)
             else:
-                depth = m.decode_depth(msg.msg, msg.msgtype, where)
-                if depth.shape != (intr.height, intr.width):
-                    raise where.error(f"depth map is {depth.shape[1]}x{depth.shape[0]}; the colour image is "
-                                      f"{intr.width}x{intr.height} (expected depth aligned to colour)")
-                writer.write_depth(meas / f"CAM{s}_aligned_depth_to_color_image_raw" / f"img{i}.npy", depth)
+                depth = m.decode_depth(msg.msg, msg.msgtype, where, size)
+                writer.write_depth(meas / f"CAM{s}_aligned_depth_to_color_image_raw" / f"img{i}.npy", depth.mm)
 
 
 def write_tables(run, mt: StackMatch, track: PoseTrack) -> None:
@@ -65,16 +59,16 @@ def write_tables(run, mt: StackMatch, track: PoseTrack) -> None:
     st = run.cfg.stacks[s]
     meas = run.room_dir / "measurements"
     if "uss" in mt.partner:
-        raw = np.array([run.small[(s, "uss")][k] for k in mt.partner["uss"]], dtype=np.float64).reshape(n)
+        raw = np.array([run.small[(s, "uss")][k].echo_us for k in mt.partner["uss"]], dtype=np.float64).reshape(n)
     else:
         run.notes.append(f"stack {s} has no USS topic: written as no echo")
         raw = np.full(n, 50000.0)
     writer.write_uss(meas / f"USS{s}.csv", mt.times_s, uss.range_from_raw(raw))
 
     if "tof" in mt.partner:
-        pairs = [run.small[(s, "tof")][k] for k in mt.partner["tof"]]
-        tof = np.array([p[0] for p in pairs]).reshape(n, IRS_ZONE_COUNT)
-        std = np.array([p[1] for p in pairs]).reshape(n, IRS_ZONE_COUNT)
+        readings = [run.small[(s, "tof")][k] for k in mt.partner["tof"]]
+        tof = np.array([r.meas_mm for r in readings]).reshape(n, IRS_ZONE_COUNT)
+        std = np.array([r.stds_mm for r in readings]).reshape(n, IRS_ZONE_COUNT)
     else:
         run.notes.append(f"stack {s} has no TOF topic: written as invalid zones")
         tof, std = np.zeros((n, IRS_ZONE_COUNT)), np.full((n, IRS_ZONE_COUNT), 65535.0)

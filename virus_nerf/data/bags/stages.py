@@ -37,7 +37,6 @@ from virus_nerf.data.split import DEFAULT_RATIOS, make_split, write_split
 from virus_nerf.data.voxel_map import VoxelMap
 from virus_nerf.errors import DataFormatError, UsageError
 from virus_nerf.sensors.camera import Intrinsics
-from virus_nerf.sensors.geometry import pose_matrix
 
 Key = tuple[int | None, str]  # (stack, role); stack None for the LiDAR and tf topics
 
@@ -59,7 +58,7 @@ class ImportRun:
         self.reports: dict[str, TopicReport] = {}
         self.notes: list[str] = list(cfg.notes)  # e.g. that the topics file named no stacks
         self.stamps: dict[Key, list[float]] = defaultdict(list)
-        self.small: dict[Key, list] = defaultdict(list)  # uss: echo us; tof: (meas (64,), stds (64,))
+        self.small: dict[Key, list] = defaultdict(list)  # uss: UssReading; tof: TofReading
         self.camera_info: dict[int, Intrinsics] = {}
         self.transforms: list[Transform] = []
         self.odometry: list[tuple[float, np.ndarray]] = []  # (time s, (4, 4) robot pose) of --poses odometry
@@ -104,7 +103,7 @@ class ImportRun:
                 self.stamps[(stack, role)].append(msg.time_s)
                 where = m.Where(self.reader.path, topic, msg.index)
                 if role == "uss":
-                    self.small[(stack, role)].append(m.decode_uss_us(msg.msg, msg.msgtype, where))
+                    self.small[(stack, role)].append(m.decode_uss(msg.msg, msg.msgtype, where))
                 elif role == "tof":
                     self.small[(stack, role)].append(m.decode_tof(msg.msg, where))
                 elif role == "camera_info" and stack not in self.camera_info:
@@ -112,7 +111,7 @@ class ImportRun:
                 elif role == "lidar":
                     self._lidar_scan(msg, where, seen_files)
                 elif role.startswith("tf"):
-                    self._tf(msg, static="static" in topic)
+                    self.transforms += m.decode_tf(msg.msg, where, static="static" in topic)
                 elif role == "odometry":
                     self.odometry.append((msg.time_s, m.decode_odometry(msg.msg, where)))
         if (None, "lidar") not in self.plan.roles:
@@ -127,32 +126,24 @@ class ImportRun:
         self.lidar_paths = [self.lidar_paths[i] for i in order]
 
     def _camera_info(self, msg, where: m.Where) -> Intrinsics:
-        intr = m.decode_camera_info(msg.msg, where)
-        d = np.asarray(msg.msg.D if hasattr(msg.msg, "D") else msg.msg.d, dtype=np.float64)
-        if d.size and np.abs(d).max() > 1e-6:
-            self.notes.append(f"{where.topic}: distortion {d.round(4).tolist()} ignored (the layout is pinhole)")
-        return intr
+        info = m.decode_camera_info(msg.msg, where)
+        if info.distorted:
+            self.notes.append(f"{where.topic}: distortion {np.round(info.distortion, 4).tolist()} ignored "
+                              "(the layout is pinhole)")
+        return info.intrinsics
 
     def _lidar_scan(self, msg, where: m.Where, seen: set[str]) -> None:
         """Write one scan as a filtered PCD (range limits of the topics file); duplicates skipped."""
-        pts = m.decode_cloud(msg.msg, where)
-        self.lidar_frame = self.lidar_frame or msg.msg.header.frame_id.lstrip("/")
+        pts = m.decode_scan(msg.msg, where, self.cfg.lidar.min_range_m, self.cfg.lidar.max_range_m)
+        self.lidar_frame = self.lidar_frame or m.frame_id(msg.msg)
         name = writer.lidar_file_name(msg.time_s)
         if name in seen:
             return
         seen.add(name)
-        r = np.linalg.norm(pts, axis=1)
         path = self.room_dir / "lidars" / "filtered" / name
-        write_pcd_xyz(path, pts[(r >= self.cfg.lidar.min_range_m) & (r <= self.cfg.lidar.max_range_m)])
+        write_pcd_xyz(path, pts)
         self.lidar_times.append(msg.time_s)
         self.lidar_paths.append(path)
-
-    def _tf(self, msg, static: bool) -> None:
-        for tr in msg.msg.transforms:
-            tt, q = tr.transform.translation, tr.transform.rotation
-            pose = pose_matrix(np.array([tt.x, tt.y, tt.z]), np.array([q.x, q.y, q.z, q.w]))
-            self.transforms.append(Transform(m.stamp_s(tr), tr.header.frame_id.lstrip("/"),
-                                             tr.child_frame_id.lstrip("/"), pose, static))
 
     def _report(self, key: Key, times: np.ndarray, used: int) -> None:
         topic = self.plan.roles[key]
