@@ -26,6 +26,7 @@ from virus_nerf.sensors.irs import IRS_ZONE_COUNT
 from virus_nerf.stereo.build import FrameList
 
 
+MMAP_ABOVE_BYTES = 1 << 30  # a decoded store's images beyond this are memory-mapped from the run folder
 SPILL_ABOVE_BYTES = 512 << 20  # a growing store's images beyond this go to a file (`FrameStore.spill_to`)
 
 
@@ -227,7 +228,7 @@ def build_frame_store(
     image_scale: float = 0.5,
     with_depth: bool = False,
     cache_dir: Path | None = None,
-    mmap_above_bytes: int = 1 << 30,
+    mmap_above_bytes: int = MMAP_ABOVE_BYTES,
     progress: bool = False,
     use_cache: bool = True,
 ) -> FrameStore:

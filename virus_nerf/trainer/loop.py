@@ -32,7 +32,7 @@ from virus_nerf.engine.schedule import budget_share
 from virus_nerf.evaluation.evaluate import EvaluationResult, build_ground_truth, evaluate
 from virus_nerf.losses import LossTerms
 from virus_nerf.sampler.batch import BatchSampler
-from virus_nerf.sampler.frames import FrameStore, build_frame_store
+from virus_nerf.sampler.frames import MMAP_ABOVE_BYTES, FrameStore, build_frame_store
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.run_folder import (
@@ -95,7 +95,7 @@ class Trainer:
                 self.recording, ("train",), self.config.image_scale, with_depth="rgbd" in self.config.sensors,
                 cache_dir=self.run_dir / "cache", progress=not self.quiet,
                 # online, the mapper copies each frame as it arrives: the source stays on disk
-                mmap_above_bytes=0 if self.config.online else 1 << 30,
+                mmap_above_bytes=0 if self.config.online else MMAP_ABOVE_BYTES,
             )
             if len(store) == 0:
                 raise ValueError(f"{self.recording.room_dir}: no frames labelled 'train' in the split")
