@@ -23,6 +23,7 @@ def _commands() -> dict:
     from virus_nerf.experiments.tune import tune
     from virus_nerf.exports.command import export
     from virus_nerf.mapping.command import map_bag
+    from virus_nerf.ros2.command import ros2, ros2_play
     from virus_nerf.sim.command import simulate
     from virus_nerf.trainer.command import evaluate, train
 
@@ -38,6 +39,8 @@ def _commands() -> dict:
         "export": export,
         "import-bag": import_bag,
         "map-bag": map_bag,
+        "ros2": ros2,
+        "ros2-play": ros2_play,
     }
 
 

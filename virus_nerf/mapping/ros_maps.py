@@ -102,12 +102,27 @@ def grid_data(m: OccupancyMap2D) -> np.ndarray:
     return np.ascontiguousarray(np.flipud(occupancy_values(m))).reshape(-1)
 
 
-def _stamp(time_s: float) -> int:
+def stamp_ns(time_s: float) -> int:
     """Seconds -> nanoseconds (refused below 0): the bag's receive time and the header stamp."""
     if isinstance(time_s, bool) or not isinstance(time_s, int | float | np.floating) or not np.isfinite(time_s) \
             or time_s < 0:
         raise UsageError(f"time_s {time_s!r}: expected a finite time in seconds >= 0")
     return int(round(float(time_s) * 1e9))
+
+
+def grid_message(typestore, ns: int, m: OccupancyMap2D, frame_id: str = "map"):
+    """nav_msgs/OccupancyGrid (of `typestore`'s distro) of map `m` at `ns` nanoseconds in frame
+    `frame_id`: its origin the lower-left corner, yaw 0 (the bag's /map and the ROS 2 node's)."""
+    t = typestore.types
+    h, w = np.shape(m.image)
+    stamp = t["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
+    origin = t["geometry_msgs/msg/Pose"](
+        position=t["geometry_msgs/msg/Point"](x=float(m.origin[0]), y=float(m.origin[1]), z=0.0),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+    info = t["nav_msgs/msg/MapMetaData"](map_load_time=stamp, resolution=float(m.resolution), width=int(w),
+                                         height=int(h), origin=origin)
+    return t[OCCUPANCY_GRID](header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id), info=info,
+                             data=grid_data(m))
 
 
 class RosMapBag:
@@ -172,16 +187,7 @@ class RosMapBag:
                                          frame_id=frame_id)
 
     def _grid_message(self, ns: int, m: OccupancyMap2D):
-        """nav_msgs/OccupancyGrid of map `m`, its origin the lower-left corner, yaw 0."""
-        t = self.typestore.types
-        h, w = np.shape(m.image)
-        origin = t["geometry_msgs/msg/Pose"](
-            position=t["geometry_msgs/msg/Point"](x=float(m.origin[0]), y=float(m.origin[1]), z=0.0),
-            orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
-        info = t["nav_msgs/msg/MapMetaData"](
-            map_load_time=t["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9),
-            resolution=float(m.resolution), width=int(w), height=int(h), origin=origin)
-        return t[OCCUPANCY_GRID](header=self._header(ns, self.map_frame), info=info, data=grid_data(m))
+        return grid_message(self.typestore, ns, m, self.map_frame)
 
     def _write(self, topic: str, ns: int, msg, msgtype: str) -> None:
         if self._closed:
@@ -194,7 +200,7 @@ class RosMapBag:
         """One /tf message map -> base_link at `time_s` from a camera pose (OpenCV axes, (4, 4));
         the camera's mount is camera_in_base[stack_id] where given. Returns the (4, 4)
         base_link-to-map pose written."""
-        ns = _stamp(time_s)
+        ns = stamp_ns(time_s)
         pose = base_pose(cam_to_world, self.camera_in_base.get(stack_id) if stack_id is not None else None)
         t = self.typestore.types
         q = matrix_to_quat(pose[:3, :3])  # (x, y, z, w)
@@ -212,7 +218,7 @@ class RosMapBag:
                    prob: OccupancyMap2D | None = None) -> None:
         """/map from `map2d` (trinary) and /map_probability from `prob` (scale) at `time_s`;
         either may be None (e.g. the Instant-NGP grid has no probability map)."""
-        ns = _stamp(time_s)
+        ns = stamp_ns(time_s)
         for topic, m in ((MAP_TOPIC, map2d), (PROB_TOPIC, prob)):
             if m is not None:
                 self._write(topic, ns, self._grid_message(ns, m), OCCUPANCY_GRID)

@@ -48,6 +48,7 @@ from virus_nerf.utils.stop import Stopped
 REPORT = "stream.json"
 STATE = "mapper.pt"  # the mapper's state: OUT/snapshots/mapper.pt during the run, OUT/map/mapper.pt at the end
 STARTUP_WAIT_S = 1.0  # bag seconds the first frames wait for every stack's camera_info
+IDLE_SLEEP_S = 0.01  # a live source with nothing new and nothing to train: the pause
 
 
 def initial_box(positions: np.ndarray, extent, sensors=()) -> SceneBox:
@@ -143,9 +144,14 @@ class StreamRun:
 
     # ------------------------------------------------------------------ the loop
     def run(self, messages) -> StreamReport:
-        """messages: (topic, Message) in bag order (BagReader.iter_topics)."""
+        """messages: (topic, Message) in bag order (BagReader.iter_topics), or from a live source
+        (ros2/node.py) that yields None when nothing new has come: then the mapper trains a slice."""
         try:
-            for topic, msg in messages:
+            for item in messages:
+                if item is None:
+                    self._idle()
+                    continue
+                topic, msg = item
                 due = self._due(msg)
                 self._wait(due)
                 self._train_owed(due)
@@ -185,6 +191,19 @@ class StreamRun:
                 self._train(budget)
             else:
                 time.sleep(budget)
+
+    def _idle(self) -> None:
+        """A live source has nothing new: a snapshot when due, else a training slice (a short
+        pause before the mapper exists)."""
+        if self.start is None or self._maybe_snapshot():
+            if self.start is None:
+                time.sleep(IDLE_SLEEP_S)
+            return
+        now = self.now()
+        if self._may_train(now):
+            self._train(max(min(self.train_slice, self.next_snapshot - now), IDLE_SLEEP_S))
+        else:
+            time.sleep(IDLE_SLEEP_S)
 
     def _may_train(self, now: float) -> bool:
         """A mapper, and no step that could delay the first snapshot (on a CPU one step can take

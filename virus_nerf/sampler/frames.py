@@ -25,7 +25,6 @@ from virus_nerf.sensors.camera import Intrinsics, pixel_directions
 from virus_nerf.sensors.irs import IRS_ZONE_COUNT
 from virus_nerf.stereo.build import FrameList
 
-
 MMAP_ABOVE_BYTES = 1 << 30  # a decoded store's images beyond this are memory-mapped from the run folder
 SPILL_ABOVE_BYTES = 512 << 20  # a growing store's images beyond this go to a file (`FrameStore.spill_to`)
 

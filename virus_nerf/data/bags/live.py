@@ -24,6 +24,15 @@ stream cannot.
 Bad data stops the stream with a `StreamError` (one line naming the topic and the bag time): a
 stamp older than its topic's previous one, a watched topic silent for `max_silence_s`, or the robot
 moving more than `max_jump_m` between consecutive frames (at most JUMP_WINDOW_S apart).
+
+Live (the ROS 2 node, `on_problem` given) a robot's data cannot be refused and the map must go on:
+each of these is one line to `on_problem` (repeats of a kind within PROBLEM_REPEAT_S counted, not
+said) and the stream goes on: a malformed message is skipped; a message older than its topic's
+previous one is skipped, or, more than RESTART_BACK_S back (a bag played again, a robot's clock
+reset), starts the synchronisation again (the waiting images, sensor buffers and poses are
+forgotten; the map keeps every frame made); a silent topic or pose source is said once and said
+again when it is back (its images are dropped for want of a partner or a pose meanwhile); a frame
+whose pose jumps is dropped and the next frames are compared with it.
 """
 
 from __future__ import annotations
@@ -56,7 +65,9 @@ from virus_nerf.sensors.camera import Intrinsics
 # MAX_JUMP_M (data/ethz.py): the robot moving further between two consecutive frames is a broken pose source
 JUMP_WINDOW_S = 1.0  # ... when they are at most this far apart in time
 MAX_SILENCE_S = 2.0  # a watched topic silent this long (bag time) has stopped
-PARTNERS = ("depth", "uss", "tof")  # the importer's order: a dropped frame counts its first missing partner
+PARTNERS = ("depth", "uss", "tof")
+RESTART_BACK_S = 1.0  # live: a topic's clock this far back is a restart, not a message out of order
+PROBLEM_REPEAT_S = 10.0  # live: the same problem said at most once per this many wall seconds  # the importer's order: a dropped frame counts its first missing partner
 
 
 class StreamError(DataFormatError):
@@ -132,6 +143,9 @@ class PoseSource:
         """Why there is no pose yet, for the error when none comes (empty: no known reason)."""
         return ""
 
+    def restart(self) -> None:
+        """Forget the poses received (live: the clock went back, a bag played again)."""
+
     def close(self) -> None:
         """Release what the source holds (a worker process); the stream calls it at its end."""
 
@@ -162,6 +176,10 @@ class TrackPoses(PoseSource):
         k = int(np.searchsorted(self.times, before_s)) - 1  # the last pose before: an interpolation end
         if k > 0:
             del self.times[:k], self.poses[:k]
+
+    def restart(self) -> None:
+        self.times.clear()
+        self.poses.clear()
 
 
 class CsvPoses(PoseSource):
@@ -269,6 +287,10 @@ class KissPoses(TrackPoses):
         self._collect()
         return super().at(t, tolerance_s)
 
+    def restart(self) -> None:
+        super().restart()
+        self.last_sent = -math.inf  # scans registered from here on continue KISS-ICP's map
+
     def close(self) -> None:
         if self.worker is not None:
             self.worker.close()
@@ -342,6 +364,10 @@ class TfPoses(PoseSource):
     def problem(self) -> str:
         return "" if self.track() is not None else self._problem
 
+    def restart(self) -> None:
+        self.dynamic.clear()  # the static transforms hold
+        self._dirty = True
+
 
 # ------------------------------------------------------------------------------- the frames
 class LiveSync:
@@ -352,8 +378,13 @@ class LiveSync:
     with_depth: decode the depth image of each frame (the rgbd sensor)."""
 
     def __init__(self, cfg: TopicsConfig, poses: PoseSource, bag: Path, *, intrinsics: dict[int, Intrinsics] | None = None,
-                 with_depth: bool = False, max_silence_s: float = MAX_SILENCE_S, max_jump_m: float = MAX_JUMP_M) -> None:
+                 with_depth: bool = False, max_silence_s: float = MAX_SILENCE_S, max_jump_m: float = MAX_JUMP_M,
+                 on_problem: Callable[[str], None] | None = None) -> None:
         self.cfg, self.poses, self.bag, self.with_depth = cfg, poses, Path(bag), with_depth
+        self.on_problem = on_problem  # live: problems are said and the stream goes on (module doc)
+        self.problems: Counter = Counter()  # live: kind -> times met
+        self._said: dict[str, tuple[float, int]] = {}  # kind -> (wall time said, repeats since)
+        self.silent: dict[str, float] = {}  # live: topic (or "poses") -> the bag time it was found silent
         self.max_silence_s, self.max_jump_m = max_silence_s, max_jump_m
         self.intrinsics: dict[int, Intrinsics] = dict(intrinsics or {})
         self.mount = {s: st.camera_in_lidar() for s, st in cfg.stacks.items()}
@@ -396,9 +427,10 @@ class LiveSync:
         t = msg.time_s
         if self.t0 is None:
             self.t0 = t
-        self._check_clock(topic, msg)
+        if not self._check_clock(topic, msg):
+            return []  # live: skipped
         self.clock = max(self.clock, t)
-        with self._at(msg):
+        with self._at(msg, topic):
             if topic in self.poses.topics:
                 self.poses.add(topic, msg)
             for s, role in self.roles.get(topic, ()):
@@ -414,6 +446,8 @@ class LiveSync:
                     self.buffers[(s, role)].add(t, m.decode_tof(msg.msg, where).grid_m())
                 else:  # depth: decoded only if the frame is made and wants it
                     self.buffers[(s, role)].add(t, msg)
+        if self.silent:
+            self._back()
         self._check_silence()
         return self._release()
 
@@ -425,13 +459,55 @@ class LiveSync:
         return self._release()
 
     @contextmanager
-    def _at(self, msg: Message):
+    def _at(self, msg: Message, topic: str = ""):
         """A message the decoders refuse (data/bags/messages.py: the importer's checks and words) stops
-        the stream as a StreamError at that message's bag time."""
+        the stream as a StreamError at that message's bag time; live it is skipped, said once."""
         try:
             yield
         except m.MessageError as exc:
-            raise StreamError(self.bag, exc.problem, self.rel(msg.time_s), field=exc.field) from None
+            error = StreamError(self.bag, exc.problem, self.rel(msg.time_s), field=exc.field)
+            if self.on_problem is None:
+                raise error from None
+            self._problem(f"malformed {topic}", f"{error}; the message is skipped")
+
+    # ------------------------------------------------------------------ live problems
+    def _problem(self, kind: str, line: str) -> None:
+        """Live: say `line` unless `kind` was said in the last PROBLEM_REPEAT_S (then count it)."""
+        import time
+
+        self.problems[kind] += 1
+        now = time.monotonic()
+        said, repeats = self._said.get(kind, (-math.inf, 0))
+        if now - said < PROBLEM_REPEAT_S:
+            self._said[kind] = (said, repeats + 1)
+            return
+        more = f" ({repeats} more like it since it was last said)" if repeats else ""
+        self._said[kind] = (now, 0)
+        self.on_problem(line + more)
+
+    def _back(self) -> None:
+        """Live: a topic (or the pose source) found silent has spoken again."""
+        for key, last in list(self.silent.items()):
+            newest = self.poses.newest_s() if key == "poses" else self.last_stamp.get(key, -math.inf)
+            if newest > last:
+                del self.silent[key]
+                gap = f" after {newest - last:.1f} s" if last > -math.inf else ""
+                self.on_problem(f"{'the pose source' if key == 'poses' else 'topic ' + key} is back at bag time "
+                                f"{self.rel(newest):.3f} s{gap}")
+
+    def restart(self, t: float) -> None:
+        """Live: the clock went back to `t` (a bag played again, a clock reset): the synchronisation
+        starts again; the frames already made stay in the map."""
+        for q in self.waiting.values():
+            q.clear()
+        for buf in self.buffers.values():
+            buf.items.clear()
+        self.poses.restart()
+        self.last_stamp.clear()
+        self.silent.clear()
+        self.last_kept = dict.fromkeys(self.cfg.stacks, -math.inf)
+        self.last_color = dict.fromkeys(self.cfg.stacks, -math.inf)
+        self.clock, self.last_frame = t, None
 
     def _color(self, s: int, msg: Message, late: bool) -> None:
         t = msg.time_s
@@ -447,41 +523,67 @@ class LiveSync:
             self.waiting[s].append(msg)
 
     # ------------------------------------------------------------------ checks
-    def _check_clock(self, topic: str, msg: Message) -> None:
+    def _check_clock(self, topic: str, msg: Message) -> bool:
+        """False: live, the message is skipped (out of order)."""
         prev = self.last_stamp.get(topic)
         if prev is not None and msg.time_s < prev and "static" not in topic:
-            raise StreamError(self.bag, f"topic {topic}: the clock went backwards: message {msg.index + 1} is stamped "
-                              f"at {self.rel(msg.time_s):.3f} s, {prev - msg.time_s:.3f} s before the previous one at "
-                              f"{self.rel(prev):.3f} s (seconds since the bag's first message)", self.rel(prev))
+            error = StreamError(self.bag, f"topic {topic}: the clock went backwards: message {msg.index + 1} is "
+                                f"stamped at {self.rel(msg.time_s):.3f} s, {prev - msg.time_s:.3f} s before the "
+                                f"previous one at {self.rel(prev):.3f} s (seconds since the bag's first message)",
+                                self.rel(prev))
+            if self.on_problem is None:
+                raise error
+            if prev - msg.time_s <= RESTART_BACK_S:
+                self._problem(f"order {topic}", f"{error}; the message is skipped")
+                return False
+            self._problem("restart", f"{error}; taken as a restart (a bag played again, a clock reset): "
+                          "the synchronisation starts again, the map keeps its frames")
+            self.restart(msg.time_s)
         self.last_stamp[topic] = msg.time_s
+        return True
 
     def _check_silence(self) -> None:
         """A watched topic (or the pose source) silent for max_silence_s of bag time has stopped."""
         limit = self.max_silence_s
         for topic in self.watched:
             last = self.last_stamp.get(topic)
-            if self.clock - (self.t0 if last is None else last) > limit:
+            if self.clock - (self.t0 if last is None else last) > limit and topic not in self.silent:
                 what = "sent nothing" if last is None else f"stopped: its last message is at {self.rel(last):.3f} s"
-                raise StreamError(self.bag, f"topic {topic} {what} and none came for {limit:g} s (bag time "
-                                  f"{self.rel(self.clock):.3f} s)", self.rel(self.clock))
+                self._silent(topic, -math.inf if last is None else last, StreamError(self.bag, f"topic {topic} {what} and none came for {limit:g} s "
+                                                f"(bag time {self.rel(self.clock):.3f} s)", self.rel(self.clock)))
         newest = self.poses.newest_s()
-        if self.clock - max(newest, self.t0) > limit:
+        if self.clock - max(newest, self.t0) > limit and "poses" not in self.silent:
             why = self.poses.problem()
             what = "no pose yet" if newest == -math.inf else f"the last pose is at {self.rel(newest):.3f} s"
-            raise StreamError(self.bag, f"{self.poses.describe}: {what} and none came for {limit:g} s (bag time "
-                              f"{self.rel(self.clock):.3f} s){': ' + why if why else ''}", self.rel(self.clock))
+            self._silent("poses", newest, StreamError(self.bag, f"{self.poses.describe}: {what} and none came for {limit:g} s "
+                                              f"(bag time {self.rel(self.clock):.3f} s){': ' + why if why else ''}",
+                                              self.rel(self.clock)))
 
-    def _check_jump(self, f: StreamFrame) -> None:
+    def _silent(self, key: str, last: float, error: StreamError) -> None:
+        """A topic (or "poses") silent since stamp `last`: the stream stops, or live goes on (said)."""
+        if self.on_problem is None:
+            raise error
+        self.silent[key] = last
+        self.problems[f"silent {key}"] += 1
+        self.on_problem(f"{error}; mapping goes on without it")
+
+    def _check_jump(self, f: StreamFrame) -> bool:
         """Consecutive frames at most JUMP_WINDOW_S apart (frames dropped while the mapper was
         behind leave gaps the robot may legitimately have driven a metre in)."""
         if self.last_frame is not None:
             t_prev, prev = self.last_frame
             d = float(np.linalg.norm(f.robot_to_world[:3, 3] - prev[:3, 3]))
             if d > self.max_jump_m and f.frame.time - t_prev <= JUMP_WINDOW_S:
-                raise StreamError(self.bag, f"{self.poses.describe}: the pose jumps {d:.2f} m between the frames at "
-                                  f"{self.rel(t_prev):.3f} s and {self.rel(f.frame.time):.3f} s; expected at most "
-                                  f"{self.max_jump_m:g} m", self.rel(f.frame.time))
+                error = StreamError(self.bag, f"{self.poses.describe}: the pose jumps {d:.2f} m between the frames "
+                                    f"at {self.rel(t_prev):.3f} s and {self.rel(f.frame.time):.3f} s; expected at most "
+                                    f"{self.max_jump_m:g} m", self.rel(f.frame.time))
+                self.last_frame = (f.frame.time, f.robot_to_world)  # live: the next frames are compared with it
+                if self.on_problem is None:
+                    raise error
+                self._problem("jump", f"{error}; the frame is dropped")
+                return False
         self.last_frame = (f.frame.time, f.robot_to_world)
+        return True
 
     # ------------------------------------------------------------------ output
     def _release(self) -> list[StreamFrame]:
@@ -492,12 +594,17 @@ class LiveSync:
                 if frame is not None:
                     out.append(frame)
         out.sort(key=lambda f: (f.frame.time, f.frame.stack_id))
-        for k, f in enumerate(out):
+        kept = []
+        for f in out:
             try:
-                self._check_jump(f)
+                if self._check_jump(f):
+                    kept.append(f)
+                else:
+                    self.dropped[f.frame.stack_id]["pose jump"] += 1
             except StreamError as exc:  # the frames before the jump still reach the map
-                self.error, out = exc, out[:k]
+                self.error = exc
                 break
+        out = kept
         self.made += len(out)
         self._prune()
         return out
@@ -528,22 +635,29 @@ class LiveSync:
             self.dropped[s]["no camera_info"] += 1
             return None
         intr = self.intrinsics[s]
-        with self._at(msg):
+        rgb = depth = None
+        with self._at(msg, self.cfg.stacks[s].color):
             rgb = m.decode_color(msg.msg, msg.msgtype, m.Where(self.bag, self.cfg.stacks[s].color, msg.index),
                                  (intr.width, intr.height))
-        depth = self._depth(s, partner.get("depth"), intr) if self.with_depth else None
+        if self.with_depth:
+            depth = self._depth(s, partner.get("depth"), intr)
+        if rgb is None or (self.with_depth and depth is None):  # live: a malformed image (said)
+            self.dropped[s]["malformed"] += 1
+            return None
         frame = SyncFrame(time=t, stack_id=s, rgb=rgb, cam_to_world=robot @ self.mount[s],
                           uss_range=partner.get("uss", math.nan),
                           irs_range=partner["tof"] if "tof" in partner else np.full((8, 8), np.nan), depth=depth)
         return StreamFrame(frame, robot)
 
-    def _depth(self, s: int, msg: Message | None, intr: Intrinsics) -> np.ndarray:
-        """(H, W) metres, NaN invalid (the importer's uint16 mm read back; all NaN without a depth topic)."""
+    def _depth(self, s: int, msg: Message | None, intr: Intrinsics) -> np.ndarray | None:
+        """(H, W) metres, NaN invalid (the importer's uint16 mm read back; all NaN without a depth topic);
+        None: live, a malformed depth image (said)."""
         if msg is None:
             return np.full((intr.height, intr.width), np.nan, dtype=np.float32)
-        with self._at(msg):
+        with self._at(msg, self.cfg.stacks[s].depth):
             where = m.Where(self.bag, self.cfg.stacks[s].depth, msg.index)
             return m.decode_depth(msg.msg, msg.msgtype, where, (intr.width, intr.height)).metres()
+        return None
 
     def _prune(self) -> None:
         """Keep what the waiting images and the next ones (stamped after the last seen) can use."""

@@ -1,0 +1,157 @@
+"""The live ROS 2 node over DDS on the loopback interface only (no multicast, nothing leaves the
+machine): `ros2-play` publishes a simulated office bag, `virus-nerf ros2` maps it, and a reader
+that joins late gets `/map` and decodes it (issue 40). Every participant stops by itself."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("cyclonedds")
+pytest.importorskip("rosbags")
+
+from helpers import run_cli  # noqa: E402
+
+from virus_nerf.ros2 import dds, types  # noqa: E402
+
+GRID = "nav_msgs/msg/OccupancyGrid"
+
+
+def _domain() -> int:
+    """A domain of this test process alone (two test runs on one machine never meet)."""
+    return 150 + os.getpid() % 80
+
+
+@pytest.fixture(scope="module")
+def office_bag(tiny_office, tmp_path_factory) -> Path:
+    from virus_nerf.data.bags.writer import write_bag
+
+    return write_bag(tiny_office, tmp_path_factory.mktemp("ros2") / "drive_tf", ros_version=2, tf=True)
+
+
+def _node(out: Path, domain: int, *extra: str) -> subprocess.Popen:
+    argv = ["ros2", "--out", str(out), "--tf-child", "rslidar", "--localhost-only", "--domain-id", str(domain),
+            "--publish-every", "1", "--n-rays", "90", "--max-poses", "5", *extra]
+    return subprocess.Popen([sys.executable, "-c", "from virus_nerf.cli import main; main()", *argv],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for(proc: subprocess.Popen, text: str, timeout_s: float = 60.0) -> list[str]:
+    """Lines of the node's stdout up to (and with) the first that contains `text`."""
+    lines, start = [], time.monotonic()
+    while time.monotonic() - start < timeout_s:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        lines.append(line.rstrip())
+        if text in line:
+            return lines
+    raise AssertionError(f"no {text!r} from the node: {lines} {proc.stderr.read() if proc.poll() is not None else ''}")
+
+
+def _grid_values(path: Path) -> np.ndarray:
+    """OccupancyGrid.data of a map.pgm (mapping/ros_maps.py grid_data: the bag's and the node's)."""
+    from PIL import Image
+
+    from virus_nerf.mapping.ros_maps import grid_data
+    from virus_nerf.maps.occupancy import OccupancyMap2D
+
+    return grid_data(OccupancyMap2D(np.asarray(Image.open(path)), 0.05, (0.0, 0.0)))
+
+
+def test_play_map_and_a_late_reader_get_the_map_over_loopback_dds(office_bag, tiny_office, tmp_path):
+    domain, out = _domain(), tmp_path / "node"
+    node = _node(out, domain, "--exit-when-idle", "4")  # the default config: the map a user gets
+    try:
+        up = _wait_for(node, "node up on ROS 2 domain")
+        assert f"domain {domain} (jazzy, localhost only)" in up[-1]
+        player = dds.Participant("jazzy", domain, loopback=True)
+        try:
+            from virus_nerf.ros2.play import play
+
+            report = play(office_bag, player, delay_s=1.5, log=lambda line: None)
+        finally:
+            player.close()
+        assert report.messages > 100 and report.topics == 13
+        # a reader that joins after the drive: /map is latched (reliable, transient local, depth 1)
+        reader = dds.Participant("jazzy", domain, loopback=True)
+        try:
+            sub = reader.reader("/map", GRID, dds.LATCHED)
+            t0, got, first_s = time.monotonic(), [], None
+            while time.monotonic() - t0 < 60:  # until the node ends (its final map is the last one)
+                ended = node.poll() is not None
+                got += sub.take()
+                if got and first_s is None:
+                    first_s = time.monotonic() - t0
+                    publishers = reader.discover()  # the node's writers, while it is on the graph
+                    qos = str(reader.offered.get("/map"))
+                if ended:
+                    break
+                time.sleep(0.05)
+        finally:
+            reader.close()
+        stdout, stderr = node.communicate(timeout=60)
+    finally:
+        if node.poll() is None:
+            node.kill()
+    assert node.returncode == 0, stderr
+    assert got and first_s < 5.0, "the late reader got no /map (the latched one at once)"
+    assert publishers.get("/map") == {GRID}  # topic rt/map, type nav_msgs::msg::dds_::OccupancyGrid_
+    assert "TransientLocal" in qos and "Reliable" in qos and "KeepLast(depth=1)" in qos, qos
+    store = types.typestore("jazzy")
+    msg = types.deserialize(got[-1].payload, GRID, store)
+    data = np.asarray(msg.data)
+    assert msg.header.frame_id == "odom" and abs(msg.info.resolution - 0.05) < 1e-6
+    assert data.size == msg.info.width * msg.info.height
+    # the newest map received is the node's final map, cell for cell
+    np.testing.assert_array_equal(data, _grid_values(out / "map" / "map.pgm"))
+    report = json.loads((out / "stream.json").read_text())
+    assert report["frames"] >= 20 and report["stopped"] is None
+    # free where the robot drove, occupied near the room's surfaces at camera height
+    from virus_nerf.data.ethz import load_recording
+
+    rec = load_recording(tiny_office, sorted(p.name for p in tiny_office.iterdir() if (p / "measurements").is_dir())[0])
+    grid = data.reshape(msg.info.height, msg.info.width)
+    origin = np.array([msg.info.origin.position.x, msg.info.origin.position.y])
+
+    def cells(xy):
+        ij = np.floor((xy - origin) / msg.info.resolution).astype(int)
+        ok = (ij >= 0).all(1) & (ij[:, 0] < msg.info.width) & (ij[:, 1] < msg.info.height)
+        return grid[ij[ok, 1], ij[ok, 0]]
+
+    path = np.concatenate([st.cam_to_world[:, :2, 3] for st in rec.stacks.values()])
+    on_path = cells(path)
+    assert (on_path == 0).mean() >= 0.8 and (on_path == 100).mean() == 0.0
+    height = float(np.mean([st.cam_to_world[:, 2, 3].mean() for st in rec.stacks.values()]))
+    walls = rec.lidar_map()
+    walls = walls[np.abs(walls[:, 2] - height) < 0.35][:, :2]  # the planner map's obstacle band (maps/planner.py)
+    occ = np.argwhere(grid == 100)[:, ::-1] * msg.info.resolution + origin + msg.info.resolution / 2
+    from scipy.spatial import cKDTree
+
+    near = cKDTree(walls).query(occ)[0]
+    assert len(occ) > 50 and np.median(near) < 0.3, (len(occ), np.median(near), np.mean(near < 0.3))
+    assert "ros2: subscribed to /tf_static (tf2_msgs/msg/TFMessage)" in stdout
+    assert f"maps published on /map; final map in {out / 'map'}" in stdout
+
+
+def test_ros2_flags_are_refused_in_one_line(tmp_path):
+    code, _, err = run_cli(["ros2", "--out", tmp_path / "o"])
+    assert code == 2 and "--poses tf needs --tf-child FRAME" in err and "Traceback" not in err
+    code, _, err = run_cli(["ros2", "--out", tmp_path / "o", "--tf-child", "x", "--distro", "iron"])
+    assert code == 2 and "iron" in err and "humble" in err and len(err.strip().splitlines()) == 1
+    code, _, err = run_cli(["ros2-play", tmp_path / "none.bag"])
+    assert code == 2 and "no such file" in err
+    os.environ["ROS_DOMAIN_ID"], old = "999", os.environ.get("ROS_DOMAIN_ID")
+    try:
+        code, _, err = run_cli(["ros2", "--out", tmp_path / "o", "--tf-child", "x"])
+    finally:
+        os.environ.pop("ROS_DOMAIN_ID") if old is None else os.environ.__setitem__("ROS_DOMAIN_ID", old)
+    assert code == 2 and "domain id 999" in err
+    assert not (tmp_path / "o").exists()

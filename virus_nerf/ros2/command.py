@@ -1,0 +1,251 @@
+"""`virus-nerf ros2` (the live node) and `virus-nerf ros2-play` (a bag onto DDS); docs/ros2.md."""
+
+from __future__ import annotations
+
+import os
+import time
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+from virus_nerf.errors import OutputExistsError, UsageError, require_number
+
+NODE_POSES = ("tf", "odometry", "lidar-odometry")
+
+
+def _localhost_only(flag: bool) -> bool:
+    """--localhost-only, or ROS 2's own switches: ROS_LOCALHOST_ONLY=1 (Humble),
+    ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (Jazzy)."""
+    return (flag or os.environ.get("ROS_LOCALHOST_ONLY", "") == "1"
+            or os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "").upper() == "LOCALHOST")
+
+
+def ros2(
+    out: Path | None = None,
+    topics: Path | None = None,
+    poses: str = "tf",
+    tf_parent: str = "odom",
+    tf_child: str | None = None,
+    odometry_topic: str = "/odom",
+    distro: str = "jazzy",
+    domain_id: int | None = None,
+    localhost_only: bool = False,
+    namespace: str = "/",
+    map_topic: str = "map",
+    probability_topic: str = "map_probability",
+    map_frame: str | None = None,
+    publish_every: float = 5.0,
+    first_map: float = 1.0,
+    drive: float = 600.0,
+    max_lag: float = 2.0,
+    max_silence: float = 2.0,
+    config: Path | None = None,
+    resolution: float = 0.05,
+    n_rays: int = 360,
+    max_poses: int = 30,
+    duration: float | None = None,
+    exit_when_idle: float | None = None,
+    rerun: bool = False,
+    rerun_connect: str | None = None,
+    rerun_save: Path | None = None,
+) -> None:
+    """Map live from a ROS 2 robot over DDS and publish /map (no ROS install: the ros2 extra).
+
+    Joins the ROS 2 graph (domain $ROS_DOMAIN_ID), subscribes to the robot's topics as the topics
+    file names them (colour or compressed image + camera_info, USS, ToF, depth if named; poses from
+    /tf and /tf_static, nav_msgs/Odometry or KISS-ICP on the LiDAR), maps while the robot drives
+    with map-bag's engine and frame pairing, and publishes the planner's map on /map and the VIRUS
+    grid's probability on /map_probability (nav_msgs/OccupancyGrid, reliable, transient local) every
+    --publish-every seconds. OUT/ gets map-bag's snapshots, final map and stream.json. A sensor
+    that stops, a clock that jumps back, a malformed message or missing TF is one line in the log
+    and the node keeps mapping; Ctrl-C or SIGTERM writes and publishes the final map (exit 130/143).
+
+    Args:
+        out: New output folder (snapshots, final map, stream.json).
+        topics: Topic mapping file (default: the ETHZ robot's topic names; docs/import-bag.md).
+        poses: Pose source: tf (/tf, /tf_static), odometry (nav_msgs/Odometry on --odometry-topic)
+            or lidar-odometry (KISS-ICP on the topics file's LiDAR).
+        tf_parent: --poses tf: the world frame.
+        tf_child: --poses tf: the frame the topics file's camera mounting is given in (the LiDAR's).
+        odometry_topic: --poses odometry: the topic.
+        distro: ROS 2 message definitions: humble or jazzy (jazzy adds the type hash to the QoS user data).
+        domain_id: ROS domain (default $ROS_DOMAIN_ID, else 0).
+        localhost_only: Use the loopback interface only, no multicast (also ROS_LOCALHOST_ONLY=1 or
+            ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST).
+        namespace: The node's namespace: relative topic names resolve in it.
+        map_topic: The planner's map (nav_msgs/OccupancyGrid; relative: in --namespace).
+        probability_topic: The VIRUS grid's occupancy probability, 0-100.
+        map_frame: The maps' frame_id (default: --tf-parent, the frame the poses are in).
+        publish_every: Wall-clock seconds between maps (each also a snapshot in OUT/snapshots).
+        first_map: Wall-clock seconds from the first message to the first map.
+        drive: Expected drive in seconds: the learning rate decays over it, then stays low.
+        max_lag: A colour image this many seconds behind the newest message is dropped (counted).
+        max_silence: A sensor topic (or the pose source) silent this long is said in the log.
+        config: JSON training config (default: the defaults).
+        resolution: Metres per map cell.
+        n_rays: Rays per 360 deg scan of the maps.
+        max_poses: Camera positions scanned for each map.
+        duration: Stop after this many wall-clock seconds (default: run until Ctrl-C or SIGTERM).
+        exit_when_idle: Stop when no message came for this many seconds after the first one.
+        rerun: Spawn a Rerun viewer and watch the mapping live (the live extra).
+        rerun_connect: Send the live view to a running Rerun viewer at this URL instead.
+        rerun_save: Record the live view into this new .rrd file.
+    """
+    from virus_nerf.ros2.dds import require_dds, resolve
+
+    if out is None:
+        raise UsageError("--out is required: give --out DIR (a new folder for the snapshots and the final map)")
+    if poses not in NODE_POSES:
+        raise UsageError(f"--poses {poses!r}: expected {', '.join(NODE_POSES[:-1])} or {NODE_POSES[-1]}")
+    if poses == "tf" and tf_child is None:
+        raise UsageError("--poses tf needs --tf-child FRAME: the frame the topics file's camera mounting is "
+                         "given in (the LiDAR's, e.g. rslidar)")
+    for flag, value, low in (("--publish-every", publish_every, 0.0), ("--first-map", first_map, 0.0),
+                             ("--drive", drive, 0.0), ("--max-lag", max_lag, 0.0),
+                             ("--max-silence", max_silence, 0.0), ("--resolution", resolution, 0.0)):
+        require_number(flag, value, low, lo_open=flag != "--first-map")
+    for flag, value in (("--duration", duration), ("--exit-when-idle", exit_when_idle)):
+        if value is not None:
+            require_number(flag, value, 0.0)
+    if topics is not None and not Path(topics).is_file():
+        raise UsageError(f"--topics {topics}: no such file; expected the importer's topic mapping file")
+    out = Path(out)
+    if out.exists():
+        raise OutputExistsError(out)
+    require_dds()
+    from virus_nerf.ros2.types import typestore
+
+    typestore(distro)  # the one-line refusal of an unknown distro
+    cfg = None
+    if config is not None:
+        from virus_nerf.config_io import load_json_config
+        from virus_nerf.trainer.command import check_batch_memory
+        from virus_nerf.trainer.config import TrainConfig
+
+        cfg = load_json_config(TrainConfig, config)
+        check_batch_memory(cfg, what=f"--config {config}: batch_size")
+    from virus_nerf.utils.stop import stop_on_signals
+
+    names = dict(map=resolve(map_topic, namespace), probability=resolve(probability_topic, namespace))
+    with stop_on_signals():
+        run_node(out, topics, poses, tf_parent, tf_child, odometry_topic, cfg, distro=distro, domain=domain_id,
+                 loopback=_localhost_only(localhost_only), names=names, map_frame=map_frame or tf_parent,
+                 publish_every=publish_every, first_map=first_map, drive=drive, max_lag=max_lag,
+                 max_silence=max_silence, maps=dict(resolution=resolution, n_rays=n_rays, max_poses=max_poses),
+                 sinks=dict(rerun=rerun, rerun_connect=rerun_connect, rerun_save=rerun_save, out_bag=None),
+                 duration=duration, exit_when_idle=exit_when_idle)
+
+
+def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_child: str | None, odometry_topic: str,
+             cfg, *, distro: str, domain: int | None, loopback: bool, names: dict, map_frame: str,
+             publish_every: float, first_map: float, drive: float, max_lag: float, max_silence: float, maps: dict,
+             sinks: dict, duration: float | None, exit_when_idle: float | None, log=print) -> None:
+    """The node (ros2/node.py) until a stop: --duration, --exit-when-idle, SIGINT or SIGTERM."""
+    from virus_nerf.data.bags.live import LiveSync, make_pose_source
+    from virus_nerf.data.bags.topics import default_topics, read_topics
+    from virus_nerf.mapping.command import make_out, open_sinks, run_made_nothing
+    from virus_nerf.mapping.stream import StreamRun, summary, warm_up
+    from virus_nerf.ros2.dds import Participant
+    from virus_nerf.ros2.node import LiveMessages, MapPublisher, label, wanted_topics
+    from virus_nerf.trainer.config import TrainConfig
+    from virus_nerf.trainer.run_folder import RunLock
+    from virus_nerf.utils.stop import Stopped
+
+    tcfg = read_topics(topics) if topics else default_topics()
+    cfg = cfg if cfg is not None else TrainConfig()
+    participant = Participant(distro, domain, loopback=loopback)
+    where = label(participant)
+    with ExitStack() as owned:
+        owned.callback(participant.close)
+        source = make_pose_source(poses, tcfg, where, present=lambda t: True, tf_parent=tf_parent, tf_child=tf_child,
+                                  odometry_topic=odometry_topic)
+        owned.callback(source.close)  # KISS-ICP's worker process ends with the node
+        sync = LiveSync(tcfg, source, where, with_depth="rgbd" in cfg.sensors, max_silence_s=max_silence,
+                        on_problem=lambda line: log(f"ros2: {line}"))
+        publisher = MapPublisher(participant, names["map"], names["probability"], map_frame, log=log)
+        owned.callback(publisher.flush)  # the final map reaches the readers before the node leaves
+        warm_step_s = warm_up(cfg)
+        make_out(out)
+        owned.enter_context(RunLock(out, "--out"))
+        started = time.monotonic()
+
+        def stop() -> bool:
+            now = time.monotonic()
+            if duration is not None and now - started >= duration:
+                return True
+            last = messages.last_message_s
+            return exit_when_idle is not None and last is not None and now - last >= exit_when_idle
+
+        messages = LiveMessages(participant, wanted_topics(sync, source), log=log, stop=stop)
+        messages.discover()
+        log(f"ros2: node up on ROS 2 domain {participant.domain_id} ({distro}{', localhost only' if loopback else ''}); "
+            f"waiting for {', '.join(sorted(messages.wanted))}; maps on {names['map']} and {names['probability']} "
+            f"(frame {map_frame}) every {publish_every:g} s")
+        run = None
+        try:
+            with ExitStack() as stack:
+                live, _ = open_sinks(stack, **sinks)
+                run = StreamRun(sync, out, cfg, playback=1.0, snapshot_every=publish_every, first_snapshot=first_map,
+                                max_lag=max_lag, drive_s=drive, live=live, ros_bag=publisher,
+                                warm_step_s=warm_step_s, **maps)
+                report = run.run(messages)
+        except BaseException as exc:
+            nothing = run_made_nothing(out)
+            if isinstance(exc, Stopped):
+                exc.reported = True
+                if nothing or run is None or run.report.final is None:
+                    log(f"ros2: stopped by {exc.name} before the first frame was mapped; nothing was kept in {out}")
+                else:
+                    log(f"ros2: stopped by {exc.name}; {summary(run.report)}; final map in {run.report.final} "
+                        f"(published on {names['map']}), report in {out / 'stream.json'}")
+            raise
+    if report.final is None:
+        log(f"ros2: no frame was mapped ({summary(report)}); nothing was kept in {out}")
+        return
+    log(f"ros2: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s; {publisher.published} maps "
+        f"published on {names['map']}; final map in {report.final}")
+
+
+def ros2_play(
+    bag: Annotated[Path, tyro.conf.Positional],
+    rate: float = 1.0,
+    topic: list[str] | None = None,
+    distro: str = "jazzy",
+    domain_id: int | None = None,
+    localhost_only: bool = False,
+    delay: float = 1.0,
+) -> None:
+    """Play a ROS 1 or ROS 2 bag onto a ROS 2 graph over DDS, as `ros2 bag play` (no ROS install).
+
+    Each message goes out on its topic at its recorded pace (scaled by --rate), header stamps as
+    recorded; ROS 1 messages converted to ROS 2's. Try the node without a robot: `virus-nerf ros2
+    --out OUT ...` in one terminal, `virus-nerf ros2-play BAG` in another (docs/ros2.md).
+
+    Args:
+        bag: ROS bag (ROS 1 .bag, a ROS 2 bag folder, or a bare ROS 2 .mcap/.db3 file).
+        rate: Recording seconds per wall-clock second.
+        topic: Play only these topics (repeat the flag; default: all).
+        distro: ROS 2 message definitions: humble or jazzy.
+        domain_id: ROS domain (default $ROS_DOMAIN_ID, else 0).
+        localhost_only: Use the loopback interface only, no multicast (also ROS_LOCALHOST_ONLY=1).
+        delay: Seconds between joining the graph and the first message (discovery).
+    """
+    from virus_nerf.ros2.dds import Participant, require_dds
+    from virus_nerf.ros2.play import play
+    from virus_nerf.utils.stop import stop_on_signals
+
+    require_number("--rate", rate, 0.0)
+    require_number("--delay", delay, 0.0, lo_open=False)
+    if not Path(bag).exists():
+        raise UsageError(f"BAG {bag}: no such file or folder; expected a ROS bag")
+    require_dds()
+    participant = Participant(distro, domain_id, loopback=_localhost_only(localhost_only))
+    try:
+        with stop_on_signals():
+            report = play(Path(bag), participant, rate=rate, topics=topic, delay_s=delay)
+    finally:
+        participant.close()
+    print(f"ros2-play: {report.messages} messages on {report.topics} topics in {report.wall_s:.1f} s "
+          f"(at most {report.behind_s:.2f} s late)")

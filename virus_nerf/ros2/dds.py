@@ -1,0 +1,252 @@
+"""ROS 2 topics over DDS with cyclonedds, no ROS install: what rmw_cyclonedds_cpp puts on the wire.
+
+A ROS 2 node (rmw_cyclonedds_cpp) is a DDS participant; its topic `/map` is the DDS topic `rt/map`
+of type `nav_msgs::msg::dds_::OccupancyGrid_` (ros2/rmw_cyclonedds, namespace_prefix.hpp and
+serdata.cpp), final structs in plain CDR (XCDR1). Matching is by topic and type name, so a ROS 2
+node and this one see each other as long as both name the same type. Payloads are (de)serialised
+by rosbags (ros2/types.py) and go to and from cyclonedds as raw CDR bytes: the decoders of
+data/bags/messages.py then read exactly what they read from a bag, and an image is not turned into
+a Python list on the way. The IdlStruct of each type (ros2/types.py) only registers the topic.
+
+Quality of service, as ROS 2 names it (REP-2003, rmw's profiles):
+- sensors: best effort, volatile; a best-effort reader also matches a reliable writer, so one
+  reader serves every driver; its history is deeper than the drivers' (SENSOR_DEPTH): the mapper
+  takes messages between training slices;
+- `/tf_static`: reliable, transient local (a late joiner gets the static transforms);
+- maps (`/map`): reliable, transient local, keep last 1: a planner or `map_saver_cli` started
+  later still gets the newest map.
+
+`loopback=True` configures the domain to use the loopback interface only, without multicast
+(discovery by unicast to 127.0.0.1): tests never leave the machine.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+
+from virus_nerf.errors import UsageError
+
+ROS_TOPIC_PREFIX = "rt"  # rmw_cyclonedds: topics; "rq"/"rr" are services
+SENSOR_DEPTH = 200  # samples a sensor reader keeps between two takes (a few seconds of every sensor)
+MAX_DOMAIN_ID = 232  # the DDS port mapping's limit (ROS 2 documents 0-101 / 215-232 as safe)
+LOOPBACK_CONFIG = (
+    "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface name=\"lo\"/></Interfaces>"
+    "<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
+    "<MaxAutoParticipantIndex>40</MaxAutoParticipantIndex><Peers><Peer address=\"127.0.0.1\"/></Peers>"
+    "</Discovery></Domain></CycloneDDS>"
+)
+
+
+def require_dds():
+    """The cyclonedds module, or the one-line message naming the extra."""
+    try:
+        import cyclonedds  # noqa: F401
+        import rosbags  # noqa: F401
+    except ImportError as exc:
+        raise UsageError(f"the ROS 2 node needs the ros2 extra ({exc.name} is missing): "
+                         "pip install 'virus-nerf[ros2]'") from None
+
+
+def domain_id(value: int | None = None) -> int:
+    """The ROS domain: `value`, else $ROS_DOMAIN_ID, else 0 (as ROS 2)."""
+    raw = value if value is not None else os.environ.get("ROS_DOMAIN_ID", "0") or "0"
+    try:
+        d = int(raw)
+    except ValueError:
+        raise UsageError(f"ROS_DOMAIN_ID={raw!r}: expected an integer 0-{MAX_DOMAIN_ID}") from None
+    if not 0 <= d <= MAX_DOMAIN_ID:
+        raise UsageError(f"domain id {d}: expected 0-{MAX_DOMAIN_ID}")
+    return d
+
+
+def dds_topic(name: str) -> str:
+    """'/map' -> 'rt/map' (a fully qualified ROS name)."""
+    if not name.startswith("/"):
+        raise UsageError(f"topic {name!r}: expected a fully qualified name starting with '/'")
+    return ROS_TOPIC_PREFIX + name
+
+
+def resolve(name: str, namespace: str = "/") -> str:
+    """A ROS name resolved in `namespace`: '/x' stays, 'x' -> '<namespace>/x', '~/x' as 'x'."""
+    if name.startswith("/"):
+        return name
+    ns = "/" + namespace.strip("/")
+    rel = name[2:] if name.startswith("~/") else name
+    return (ns.rstrip("/") + "/" + rel) if rel else ns
+
+
+_LOOPBACK_DOMAINS: dict[int, object] = {}  # domain id -> its cyclonedds Domain, configured loopback-only
+
+
+@dataclass(frozen=True)
+class QosKind:
+    """One of the QoS profiles of the module doc."""
+
+    reliable: bool
+    transient_local: bool
+    depth: int
+
+
+SENSOR = QosKind(reliable=False, transient_local=False, depth=SENSOR_DEPTH)
+STATIC = QosKind(reliable=True, transient_local=True, depth=SENSOR_DEPTH)
+LATCHED = QosKind(reliable=True, transient_local=True, depth=1)  # /map
+RELIABLE = QosKind(reliable=True, transient_local=False, depth=10)  # ROS 2's default profile
+
+
+def _qos(kind: QosKind, user_data: bytes = b""):
+    from cyclonedds.core import Policy, Qos
+    from cyclonedds.util import duration
+
+    policies = [Policy.Reliability.Reliable(max_blocking_time=duration(milliseconds=100)) if kind.reliable
+                else Policy.Reliability.BestEffort,
+                Policy.Durability.TransientLocal if kind.transient_local else Policy.Durability.Volatile,
+                Policy.History.KeepLast(kind.depth),
+                Policy.DataRepresentation(use_cdrv0_representation=True)]
+    if user_data:
+        policies.append(Policy.Userdata(data=user_data))
+    return Qos(*policies)
+
+
+@dataclass
+class Sample:
+    """One received message: raw CDR (with its 4-byte encapsulation header) and when it came."""
+
+    payload: bytes
+    received_s: float  # wall clock (time.time) at the take
+    source_s: float  # the writer's source timestamp (s since the epoch)
+
+
+class Writer:
+    """A ROS 2 publisher: `write(payload)` sends serialised CDR as is."""
+
+    def __init__(self, participant: Participant, topic: str, msgtype: str, kind: QosKind) -> None:
+        from cyclonedds.pub import DataWriter
+
+        from virus_nerf.ros2 import types
+
+        self.topic, self.msgtype, self.kind = topic, msgtype, kind
+        qos = _qos(kind, types.user_data(participant.distro, msgtype))
+        t = participant.topic(topic, msgtype, qos)
+        self._writer = DataWriter(participant.dp, t, qos=qos)
+
+    def write(self, payload: bytes) -> None:
+        from cyclonedds._clayer import ddspy_write
+        from cyclonedds.core import DDSException
+
+        data = bytes(payload)
+        data = data.ljust((len(data) + 3) & ~3, b"\0")  # samples are 4-byte padded, as cyclonedds' own write
+        ret = ddspy_write(self._writer._ref, data)
+        if ret < 0:
+            raise DDSException(ret, f"writing {self.topic}")
+
+    def wait_for_acks(self, timeout_s: float) -> bool:
+        """True when every matched reliable reader acknowledged what was written (within timeout_s)."""
+        from cyclonedds.core import DDSException
+
+        try:
+            return bool(self._writer.wait_for_acks(int(timeout_s * 1e9)))
+        except DDSException:  # a timeout: a reader that left or lags; the map stays latched meanwhile
+            return False
+
+    def matched(self) -> int:
+        """Readers matched so far."""
+        return len(self._writer.get_matched_subscriptions())
+
+
+class Reader:
+    """A ROS 2 subscription: `take()` returns the samples received since the last take."""
+
+    def __init__(self, participant: Participant, topic: str, msgtype: str, kind: QosKind) -> None:
+        from cyclonedds.sub import DataReader
+
+        from virus_nerf.ros2 import types
+
+        self.topic, self.msgtype, self.kind = topic, msgtype, kind
+        qos = _qos(kind, types.user_data(participant.distro, msgtype))
+        self._reader = DataReader(participant.dp, participant.topic(topic, msgtype, qos), qos=qos)
+
+    def take(self, n: int = 1000) -> list[Sample]:
+        from cyclonedds._clayer import ddspy_take
+        from cyclonedds.core import DDSException, InstanceState, SampleState, ViewState
+
+        got = ddspy_take(self._reader._ref, SampleState.Any | ViewState.Any | InstanceState.Any, n)
+        if isinstance(got, int):
+            raise DDSException(got, f"taking {self.topic}")
+        now = time.time()
+        return [Sample(data, now, info.source_timestamp * 1e-9) for data, info in got if info.valid_data]
+
+    def matched(self) -> int:
+        return len(self._reader.get_matched_publications())
+
+
+class Participant:
+    """A ROS 2 participant on a domain; its topics, readers, writers and the graph's publishers."""
+
+    def __init__(self, distro: str, domain: int | None = None, loopback: bool = False) -> None:
+        require_dds()
+        from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
+        from cyclonedds.domain import Domain, DomainParticipant
+
+        from virus_nerf.ros2 import types
+
+        types.typestore(distro)  # the one-line refusal of an unknown distro, before joining
+        self.distro, self.domain_id = distro, domain_id(domain)
+        # a Domain made with a configuration is the one the participants of this process join (made once)
+        if loopback and self.domain_id not in _LOOPBACK_DOMAINS:
+            _LOOPBACK_DOMAINS[self.domain_id] = Domain(self.domain_id, LOOPBACK_CONFIG)
+        self.dp = DomainParticipant(self.domain_id)
+        self._topics: dict[str, object] = {}
+        self._entities: list = []  # readers and writers, deleted before the participant
+        self._publications = BuiltinDataReader(self.dp, BuiltinTopicDcpsPublication)
+        self._own = {self.dp.guid}
+        self.publishers: dict[str, set[str]] = {}  # ROS topic -> ROS message types of its remote writers
+        self.offered: dict[str, object] = {}  # ROS topic -> the QoS its newest remote writer offers
+
+    def topic(self, name: str, msgtype: str, qos):
+        from cyclonedds.topic import Topic
+
+        from virus_nerf.ros2 import types
+
+        key = f"{name} {msgtype}"
+        if key not in self._topics:
+            self._topics[key] = Topic(self.dp, dds_topic(name), types.idl_struct(self.distro, msgtype), qos=qos)
+        return self._topics[key]
+
+    def writer(self, topic: str, msgtype: str, kind: QosKind) -> Writer:
+        w = Writer(self, topic, msgtype, kind)
+        self._entities.append(w._writer)
+        return w
+
+    def reader(self, topic: str, msgtype: str, kind: QosKind) -> Reader:
+        r = Reader(self, topic, msgtype, kind)
+        self._entities.append(r._reader)
+        return r
+
+    def discover(self) -> dict[str, set[str]]:
+        """The publishers seen on the graph so far (other participants'), ROS topic -> message types."""
+        from virus_nerf.ros2 import types
+
+        for ep in self._publications.take(256):
+            if not getattr(ep, "topic_name", None) or ep.participant_key in self._own:
+                continue
+            if not ep.topic_name.startswith(ROS_TOPIC_PREFIX + "/"):
+                continue
+            msgtype = types.ros_type_name(ep.type_name)
+            if msgtype is not None:
+                topic = ep.topic_name[len(ROS_TOPIC_PREFIX):]
+                self.publishers.setdefault(topic, set()).add(msgtype)
+                self.offered[topic] = ep.qos
+        return self.publishers
+
+    def close(self) -> None:
+        """Leave the graph now: readers and writers, topics, then the participant deleted (cyclonedds
+        deletes an entity when its Python object is collected; a node's peers should not wait)."""
+        if self.dp is None:
+            return
+        for entity in [*reversed(self._entities), self._publications, *self._topics.values(), self.dp]:
+            entity.__del__()  # dds_delete, once (cyclonedds forgets the entity)
+        self._entities.clear()
+        self._topics.clear()
+        self.dp = None
