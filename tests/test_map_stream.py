@@ -359,3 +359,51 @@ def test_import_bag_with_wheel_odometry_and_no_lidar_trains_without_ground_truth
                               "--config", tiny_cfg, "--quiet"])
     assert code == 0, err
     assert "no LiDAR map" in out and (tmp_path / "run" / "map" / "map.pgm").is_file()
+
+
+def test_live_mode_says_each_problem_once_and_goes_on(bags, tmp_path):
+    """The ROS 2 node's stream (LiveSync with on_problem): a topic that stops and comes back, a
+    malformed message, a message out of order, a pose that jumps and a clock that goes back to the
+    bag's start (played again) are each one line, and frames keep coming after every one."""
+    import dataclasses
+
+    cfg = default_topics()
+    rec_csv = bags["csv"].read_text().splitlines()
+    jumped = [rec_csv[0]] + [_shift(row, 2.0) if 1700000001.5 < float(row.split(",")[0]) < 1700000001.8 else row
+                             for row in rec_csv[1:]]
+    csv = tmp_path / "jump.csv"
+    csv.write_text("\n".join(jumped) + "\n")
+    with BagReader(bags["ros1"]) as reader:
+        lines: list[str] = []
+        sync = LiveSync(cfg, make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=csv),
+                        bags["ros1"], max_silence_s=0.5, on_problem=lines.append)
+        messages = list(reader.iter_topics(sync.topics()))
+    t0 = messages[0][1].time_s
+    edited = []
+    for topic, msg in messages:
+        rel = msg.time_s - t0
+        if topic == "/USS1" and 0.8 < rel < 1.6:
+            continue  # silent for 0.8 s
+        if topic == "/TOF3" and msg.index == 5:
+            msg = dataclasses.replace(msg, msg=dataclasses.replace(msg.msg, meas=np.zeros(10, dtype=np.uint16)))
+        edited.append((topic, msg))
+        if topic == "/USS3" and msg.index == 12:  # an older message again: out of order
+            edited.append((topic, dataclasses.replace(messages_by(messages, "/USS3", 11), index=13)))
+    made = [sync.push(topic, msg) for topic, msg in edited]
+    first_pass = sum(len(f) for f in made)
+    again = [sync.push(topic, dataclasses.replace(msg)) for topic, msg in messages]  # the bag played again
+    again.append(sync.finish())
+    said = "\n".join(lines)
+    assert "topic /USS1 stopped: its last message is at 0.625 s and none came for 0.5 s" in said
+    assert "mapping goes on without it" in said and "topic /USS1 is back at bag time 1.667 s after 1.0 s" in said
+    assert "/TOF3" in said and "the message is skipped" in said
+    assert "topic /USS3: the clock went backwards" in said
+    assert re.search(r"the pose jumps [12]\.\d\d m .*; the frame is dropped", said), said
+    assert "taken as a restart (a bag played again, a clock reset)" in said
+    assert len(lines) == len(set(lines)) and all("\n" not in ln for ln in lines)
+    assert first_pass >= 20 and sum(len(f) for f in again) >= 20  # frames keep coming after each problem
+    assert sync.dropped_total()["pose jump"] >= 1 and sync.problems["restart"] >= 1
+
+
+def messages_by(messages, topic: str, index: int):
+    return next(msg for t, msg in messages if t == topic and msg.index == index)

@@ -130,6 +130,7 @@ class StreamRun:
         # the frame feeder on the receive clock (releases messages) and on the stamps (the lag)
         self.released = self.stamped = Playback(0.0, playback)  # from 0 until the first message
         self.behind = 0.0  # recording seconds the newest message was released after it was due
+        self.anchored, self.restarts = False, 0  # the lag's clock (`_anchor`)
         self.report = StreamReport()
         self._warned: set[str] = set()
 
@@ -153,6 +154,8 @@ class StreamRun:
                     continue
                 topic, msg = item
                 due = self._due(msg)
+                if "static" not in topic and (not self.anchored or self.sync.restarts != self.restarts):
+                    self._anchor(msg.time_s)
                 self._wait(due)
                 self._train_owed(due)
                 self.behind = (self.now() - due) * self.playback
@@ -173,6 +176,19 @@ class StreamRun:
         self._close()
         return self.report
 
+    def _anchor(self, stamp: float) -> None:
+        """The lag's clock: the first message's stamp now, not a static transform's (a late
+        joiner's are old), and again after the live clock went back (LiveSync.restart)."""
+        self.restarts = self.sync.restarts
+        if not self.anchored:
+            self.anchored = True
+            if stamp == self.t0:  # the first message: `_due` anchored it
+                return
+            self.t0 = stamp
+        else:  # a restart: the frames from here on are the newest
+            self.newest = None
+        self.stamped = Playback(stamp - self.now() * self.playback, self.playback)
+
     def _due(self, msg) -> float:
         """Wall seconds (from the first message) at which `msg` is released."""
         received = msg.received_s if msg.received_s is not None else msg.time_s
@@ -186,11 +202,12 @@ class StreamRun:
         while (now := self.now()) < due:
             if self._maybe_snapshot():
                 continue
-            budget = min(self.train_slice, due - now, self.next_snapshot - now)
+            # a snapshot overdue before the mapper exists (live: no pose yet) waits for it
+            budget = max(min(self.train_slice, due - now, self.next_snapshot - now), 0.0)
             if self._may_train(now):
                 self._train(budget)
             else:
-                time.sleep(budget)
+                time.sleep(budget if budget > 0 else min(due - now, IDLE_SLEEP_S))
 
     def _idle(self) -> None:
         """A live source has nothing new: a snapshot when due, else a training slice (a short

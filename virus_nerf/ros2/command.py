@@ -64,7 +64,7 @@ def ros2(
 
     Args:
         out: New output folder (snapshots, final map, stream.json).
-        topics: Topic mapping file (default: the ETHZ robot's topic names; docs/import-bag.md).
+        topics: Topic mapping file (default: the ETHZ robot's topic names; docs/usage.md).
         poses: Pose source: tf (/tf, /tf_static), odometry (nav_msgs/Odometry on --odometry-topic)
             or lidar-odometry (KISS-ICP on the topics file's LiDAR).
         tf_parent: --poses tf: the world frame.
@@ -193,16 +193,23 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
                 report = run.run(messages)
         except BaseException as exc:
             nothing = run_made_nothing(out)
+            if nothing:
+                import shutil
+
+                shutil.rmtree(out, ignore_errors=True)  # made by this run, and nothing in it
             if isinstance(exc, Stopped):
                 exc.reported = True
                 if nothing or run is None or run.report.final is None:
-                    log(f"ros2: stopped by {exc.name} before the first frame was mapped; nothing was kept in {out}")
+                    log(f"ros2: stopped by {exc.name} before the first frame was mapped; nothing was kept")
                 else:
                     log(f"ros2: stopped by {exc.name}; {summary(run.report)}; final map in {run.report.final} "
                         f"(published on {names['map']}), report in {out / 'stream.json'}")
             raise
     if report.final is None:
-        log(f"ros2: no frame was mapped ({summary(report)}); nothing was kept in {out}")
+        import shutil
+
+        shutil.rmtree(out, ignore_errors=True)  # made by this run, and nothing in it
+        log(f"ros2: no frame was mapped ({summary(report)}); nothing was kept")
         return
     log(f"ros2: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s; {publisher.published} maps "
         f"published on {names['map']}; final map in {report.final}")
@@ -226,10 +233,11 @@ def ros2_play(
     Args:
         bag: ROS bag (ROS 1 .bag, a ROS 2 bag folder, or a bare ROS 2 .mcap/.db3 file).
         rate: Recording seconds per wall-clock second.
-        topic: Play only these topics (repeat the flag; default: all).
+        topic: Play only these topics (--topic /a /b; default: all).
         distro: ROS 2 message definitions: humble or jazzy.
         domain_id: ROS domain (default $ROS_DOMAIN_ID, else 0).
-        localhost_only: Use the loopback interface only, no multicast (also ROS_LOCALHOST_ONLY=1).
+        localhost_only: Use the loopback interface only, no multicast (also ROS_LOCALHOST_ONLY=1 or
+            ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST).
         delay: Seconds between joining the graph and the first message (discovery).
     """
     from virus_nerf.ros2.dds import Participant, require_dds

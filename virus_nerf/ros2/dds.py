@@ -32,7 +32,7 @@ ROS_TOPIC_PREFIX = "rt"  # rmw_cyclonedds: topics; "rq"/"rr" are services
 SENSOR_DEPTH = 200  # samples a sensor reader keeps between two takes (a few seconds of every sensor)
 MAX_DOMAIN_ID = 232  # the DDS port mapping's limit (ROS 2 documents 0-101 / 215-232 as safe)
 LOOPBACK_CONFIG = (
-    "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface name=\"lo\"/></Interfaces>"
+    "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface address=\"127.0.0.1\"/></Interfaces>"
     "<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
     "<MaxAutoParticipantIndex>40</MaxAutoParticipantIndex><Peers><Peer address=\"127.0.0.1\"/></Peers>"
     "</Discovery></Domain></CycloneDDS>"
@@ -59,6 +59,11 @@ def domain_id(value: int | None = None) -> int:
     if not 0 <= d <= MAX_DOMAIN_ID:
         raise UsageError(f"domain id {d}: expected 0-{MAX_DOMAIN_ID}")
     return d
+
+
+def is_tf_static(topic: str) -> bool:
+    """The static transforms' topic (tf2's /tf_static, namespaced or not): reliable, transient local."""
+    return topic == "/tf_static" or topic.endswith("/tf_static")
 
 
 def dds_topic(name: str) -> str:
@@ -90,7 +95,7 @@ class QosKind:
 
 
 SENSOR = QosKind(reliable=False, transient_local=False, depth=SENSOR_DEPTH)
-STATIC = QosKind(reliable=True, transient_local=True, depth=SENSOR_DEPTH)
+STATIC = QosKind(reliable=True, transient_local=True, depth=SENSOR_DEPTH)  # /tf_static
 LATCHED = QosKind(reliable=True, transient_local=True, depth=1)  # /map
 RELIABLE = QosKind(reliable=True, transient_local=False, depth=10)  # ROS 2's default profile
 

@@ -76,7 +76,7 @@ class LiveMessages:
                         self.log(f"ros2: topic {topic} is published as {t}; expected "
                                  f"{' or '.join(self.wanted[topic])}: not subscribed")
                 continue
-            kind = dds.STATIC if "static" in topic else dds.SENSOR
+            kind = dds.STATIC if dds.is_tf_static(topic) else dds.SENSOR
             self.readers[topic] = self.participant.reader(topic, accepted[0], kind)
             self.log(f"ros2: subscribed to {topic} ({accepted[0]})")
 

@@ -47,7 +47,7 @@ def play(bag: Path, participant: dds.Participant, *, rate: float = 1.0, topics: 
                 raise UsageError(f"--topic {t}: not in the bag {bag}; it has {', '.join(sorted(known))}")
         writers = {}
         for t in names:
-            kind = dds.STATIC if "static" in t else dds.RELIABLE
+            kind = dds.STATIC if dds.is_tf_static(t) else dds.RELIABLE
             writers[t] = participant.writer(t, known[t].msgtype, kind)
         report.topics = len(writers)
         log(f"ros2-play: {bag}: {len(writers)} topics on ROS 2 domain {participant.domain_id} "

@@ -384,7 +384,8 @@ class LiveSync:
         self.on_problem = on_problem  # live: problems are said and the stream goes on (module doc)
         self.problems: Counter = Counter()  # live: kind -> times met
         self._said: dict[str, tuple[float, int]] = {}  # kind -> (wall time said, repeats since)
-        self.silent: dict[str, float] = {}  # live: topic (or "poses") -> the bag time it was found silent
+        self.silent: dict[str, float] = {}  # live: topic (or "poses") -> its last stamp when found silent
+        self.restarts = 0  # live: times the clock went back (restart)
         self.max_silence_s, self.max_jump_m = max_silence_s, max_jump_m
         self.intrinsics: dict[int, Intrinsics] = dict(intrinsics or {})
         self.mount = {s: st.camera_in_lidar() for s, st in cfg.stacks.items()}
@@ -425,11 +426,17 @@ class LiveSync:
         if self.error is not None:
             raise self.error
         t = msg.time_s
+        live_static = self.on_problem is not None and "static" in topic
+        if live_static and self.t0 is None:  # live: a late joiner's static transforms are old (transient local)
+            with self._at(msg, topic):
+                self.poses.add(topic, msg)
+            return []
         if self.t0 is None:
             self.t0 = t
         if not self._check_clock(topic, msg):
             return []  # live: skipped
-        self.clock = max(self.clock, t)
+        if not live_static:
+            self.clock = max(self.clock, t)
         with self._at(msg, topic):
             if topic in self.poses.topics:
                 self.poses.add(topic, msg)
@@ -497,7 +504,9 @@ class LiveSync:
 
     def restart(self, t: float) -> None:
         """Live: the clock went back to `t` (a bag played again, a clock reset): the synchronisation
-        starts again; the frames already made stay in the map."""
+        starts again; the frames already made stay in the map. `restarts` counts them (the stream
+        re-anchors its lag clock)."""
+        self.restarts += 1
         for q in self.waiting.values():
             q.clear()
         for buf in self.buffers.values():
