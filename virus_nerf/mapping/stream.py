@@ -210,7 +210,7 @@ class StreamRun:
                 time.sleep(budget if budget > 0 else min(due - now, IDLE_SLEEP_S))
 
     def _idle(self) -> None:
-        """A live source has nothing new: a snapshot when due, else a training slice (a short
+        """A live source has nothing new: a snapshot when due, else a training step (a short
         pause before the mapper exists)."""
         if self.start is None or self._maybe_snapshot():
             if self.start is None:
@@ -218,7 +218,9 @@ class StreamRun:
             return
         now = self.now()
         if self._may_train(now):
-            self._train(max(min(self.train_slice, self.next_snapshot - now), IDLE_SLEEP_S))
+            # one step, then look for messages again: the next one may come any moment (a bag's
+            # stream likewise trains only until its next message is due)
+            self._train(IDLE_SLEEP_S)
         else:
             time.sleep(IDLE_SLEEP_S)
 
