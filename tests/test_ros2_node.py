@@ -155,3 +155,21 @@ def test_ros2_flags_are_refused_in_one_line(tmp_path):
         os.environ.pop("ROS_DOMAIN_ID") if old is None else os.environ.__setitem__("ROS_DOMAIN_ID", old)
     assert code == 2 and "domain id 999" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_sample_arrives_at_its_source_time_when_that_is_the_same_clock():
+    """A sample that waited 3 s in the queue while the mapper was busy counts 3 s late (the stream
+    then drops a colour image beyond --max-lag); a source clock that is not ours is not trusted."""
+    assert dds.arrival(1000.0, 997.0) == 997.0
+    assert dds.arrival(1000.0, 1000.0) == 1000.0
+    assert dds.arrival(1000.0, 1000.5) == 1000.0  # the writer's clock ahead of ours: another clock
+    assert dds.arrival(1000.0, 1000.0 - dds.MAX_QUEUED_S - 1) == 1000.0  # far behind: another clock
+
+
+def test_names_resolve_as_ros_2_resolves_them():
+    assert dds.resolve("map", "/") == "/map"
+    assert dds.resolve("map", "/robot1") == "/robot1/map"
+    assert dds.resolve("/map", "/robot1") == "/map"
+    assert dds.dds_topic("/robot1/map") == "rt/robot1/map"
+    assert dds.is_tf_static("/tf_static") and dds.is_tf_static("/robot1/tf_static") and not dds.is_tf_static("/tf")
+    assert types.dds_type_name(GRID) == "nav_msgs::msg::dds_::OccupancyGrid_"

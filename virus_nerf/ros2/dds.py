@@ -30,6 +30,7 @@ from virus_nerf.errors import UsageError
 
 ROS_TOPIC_PREFIX = "rt"  # rmw_cyclonedds: topics; "rq"/"rr" are services
 SENSOR_DEPTH = 200  # samples a sensor reader keeps between two takes (a few seconds of every sensor)
+MAX_QUEUED_S = 30.0  # a writer's source time further back than this (or ahead) is another clock, not a wait
 MAX_DOMAIN_ID = 232  # the DDS port mapping's limit (ROS 2 documents 0-101 / 215-232 as safe)
 LOOPBACK_CONFIG = (
     "<CycloneDDS><Domain id=\"any\"><General><Interfaces><NetworkInterface address=\"127.0.0.1\"/></Interfaces>"
@@ -119,8 +120,16 @@ class Sample:
     """One received message: raw CDR (with its 4-byte encapsulation header) and when it came."""
 
     payload: bytes
-    received_s: float  # wall clock (time.time) at the take
+    received_s: float  # when it arrived (wall clock, time.time): `arrival`
     source_s: float  # the writer's source timestamp (s since the epoch)
+
+
+def arrival(taken_s: float, source_s: float) -> float:
+    """When a sample arrived: the writer's source time, when it lies at most MAX_QUEUED_S before
+    the take (the same clock: one host, or hosts in time sync), else the take. A sample that waited
+    in the reader's queue while the mapper was busy then counts as late as it is, and the stream
+    drops a colour image more than --max-lag behind, as map-bag does."""
+    return source_s if 0.0 <= taken_s - source_s <= MAX_QUEUED_S else taken_s
 
 
 class Writer:
@@ -180,7 +189,8 @@ class Reader:
         if isinstance(got, int):
             raise DDSException(got, f"taking {self.topic}")
         now = time.time()
-        return [Sample(data, now, info.source_timestamp * 1e-9) for data, info in got if info.valid_data]
+        return [Sample(data, arrival(now, info.source_timestamp * 1e-9), info.source_timestamp * 1e-9)
+                for data, info in got if info.valid_data]
 
     def matched(self) -> int:
         return len(self._reader.get_matched_publications())
