@@ -3,7 +3,8 @@
 For each simulated drive (bench_stream.py's bags: a room no test uses, half resolution, poses on
 /tf) two runs, one after the other:
 - `virus-nerf map-bag BAG --playback 1 --poses tf` (the reference);
-- `virus-nerf ros2 --poses tf` and `virus-nerf ros2-play BAG` started at once (a robot already
+- `virus-nerf ros2 --poses tf` and `virus-nerf ros2-play BAG --topic ...` (the topics the node
+  reads: no depth, no LiDAR; as `ros2 bag play --topics`) started at once (a robot already
   driving when its mapper starts), with a third process, a plain cyclonedds reader, that records
   when each `/map` arrives and decodes the last one.
 Reported per drive and run: frames mapped and dropped, the lag at the snapshots taken while the
@@ -120,7 +121,11 @@ def run_node(bag: Path, out: Path, snapshot_every: float, domain: int, drive_s: 
     node = subprocess.Popen([*CLI, "ros2", "--out", str(out), "--tf-child", "rslidar", "--localhost-only",
                              "--publish-every", str(snapshot_every), "--exit-when-idle", "4"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    play = subprocess.run([*CLI, "ros2-play", str(bag), "--localhost-only"], capture_output=True, text=True, env=env)
+    # the topics the node reads (as `ros2 bag play --topics`): colour, camera_info, USS, ToF, /tf, /tf_static
+    topics = [f"/{kind}{s}" for s in (1, 3) for kind in ("USS", "TOF")] + ["/tf", "/tf_static"] + [
+        f"/CAM{s}/color/{name}" for s in (1, 3) for name in ("image_raw", "camera_info")]
+    play = subprocess.run([*CLI, "ros2-play", str(bag), "--localhost-only", "--topic", *topics], capture_output=True,
+                          text=True, env=env)
     node_out, node_err = node.communicate()
     got = json.loads(reader.communicate()[0] or "{}")
     if play.returncode or node.returncode:

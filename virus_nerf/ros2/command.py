@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from contextlib import ExitStack
@@ -155,6 +156,8 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
 
     tcfg = read_topics(topics) if topics else default_topics()
     cfg = cfg if cfg is not None else TrainConfig()
+    if "rgbd" not in cfg.sensors:  # live, a depth image the mapper does not use is neither read nor waited for
+        tcfg = dataclasses.replace(tcfg, stacks={s: dataclasses.replace(st, depth=None) for s, st in tcfg.stacks.items()})
     participant = Participant(distro, domain, loopback=loopback)
     where = label(participant)
     with ExitStack() as owned:
