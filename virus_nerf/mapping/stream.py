@@ -131,6 +131,8 @@ class StreamRun:
         self.released = self.stamped = Playback(0.0, playback)  # from 0 until the first message
         self.behind = 0.0  # recording seconds the newest message was released after it was due
         self.anchored, self.restarts = False, 0  # the lag's clock (`_anchor`)
+        # a live source (ros2/node.py): messages arrive stamped with the wall clock (time.time)
+        self.live_source = getattr(sync, "on_problem", None) is not None
         self.report = StreamReport()
         self._warned: set[str] = set()
 
@@ -155,7 +157,7 @@ class StreamRun:
                 topic, msg = item
                 due = self._due(msg)
                 if "static" not in topic and (not self.anchored or self.sync.restarts != self.restarts):
-                    self._anchor(msg.time_s)
+                    self._anchor(msg)
                 self._wait(due)
                 self._train_owed(due)
                 self.behind = (self.now() - due) * self.playback
@@ -176,25 +178,31 @@ class StreamRun:
         self._close()
         return self.report
 
-    def _anchor(self, stamp: float) -> None:
+    def _anchor(self, msg) -> None:
         """The lag's clock: the first message's stamp now, not a static transform's (a late
-        joiner's are old), and again after the live clock went back (LiveSync.restart)."""
+        joiner's are old), and again after the live clock went back (LiveSync.restart). Live, the
+        message's age (it may have waited in the queue while the mapper started) is added: its
+        stamp was the robot's clock when it arrived."""
         self.restarts = self.sync.restarts
         if not self.anchored:
             self.anchored = True
-            if stamp == self.t0:  # the first message: `_due` anchored it
+            if msg.time_s == self.t0 and not self.live_source:  # the first message: `_due` anchored it
                 return
-            self.t0 = stamp
+            self.t0 = msg.time_s
         else:  # a restart: the frames from here on are the newest
             self.newest = None
-        self.stamped = Playback(stamp - self.now() * self.playback, self.playback)
+        age = max(time.time() - msg.received_s, 0.0) if self.live_source and msg.received_s is not None else 0.0
+        self.stamped = Playback(msg.time_s + age * self.playback - self.now() * self.playback, self.playback)
 
     def _due(self, msg) -> float:
         """Wall seconds (from the first message) at which `msg` is released."""
         received = msg.received_s if msg.received_s is not None else msg.time_s
         if self.start is None:
-            self.start, self.r0, self.t0 = time.monotonic(), received, msg.time_s
-            self.released, self.stamped = Playback(received, self.playback), Playback(msg.time_s, self.playback)
+            # live, arrival times are the wall clock (time.time): the clock starts now, so a message
+            # that waited in the queue is as late as it is (a colour image beyond max_lag is dropped)
+            r0 = time.time() if self.live_source else received
+            self.start, self.r0, self.t0 = time.monotonic(), r0, msg.time_s
+            self.released, self.stamped = Playback(r0, self.playback), Playback(msg.time_s, self.playback)
         return self.released.elapsed_at(received)
 
     def _wait(self, due: float) -> None:

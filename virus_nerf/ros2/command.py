@@ -14,6 +14,7 @@ import tyro
 from virus_nerf.errors import OutputExistsError, UsageError, require_number
 
 NODE_POSES = ("tf", "odometry", "lidar-odometry")
+NODE_NAME = "virus_nerf"  # the name `ros2 node list` shows (in --namespace)
 
 
 def _localhost_only(flag: bool) -> bool:
@@ -133,6 +134,7 @@ def ros2(
     with stop_on_signals():
         run_node(out, topics, poses, tf_parent, tf_child, odometry_topic, cfg, distro=distro, domain=domain_id,
                  loopback=_localhost_only(localhost_only), names=names, map_frame=map_frame or tf_parent,
+                 namespace=namespace,
                  publish_every=publish_every, first_map=first_map, drive=drive, max_lag=max_lag,
                  max_silence=max_silence, maps=dict(resolution=resolution, n_rays=n_rays, max_poses=max_poses),
                  sinks=dict(rerun=rerun, rerun_connect=rerun_connect, rerun_save=rerun_save, out_bag=None),
@@ -140,7 +142,7 @@ def ros2(
 
 
 def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_child: str | None, odometry_topic: str,
-             cfg, *, distro: str, domain: int | None, loopback: bool, names: dict, map_frame: str,
+             cfg, *, distro: str, domain: int | None, loopback: bool, names: dict, map_frame: str, namespace: str,
              publish_every: float, first_map: float, drive: float, max_lag: float, max_silence: float, maps: dict,
              sinks: dict, duration: float | None, exit_when_idle: float | None, log=print) -> None:
     """The node (ros2/node.py) until a stop: --duration, --exit-when-idle, SIGINT or SIGTERM."""
@@ -159,6 +161,7 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
     if "rgbd" not in cfg.sensors:  # live, a depth image the mapper does not use is neither read nor waited for
         tcfg = dataclasses.replace(tcfg, stacks={s: dataclasses.replace(st, depth=None) for s, st in tcfg.stacks.items()})
     participant = Participant(distro, domain, loopback=loopback)
+    participant.announce_node(NODE_NAME, namespace)
     where = label(participant)
     with ExitStack() as owned:
         owned.callback(participant.close)

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 from virus_nerf.errors import UsageError
 
 ROS_TOPIC_PREFIX = "rt"  # rmw_cyclonedds: topics; "rq"/"rr" are services
+DISCOVERY_TOPIC = "ros_discovery_info"  # rmw_dds_common's graph topic (a DDS name, no prefix)
+ENTITIES_INFO = "rmw_dds_common/msg/ParticipantEntitiesInfo"
 SENSOR_DEPTH = 200  # samples a sensor reader keeps between two takes (a few seconds of every sensor)
 MAX_QUEUED_S = 30.0  # a writer's source time further back than this (or ahead) is another clock, not a wait
 MAX_DOMAIN_ID = 232  # the DDS port mapping's limit (ROS 2 documents 0-101 / 215-232 as safe)
@@ -142,7 +144,7 @@ class Writer:
 
         self.topic, self.msgtype, self.kind = topic, msgtype, kind
         qos = _qos(kind, types.user_data(participant.distro, msgtype))
-        t = participant.topic(topic, msgtype, qos)
+        t = participant.topic(topic, msgtype, qos, dds_name=topic if topic == DISCOVERY_TOPIC else None)
         self._writer = DataWriter(participant.dp, t, qos=qos)
 
     def write(self, payload: bytes) -> None:
@@ -179,7 +181,8 @@ class Reader:
 
         self.topic, self.msgtype, self.kind = topic, msgtype, kind
         qos = _qos(kind, types.user_data(participant.distro, msgtype))
-        self._reader = DataReader(participant.dp, participant.topic(topic, msgtype, qos), qos=qos)
+        t = participant.topic(topic, msgtype, qos, dds_name=topic if topic == DISCOVERY_TOPIC else None)
+        self._reader = DataReader(participant.dp, t, qos=qos)
 
     def take(self, n: int = 1000) -> list[Sample]:
         from cyclonedds._clayer import ddspy_take
@@ -214,30 +217,74 @@ class Participant:
         self.dp = DomainParticipant(self.domain_id)
         self._topics: dict[str, object] = {}
         self._entities: list = []  # readers and writers, deleted before the participant
+        self._readers: list = []  # the node's (announce_node)
+        self._writers: list = []
+        self.node: tuple[str, str] | None = None  # (name, namespace) once announced
         self._publications = BuiltinDataReader(self.dp, BuiltinTopicDcpsPublication)
         self._own = {self.dp.guid}
         self.publishers: dict[str, set[str]] = {}  # ROS topic -> ROS message types of its remote writers
         self.offered: dict[str, object] = {}  # ROS topic -> the QoS its newest remote writer offers
+        self.writer_gids: dict[str, set[bytes]] = {}  # ROS topic -> its remote writers' 16-byte GUIDs
 
-    def topic(self, name: str, msgtype: str, qos):
+    def topic(self, name: str, msgtype: str, qos, dds_name: str | None = None):
         from cyclonedds.topic import Topic
 
         from virus_nerf.ros2 import types
 
         key = f"{name} {msgtype}"
         if key not in self._topics:
-            self._topics[key] = Topic(self.dp, dds_topic(name), types.idl_struct(self.distro, msgtype), qos=qos)
+            self._topics[key] = Topic(self.dp, dds_name or dds_topic(name), types.idl_struct(self.distro, msgtype),
+                                      qos=qos)
         return self._topics[key]
 
     def writer(self, topic: str, msgtype: str, kind: QosKind) -> Writer:
         w = Writer(self, topic, msgtype, kind)
         self._entities.append(w._writer)
+        self._writers.append(w._writer)
+        self._announce()
         return w
 
     def reader(self, topic: str, msgtype: str, kind: QosKind) -> Reader:
         r = Reader(self, topic, msgtype, kind)
         self._entities.append(r._reader)
+        self._readers.append(r._reader)
+        self._announce()
         return r
+
+    # ------------------------------------------------------------------ the ROS graph
+    def gid(self, entity) -> bytes:
+        """The rmw GID of a DDS entity: its 16-byte GUID (zero-padded to Humble's 24 bytes)."""
+        size = 24 if self.distro == "humble" else 16
+        return entity.guid.bytes.ljust(size, b"\0")
+
+    def announce_node(self, name: str, namespace: str = "/") -> None:
+        """Be a ROS node on the graph: rmw_dds_common's ParticipantEntitiesInfo on
+        `ros_discovery_info` (reliable, transient local, keep last 1), naming this participant's
+        readers and writers under node `name` in `namespace`, as rmw_cyclonedds does; `ros2 node
+        list` and `ros2 topic info -v` read it. Sent again whenever a reader or writer is made."""
+        self.node = (name, "/" + namespace.strip("/"))
+        self._discovery_writer = Writer(self, DISCOVERY_TOPIC, ENTITIES_INFO, LATCHED)
+        self._entities.append(self._discovery_writer._writer)
+        self._announce()
+
+    def _announce(self) -> None:
+        if self.node is None:
+            return
+        import numpy as np
+
+        from virus_nerf.ros2 import types
+
+        store = types.typestore(self.distro)
+        t = store.types
+
+        def gid(entity):
+            return t["rmw_dds_common/msg/Gid"](data=np.frombuffer(self.gid(entity), dtype=np.uint8).copy())
+
+        node = t["rmw_dds_common/msg/NodeEntitiesInfo"](
+            node_namespace=self.node[1], node_name=self.node[0], reader_gid_seq=[gid(r) for r in self._readers],
+            writer_gid_seq=[gid(w) for w in self._writers])
+        info = t[ENTITIES_INFO](gid=gid(self.dp), node_entities_info_seq=[node])
+        self._discovery_writer.write(types.serialize(info, ENTITIES_INFO, store))
 
     def discover(self) -> dict[str, set[str]]:
         """The publishers seen on the graph so far (other participants'), ROS topic -> message types."""
@@ -253,6 +300,7 @@ class Participant:
                 topic = ep.topic_name[len(ROS_TOPIC_PREFIX):]
                 self.publishers.setdefault(topic, set()).add(msgtype)
                 self.offered[topic] = ep.qos
+                self.writer_gids.setdefault(topic, set()).add(ep.key.bytes)
         return self.publishers
 
     def close(self) -> None:
