@@ -52,7 +52,7 @@ def judge(run: Path) -> dict:
     from virus_nerf.engine import views
     from virus_nerf.evaluation.safety import mapper_safety
     from virus_nerf.maps.planner import RangeEvidence
-    from virus_nerf.trainer.command import load_trained
+    from virus_nerf.trainer.run import load_trained
 
     trainer, cfg, _ = load_trained(run, "--run")
     trainer._sync_frames()  # the training frames, as `train` had them at its end

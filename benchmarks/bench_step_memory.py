@@ -1,5 +1,5 @@
 """Memory a training step takes per marched sample (issue 39 item 3): the constant behind
-`trainer.command.SAMPLE_BYTES`, the batch check's bound.
+`engine.memory.SAMPLE_BYTES`, the batch check's bound.
 
 For each --batch-size, a fresh process builds the trainer on a simulated office (the default
 config, the CPU-default field), decodes its frames, notes its peak RSS, then runs --steps steps

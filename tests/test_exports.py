@@ -226,7 +226,7 @@ def test_export_all_writes_every_format(exported):
 
 def test_scans_lie_at_the_model_ranges(exported, trained_run):
     from virus_nerf.maps.scans import horizontal_directions
-    from virus_nerf.trainer.command import load_trained
+    from virus_nerf.trainer.run import load_trained
 
     trainer, _, _ = load_trained(trained_run, "--run")
     rows = [ln.split(",") for ln in (exported / "poses.csv").read_text().splitlines()[1:]]
@@ -245,7 +245,7 @@ def test_scans_lie_at_the_model_ranges(exported, trained_run):
 
 def test_rendered_depth_png_matches_the_model_ranges(exported, trained_run):
     from virus_nerf.sensors.camera import pixel_directions
-    from virus_nerf.trainer.command import load_trained
+    from virus_nerf.trainer.run import load_trained
 
     trainer, _, _ = load_trained(trained_run, "--run")
     doc = json.loads((exported / "export.json").read_text())["images"]

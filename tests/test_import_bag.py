@@ -75,7 +75,7 @@ def test_training_on_the_import_matches_the_original(imported, tiny_office, tmp_
     is still near its initialisation, whose scan depends on the scene box fitted to the map:
     measured 0.23 m apart in acc_median (1.55 vs 1.32 m), hence the loose NeRF bound; the LiDAR
     scores (poses + map only) agree within 1 cm."""
-    from virus_nerf.trainer.command import run_training
+    from virus_nerf.trainer.run import run_training
 
     cfg = tiny_train_config()
     a = run_training(tiny_office, "office", tmp_path / "a", cfg, quiet=True)

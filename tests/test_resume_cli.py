@@ -198,12 +198,12 @@ def test_evaluate_and_export_still_work(run_copy, tmp_path):
 
 
 def test_export_makes_its_output_folder_before_computing(run_copy, tmp_path, monkeypatch):
-    import virus_nerf.trainer.command as train_command
+    import virus_nerf.trainer.run as train_run
 
     def no_work(*args, **kwargs):
         raise AssertionError("the model was loaded although the output folder cannot be made")
 
-    monkeypatch.setattr(train_command, "load_trained", no_work)
+    monkeypatch.setattr(train_run, "load_trained", no_work)
     (tmp_path / "afile").write_text("a file where a folder should be")
     code, _, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "afile" / "map"])
     one_line_error(code, err, f"{tmp_path / 'afile' / 'map'}: cannot create this folder (a parent is not a folder)")
@@ -252,7 +252,7 @@ def test_plots_are_written_before_metrics(tiny_office, tmp_path, monkeypatch):
     """metrics.json marks a finished run, so it comes last: a failure while plotting leaves no
     metrics.json (and a resumable run), never metrics without plots."""
     import virus_nerf.trainer.report as report
-    from virus_nerf.trainer.command import run_training
+    from virus_nerf.trainer.run import run_training
 
     def broken(*args, **kwargs):
         raise RuntimeError("plotting failed")
@@ -323,7 +323,7 @@ def test_demo_copies_metrics_atomically(tmp_path, monkeypatch):
     """The copy of run/metrics.json goes through a temporary file: a copy that fails half-way
     leaves no OUT/metrics.json (the demo's marker of a complete result)."""
     import virus_nerf.sim.command as sim_command
-    import virus_nerf.trainer.command as train_command
+    import virus_nerf.trainer.run as train_run
     from virus_nerf.experiments.demo import demo
 
     doc = {"zones": {"zone1": [0, 1], "zone2": [0, 2], "zone3": [0, 100]}, "sensors": {},
@@ -342,7 +342,7 @@ def test_demo_copies_metrics_atomically(tmp_path, monkeypatch):
         raise OSError(28, "No space left on device", str(dst))
 
     monkeypatch.setattr(sim_command, "simulate", fake_simulate)
-    monkeypatch.setattr(train_command, "run_training", fake_training)
+    monkeypatch.setattr(train_run, "run_training", fake_training)
     monkeypatch.setattr(shutil, "copyfile", half_copy)
     with pytest.raises(OSError, match="No space left"):
         demo(out=tmp_path / "demo", quiet=True)

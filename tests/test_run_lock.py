@@ -44,10 +44,10 @@ def _gone(pid: int) -> bool:
 def test_a_training_child_dies_with_its_killed_parent(tmp_path):
     """`virus-nerf online` killed with SIGKILL: its `train` children (which call watch_parent)
     end within a poll, instead of training on as orphans (before: they ran to their end)."""
-    child = ("from virus_nerf.trainer.command import watch_parent\nimport time\n"
+    child = ("from virus_nerf.utils.parent import watch_parent\nimport time\n"
              "assert watch_parent(0.05)\nprint('watching', flush=True)\ntime.sleep(60)")
     parent = ("import os, subprocess, sys, time\n"
-              "from virus_nerf.trainer.command import PARENT_ENV\n"
+              "from virus_nerf.utils.parent import PARENT_ENV\n"
               "env = dict(os.environ, **{PARENT_ENV: str(os.getpid())})\n"
               "p = subprocess.Popen([sys.executable, '-c', sys.argv[1]], env=env, stdout=subprocess.PIPE, text=True)\n"
               "assert p.stdout.readline().strip() == 'watching'\n"
@@ -68,7 +68,7 @@ def test_a_training_child_dies_with_its_killed_parent(tmp_path):
 
 
 def test_watch_parent_only_watches_the_parent_it_is_told(monkeypatch):
-    from virus_nerf.trainer.command import PARENT_ENV, watch_parent
+    from virus_nerf.utils.parent import PARENT_ENV, watch_parent
 
     monkeypatch.delenv(PARENT_ENV, raising=False)
     assert not watch_parent()
@@ -80,7 +80,7 @@ def test_every_experiment_tells_its_runs_to_die_with_it(monkeypatch):
     """ablation, tune, online and demo start their trainings with runs._worker_env: each child
     gets this process's pid, so its watch_parent ends it when the experiment is killed."""
     from virus_nerf.experiments.runs import _worker_env
-    from virus_nerf.trainer.command import PARENT_ENV
+    from virus_nerf.utils.parent import PARENT_ENV
 
     monkeypatch.delenv(PARENT_ENV, raising=False)
     env = _worker_env(1)

@@ -15,9 +15,9 @@ from virus_nerf.engine.config import MarchConfig
 from virus_nerf.errors import OutputExistsError
 from virus_nerf.grid.ngp import NgpGridConfig
 from virus_nerf.grid.virus import VirusGridConfig
-from virus_nerf.trainer.command import run_training
 from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.loop import Trainer
+from virus_nerf.trainer.run import run_training
 
 METRIC_KEYS = {"acc_mean", "acc_median", "acc_inlier", "acc_too_close", "acc_too_far", "cov_mean", "cov_median",
                "cov_inlier", "cov_too_close", "cov_too_far", "gt_unseen", "n_pred", "n_gt"}
@@ -338,7 +338,7 @@ def test_checkpoints_load_on_the_cpu_whatever_the_trainer_device(tiny_office, tm
     CPU generator state on the GPU, and Generator.set_state refused it (--resume, evaluate and
     export crashed on CUDA). Here a trainer that believes it runs on CUDA loads a checkpoint:
     reading it on the CPU works without a GPU; reading it onto the device fails without one."""
-    from virus_nerf.trainer.command import read_checkpoint_header
+    from virus_nerf.trainer.run_folder import read_checkpoint_header
 
     rec = load_recording(tiny_office, "office")
     a = Trainer(rec, small_config(max_steps=2), tmp_path, quiet=True)

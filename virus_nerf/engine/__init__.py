@@ -6,7 +6,8 @@ mapper: `Mapper`, frames in, training steps, map queries out (its public API)
 model: `SceneModel` (field + occupancy grid + marcher), the grid and device it runs on
 schedule: how long and how wide a step is, offline or while driving (`StepSchedule`)
 views: the map queries mixed into `Mapper` (scans, 2D maps, snapshots)
+memory: what a training step needs, checked before any work (`check_batch_memory`)
 """
 
 # its public modules; none is imported here, so `import virus_nerf.engine` loads nothing else
-__all__ = ["config", "mapper", "model", "schedule", "views"]
+__all__ = ["config", "mapper", "memory", "model", "schedule", "views"]

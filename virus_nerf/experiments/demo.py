@@ -35,8 +35,8 @@ def demo(
     from virus_nerf.evaluation.metrics import RunMetrics
     from virus_nerf.experiments.report import metrics_markdown_by_gt, safety_markdown
     from virus_nerf.sim.command import simulate
-    from virus_nerf.trainer.command import run_training
     from virus_nerf.trainer.config import TrainConfig
+    from virus_nerf.trainer.run import run_training
     from virus_nerf.utils.io import copy_file_atomic, create_new_dir, write_text_atomic
 
     require_int("--seed", seed, 0, 2**32 - 1)

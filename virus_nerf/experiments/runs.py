@@ -79,12 +79,12 @@ def _worker_env(threads: int, shared_cpu: bool = False) -> dict[str, str]:
     OpenMP threads that sleep instead of spinning while they wait (OMP_WAIT_POLICY=PASSIVE, unless
     the user set a policy): two 2-thread trainings on 2 cores ran 1.7x faster each with it,
     while one alone runs 1.4x slower with it (docs/method.md 10)."""
-    from virus_nerf.trainer.command import PARENT_ENV
+    from virus_nerf.utils.parent import PARENT_ENV
 
     env = dict(os.environ)
     env.update({"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
                 "NUMBA_NUM_THREADS": str(threads), "PYTHONUNBUFFERED": "1",
-                # the child dies with this process (trainer.command.watch_parent): a killed
+                # the child dies with this process (utils.parent.watch_parent): a killed
                 # ablation, tune, online or demo leaves no training running; its folders resume
                 PARENT_ENV: str(os.getpid())})
     if shared_cpu:

@@ -65,7 +65,7 @@ def export(
         image_scale: Rendered image size as a share of the camera's (default: the run's image_scale).
     """
     from virus_nerf.errors import OutputExistsError, require_int, require_number
-    from virus_nerf.trainer.command import load_trained
+    from virus_nerf.trainer.run import load_trained
     from virus_nerf.trainer.run_folder import RunLock, open_run
     from virus_nerf.utils.io import new_output_dir
 

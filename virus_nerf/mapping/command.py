@@ -143,7 +143,7 @@ def map_bag(
         from virus_nerf.trainer.config import TrainConfig
 
         cfg = load_json_config(TrainConfig, config)
-        from virus_nerf.trainer.command import check_batch_memory
+        from virus_nerf.engine.memory import check_batch_memory
 
         check_batch_memory(cfg, what=f"--config {config}: batch_size")  # a step's samples must fit, as for `train`
     if out.exists():

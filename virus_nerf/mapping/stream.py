@@ -148,7 +148,7 @@ class StreamRun:
     # ------------------------------------------------------------------ the loop
     def run(self, messages) -> StreamReport:
         """messages: (topic, Message) in bag order (BagReader.iter_topics), or from a live source
-        (ros2/node.py) that yields None when nothing new has come: then the mapper trains a slice."""
+        (ros2/node.py) that yields None when nothing new has come: then the mapper trains a step."""
         try:
             for item in messages:
                 if item is None:

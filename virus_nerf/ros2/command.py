@@ -123,7 +123,7 @@ def ros2(
     cfg = None
     if config is not None:
         from virus_nerf.config_io import load_json_config
-        from virus_nerf.trainer.command import check_batch_memory
+        from virus_nerf.engine.memory import check_batch_memory
         from virus_nerf.trainer.config import TrainConfig
 
         cfg = load_json_config(TrainConfig, config)
