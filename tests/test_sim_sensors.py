@@ -98,3 +98,20 @@ def test_lidar_scan_and_voxel_map():
     vm = VoxelMap(voxel=0.03, min_hits=2)
     vm.add(np.array([[0.01, 0.01, 0.01], [0.02, 0.02, 0.02], [1.0, 1.0, 1.0]]))
     np.testing.assert_allclose(vm.points(), [[0.015, 0.015, 0.015]], atol=1e-7)
+
+
+def test_voxel_map_hits_count_across_merges_and_give_the_same_map():
+    """A voxel hit once before a merge and once after is kept (two hits), one hit in all is not;
+    merging every few points gives the very map of no merging (a long drive's memory bound)."""
+    vm = VoxelMap(voxel=0.03, min_hits=2, merge_every=0)  # merge after every scan
+    vm.add(np.array([[0.01, 0.01, 0.01], [1.0, 1.0, 1.0]]))
+    vm.add(np.array([[0.02, 0.02, 0.02]]))
+    np.testing.assert_allclose(vm.points(), [[0.015, 0.015, 0.015]], atol=1e-7)
+    rng = np.random.default_rng(1)
+    scans = [rng.uniform(-0.3, 0.3, (int(rng.integers(1, 60)), 3)) for _ in range(40)]
+    whole, merged = VoxelMap(), VoxelMap(merge_every=50)
+    for pts in scans:
+        whole.add(pts)
+        merged.add(pts)
+    assert len(whole.points()) > 10
+    np.testing.assert_array_equal(merged.points(), whole.points())
