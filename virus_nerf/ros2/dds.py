@@ -70,7 +70,9 @@ def is_tf_static(topic: str) -> bool:
 
 
 def dds_topic(name: str) -> str:
-    """'/map' -> 'rt/map' (a fully qualified ROS name)."""
+    """'/map' -> 'rt/map' (a fully qualified ROS name); rmw's graph topic keeps its own name."""
+    if name == DISCOVERY_TOPIC:
+        return name
     if not name.startswith("/"):
         raise UsageError(f"topic {name!r}: expected a fully qualified name starting with '/'")
     return ROS_TOPIC_PREFIX + name
@@ -140,11 +142,8 @@ class Writer:
     def __init__(self, participant: Participant, topic: str, msgtype: str, kind: QosKind) -> None:
         from cyclonedds.pub import DataWriter
 
-        from virus_nerf.ros2 import types
-
         self.topic, self.msgtype, self.kind = topic, msgtype, kind
-        qos = _qos(kind, types.user_data(participant.distro, msgtype))
-        t = participant.topic(topic, msgtype, qos, dds_name=topic if topic == DISCOVERY_TOPIC else None)
+        t, qos = participant.endpoint(topic, msgtype, kind)
         self._writer = DataWriter(participant.dp, t, qos=qos)
 
     def write(self, payload: bytes) -> None:
@@ -166,10 +165,6 @@ class Writer:
         except DDSException:  # a timeout: a reader that left or lags; the map stays latched meanwhile
             return False
 
-    def matched(self) -> int:
-        """Readers matched so far."""
-        return len(self._writer.get_matched_subscriptions())
-
 
 class Reader:
     """A ROS 2 subscription: `take()` returns the samples received since the last take."""
@@ -177,11 +172,8 @@ class Reader:
     def __init__(self, participant: Participant, topic: str, msgtype: str, kind: QosKind) -> None:
         from cyclonedds.sub import DataReader
 
-        from virus_nerf.ros2 import types
-
         self.topic, self.msgtype, self.kind = topic, msgtype, kind
-        qos = _qos(kind, types.user_data(participant.distro, msgtype))
-        t = participant.topic(topic, msgtype, qos, dds_name=topic if topic == DISCOVERY_TOPIC else None)
+        t, qos = participant.endpoint(topic, msgtype, kind)
         self._reader = DataReader(participant.dp, t, qos=qos)
 
     def take(self, n: int = 1000) -> list[Sample]:
@@ -194,9 +186,6 @@ class Reader:
         now = time.time()
         return [Sample(data, arrival(now, info.source_timestamp * 1e-9), info.source_timestamp * 1e-9)
                 for data, info in got if info.valid_data]
-
-    def matched(self) -> int:
-        return len(self._reader.get_matched_publications())
 
 
 class Participant:
@@ -226,16 +215,18 @@ class Participant:
         self.offered: dict[str, object] = {}  # ROS topic -> the QoS its newest remote writer offers
         self.writer_gids: dict[str, set[bytes]] = {}  # ROS topic -> its remote writers' 16-byte GUIDs
 
-    def topic(self, name: str, msgtype: str, qos, dds_name: str | None = None):
+    def endpoint(self, name: str, msgtype: str, kind: QosKind):
+        """(the DDS topic of ROS topic `name`, made once, and the QoS of profile `kind` with the
+        type's user data) for a reader or a writer."""
         from cyclonedds.topic import Topic
 
         from virus_nerf.ros2 import types
 
+        qos = _qos(kind, types.user_data(self.distro, msgtype))
         key = f"{name} {msgtype}"
         if key not in self._topics:
-            self._topics[key] = Topic(self.dp, dds_name or dds_topic(name), types.idl_struct(self.distro, msgtype),
-                                      qos=qos)
-        return self._topics[key]
+            self._topics[key] = Topic(self.dp, dds_topic(name), types.idl_struct(self.distro, msgtype), qos=qos)
+        return self._topics[key], qos
 
     def writer(self, topic: str, msgtype: str, kind: QosKind) -> Writer:
         w = Writer(self, topic, msgtype, kind)
