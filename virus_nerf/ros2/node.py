@@ -156,10 +156,8 @@ def wanted_topics(sync, source) -> dict[str, tuple[str, ...]]:
     wanted: dict[str, tuple[str, ...]] = {}
     for topic, keys in sync.roles.items():
         wanted[topic] = tuple(dict.fromkeys(t for _, role in keys for t in m.ACCEPTED[role]))
-    role = {"KISS-ICP": "lidar", "odometry": "odometry", "tf": "tf"}
     for topic in source.topics:
-        kind = next((r for k, r in role.items() if source.describe.startswith(k)), "tf")
-        wanted.setdefault(topic, m.ACCEPTED[kind])
+        wanted.setdefault(topic, m.ACCEPTED[source.role])
     return wanted
 
 

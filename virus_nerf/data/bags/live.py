@@ -121,6 +121,7 @@ class PoseSource:
     """Robot-to-world poses as their messages arrive. Subclasses feed `add`; `at` interpolates."""
 
     describe = "poses"
+    role = "tf"  # the messages.ACCEPTED role of its topics (what a live subscriber accepts on them)
     topics: tuple[str, ...] = ()
 
     def add(self, topic: str, msg: Message) -> None:  # pragma: no cover - overridden
@@ -202,6 +203,8 @@ class CsvPoses(PoseSource):
 class OdometryPoses(TrackPoses):
     """nav_msgs/Odometry on one topic (a robot without LiDAR: its wheel odometry)."""
 
+    role = "odometry"
+
     def __init__(self, topic: str, bag: Path) -> None:
         super().__init__()
         self.topics, self.describe, self.bag = (topic,), f"odometry {topic}", bag
@@ -218,6 +221,8 @@ class KissPoses(TrackPoses):
     scan is decoded and filtered here, sent, and its pose collected when a frame needs it, so
     the mapper trains while the scan registers. A frame waits for a pose whose scan is still being
     registered; at the end of the bag every pending pose is collected."""
+
+    role = "lidar"
 
     def __init__(self, topic: str, lidar: LidarConfig, settings: KissIcpSettings | None, bag: Path,
                  worker: bool = True) -> None:
