@@ -136,6 +136,19 @@ def test_help_still_works():
     assert code == 0 and "--max-steps" in out and err == ""
 
 
+def test_the_top_level_help_gives_one_line_per_command():
+    from virus_nerf.cli import _commands, _summary
+
+    code, out, err = run_cli(["--help"])
+    assert code == 0 and err == ""
+    listed = " ".join(out.replace("\u2502", " ").split())
+    for name, fn in _commands().items():
+        assert f"\u2022 {name} {_summary(fn)}" in listed, name
+    assert "Writes OUT/" not in out  # the paragraphs stay in each command's own --help
+    code, out, _ = run_cli(["simulate", "--help"])
+    assert code == 0 and "Writes OUT/camera_intrinsics.CSV" in out
+
+
 def test_tyro_box_becomes_one_line():
     box = ("\u256d\u2500 Value error \u2500\u2500\u256e\n"
            "\u2502 Error parsing --batch-size: no type matching {None}|INT could be  \u2502\n"

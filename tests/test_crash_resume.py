@@ -34,7 +34,7 @@ def _logged_steps(run: Path) -> list[int]:
 def test_sigkill_then_resume_equals_an_uninterrupted_run(tiny_office, tmp_path):
     # bit-for-bit equality is the CPU promise: on a GPU the hash table's backward adds with atomics
     # in no fixed order, so two uninterrupted CUDA runs already differ in the last bits
-    cfg = small_config(max_steps=40, log_every=1, checkpoint_every=0.05, device="cpu")
+    cfg = small_config(max_steps=24, log_every=1, checkpoint_every=0.05, device="cpu")
     cfg_file = tmp_path / "cfg.json"
     cfg_file.write_text(json.dumps(to_dict(cfg)))
     env = dict(os.environ)
@@ -48,21 +48,21 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(tiny_office, tmp_path):
     proc = _train([*base, "--out", str(killed)], env)
     deadline = time.time() + 600
     while time.time() < deadline and not (
-        (killed / "checkpoint.pt").is_file() and len(_logged_steps(killed)) >= 15
+        (killed / "checkpoint.pt").is_file() and len(_logged_steps(killed)) >= 8
     ):
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=60)
     assert not (killed / "metrics.json").exists(), "killed before the end"
     steps_at_kill = _logged_steps(killed)
-    assert 15 <= len(steps_at_kill) < 40
+    assert 8 <= len(steps_at_kill) < 24
 
     proc = _train(["--out", str(killed), "--resume", "--quiet"], env)
     assert proc.wait(timeout=600) == 0, proc.stderr.read()
-    assert _logged_steps(killed) == list(range(1, 41)), "one row per step, no duplicates"
+    assert _logged_steps(killed) == list(range(1, 25)), "one row per step, no duplicates"
     a = torch.load(full / "checkpoint.pt", map_location="cpu", weights_only=False)
     b = torch.load(killed / "checkpoint.pt", map_location="cpu", weights_only=False)
-    assert a["step"] == b["step"] == 40
+    assert a["step"] == b["step"] == 24
     for key, tensor in a["field"].items():
         assert torch.equal(tensor, b["field"][key]), key
     assert torch.equal(a["grid"]["logodds"], b["grid"]["logodds"])

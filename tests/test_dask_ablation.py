@@ -1,4 +1,4 @@
-"""Ablation on a Dask cluster (issue 14): 2 rows x 2 seeds on a LocalCluster give the same table as
+"""Ablation on a Dask cluster (issue 14): 2 rows x 1 seed on a LocalCluster give the same table as
 local processes for the same seeds and step budgets (steps/s aside: that is the machine's clock)."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ def _ablate(out: Path, data: Path, cfg: Path, **executor) -> list[dict]:
 
     (out / "data").mkdir(parents=True)
     (out / "data" / "office").symlink_to(data)  # the tiny recording, not a fresh simulation
-    ablation(out=out, seeds=2, rows="2,8", max_steps=4, scenes=("office",), config=cfg, threads_per_run=1,
+    ablation(out=out, seeds=1, rows="2,8", max_steps=4, scenes=("office",), config=cfg, threads_per_run=1,
              **executor)
     doc = json.loads((out / "ablation.json").read_text())
     assert doc["max_steps"] == 4 and doc["failed"] == [] and doc["train_time"] is None
@@ -35,14 +35,13 @@ def test_ablation_on_a_local_dask_cluster_equals_local_processes(tiny_office, tm
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster:
         dask = _ablate(tmp_path / "dask", tiny_office, cfg, scheduler=cluster.scheduler_address)
-    assert [(r["row"], r["runs"], r["failed"]) for r in local] == [(2, 2, 0), (8, 2, 0)]
+    assert [(r["row"], r["runs"], r["failed"]) for r in local] == [(2, 1, 0), (8, 1, 0)]
     assert all(r["acc_mean"] is not None for r in local)
     assert dask == local
     # the run folders look the same whichever executor ran them
     names = sorted(p.name for p in (tmp_path / "local" / "runs" / "office").iterdir())
     assert names == sorted(p.name for p in (tmp_path / "dask" / "runs" / "office").iterdir())
-    assert names == ["row2_seed0", "row2_seed0.log", "row2_seed1", "row2_seed1.log",
-                     "row8_seed0", "row8_seed0.log", "row8_seed1", "row8_seed1.log"]
+    assert names == ["row2_seed0", "row2_seed0.log", "row8_seed0", "row8_seed0.log"]
 
 
 def test_a_finished_ablation_run_is_never_rerun(tmp_path):

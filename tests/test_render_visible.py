@@ -46,8 +46,11 @@ def test_select_keeps_packing():
 
 def _model(min_transmittance: float) -> SceneModel:
     box = SceneBox((-2.0, -2.0, -1.0), (2.0, 2.0, 1.0))
-    # density_bias 3: ~20 /m everywhere, so light dies within ~0.5 m and most samples are hidden
-    field = NerfField(box, FieldConfig(log2_table_size=12, max_resolution=64, density_bias=3.0), seed=3)
+    # the density logit's output bias at 3: ~20 /m everywhere, so light dies within ~0.5 m and most
+    # samples are hidden
+    field = NerfField(box, FieldConfig(log2_table_size=12, max_resolution=64, bias=True), seed=3)
+    with torch.no_grad():
+        field.density_mlp[-1].bias[0] = 3.0
     grid = NgpGrid(GridSpec.from_box(box, 32), NgpGridConfig(), step_size=0.05)  # all cells occupied
     return SceneModel(field, grid, step_size=0.05, near=0.05, max_samples=256, min_transmittance=min_transmittance)
 

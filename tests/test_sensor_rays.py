@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 from virus_nerf.sampler.frames import FrameStore
-from virus_nerf.sampler.sensor_rays import irs_zone_rays, uss_cone_rays
+from virus_nerf.sampler.sensor_rays import irs_zone_rays
 
 
 def _store(pose: np.ndarray, irs: np.ndarray, uss: float) -> FrameStore:
@@ -46,13 +46,3 @@ def test_irs_sub_rays_cover_the_zone_and_share_its_z_depth():
     assert len(rays) == 64 * 9
     z = (rays.directions[:, 2].double() * rays.ranges.double()).numpy()
     np.testing.assert_allclose(z, 1.5, rtol=1e-6)
-
-
-def test_uss_rays_inside_the_cone_carry_the_echo_or_nan():
-    rays = uss_cone_rays(_store(np.eye(4), np.full((8, 8), np.nan), 2.5))
-    d = rays.directions.numpy()
-    ax, ay = np.degrees(np.arctan2(d[:, 0], d[:, 2])), np.degrees(np.arctan2(d[:, 1], d[:, 2]))
-    assert len(rays) > 20 and np.all((ax / 27.5) ** 2 + (ay / 17.5) ** 2 <= 1 + 1e-9)
-    assert torch.all(rays.ranges == 2.5)
-    no_echo = uss_cone_rays(_store(np.eye(4), np.full((8, 8), np.nan), float("nan")))
-    assert len(no_echo.valid()) == 0

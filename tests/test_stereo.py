@@ -232,20 +232,6 @@ def test_free_space_loss_by_hand():
     np.testing.assert_allclose(weights.grad.numpy(), [0.1, 0.2, 0.0, 0.0, 0.0], atol=1e-7)  # 2 w / 2 rays
 
 
-def test_stereo_targets_as_grid_rays():
-    from virus_nerf.sampler.sensor_rays import stereo_target_rays
-
-    store = _store_with_one_frame()  # camera at x = 0.5 m looking along +z
-    depth = StereoDepth(frames=np.array([0, 0]), uv=np.array([[INTR.cx, INTR.cy], [INTR.cx + F_PX, INTR.cy]], np.float32),
-                        ranges=np.array([4.0, 2.0], np.float32), sigmas=np.array([0.1, 0.25], np.float32),
-                        points=np.zeros((2, 3), np.float32))
-    rays = stereo_target_rays(store, depth, np.array([0]), back_sigmas=2.0)
-    np.testing.assert_allclose(rays.origins.numpy(), [[0.5, 0, 0], [0.5, 0, 0]])
-    np.testing.assert_allclose(rays.directions.numpy(), [[0, 0, 1], [math.sqrt(0.5), 0, math.sqrt(0.5)]], atol=1e-6)
-    np.testing.assert_allclose(rays.ranges.numpy(), [3.8, 1.5])
-    assert len(stereo_target_rays(store, depth, np.array([], dtype=np.int64))) == 0
-
-
 def test_targets_while_driving_equal_the_offline_ones(wall_drive):
     """Flushing ended tracks every 4 frames (mapping while driving) gives, by the end, the same
     targets as one pass over the whole drive; targets appear before the drive ends."""

@@ -6,12 +6,12 @@ line naming the flag (the dataclass checks are the only range checks)."""
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 from helpers import run_cli, tiny_train_config
 
 from virus_nerf.config_io import load_json_config, to_dict
-from virus_nerf.grid.virus import VirusGridConfig
 from virus_nerf.trainer.command import _resolve_config, train_flags
 from virus_nerf.trainer.config import TrainConfig
 
@@ -55,9 +55,9 @@ def test_the_short_flags_are_the_derived_ones_and_keep_their_meaning():
     resumed = resolve("--max-steps", "7", base=TrainConfig(max_time=30.0))
     assert resumed.max_time == 30.0  # with --resume, the run's own budget stays
     assert resolve("--no-online", base=TrainConfig(online=True)).online is False
-    base = TrainConfig(virus_grid=VirusGridConfig(warmup_budget_share=0.5))
-    cfg = resolve("--virus-grid.warmup-budget-share", "None", base=base)
-    assert cfg.virus_grid.warmup_budget_share is None  # None given is a value, not "unset"
+    base = TrainConfig(max_samples_per_step=4096)
+    cfg = resolve("--max-samples-per-step", "None", base=base)
+    assert cfg.max_samples_per_step is None  # None given is a value, not "unset"
     cfg = resolve("--optim.betas", "0.8", "0.9", "--field.color-hidden", "32", "--stereo.tracker.window", "9")
     assert cfg.optim.betas == (0.8, 0.9) and cfg.field.color_hidden == (32,) and cfg.stereo.tracker.window == 9
 
@@ -108,8 +108,23 @@ def test_a_flag_clashing_with_the_config_file_names_the_flag(tmp_path):
     assert code == 2 and "shares.irs 0.5 + --shares.uss 0.6 + shares.stereo 0.1: expected a sum <= 1" in err, err
 
 
-def test_help_lists_every_knob_with_its_comment():
-    code, out, err = run_cli(["train", "--help"])
+def test_help_lists_the_product_knobs_and_help_all_every_knob():
+    from virus_nerf.trainer.config import PRODUCT_KNOBS
+
+    code, short, err = run_cli(["train", "--help"])
+    assert code == 0 and err == ""
+    shown = set(re.findall(r"(?m)^ {2}(--[a-z][a-z0-9.-]*[a-z0-9])", short))  # options start indented
+    knobs = {"--" + ("playback" if k == "playback_speed" else k.replace("_", "-")) for k in PRODUCT_KNOBS}
+    assert knobs <= shown and "--sensors NAMES" in short and "--help-all lists every knob" in " ".join(short.split())
+    assert "--optim.eps" not in shown and "--virus-grid.zeta" not in shown and "--stereo.tracker.window" not in shown
+    command_flags = {"--out", "--data", "--room", "--config", "--resume", "--no-resume", "--quiet", "--no-quiet",
+                     "--gt", "--playback-speed", "--help", "--no-online", "--no-odometry-poses"}
+    assert shown - command_flags == knobs, shown - command_flags - knobs
+    assert len(PRODUCT_KNOBS) <= 25
+
+
+def test_help_all_lists_every_knob_with_its_comment():
+    code, out, err = run_cli(["train", "--help-all"])
     assert code == 0 and err == ""
     assert "--optim.lr FLOAT" in out and "Adam's learning rate" in out
     assert "--virus-grid.warmup-steps INT" in out and "training steps (not updates) of the decay init -> prior." in out
@@ -128,6 +143,22 @@ def test_help_lists_every_knob_with_its_comment():
         assert flag is None or f" {flag} " in out or f" {flag}," in out, path
 
 
+def test_a_removed_switch_loads_at_the_value_the_method_keeps_and_is_refused_at_another(tmp_path, capsys):
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps({"virus_grid": {"threshold_mode": "mean", "init_stereo": "off", "warmup_steps": 64},
+                                "field": {"density_bias": 0.0}}))
+    cfg = load_json_config(TrainConfig, path)
+    assert cfg.virus_grid.warmup_steps == 64
+    note = capsys.readouterr().err
+    assert note.count("\n") == 3 and "key 'virus_grid.threshold_mode' ignored (no longer read: measured and not kept" in note
+    path.write_text(json.dumps({"virus_grid": {"threshold_mode": "fixed"}}))
+    with pytest.raises(ValueError, match=r"key 'virus_grid.threshold_mode': string \"fixed\": this switch was removed "
+                                         r"\(measured and not kept, docs/decisions.md D3, D52\); the method now always "
+                                         r"runs as with \"mean\""):
+        load_json_config(TrainConfig, path)
+    assert capsys.readouterr().err == ""
+
+
 def test_an_old_config_with_a_removed_key_still_loads(tmp_path, capsys):
     path = tmp_path / "old.json"
     path.write_text(json.dumps({"ngp_grid": {"step_size": 0.01, "warmup_steps": 64}}))
@@ -142,7 +173,7 @@ def test_an_old_config_with_a_removed_key_still_loads(tmp_path, capsys):
 
 
 def test_a_comment_after_a_field_describes_the_next_field_only():
-    """A block comment shared by fields (free_uss, free_depth, free_margin) ends at the next
+    """A block comment shared by fields (free_uss, free_margin) ends at the next
     comment: `weights.distortion` gets its own comment, not the block above it."""
     from virus_nerf.config_flags import field_comments
     from virus_nerf.losses import LossWeights

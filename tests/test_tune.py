@@ -167,24 +167,24 @@ def _tune_args(tmp_path: Path, data: Path, *extra, room: str = "office", study: 
 def test_study_on_a_tiny_room_resumes_from_its_journal_and_exports_the_best(tiny_office, tmp_path):
     cfg = tmp_path / "tiny.json"
     cfg.write_text(json.dumps(to_dict(tiny_train_config(max_steps=3))))
-    args = _tune_args(tmp_path, tiny_office, "--trials", 3, "--max-steps", 3, "--config", cfg, "--parallel", 2)
+    args = _tune_args(tmp_path, tiny_office, "--trials", 2, "--max-steps", 3, "--config", cfg, "--parallel", 2)
     code, out, err = run_cli(args)
     assert code == 0, err
     journal = tmp_path / "study" / "optuna.journal"
     storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(journal)))
     first = optuna.load_study(study_name="s", storage=storage).trials
-    assert [t.state.name for t in first] == ["COMPLETE"] * 3, out
-    code, out, err = run_cli(args)  # the same command again adds three trials
+    assert [t.state.name for t in first] == ["COMPLETE"] * 2, out
+    code, out, err = run_cli(args)  # the same command again adds two trials
     assert code == 0, err
     trials = optuna.load_study(study_name="s", storage=storage).trials
-    assert [t.number for t in trials] == list(range(6)) and all(t.state.name == "COMPLETE" for t in trials)
-    assert [t.params for t in trials[:3]] == [t.params for t in first]  # the first three untouched
-    assert all(t.params != u.params for t in trials[3:] for u in first)  # new configurations
+    assert [t.number for t in trials] == list(range(4)) and all(t.state.name == "COMPLETE" for t in trials)
+    assert [t.params for t in trials[:2]] == [t.params for t in first]  # the first two untouched
+    assert all(t.params != u.params for t in trials[2:] for u in first)  # new configurations
     for t in trials:
         run = tmp_path / "study" / "trials" / f"{t.number:04d}"
         assert (run / "metrics.json").is_file() and t.user_attrs["run"] == str(run)
         assert load_json_config(TrainConfig, run / "config.json").max_steps == 3
-    assert (tmp_path / "study" / "trials.csv").read_text().count("COMPLETE") == 6
+    assert (tmp_path / "study" / "trials.csv").read_text().count("COMPLETE") == 4
     best = tmp_path / "best.json"
     code, out, err = run_cli(_tune_args(tmp_path, tiny_office, "--trials", 0, "--export-config", best))
     assert code == 0, err

@@ -44,6 +44,19 @@ def _commands() -> dict:
     }
 
 
+def _short_help_commands() -> dict:
+    """Subcommand name -> the function its `--help` shows, where that is not the command itself
+    (`train --help` lists the product knobs; `--help-all` the command's every flag)."""
+    from virus_nerf.trainer.command import train_short_help
+
+    return {"train": train_short_help()}
+
+
+def _summary(fn) -> str:
+    """A command's one-line description: the first paragraph of its docstring."""
+    return " ".join((fn.__doc__ or "").strip().split("\n\n")[0].split())
+
+
 def _keep_large_allocations() -> None:
     """Stop glibc returning large tensors to the OS after every step (docs/method.md 10: ~1.4x faster)."""
     try:
@@ -150,14 +163,26 @@ def tyro_error_line(text: str, command: str | None = None) -> str:
 
 def _parse(argv: list[str]):
     """Parse the command line; a mistake ends here with one line on stderr and exit code 2."""
+    from typing import Annotated, Any, Union
+
     import tyro
 
     captured = io.StringIO()
     commands = _commands()
     command = next((a for a in argv if not a.startswith("-")), None)
+    if command in commands and "--help-all" in argv:  # the command's every flag
+        argv = ["--help" if a == "--help-all" else a for a in argv]
+    elif command in commands and ("--help" in argv or "-h" in argv):
+        commands = {**commands, **{k: v for k, v in _short_help_commands().items() if k == command}}
+    # `virus-nerf --help` lists one line per command; a command's own --help shows its whole docstring
+    summaries = command not in commands
+    union = Union[tuple(  # type: ignore[misc]  # noqa: UP007  (a Union of a tuple, as tyro.extras.subcommand_cli_from_dict)
+        Annotated[Any, tyro.conf.subcommand(name=name, constructor=fn,
+                                            description=_summary(fn) if summaries else None)]
+        for name, fn in _deferred(commands).items()) + (Annotated[None, tyro.conf.Suppress],)]
     try:
         with contextlib.redirect_stderr(captured):
-            return tyro.extras.subcommand_cli_from_dict(_deferred(commands), prog="virus-nerf", args=argv)
+            return tyro.cli(union, prog="virus-nerf", args=argv)
     except SystemExit as exc:
         if exc.code in (0, None):  # --help (printed to stdout)
             sys.stderr.write(captured.getvalue())

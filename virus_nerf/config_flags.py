@@ -40,11 +40,12 @@ class FlagSpec:
 
 
 def flag_tree(cls: type, specs: dict[str, FlagSpec | None] | None = None, *, default: Any = None,
-              prefix: str = "") -> type:
+              prefix: str = "", only: tuple[str, ...] | None = None) -> type:
     """TypedDict (total=False) with a flag for every field of dataclass `cls`, its help the first
     sentence of the field's comment (the rest, the reasons for the default, stays in the source)
     and its shown default that of `default` (default: `cls()`). `specs` (dotted path -> FlagSpec,
-    or None: no flag, e.g. a field only a config file can set) changes single fields."""
+    or None: no flag, e.g. a field only a config file can set) changes single fields. `only`
+    (dotted paths): those fields alone, a section only when it keeps one (a help's short list)."""
     specs = specs or {}
     default = cls() if default is None else default
     comments = field_comments(cls)
@@ -56,7 +57,10 @@ def flag_tree(cls: type, specs: dict[str, FlagSpec | None] | None = None, *, def
         if spec is None:
             continue
         if dataclasses.is_dataclass(hints[f.name]):
-            fields[f.name] = flag_tree(hints[f.name], specs, default=value, prefix=path + ".")
+            if only is None or any(p.startswith(path + ".") for p in only):
+                fields[f.name] = flag_tree(hints[f.name], specs, default=value, prefix=path + ".", only=only)
+            continue
+        if only is not None and path not in only:
             continue
         # a list shows its default as it is given: values apart, or one comma-separated string
         shown = (" " if spec.type is None else ",").join(map(str, value)) if isinstance(value, tuple) else value
@@ -68,6 +72,22 @@ def flag_tree(cls: type, specs: dict[str, FlagSpec | None] | None = None, *, def
     if not doc.startswith(f"{cls.__name__}("):  # a dataclass without docstring gets its signature
         tree.__doc__ = doc.split("\n\n")[0]  # the section's description in --help
     return tree
+
+
+def with_annotation(fn: Any, param: str, annotation: Any) -> Any:
+    """A copy of function `fn` whose parameter `param` has type `annotation` (what tyro reads):
+    the same code, defaults and docstring. A command's `--help` shows a short flag tree this way
+    while the command itself parses the whole one."""
+    import functools
+    import types
+
+    hints = typing.get_type_hints(fn, include_extras=True)
+    copy = types.FunctionType(fn.__code__, fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
+    copy = functools.update_wrapper(copy, fn, updated=())
+    del copy.__wrapped__  # tyro must read the copy's annotations, not follow the original
+    copy.__kwdefaults__ = fn.__kwdefaults__
+    copy.__annotations__ = {**hints, param: annotation}
+    return copy
 
 
 def _first_sentence(text: str) -> str:

@@ -5,9 +5,11 @@ an error, not True), an `int` field takes an integer (or a float with no fractio
 2048.0), a `float` field takes any finite number, a `str` field only a string, a tuple field a
 JSON list whose elements are checked one by one (fixed-length tuples also by length), a Literal
 field one of its values, and an `X | None` field null or an X. Unknown keys are an error, but
-for the keys earlier versions wrote that nothing reads any more (REMOVED_KEYS): those are
-dropped with a one-line note on stderr, so an old run's config.json still loads. Every error is
-a `ConfigError` (a ValueError) whose one-line message names the file and the key.
+for the keys earlier versions wrote that nothing reads any more (REMOVED_KEYS): one at the value
+the method now always uses (or a key whose value never mattered) is dropped with a one-line note
+on stderr, so an old run's config.json still loads; one at another value is an error, since the
+run it describes can no longer be made. Every error is a `ConfigError` (a ValueError) whose
+one-line message names the file and the key.
 """
 
 from __future__ import annotations
@@ -26,9 +28,27 @@ from virus_nerf.errors import ConfigError, one_line
 
 T = TypeVar("T")
 
-# dotted key -> why nothing reads it any more (what took its place)
+ANY = object()  # a removed key whose value never mattered
+
+
+@dataclasses.dataclass(frozen=True)
+class Removed:
+    """A key earlier versions wrote that nothing reads any more."""
+
+    kept: Any  # the value the method now always uses (ANY: every value loads)
+    why: str  # what took its place, or the decision-log entry that measured it
+
+
+# dotted key -> Removed. Switches measured and not kept (docs/decisions.md D52) load at their
+# old default, which is what the method does now
 REMOVED_KEYS = {
-    "ngp_grid.step_size": "the NGP grid's threshold follows the marcher's step, march.step_size",
+    "ngp_grid.step_size": Removed(ANY, "the NGP grid's threshold follows the marcher's step, march.step_size"),
+    "virus_grid.init_uss_free": Removed(False, "measured and not kept, docs/decisions.md D9, D52"),
+    "virus_grid.init_stereo": Removed("off", "measured and not kept, docs/decisions.md D34, D52"),
+    "virus_grid.warmup_budget_share": Removed(None, "measured and not kept, docs/decisions.md D5, D52"),
+    "virus_grid.threshold_mode": Removed("mean", "measured and not kept, docs/decisions.md D3, D52"),
+    "weights.free_depth": Removed(0.0, "measured and not kept, docs/decisions.md D34, D52"),
+    "field.density_bias": Removed(0.0, "measured and not kept, docs/decisions.md D19, D20, D52"),
 }
 
 
@@ -51,7 +71,7 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", *, file
     ctx = _Ctx(file)
     built = _build(cls, data, ctx, "")
     for key in ctx.dropped:  # only once the config is good: an error stays the one line
-        print(f"virus-nerf: note: {file or 'config'}: key '{key}' ignored (no longer read: {REMOVED_KEYS[key]})",
+        print(f"virus-nerf: note: {file or 'config'}: key '{key}' ignored (no longer read: {REMOVED_KEYS[key].why})",
               file=sys.stderr)
     return built
 
@@ -89,6 +109,11 @@ def _build(cls: type[T], data: Any, ctx: _Ctx, key: str) -> T:
     fields = [f for f in dataclasses.fields(cls) if f.init]  # type: ignore[arg-type]
     names = [f.name for f in fields]
     removed = [k for k in data if _join(key, str(k)) in REMOVED_KEYS]
+    for k in removed:
+        gone = REMOVED_KEYS[_join(key, k)]
+        if gone.kept is not ANY and data[k] != gone.kept:
+            raise ctx.error(_join(key, k), f"{_describe(data[k])}: this switch was removed ({gone.why}); the "
+                            f"method now always runs as with {json.dumps(gone.kept)}: drop the key to load it so")
     ctx.dropped.extend(_join(key, k) for k in removed)
     unknown = sorted(set(data) - set(names) - set(removed), key=str)
     if unknown:

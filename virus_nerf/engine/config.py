@@ -66,6 +66,18 @@ class RecentFrames:
     window: float = 5.0  # seconds of recording time
 
 
+# The knobs a robot user sets (dotted paths): the sensors, the budget, the resolution and the
+# extent, the weights that matter. `train --help` lists these; every other field is a research
+# knob (the sensor models, the grid's and the tracker's internals, the kernels, the optimiser's
+# constants, the studies' switches), listed by `train --help-all` and set the same way.
+PRODUCT_KNOBS = (
+    "sensors", "max_steps", "max_time", "batch_size", "seed", "image_scale", "device",
+    "extent.mode", "extent.reach_m", "extent.height_m", "extent.grid_cell_m",
+    "march.step_size", "optim.lr", "virus_grid.max_resolution",
+    "weights.colour", "weights.irs", "weights.uss", "weights.stereo",
+)
+
+
 @dataclass
 class MapperConfig:
     """Every knob of the method (docs/method.md 3): the grid, the sensors, the field, the
@@ -175,7 +187,7 @@ class MapperConfig:
         for name in ("colour", "irs", "uss", "rgbd", "stereo", "distortion"):
             number(f"weights.{name}", 0.0, lo_open=False)
         number("weights.stereo_sigma_ref", 0.0)
-        for name in ("free_uss", "free_depth", "free_margin"):
+        for name in ("free_uss", "free_margin"):
             number(f"weights.{name}", 0.0, lo_open=False)
 
     def engine(self) -> MapperConfig:

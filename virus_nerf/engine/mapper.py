@@ -61,7 +61,7 @@ from virus_nerf.maps.observed import frames_observed
 from virus_nerf.render.marching import ray_box_interval
 from virus_nerf.sampler.batch import BatchSampler, RayBatch, recent_frame_odds
 from virus_nerf.sampler.frames import SPILL_ABOVE_BYTES, FrameStore, resize_depth_mm, resize_rgb
-from virus_nerf.sampler.sensor_rays import irs_zone_rays, stereo_target_rays, uss_cone_rays
+from virus_nerf.sampler.sensor_rays import irs_zone_rays
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.stereo.depth import StereoDepth, StereoFeed
@@ -271,25 +271,16 @@ class Mapper(MapViews):
             self._sampler.stereo = depth
 
     def _apply_pending_prior(self) -> None:
-        """The grid's sensor prior (VIRUS: Depth-Update along every IRS zone, optional USS free
-        space) for the frames added since the last call; each frame is used once."""
+        """The grid's sensor prior (VIRUS: Depth-Update along every IRS zone) for the frames added
+        since the last call; each frame is used once."""
         n = self.frames
         want = self.grid.prior_request
         if self._prior_skip:
             self._prior_done, self._prior_skip = n, False
         if n > self._prior_done and want is not None:
-            frames = np.arange(self._prior_done, n)
-            sensors = self.config.sensors
-            depth = irs_zone_rays(self.store, frames, want.zone_samples).valid() if "irs" in sensors else None
-            free = uss_cone_rays(self.store, frames).valid() if want.uss_free and "uss" in sensors else None
-            if want.stereo != "off" and "stereo" in sensors and self.stereo is not None:
-                back = 2.0 if want.stereo == "free" else 0.0
-                rays = stereo_target_rays(self.store, self.stereo, frames, back).valid()
-                if want.stereo == "free":
-                    free = rays if free is None else free.concat(rays)
-                else:
-                    depth = rays if depth is None else depth.concat(rays)
-            self.grid.initialise(depth, free)
+            if "irs" in self.config.sensors:
+                frames = np.arange(self._prior_done, n)
+                self.grid.initialise(irs_zone_rays(self.store, frames, want.zone_samples).valid())
         self._prior_done = n
 
     # ------------------------------------------------------------------ training
@@ -372,12 +363,9 @@ class Mapper(MapViews):
             smp = stats.samples
             ld = distortion_loss(out.weights, smp.t_starts, smp.t_ends, smp.ray_offsets)
             terms = dataclasses.replace(terms, total=terms.total + c.weights.distortion * ld, distortion=ld)
-        if c.weights.free_uss > 0 or c.weights.free_depth > 0:
-            smp, s = stats.samples, sensors
-            free = line_of_sight_terms(
-                c.weights, out.weights, smp.t_ends, smp.ray_offsets,
-                uss_range=batch.uss_range if "uss" in s else None, irs_range=batch.irs_range if "irs" in s else None,
-                stereo_range=batch.stereo_range if "stereo" in s else None, stereo_sigma=batch.stereo_sigma)
+        if c.weights.free_uss > 0 and "uss" in sensors:
+            smp = stats.samples
+            free = line_of_sight_terms(c.weights, out.weights, smp.t_ends, smp.ray_offsets, uss_range=batch.uss_range)
             terms = dataclasses.replace(terms, total=terms.total + free)
         self.optimizer.zero_grad(set_to_none=True)
         if terms.total.requires_grad:  # no ray marched an occupied cell (e.g. all look out of the box): no update
@@ -390,7 +378,7 @@ class Mapper(MapViews):
         if self.step % self.grid.update_interval == 0:
             self._restart_warmup_in_view()
             self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator,
-                             driving=schedule.driving, budget_progress=progress)
+                             driving=schedule.driving)
         return terms
 
     def _restart_warmup_in_view(self) -> None:

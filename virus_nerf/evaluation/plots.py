@@ -37,11 +37,13 @@ def colour_of(name: str, order: Sequence[str] = ()) -> str:
     return EXTRA_COLOURS[k % len(EXTRA_COLOURS)]
 
 
-def save_png(fig: plt.Figure, path: str | Path, dpi: int = 110) -> Path:
-    """Write `fig` to `path` in one rename (never a half-written PNG) and close it."""
+def save_png(fig: plt.Figure, path: str | Path, dpi: int = 110, tight: bool = True) -> Path:
+    """Write `fig` to `path` in one rename (never a half-written PNG) and close it. `tight`
+    crops to the drawn content, at the cost of drawing the figure twice; a figure laid out by
+    hand passes False."""
     path = Path(path)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
+        fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight" if tight else None)
     plt.close(fig)
     return path
 
@@ -63,6 +65,7 @@ def plot_test_point(tps, path: str | Path, title: str = "", window_m: float | No
     ncol = min(len(panels), 2)
     nrow = int(np.ceil(len(panels) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(7.0 * ncol, 6.0 * nrow), squeeze=False)
+    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.05, top=0.94, wspace=0.22, hspace=0.18)
     origin = gt.scan.origin
     # view window: around what was seen (GT and scans), with a margin
     seen = [gt.scan.points] + [s.points for s in tps.scans.values()] + [origin[None, :]]
@@ -113,8 +116,7 @@ def plot_test_point(tps, path: str | Path, title: str = "", window_m: float | No
     tp = tps.test_point
     fig.suptitle(title or f"test point: stack-1 frame {tp.index1}, t = {tp.time:.3f} s, camera height "
                           f"z = {tp.height:.3f} m; ground truth: {gt.protocol}")
-    fig.tight_layout()
-    return save_png(fig, path)
+    return save_png(fig, path, tight=False)  # laid out by hand above: drawn once
 
 
 def plot_metric_bars(

@@ -34,10 +34,6 @@ class FieldConfig:
     bias: bool = False  # tiny-cuda-nn's fully fused MLPs have no biases
     backend: str = "auto"  # hash encoding: "auto" (numba on CPU, torch on CUDA), "numba", "torch"
     density_clamp: float = 15.0  # trunc_exp: |logit| clamp inside the gradient, upper clamp of sigma
-    # added to the density logit: sigma = exp(h0 + density_bias). At 0 (the paper) an untrained
-    # field holds ~1 /m everywhere (a 3 m ray is 95 % opaque); a negative bias starts the space
-    # emptier but starves the colour (docs/decisions.md D19, D20)
-    density_bias: float = 0.0
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
@@ -158,8 +154,7 @@ class NerfField(nn.Module):
         return self.density_mlp(self.encoding(x))
 
     def _sigma(self, h: torch.Tensor) -> torch.Tensor:
-        logit = h[:, 0] + self.config.density_bias if self.config.density_bias else h[:, 0]
-        return trunc_exp(logit, self.config.density_clamp)  # (M,) 1/m
+        return trunc_exp(h[:, 0], self.config.density_clamp)  # (M,) 1/m: sigma = exp(h0), the paper's
 
     def density(self, points: torch.Tensor) -> torch.Tensor:
         """sigma (N,) in 1/m at world points (N, 3) m; no colour (for occupancy-grid updates)."""

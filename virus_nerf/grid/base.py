@@ -150,13 +150,9 @@ class GridUpdateBatch:
 @dataclass(frozen=True)
 class SensorPriorRequest:
     """What a grid wants before the first step: every training IRS zone as `zone_samples`^2
-    rays, the USS cones as free-space rays when `uss_free`, and the stereo sensor's targets:
-    "depth" as Depth-Update rays, "free" as free-space rays ending two standard deviations
-    before the point, "off" not at all."""
+    Depth-Update rays."""
 
     zone_samples: int
-    uss_free: bool
-    stereo: str = "off"
 
 
 class OccupancyGrid(ABC):
@@ -177,7 +173,7 @@ class OccupancyGrid(ABC):
         """Sensor rays wanted by `initialise` before the first step; None = no prior."""
         return None
 
-    def initialise(self, depth: SensorRays | None, free: SensorRays | None = None) -> int:
+    def initialise(self, depth: SensorRays | None) -> int:
         """Prior evidence before the first step (see `prior_request`); returns cell increments."""
         return 0
 
@@ -195,12 +191,10 @@ class OccupancyGrid(ABC):
         generator: torch.Generator,
         *,
         driving: bool = False,
-        budget_progress: float | None = None,
     ) -> None:
         """One grid update at training step `step` (called every `update_interval` steps).
 
-        driving: frames keep arriving (mapping while driving); budget_progress: share in [0, 1]
-        of the run's step / time budget used (None: no budget). A grid may schedule by either."""
+        driving: frames keep arriving (mapping while driving); a grid may schedule by it."""
 
     @abstractmethod
     def state_dict(self) -> dict[str, torch.Tensor | int | float]:

@@ -108,7 +108,6 @@ class NgpGrid(OccupancyGrid):
         generator: torch.Generator,
         *,
         driving: bool = False,
-        budget_progress: float | None = None,
     ) -> None:
         """One Instant-NGP update at training step `step`; `batch` and the schedule are not used
         by this grid."""

@@ -80,23 +80,6 @@ def depth_log_odds(a, b, m, sigma, false_rate, hit_probability, stop_length, max
 
 
 @numba.njit(cache=True)
-def free_log_odds(a, b, m, sigma, hit_probability, stop_length, max_increment):  # pragma: no cover - compiled
-    """Free-space-only evidence ln(1 - p_det Phi((m - b)/sigma)) for wide-cone sensors (USS).
-
-    The echo says nothing in the whole cone is closer than m; it does not say where on the cone
-    the echo came from, so there is no occupied peak.
-    """
-    s = b - a
-    if s <= 0.0:
-        return 0.0
-    p_det = hit_probability * (1.0 - math.exp(-s / stop_length))
-    inc = math.log(1.0 - p_det * _normal_cdf((m - b) / sigma))
-    if inc < -max_increment:
-        inc = -max_increment
-    return inc
-
-
-@numba.njit(cache=True)
 def traverse_ray(ox, oy, oz, dx, dy, dz, t_start, t_end, lo, size, res, cells, seg_a, seg_b):  # pragma: no cover - compiled
     """Cells crossed by the ray o + t d for t in [t_start, t_end] inside the box, in order.
 
@@ -176,7 +159,7 @@ def traverse_ray(ox, oy, oz, dx, dy, dz, t_start, t_end, lo, size, res, cells, s
 def depth_update_kernel(
     origins, directions, ranges, lo, size, res, logodds,
     std_per_m, std_floor, false_rate, hit_probability, stop_length, max_increment,
-    l_min, l_max, free_only,
+    l_min, l_max,
 ):  # pragma: no cover - compiled
     """Apply the Depth-Update of every ray, in ray order, to flat float32 `logodds` in place.
 
@@ -194,19 +177,14 @@ def depth_update_kernel(
         if not (m > 0.0 and m < np.inf):
             continue
         sigma = std_per_m * m + std_floor
-        t_end = m if free_only else m + 3.0 * sigma
+        t_end = m + 3.0 * sigma
         n = traverse_ray(
             origins[r, 0], origins[r, 1], origins[r, 2],
             directions[r, 0], directions[r, 1], directions[r, 2],
             0.0, t_end, lo, size, res, cells, seg_a, seg_b,
         )
         for j in range(n):
-            if free_only:
-                inc = free_log_odds(seg_a[j], seg_b[j], m, sigma, hit_probability, stop_length, max_increment)
-            else:
-                inc = depth_log_odds(
-                    seg_a[j], seg_b[j], m, sigma, false_rate, hit_probability, stop_length, max_increment
-                )
+            inc = depth_log_odds(seg_a[j], seg_b[j], m, sigma, false_rate, hit_probability, stop_length, max_increment)
             c = cells[j]
             v = logodds[c] + inc
             if v > l_max:

@@ -91,7 +91,7 @@ class VirusGrid(OccupancyGrid):
         c = self.config
         if c.init != "sensors":
             return None
-        return SensorPriorRequest(c.init_zone_samples, c.init_uss_free, c.init_stereo)
+        return SensorPriorRequest(c.init_zone_samples)
 
     @property
     def warmup_done(self) -> bool:
@@ -128,9 +128,8 @@ class VirusGrid(OccupancyGrid):
         generator: torch.Generator,
         *,
         driving: bool = False,
-        budget_progress: float | None = None,
     ) -> None:
-        """Warm-up decay (scheduled by `driving` and `budget_progress`), then Depth-Update and
+        """Warm-up decay (scheduled by `driving`), then Depth-Update and
         NeRF-Update on their shares of `batch`.
 
         Depth rays get round(depth_share * rays_per_update) (fewer if the batch has fewer); the
@@ -141,7 +140,7 @@ class VirusGrid(OccupancyGrid):
         if step < 0:
             raise ValueError(f"VirusGrid.update: step must be >= 0, got {step}")
         self._occupied = None
-        self._apply_warmup(step, driving, budget_progress)
+        self._apply_warmup(step, driving)
         if batch is not None:
             n_depth_avail = int(batch.depth_ranges.shape[0])
             n_nerf_avail = int(batch.nerf_origins.shape[0])
@@ -169,18 +168,14 @@ class VirusGrid(OccupancyGrid):
         self._last_step = step
         self._n_updates += 1
 
-    def _apply_warmup(self, step: int, driving: bool = False, budget_progress: float | None = None) -> None:
+    def _apply_warmup(self, step: int, driving: bool = False) -> None:
         """Move every cell to the warm-up offset of `step` (a function of steps, not updates);
-        over `warmup_steps_driving` steps instead while `driving`, or over `warmup_budget_share` of
-        the run's budget when that is set and the run has one (the offset is applied as a
+        over `warmup_steps_driving` steps instead while `driving` (the offset is applied as a
         difference, so a switch moves every cell by the same amount and keeps its evidence). A
         column whose warm-up restarted (restart_warmup_in_view) follows its own clock from then."""
         c = self.config
         length = c.warmup_steps_driving if driving else c.warmup_steps
-        if c.warmup_budget_share is not None and budget_progress is not None and not driving:
-            done = min(1.0, budget_progress / c.warmup_budget_share)
-        else:
-            done = min(step, length) / length
+        done = min(step, length) / length
         full = c.logodds_prior - c.logodds_init
         target = full * done
         if self._restart_step is None:
@@ -226,22 +221,16 @@ class VirusGrid(OccupancyGrid):
         self._occupied = None
         return int(new.sum())
 
-    def initialise(self, depth: SensorRays | None, free: SensorRays | None = None) -> int:
+    def initialise(self, depth: SensorRays | None) -> int:
         """Prior knowledge before the first training step (config.init == "sensors").
 
         A Depth-Update along every `depth` ray (the training IRS zones: free space up to each
-        return, occupied at it) and, if given, free-space evidence up to every `free` range (USS
-        echoes over their cone). Cells no sensor saw keep p_init and go through the warm-up as
+        return, occupied at it). Cells no sensor saw keep p_init and go through the warm-up as
         before. Returns the number of (cell, ray) increments applied.
         """
-        if self.config.init == "none":
+        if self.config.init == "none" or depth is None or not len(depth):
             return 0
-        n = 0
-        if depth is not None and len(depth):
-            n += self.depth_update(depth.origins, depth.directions, depth.ranges)
-        if free is not None and len(free):
-            n += self.free_space_update(free.origins, free.directions, free.ranges)
-        return n
+        return self.depth_update(depth.origins, depth.directions, depth.ranges)
 
     def depth_update(self, origins: torch.Tensor, directions: torch.Tensor, ranges: torch.Tensor) -> int:
         """Depth-Update: origins (K, 3), directions (K, 3), ranges (K,) metres along the ray.
@@ -249,17 +238,6 @@ class VirusGrid(OccupancyGrid):
         Directions are normalised here; rays with a non-finite or non-positive range are skipped.
         Returns the number of (cell, ray) increments applied.
         """
-        return self._ray_update(origins, directions, ranges, free_only=False)
-
-    def free_space_update(self, origins: torch.Tensor, directions: torch.Tensor, ranges: torch.Tensor) -> int:
-        """Free-space evidence only, up to the echo (optional USS use; off in the paper's method).
-
-        For a wide cone the echo bounds the free space along the axis but does not locate the
-        obstacle, so no cell gets occupied evidence.
-        """
-        return self._ray_update(origins, directions, ranges, free_only=True)
-
-    def _ray_update(self, origins, directions, ranges, free_only: bool) -> int:
         o, d, m = _check_rays(origins, directions, ranges, "depth")
         if o.shape[0] == 0:
             return 0
@@ -270,7 +248,7 @@ class VirusGrid(OccupancyGrid):
             depth_update_kernel(
                 o, d, m, self._lo, self._size, self._res, flat,
                 c.std_per_m, c.std_floor, c.false_rate, c.hit_probability, c.stop_length,
-                c.max_increment, c.logodds_min, c.logodds_max, free_only,
+                c.max_increment, c.logodds_min, c.logodds_max,
             )
         )
 
@@ -287,7 +265,7 @@ class VirusGrid(OccupancyGrid):
 
         P points per ray at t ~ U(0, far), jittered by N(0, (pos_noise_per_m t)^2) per axis;
         points outside the box are dropped, the rest evaluated by `density_fn` without gradient.
-        sigma_T = min(sigma_T_max, mean sigma of these points) (threshold_mode "fixed": sigma_T_max). Several points in one cell count
+        sigma_T = min(sigma_T_max, mean sigma of these points). Several points in one cell count
         as one measurement: the cell gets the mean of their increments, so a cell's evidence does
         not depend on how many rays happen to cross it (cells near the cameras would otherwise
         get most of it).
@@ -336,9 +314,7 @@ class VirusGrid(OccupancyGrid):
             info = NerfUpdateInfo(n_drawn=n_drawn, n_points=0, sigma_threshold=float("nan"), n_cells=0)
             self.last_nerf_update = info
             return info
-        sigma_t = c.sigma_threshold_max
-        if c.threshold_mode == "mean":
-            sigma_t = min(sigma_t, float(sigma.mean()))
+        sigma_t = min(c.sigma_threshold_max, float(sigma.mean()))
         inc = nerf_log_odds(sigma, sigma_t, c.zeta, c.max_increment, c.sigma_floor)
         # per-cell mean increment; bincount sums sequentially, so this is deterministic
         uniq, inv = np.unique(cells, return_inverse=True)

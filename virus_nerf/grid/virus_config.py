@@ -34,10 +34,6 @@ class VirusGridConfig:
     # while mapping while driving (frames keep arriving): a cell first seen after the warm-up can
     # only come back through the IRS, so the warm-up lasts longer (D6)
     warmup_steps_driving: int = 660
-    # Option (off, D5): end the warm-up at this share of the run's own budget (max_steps /
-    # max_time, the larger share used, as the learning-rate decay) instead of after warmup_steps,
-    # so a short and a long run both finish it; driving runs count steps (warmup_steps_driving).
-    warmup_budget_share: float | None = None
     # "view": while driving, a column of cells that a camera first looks at after the first step
     # starts its warm-up again from p_init (evidence kept), so a part of the room reached late is
     # marched and learnt as the first part was (otherwise it is already empty, and only the IRS
@@ -50,11 +46,6 @@ class VirusGridConfig:
     # space and surfaces the IRS saw are known from the start; "none" = the paper's plain warm-up.
     init: Literal["sensors", "none"] = "sensors"
     init_zone_samples: int = 3  # rays per IRS zone and axis in that pass (3 -> 9 rays per zone)
-    init_uss_free: bool = False  # also free-space evidence in front of every USS echo (its cone)
-    # the stereo sensor's triangulated points in that pass (when it is trained): "free" = free
-    # space along each target's ray up to two standard deviations before the point, "depth" = a
-    # Depth-Update with the IRS model, "off" = none (docs/method.md 3.7)
-    init_stereo: Literal["off", "free", "depth"] = "off"
     # NeRF-Update densities: "forward" (default, the paper's speed-up, D8) reuses the densities
     # of the training forward pass: no extra network pass, and only cells the marcher sampled get
     # evidence, so cells nothing renders through are not raised by haze. "resample" draws
@@ -76,10 +67,6 @@ class VirusGridConfig:
     # (D1; 0.4: D2)
     threshold_alpha: float = 0.15
     sigma_floor: float = 1e-6  # 1/m, keeps ln(sigma) finite
-    # sigma_T: "mean" = min(sigma_T_max, mean density of the update's points) (paper eq. 9);
-    # "fixed" = sigma_T_max. Where most of the space is empty the mean falls far below
-    # sigma_T_max and any cell denser than average is kept occupied (haze becomes occupied).
-    threshold_mode: Literal["mean", "fixed"] = "mean"
 
     def __post_init__(self) -> None:
         check = Checks(self, "virus_grid.")
@@ -91,15 +78,12 @@ class VirusGridConfig:
         number("prior_probability", 0.0, 0.5, hi_open=True)
         integer("warmup_steps", 1)
         integer("warmup_steps_driving", 1)
-        number("warmup_budget_share", 0.0, 1.0, optional=True)
         choice("warmup_restart", ("run", "view"))
         integer("update_interval", 1)
         integer("rays_per_update", 0)
         number("depth_share", 0.0, 1.0, lo_open=False)
         choice("init", ("sensors", "none"))
         integer("init_zone_samples", 1)
-        check.flag("init_uss_free")
-        choice("init_stereo", ("off", "free", "depth"))
         choice("nerf_update_source", ("resample", "forward"))
         number("std_per_m", 0.0, lo_open=False)
         number("std_floor", 0.0)
@@ -113,7 +97,6 @@ class VirusGridConfig:
         number("threshold_step", 0.0)
         number("threshold_alpha", 0.0, 1.0, hi_open=True)
         number("sigma_floor", 0.0)
-        choice("threshold_mode", ("mean", "fixed"))
 
     @property
     def sigma_threshold_max(self) -> float:

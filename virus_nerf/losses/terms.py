@@ -128,24 +128,13 @@ def free_space_loss(weights: torch.Tensor, t_ends: torch.Tensor, ray_offsets: to
 
 
 def line_of_sight_terms(weights: LossWeights, sample_weights: torch.Tensor, t_ends: torch.Tensor,
-                        ray_offsets: torch.Tensor, uss_range: torch.Tensor | None = None,
-                        irs_range: torch.Tensor | None = None, stereo_range: torch.Tensor | None = None,
-                        stereo_sigma: torch.Tensor | None = None) -> torch.Tensor:
-    """free_uss * free_space_loss before the USS echoes + free_depth * free_space_loss before the
-    IRS zones' ranges and the stereo targets (free_margin m short of a range, 2 sigma short of a
-    target; a ray with both takes the nearer). Sensors not trained: None."""
+                        ray_offsets: torch.Tensor, uss_range: torch.Tensor | None = None) -> torch.Tensor:
+    """free_uss * free_space_loss before the USS echoes (free_margin m short of the echo); None:
+    the USS is not trained."""
     total = sample_weights.sum() * 0.0
     if weights.free_uss > 0 and uss_range is not None:
         total = total + weights.free_uss * free_space_loss(sample_weights, t_ends, ray_offsets,
                                                            uss_range - weights.free_margin)
-    if weights.free_depth > 0 and (irs_range is not None or stereo_range is not None):
-        n_rays = ray_offsets.shape[0] - 1
-        until = torch.full((n_rays,), float("nan"), dtype=sample_weights.dtype, device=sample_weights.device)
-        if irs_range is not None:
-            until = torch.fmin(until, irs_range - weights.free_margin)
-        if stereo_range is not None and stereo_sigma is not None:
-            until = torch.fmin(until, stereo_range - 2.0 * stereo_sigma)
-        total = total + weights.free_depth * free_space_loss(sample_weights, t_ends, ray_offsets, until)
     return total
 
 
@@ -173,11 +162,9 @@ class LossWeights:
     # stereo_sigma_ref (weighted_depth_loss)
     stereo: float = 1.0
     stereo_sigma_ref: float = 0.1  # m
-    # line-of-sight emptiness before each return (free_space_loss): USS echoes over the cone
-    # (docs/decisions.md D32), and the IRS zones and stereo targets (free_depth: D34, off);
-    # free_margin m (stereo: 2 sigma) short of the return
+    # line-of-sight emptiness before each USS echo over the cone (free_space_loss, docs/decisions.md
+    # D32), free_margin m short of the echo
     free_uss: float = 0.5
-    free_depth: float = 0.0
     free_margin: float = 0.1
     # interval distortion (m) on every ray against haze along rays; the paper has none; off (D21)
     distortion: float = 0.0

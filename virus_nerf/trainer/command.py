@@ -16,14 +16,14 @@ from typing import Annotated
 
 import tyro
 
-from virus_nerf.config_flags import FlagSpec, apply_flags, flag_names, flag_tree
+from virus_nerf.config_flags import FlagSpec, apply_flags, flag_names, flag_tree, with_annotation
 from virus_nerf.errors import (
     UsageError,
     renamed_flag,
     require_int,
 )
 from virus_nerf.sampler.batch import SENSORS
-from virus_nerf.trainer.config import TrainConfig
+from virus_nerf.trainer.config import PRODUCT_KNOBS, TrainConfig
 from virus_nerf.trainer.run import final_evaluation, load_trained, run_training
 from virus_nerf.trainer.run_folder import (
     RunLock,
@@ -47,6 +47,8 @@ TRAIN_FLAG_SPECS: dict[str, FlagSpec | None] = {
 }
 TrainFlags = flag_tree(TrainConfig, TRAIN_FLAG_SPECS)
 NO_FLAGS = TrainFlags()  # `train` called with no config flag (never changed: train_flags copies)
+# `train --help` lists the product knobs (trainer/config.py PRODUCT_KNOBS); `--help-all` all
+TrainProductFlags = flag_tree(TrainConfig, TRAIN_FLAG_SPECS, only=PRODUCT_KNOBS)
 
 
 def _parse_sensors(sensors: str) -> tuple[str, ...]:
@@ -118,11 +120,13 @@ def train(
 
     Every knob of the run's config (config.json) has a flag derived from its field, grouped by
     section: --batch-size, --optim.lr, --march.step-size, --virus-grid.warmup-steps and so on.
-    The short flags are these derived flags themselves (a top-level field has no section), but
-    for three: --sensors takes a comma-separated list, --playback sets playback_speed and --gt
-    sets evaluation.gt. A flag given replaces that one value of the --config file (or of the
-    run's config.json with --resume), which replaces the default; a value out of range is
-    refused naming the flag. The evaluation zones are set in a config file only.
+    --help lists the knobs a robot user sets; --help-all lists every knob (the research ones:
+    sensor models, grid and tracker internals, kernels, the studies' switches). The short flags
+    are these derived flags themselves (a top-level field has no section), but for three:
+    --sensors takes a comma-separated list, --playback sets playback_speed and --gt sets
+    evaluation.gt. A flag given replaces that one value of the --config file (or of the run's
+    config.json with --resume), which replaces the default; a value out of range is refused
+    naming the flag. The evaluation zones are set in a config file only.
 
     Args:
         out: New run folder (with --resume: the run to continue).
@@ -173,6 +177,12 @@ def _stops(cfg):
     from virus_nerf.utils.stop import stop_on_signals
 
     return stop_on_signals() if cfg.online else contextlib.nullcontext()
+
+
+
+def train_short_help():
+    """`train` as `train --help` shows it: the product knobs' flags alone (the command parses all)."""
+    return with_annotation(train, "knobs", Annotated[TrainProductFlags, tyro.conf.arg(name="")])
 
 
 def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: str | None = None) -> None:

@@ -6,8 +6,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from dataclasses import field as dc_field
 
+from virus_nerf.engine.config import PRODUCT_KNOBS as MAPPER_PRODUCT_KNOBS
 from virus_nerf.engine.config import Checks, MapperConfig
 from virus_nerf.evaluation.evaluate import EvaluationConfig
+
+# `train --help`'s knobs: the engine's product knobs and the run's own a user sets
+PRODUCT_KNOBS = MAPPER_PRODUCT_KNOBS + ("online", "playback_speed", "odometry_poses", "eval_interval",
+                                        "checkpoint_every")
 
 
 @dataclass
