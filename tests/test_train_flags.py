@@ -150,10 +150,11 @@ def test_a_removed_switch_loads_at_the_value_the_method_keeps_and_is_refused_at_
     cfg = load_json_config(TrainConfig, path)
     assert cfg.virus_grid.warmup_steps == 64
     note = capsys.readouterr().err
-    assert note.count("\n") == 3 and "key 'virus_grid.threshold_mode' ignored (no longer read: measured and not kept" in note
+    assert note == (f"virus-nerf: note: {path}: keys 'field.density_bias', 'virus_grid.threshold_mode', "
+                    "'virus_grid.init_stereo' ignored (no longer read: measured and not kept, docs/decisions.md D52)\n")
     path.write_text(json.dumps({"virus_grid": {"threshold_mode": "fixed"}}))
     with pytest.raises(ValueError, match=r"key 'virus_grid.threshold_mode': string \"fixed\": this switch was removed "
-                                         r"\(measured and not kept, docs/decisions.md D3, D52\); the method now always "
+                                         r"\(measured and not kept, docs/decisions.md D52\); the method now always "
                                          r"runs as with \"mean\""):
         load_json_config(TrainConfig, path)
     assert capsys.readouterr().err == ""

@@ -29,6 +29,7 @@ from virus_nerf.errors import ConfigError, one_line
 T = TypeVar("T")
 
 ANY = object()  # a removed key whose value never mattered
+KEPT_NOT = "measured and not kept, docs/decisions.md D52"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,12 +44,12 @@ class Removed:
 # old default, which is what the method does now
 REMOVED_KEYS = {
     "ngp_grid.step_size": Removed(ANY, "the NGP grid's threshold follows the marcher's step, march.step_size"),
-    "virus_grid.init_uss_free": Removed(False, "measured and not kept, docs/decisions.md D9, D52"),
-    "virus_grid.init_stereo": Removed("off", "measured and not kept, docs/decisions.md D34, D52"),
-    "virus_grid.warmup_budget_share": Removed(None, "measured and not kept, docs/decisions.md D5, D52"),
-    "virus_grid.threshold_mode": Removed("mean", "measured and not kept, docs/decisions.md D3, D52"),
-    "weights.free_depth": Removed(0.0, "measured and not kept, docs/decisions.md D34, D52"),
-    "field.density_bias": Removed(0.0, "measured and not kept, docs/decisions.md D19, D20, D52"),
+    "virus_grid.init_uss_free": Removed(False, KEPT_NOT),
+    "virus_grid.init_stereo": Removed("off", KEPT_NOT),
+    "virus_grid.warmup_budget_share": Removed(None, KEPT_NOT),
+    "virus_grid.threshold_mode": Removed("mean", KEPT_NOT),
+    "weights.free_depth": Removed(0.0, KEPT_NOT),
+    "field.density_bias": Removed(0.0, KEPT_NOT),
 }
 
 
@@ -70,9 +71,11 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "config", *, file
         file = where  # older callers passed the file name as `where`
     ctx = _Ctx(file)
     built = _build(cls, data, ctx, "")
-    for key in ctx.dropped:  # only once the config is good: an error stays the one line
-        print(f"virus-nerf: note: {file or 'config'}: key '{key}' ignored (no longer read: {REMOVED_KEYS[key].why})",
-              file=sys.stderr)
+    if ctx.dropped:  # only once the config is good: an error stays the one line
+        keys = ", ".join(f"'{key}'" for key in ctx.dropped)
+        whys = "; ".join(dict.fromkeys(REMOVED_KEYS[key].why for key in ctx.dropped))
+        print(f"virus-nerf: note: {file or 'config'}: key{'s' if len(ctx.dropped) > 1 else ''} {keys} ignored "
+              f"(no longer read: {whys})", file=sys.stderr)
     return built
 
 

@@ -12,17 +12,19 @@ from __future__ import annotations
 
 import shutil
 from contextlib import ExitStack
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
 import tyro
 
-from virus_nerf.errors import (
-    DataFormatError,
-    OutputExistsError,
-    UsageError,
-    require_int,
-    require_number,
+from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError, require_number
+from virus_nerf.mapping.options import (
+    DEFAULT_RASTER,
+    NO_VIEW,
+    MapRaster,
+    RerunSinks,
+    load_stream_config,
 )
 
 
@@ -53,12 +55,8 @@ def map_bag(
     max_lag: float = 2.0,
     max_silence: float = 2.0,
     config: Path | None = None,
-    resolution: float = 0.05,
-    n_rays: int = 360,
-    max_poses: int = 30,
-    rerun: bool = False,
-    rerun_connect: str | None = None,
-    rerun_save: Path | None = None,
+    maps: Annotated[MapRaster, tyro.conf.arg(name="")] = DEFAULT_RASTER,
+    view: Annotated[RerunSinks, tyro.conf.arg(name="")] = NO_VIEW,
     out_bag: Path | None = None,
     resume: bool = False,
 ) -> None:
@@ -98,13 +96,8 @@ def map_bag(
         max_silence: A sensor topic (or the pose source) silent this many recording seconds has
             stopped: the stream ends there (bad data); streaming only.
         config: JSON training config (a run's config.json works; default: the defaults).
-        resolution: Metres per map pixel.
-        n_rays: Rays per 360 deg scan of the maps.
-        max_poses: Camera positions scanned for each map (evenly over the frames so far).
-        rerun: Spawn a Rerun viewer and watch the mapping live (the live extra; docs/live-view.md).
-        rerun_connect: Send the live view to a running Rerun viewer at this URL instead
-            (e.g. rerun+http://192.168.1.7:9876/proxy).
-        rerun_save: Record the live view into this new .rrd file (play it later with `rerun FILE`).
+        maps: The maps (--resolution, --n-rays, --max-poses; mapping/options.py).
+        view: The live view (--rerun, --rerun-connect, --rerun-save; mapping/options.py).
         out_bag: New folder for a rosbag2 (MCAP) of the maps as they grow (/map, /map_probability,
             nav_msgs/OccupancyGrid) and the robot's /tf, for RViz 2 and Foxglove.
         resume: Finish the map-bag in --out that was killed (SIGKILL, a power cut): its final map
@@ -120,9 +113,7 @@ def map_bag(
         raise UsageError("BAG is required: give the ROS bag to map (or --resume --out DIR to finish a killed run)")
     require_number("--playback", playback, 0.0)
     require_number("--snapshot-every", snapshot_every, 0.0)
-    require_number("--resolution", resolution, 0.0)
-    require_int("--n-rays", n_rays, 1, 1_000_000)
-    require_int("--max-poses", max_poses, 1)
+    maps.check()
     require_number("--first-snapshot", first_snapshot, 0.0)
     require_number("--max-lag", max_lag, 0.0)
     require_number("--max-silence", max_silence, 0.0)
@@ -137,28 +128,13 @@ def map_bag(
         raise UsageError(f"BAG {bag}: no such file or folder; expected a ROS bag")
     if topics is not None and not Path(topics).is_file():
         raise UsageError(f"--topics {topics}: no such file; expected the importer's topic mapping file")
-    cfg = None
-    if config is not None:
-        from virus_nerf.config_io import load_json_config
-        from virus_nerf.trainer.config import TrainConfig
-
-        cfg = load_json_config(TrainConfig, config)
-        from virus_nerf.engine.memory import check_batch_memory
-
-        check_batch_memory(cfg, what=f"--config {config}: batch_size")  # a step's samples must fit, as for `train`
+    cfg = load_stream_config(config)
     if out.exists():
         raise OutputExistsError(out)
-    if rerun_save is not None and Path(rerun_save).suffix != ".rrd":
-        raise UsageError(f"--rerun-save {rerun_save}: expected a .rrd file name")
-    for path in (rerun_save, out_bag):
-        if path is not None and Path(path).exists():
-            raise OutputExistsError(path)
-    if rerun or rerun_connect or rerun_save:
-        from virus_nerf.mapping.live_view import _rerun
-
-        _rerun()  # the live extra's one-line message now, not after the import
-    maps = dict(resolution=resolution, n_rays=n_rays, max_poses=max_poses)
-    sinks = dict(rerun=rerun, rerun_connect=rerun_connect, rerun_save=rerun_save, out_bag=out_bag)
+    if out_bag is not None and Path(out_bag).exists():
+        raise OutputExistsError(out_bag)
+    view.check()
+    sinks = Sinks(view, out_bag)
     pose_args = dict(poses=poses, poses_file=poses_file, tf_parent=tf_parent, tf_child=tf_child)
     from virus_nerf.utils.stop import stop_on_signals
 
@@ -193,28 +169,35 @@ def make_out(out: Path) -> None:
         raise OutputExistsError(out) from None
 
 
-def open_sinks(stack: ExitStack, rerun: bool, rerun_connect: str | None, rerun_save: Path | None,
-               out_bag: Path | None) -> tuple:
-    """(LiveView or None, RosMapBag or None), closed with `stack`."""
-    live = ros_bag = None
-    if rerun or rerun_connect or rerun_save:
-        from virus_nerf.mapping.live_view import LiveView
+@dataclass(frozen=True)
+class Sinks:
+    """Where a stream's frames and maps go besides OUT: the live view and a bag of the maps."""
 
-        live = stack.enter_context(LiveView(spawn=rerun, connect=rerun_connect, save=rerun_save))
-    if out_bag is not None:
-        from virus_nerf.mapping.ros_maps import RosMapBag
+    view: RerunSinks = NO_VIEW
+    out_bag: Path | None = None  # a rosbag2 (MCAP) of /map, /map_probability and /tf
 
-        ros_bag = stack.enter_context(RosMapBag(out_bag))
-    return live, ros_bag
+    def open(self, stack: ExitStack) -> tuple:
+        """(LiveView or None, RosMapBag or None), closed with `stack`."""
+        live = ros_bag = None
+        if self.view.wanted:
+            from virus_nerf.mapping.live_view import LiveView
 
+            v = self.view
+            live = stack.enter_context(LiveView(spawn=v.rerun, connect=v.rerun_connect, save=v.rerun_save))
+        if self.out_bag is not None:
+            from virus_nerf.mapping.ros_maps import RosMapBag
 
-def sinks_note(sinks: dict) -> str:
-    return "".join(f"; {what} {p}" for what, p in (("live view in", sinks["rerun_save"]),
-                                                    ("ROS maps in", sinks["out_bag"])) if p)
+            ros_bag = stack.enter_context(RosMapBag(self.out_bag))
+        return live, ros_bag
+
+    def note(self) -> str:
+        """"; live view in X; ROS maps in Y" for the files written, "" for none."""
+        return "".join(f"; {what} {p}" for what, p in (("live view in", self.view.rerun_save),
+                                                        ("ROS maps in", self.out_bag)) if p)
 
 
 def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: float, topics: Path | None, cfg,
-                        pose_args: dict, maps: dict, sinks: dict) -> None:
+                        pose_args: dict, maps: MapRaster, sinks: Sinks) -> None:
     """The whole bag imported into OUT/recording, then replayed (--import-first)."""
     from virus_nerf.mapping.replay import replay
     from virus_nerf.utils.stop import Stopped
@@ -228,8 +211,8 @@ def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: f
         raise
     try:
         with ExitStack() as stack:
-            live, ros_bag = open_sinks(stack, **sinks)
-            report = replay(out / "recording", out, playback, snapshot_every, cfg, room=imported.room, **maps,
+            live, ros_bag = sinks.open(stack)
+            report = replay(out / "recording", out, playback, snapshot_every, cfg, room=imported.room, **maps.kwargs(),
                             live=live, ros_bag=ros_bag)
     except Stopped as exc:
         exc.reported = True
@@ -237,11 +220,11 @@ def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: f
         print(f"map-bag: stopped by {exc.name}; {final}; the recording imported in {out / 'recording'}")
         raise
     print(f"map-bag: {report.frames} frames, {report.steps} steps in {report.wall_s:.1f} s; "
-          f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}{sinks_note(sinks)}")
+          f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}{sinks.note()}")
 
 
 def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float, topics: Path | None, cfg,
-                   pose_args: dict, maps: dict, sinks: dict, *, odometry_topic: str = "/odom",
+                   pose_args: dict, maps: MapRaster, sinks: Sinks, *, odometry_topic: str = "/odom",
                    first_snapshot: float = 1.0, max_lag: float = 2.0, max_silence: float = 2.0) -> None:
     """The streaming path (mapping/stream.py): topics checked against the bag before OUT is made;
     OUT removed again when the stream stops before its first frame (nothing was mapped)."""
@@ -278,10 +261,10 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
         run = None
         try:
             with ExitStack() as stack:
-                live, ros_bag = open_sinks(stack, **sinks)
+                live, ros_bag = sinks.open(stack)
                 run = StreamRun(sync, out, cfg, playback=playback, snapshot_every=snapshot_every,
                                 first_snapshot=first_snapshot, max_lag=max_lag, drive_s=max(last - first, 0.0),
-                                live=live, ros_bag=ros_bag, warm_step_s=warm_step_s, **maps)
+                                live=live, ros_bag=ros_bag, warm_step_s=warm_step_s, **maps.kwargs())
                 report = run.run(reader.iter_topics(sync.topics()))
         except BaseException as exc:
             nothing = run_made_nothing(out)
@@ -306,7 +289,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
                               "tolerances and the pose source")
     print(f"map-bag: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s; "
           f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}"
-          f"{sinks_note(sinks)}")
+          f"{sinks.note()}")
 
 
 def run_made_nothing(out: Path) -> bool:

@@ -12,6 +12,14 @@ from typing import Annotated
 import tyro
 
 from virus_nerf.errors import OutputExistsError, UsageError, require_number
+from virus_nerf.mapping.command import Sinks
+from virus_nerf.mapping.options import (
+    DEFAULT_RASTER,
+    NO_VIEW,
+    MapRaster,
+    RerunSinks,
+    load_stream_config,
+)
 
 NODE_POSES = ("tf", "odometry", "lidar-odometry")
 NODE_NAME = "virus_nerf"  # the name `ros2 node list` shows (in --namespace)
@@ -44,14 +52,10 @@ def ros2(
     max_lag: float = 2.0,
     max_silence: float = 2.0,
     config: Path | None = None,
-    resolution: float = 0.05,
-    n_rays: int = 360,
-    max_poses: int = 30,
+    maps: Annotated[MapRaster, tyro.conf.arg(name="")] = DEFAULT_RASTER,
     duration: float | None = None,
     exit_when_idle: float | None = None,
-    rerun: bool = False,
-    rerun_connect: str | None = None,
-    rerun_save: Path | None = None,
+    view: Annotated[RerunSinks, tyro.conf.arg(name="")] = NO_VIEW,
 ) -> None:
     """Map live from a ROS 2 robot over DDS and publish /map (no ROS install: the ros2 extra).
 
@@ -86,14 +90,10 @@ def ros2(
         max_lag: A colour image this many seconds behind the newest message is dropped (counted).
         max_silence: A sensor topic (or the pose source) silent this long is said in the log.
         config: JSON training config (default: the defaults).
-        resolution: Metres per map cell.
-        n_rays: Rays per 360 deg scan of the maps.
-        max_poses: Camera positions scanned for each map.
+        maps: The maps (--resolution, --n-rays, --max-poses; mapping/options.py, as map-bag's).
         duration: Stop after this many wall-clock seconds (default: run until Ctrl-C or SIGTERM).
         exit_when_idle: Stop when no message came for this many seconds after the first one.
-        rerun: Spawn a Rerun viewer and watch the mapping live (the live extra).
-        rerun_connect: Send the live view to a running Rerun viewer at this URL instead.
-        rerun_save: Record the live view into this new .rrd file.
+        view: The live view (--rerun, --rerun-connect, --rerun-save; as map-bag's).
     """
     from virus_nerf.ros2.dds import require_dds, resolve
 
@@ -106,8 +106,9 @@ def ros2(
                          "given in (the LiDAR's, e.g. rslidar)")
     for flag, value, low in (("--publish-every", publish_every, 0.0), ("--first-map", first_map, 0.0),
                              ("--drive", drive, 0.0), ("--max-lag", max_lag, 0.0),
-                             ("--max-silence", max_silence, 0.0), ("--resolution", resolution, 0.0)):
+                             ("--max-silence", max_silence, 0.0)):
         require_number(flag, value, low, lo_open=flag != "--first-map")
+    maps.check()
     for flag, value in (("--duration", duration), ("--exit-when-idle", exit_when_idle)):
         if value is not None:
             require_number(flag, value, 0.0)
@@ -116,18 +117,12 @@ def ros2(
     out = Path(out)
     if out.exists():
         raise OutputExistsError(out)
+    view.check()
     require_dds()
     from virus_nerf.ros2.types import typestore
 
     typestore(distro)  # the one-line refusal of an unknown distro
-    cfg = None
-    if config is not None:
-        from virus_nerf.config_io import load_json_config
-        from virus_nerf.engine.memory import check_batch_memory
-        from virus_nerf.trainer.config import TrainConfig
-
-        cfg = load_json_config(TrainConfig, config)
-        check_batch_memory(cfg, what=f"--config {config}: batch_size")
+    cfg = load_stream_config(config)
     from virus_nerf.utils.stop import stop_on_signals
 
     names = dict(map=resolve(map_topic, namespace), probability=resolve(probability_topic, namespace))
@@ -136,19 +131,18 @@ def ros2(
                  loopback=_localhost_only(localhost_only), names=names, map_frame=map_frame or tf_parent,
                  namespace=namespace,
                  publish_every=publish_every, first_map=first_map, drive=drive, max_lag=max_lag,
-                 max_silence=max_silence, maps=dict(resolution=resolution, n_rays=n_rays, max_poses=max_poses),
-                 sinks=dict(rerun=rerun, rerun_connect=rerun_connect, rerun_save=rerun_save, out_bag=None),
+                 max_silence=max_silence, maps=maps, sinks=Sinks(view),
                  duration=duration, exit_when_idle=exit_when_idle)
 
 
 def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_child: str | None, odometry_topic: str,
              cfg, *, distro: str, domain: int | None, loopback: bool, names: dict, map_frame: str, namespace: str,
-             publish_every: float, first_map: float, drive: float, max_lag: float, max_silence: float, maps: dict,
-             sinks: dict, duration: float | None, exit_when_idle: float | None, log=print) -> None:
+             publish_every: float, first_map: float, drive: float, max_lag: float, max_silence: float,
+             maps: MapRaster, sinks: Sinks, duration: float | None, exit_when_idle: float | None, log=print) -> None:
     """The node (ros2/node.py) until a stop: --duration, --exit-when-idle, SIGINT or SIGTERM."""
     from virus_nerf.data.bags.live import LiveSync, make_pose_source
     from virus_nerf.data.bags.topics import default_topics, read_topics
-    from virus_nerf.mapping.command import make_out, open_sinks, run_made_nothing
+    from virus_nerf.mapping.command import make_out, run_made_nothing
     from virus_nerf.mapping.stream import StreamRun, summary, warm_up
     from virus_nerf.ros2.dds import Participant
     from virus_nerf.ros2.node import LiveMessages, MapPublisher, label, wanted_topics
@@ -192,10 +186,10 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
         run = None
         try:
             with ExitStack() as stack:
-                live, _ = open_sinks(stack, **sinks)
+                live, _ = sinks.open(stack)
                 run = StreamRun(sync, out, cfg, playback=1.0, snapshot_every=publish_every, first_snapshot=first_map,
                                 max_lag=max_lag, drive_s=drive, live=live, ros_bag=publisher,
-                                warm_step_s=warm_step_s, **maps)
+                                warm_step_s=warm_step_s, **maps.kwargs())
                 report = run.run(messages)
         except BaseException as exc:
             nothing = run_made_nothing(out)
