@@ -200,7 +200,8 @@ def test_import_bag_and_the_stream_refuse_a_150_m_tof_reading_alike(tof_bag, tmp
     """The same bad ToF message: import-bag refuses it (before: imported, then refused by the TOF
     file's reader), the stream stops at it (before: mapped as a 150 m free ray), in the same line."""
     from virus_nerf.data.bags.importer import import_bag
-    from virus_nerf.data.bags.live import LiveSync, StreamError, make_pose_source
+    from virus_nerf.data.bags.live import LiveSync, StreamError
+    from virus_nerf.data.bags.poses import make_pose_source
     from virus_nerf.data.bags.reader import BagReader
     from virus_nerf.data.bags.topics import default_topics
 

@@ -16,7 +16,8 @@ from helpers import run_cli, tiny_train_config
 pytest.importorskip("rosbags")
 
 from virus_nerf.data.bags import messages as m  # noqa: E402
-from virus_nerf.data.bags.live import LiveSync, StreamError, make_pose_source  # noqa: E402
+from virus_nerf.data.bags.live import LiveSync, StreamError  # noqa: E402
+from virus_nerf.data.bags.poses import make_pose_source  # noqa: E402
 from virus_nerf.data.bags.reader import BagReader  # noqa: E402
 from virus_nerf.data.bags.topics import default_topics  # noqa: E402
 from virus_nerf.data.ethz import load_recording  # noqa: E402
@@ -110,7 +111,7 @@ def test_streamed_frames_are_the_importers(bags, tmp_path, poses):
 def test_kiss_icp_in_its_worker_process_gives_the_in_process_poses(bags):
     """The registration moved to a worker process (it holds the GIL): the same frames, the same
     poses to the last bit, and the worker ends with the stream."""
-    from virus_nerf.data.bags.live import KissPoses
+    from virus_nerf.data.bags.poses import KissPoses
 
     cfg = default_topics()
     local, _ = _stream(bags["ros1"], "lidar-odometry",

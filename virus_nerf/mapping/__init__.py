@@ -2,4 +2,4 @@
 time, with map snapshots on the way (`virus-nerf map-bag`)."""
 
 # its public modules; none is imported here, so `import virus_nerf.mapping` loads nothing else
-__all__ = ["command", "live_view", "replay", "ros_maps", "stream"]
+__all__ = ["command", "live_view", "options", "replay", "ros_maps", "stream"]

@@ -229,7 +229,8 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
     """The streaming path (mapping/stream.py): topics checked against the bag before OUT is made;
     OUT removed again when the stream stops before its first frame (nothing was mapped)."""
     from virus_nerf.data.bags.importer import _plan, require_ros_extra
-    from virus_nerf.data.bags.live import LiveSync, make_pose_source
+    from virus_nerf.data.bags.live import LiveSync
+    from virus_nerf.data.bags.poses import make_pose_source
     from virus_nerf.data.bags.reader import BagReader
     from virus_nerf.data.bags.topics import default_topics, read_topics
     from virus_nerf.mapping.stream import StreamRun, summary, warm_up

@@ -140,7 +140,8 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
              publish_every: float, first_map: float, drive: float, max_lag: float, max_silence: float,
              maps: MapRaster, sinks: Sinks, duration: float | None, exit_when_idle: float | None, log=print) -> None:
     """The node (ros2/node.py) until a stop: --duration, --exit-when-idle, SIGINT or SIGTERM."""
-    from virus_nerf.data.bags.live import LiveSync, make_pose_source
+    from virus_nerf.data.bags.live import LiveSync
+    from virus_nerf.data.bags.poses import make_pose_source
     from virus_nerf.data.bags.topics import default_topics, read_topics
     from virus_nerf.mapping.command import make_out, run_made_nothing
     from virus_nerf.mapping.stream import StreamRun, summary, warm_up

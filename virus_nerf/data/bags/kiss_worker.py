@@ -1,4 +1,4 @@
-"""KISS-ICP in a process of its own, for the streaming pose source (data/bags/live.py KissPoses).
+"""KISS-ICP in a process of its own, for the streaming pose source (data/bags/poses.py KissPoses).
 
 KISS-ICP's registration holds Python's GIL (measured: a registration loop and a Python loop in two
 threads take the sum of their times), so in the mapping process it takes a third of one core
