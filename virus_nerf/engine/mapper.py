@@ -322,64 +322,62 @@ class Mapper(MapViews):
         return terms
 
     def _step(self, progress: float | None) -> LossTerms:
-        """`train_step` off the clock: sample, render, losses, Adam, grid update."""
+        """`train_step` off the clock, as named steps: the step's start-up, the learning rate,
+        a batch, the render, the loss (a pure assembly), Adam, the counters, the grid update."""
+        self._begin_step()
+        schedule = self.schedule
+        self._set_learning_rate(schedule, self.progress() if progress is None else progress)
+        batch = self._sample(schedule)
+        rgb_rays = colour_rays(self.config, batch)
+        out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator, rgb_rays=rgb_rays)
+        terms = step_loss(self.config, batch, out, stats.samples, rgb_rays)
+        self._optimise(terms)
+        self._count(stats)
+        self._update_grid(schedule, batch, stats)
+        return terms
+
+    def _begin_step(self) -> None:
+        """Kernels loaded, the sensor prior of frames added since the last step applied, and the
+        frames present at the first step remembered (they count as seen at step 0)."""
         if not self._warm:
             self.prepare()
         self._apply_pending_prior()
         if self._frames_at_start is None:
             self._frames_at_start = self.frames
-        c = self.config
-        schedule = self.schedule
-        progress = self.progress() if progress is None else progress
+
+    def _set_learning_rate(self, schedule: StepSchedule, progress: float) -> None:
         lr = schedule.learning_rate(progress)
         for g in self.optimizer.param_groups:
             g["lr"] = lr
-        n_rays = schedule.rays(c.batch_size, self.last_samples_per_ray)
+
+    def _sample(self, schedule: StepSchedule) -> RayBatch:
+        """The step's rays: as many as the schedule's sample cap allows, the newest frames
+        favoured while driving (RecentFrames)."""
+        n_rays = schedule.rays(self.config.batch_size, self.last_samples_per_ray)
         batch = self.sampler.sample(self.rng, n_rays, np.arange(self.frames), self._frame_odds(schedule))
-        batch = batch.to(self.device)
-        sensors = c.sensors
-        rgb_rays = None
-        if c.density_only_depth_rays:
-            has_depth = torch.zeros(len(batch), dtype=torch.bool, device=self.device)
-            if "irs" in sensors:
-                has_depth |= torch.isfinite(batch.irs_range)
-            if "rgbd" in sensors:
-                has_depth |= torch.isfinite(batch.rgbd_range)
-            rgb_rays = ~has_depth
-        out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator, rgb_rays=rgb_rays)
-        terms = total_loss(
-            c.weights,
-            pred_rgb=out.rgb,
-            target_rgb=batch.rgb,
-            pred_depth=out.depth,
-            irs_depth=batch.irs_range if "irs" in sensors else None,
-            uss_range=batch.uss_range if "uss" in sensors else None,
-            rgbd_depth=batch.rgbd_range if "rgbd" in sensors else None,
-            rgb_mask=rgb_rays,
-            stereo_depth=batch.stereo_range if "stereo" in sensors else None,
-            stereo_sigma=batch.stereo_sigma if "stereo" in sensors else None,
-        )
-        if c.weights.distortion > 0:
-            smp = stats.samples
-            ld = distortion_loss(out.weights, smp.t_starts, smp.t_ends, smp.ray_offsets)
-            terms = dataclasses.replace(terms, total=terms.total + c.weights.distortion * ld, distortion=ld)
-        if c.weights.free_uss > 0 and "uss" in sensors:
-            smp = stats.samples
-            free = line_of_sight_terms(c.weights, out.weights, smp.t_ends, smp.ray_offsets, uss_range=batch.uss_range)
-            terms = dataclasses.replace(terms, total=terms.total + free)
+        return batch.to(self.device)
+
+    def _optimise(self, terms: LossTerms) -> None:
+        """Adam on the field; a batch that marched no occupied cell (all rays out of the box)
+        has no graph and changes nothing."""
         self.optimizer.zero_grad(set_to_none=True)
-        if terms.total.requires_grad:  # no ray marched an occupied cell (e.g. all look out of the box): no update
+        if terms.total.requires_grad:
             terms.total.backward()
             self.optimizer.step()
+
+    def _count(self, stats) -> None:
         self.step += 1
         self.samples += stats.n_samples
         self.rays += stats.n_rays
         self.last_samples_per_ray = stats.n_samples / max(1, stats.n_rays)
+
+    def _update_grid(self, schedule: StepSchedule, batch: RayBatch, stats) -> None:
+        """Every `update_interval` steps: the warm-up restarted where the cameras first look
+        while driving, then the grid's own update from this step's rays and densities."""
         if self.step % self.grid.update_interval == 0:
             self._restart_warmup_in_view()
             self.grid.update(self.step, self.field.density, self._grid_batch(batch, stats), self.generator,
                              driving=schedule.driving)
-        return terms
 
     def _restart_warmup_in_view(self) -> None:
         """virus_grid.warmup_restart "view": the grid columns in the camera view wedges of the
@@ -513,3 +511,42 @@ class Mapper(MapViews):
             self._prior_done, self._prior_skip = int(state["prior_frames"]), False
         else:  # written before the count existed: the grid had the prior of every frame present
             self._prior_done, self._prior_skip = 0, True
+
+
+def colour_rays(config: MapperConfig, batch: RayBatch) -> torch.Tensor | None:
+    """(R,) bool: the rays that render and learn colour; None = all. With
+    `density_only_depth_rays` the depth-supervised rays (IRS, RGB-D) train the density alone."""
+    if not config.density_only_depth_rays:
+        return None
+    has_depth = torch.zeros(len(batch), dtype=torch.bool, device=batch.origins.device)
+    if "irs" in config.sensors:
+        has_depth |= torch.isfinite(batch.irs_range)
+    if "rgbd" in config.sensors:
+        has_depth |= torch.isfinite(batch.rgbd_range)
+    return ~has_depth
+
+
+def step_loss(config: MapperConfig, batch: RayBatch, out, samples, rgb_rays: torch.Tensor | None) -> LossTerms:
+    """A step's loss from its rays' targets (`batch`), the render (`out`: rgb, depth, weights)
+    and its packed samples: the weighted sum of docs/method.md 3.2 over the sensors trained,
+    then the distortion and USS line-of-sight terms when their weights are on. Pure: no state."""
+    sensors, w = config.sensors, config.weights
+    terms = total_loss(
+        w,
+        pred_rgb=out.rgb,
+        target_rgb=batch.rgb,
+        pred_depth=out.depth,
+        irs_depth=batch.irs_range if "irs" in sensors else None,
+        uss_range=batch.uss_range if "uss" in sensors else None,
+        rgbd_depth=batch.rgbd_range if "rgbd" in sensors else None,
+        rgb_mask=rgb_rays,
+        stereo_depth=batch.stereo_range if "stereo" in sensors else None,
+        stereo_sigma=batch.stereo_sigma if "stereo" in sensors else None,
+    )
+    if w.distortion > 0:
+        ld = distortion_loss(out.weights, samples.t_starts, samples.t_ends, samples.ray_offsets)
+        terms = dataclasses.replace(terms, total=terms.total + w.distortion * ld, distortion=ld)
+    if w.free_uss > 0 and "uss" in sensors:
+        free = line_of_sight_terms(w, out.weights, samples.t_ends, samples.ray_offsets, uss_range=batch.uss_range)
+        terms = dataclasses.replace(terms, total=terms.total + free)
+    return terms
