@@ -27,6 +27,8 @@ from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.geometry import yaw_of
 
 SENSOR_BAND_M = 0.1  # IRS hits this close to the camera height count at camera height
+FRAMES_PER_CHUNK = 256  # IRS frames turned into sub-rays at once (~8 MB of float64 each): a long drive's
+# ~10^4 frames would otherwise hold 576 sub-rays each at once, though few hit at camera height
 
 
 @dataclass(frozen=True)
@@ -60,16 +62,19 @@ def irs_rays_2d(cam_to_world: np.ndarray, irs_range: np.ndarray, height: float, 
     horizontal distance to the hit). Each zone is covered by samples_per_axis^2 rays
     (sensors/irs.zone_rays, as the training's IRS rays)."""
     poses = np.asarray(cam_to_world, dtype=np.float64).reshape(-1, 4, 4)
-    if not len(poses):
-        return Rays2D.empty()
-    origins, dirs, ranges = irs.zone_rays(poses, np.asarray(irs_range, dtype=np.float64), samples_per_axis)
-    o, d, r = origins.reshape(-1, 3), dirs.reshape(-1, 3), ranges.reshape(-1)  # (F K, ...)
-    ok = np.isfinite(r) & (r > 0)
-    o, d, r = o[ok], d[ok], r[ok]
-    end_z = o[:, 2] + d[:, 2] * r
-    flat = np.linalg.norm(d[:, :2], axis=1)  # (K,) horizontal part of the direction
-    keep = (np.abs(end_z - height) <= band) & (flat > 1e-6)
-    return Rays2D(o[keep, :2], d[keep, :2] / flat[keep, None], (r * flat)[keep])
+    z_depth = np.asarray(irs_range, dtype=np.float64).reshape(len(poses), -1)
+    out = Rays2D.empty()
+    for s in range(0, len(poses), FRAMES_PER_CHUNK):  # bounded memory on long drives
+        origins, dirs, ranges = irs.zone_rays(poses[s : s + FRAMES_PER_CHUNK], z_depth[s : s + FRAMES_PER_CHUNK],
+                                              samples_per_axis)
+        o, d, r = origins.reshape(-1, 3), dirs.reshape(-1, 3), ranges.reshape(-1)  # (F K, ...)
+        ok = np.isfinite(r) & (r > 0)
+        o, d, r = o[ok], d[ok], r[ok]
+        end_z = o[:, 2] + d[:, 2] * r
+        flat = np.linalg.norm(d[:, :2], axis=1)  # (K,) horizontal part of the direction
+        keep = (np.abs(end_z - height) <= band) & (flat > 1e-6)
+        out = out.concat(Rays2D(o[keep, :2], d[keep, :2] / flat[keep, None], (r * flat)[keep]))
+    return out
 
 
 def uss_rays_2d(cam_to_world: np.ndarray, uss_range: np.ndarray, fan_step_deg: float = 1.0) -> Rays2D:

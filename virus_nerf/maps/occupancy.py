@@ -23,7 +23,9 @@ import numpy as np
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205
 OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.196
 MAX_PIXELS = 100_000_000  # a finer --resolution is refused (memory) before anything is computed
-SCAN_POINTS_PER_CHUNK = 1 << 22  # pass points rasterised at once (~200 MB): a fine raster's scans in chunks
+# pass points rasterised at once: ~100 bytes of temporaries each (the points, their rays' origins
+# and directions, pixel indices), ~100 MB a chunk, whatever the raster or the number of rays
+SCAN_POINTS_PER_CHUNK = 1 << 20
 
 
 @dataclass
