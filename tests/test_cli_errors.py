@@ -288,7 +288,7 @@ values = st.one_of(
 )
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(command=st.sampled_from(["train", "export", "evaluate", "simulate"]),
        flags=st.lists(st.tuples(st.sampled_from(FLAG_NAMES + ["--resolution", "--n-rays", "--duration", "--bogus"]),
                                 values), max_size=4))
@@ -317,7 +317,7 @@ json_values = st.recursive(
 CONFIG_KEYS = list(to_dict(TrainConfig()).keys())
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(doc=st.dictionaries(st.sampled_from(CONFIG_KEYS + ["bogus"]), json_values, min_size=1, max_size=3))
 def test_fuzzed_config_files_exit_2_with_one_line(tmp_path, doc):
     """Random values for real keys: a bad one is named (file and key); a good file reaches the

@@ -229,6 +229,7 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
     from virus_nerf.evaluation.evaluate import check_ground_truth_inputs
     from virus_nerf.evaluation.plots import plots_dir_for, write_plots
     from virus_nerf.trainer.loop import TrainSummary
+    from virus_nerf.trainer.report import RUN_SCAN_MAPS
     from virus_nerf.trainer.run_folder import train_summary_block
 
     if n_rays is not None or protocols is not None:
@@ -247,7 +248,7 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
 
     trainer.prepare()  # the frames the run trained on and its stereo points (cached): the map `train` judged
     run_safety = mapper_safety(trainer.mapper, trainer.recording, cfg.evaluation.height_band_m)
-    write_plots(result, plots_dir_for(out), max_maps=8, replace=redo)
+    write_plots(result, plots_dir_for(out), max_maps=RUN_SCAN_MAPS, replace=redo)
     if out.exists():  # another process finished the same evaluation meanwhile
         raise OutputExistsError(out)
     result.write_json(out, train=train_summary_block(cfg, summary),

@@ -7,9 +7,12 @@ from pathlib import Path
 from virus_nerf.trainer.run_folder import EvalPoint
 
 SAFETY_PICTURE = "map_safety.png"
+# scan maps of a run (evenly over its test points): each is a five-panel figure of ~1 s on a
+# 2-core CPU, drawn after training; 8 took ~9 s at the end of every run
+RUN_SCAN_MAPS = 4
 
 
-def write_run_plots(run_dir: Path, result, eval_history: list[EvalPoint], max_maps: int = 8,
+def write_run_plots(run_dir: Path, result, eval_history: list[EvalPoint], max_maps: int = RUN_SCAN_MAPS,
                     replace: bool = False, safety_picture=None) -> list[Path]:
     """RUN/plots/: scan maps at up to `max_maps` test points, metric bars, metric vs time and,
     given, the map's safety picture ((H, W, 3) uint8, evaluation.safety.safety_picture).
