@@ -36,6 +36,20 @@ def test_irs_rays_at_camera_height_end_on_the_wall_they_measured():
     np.testing.assert_allclose(up.ends()[:, 0], 3.0, atol=1e-9)
 
 
+def test_irs_rays_of_many_frames_come_in_frame_order_across_chunks_and_none_for_no_frame():
+    """A drive longer than one chunk of frames (evidence.FRAMES_PER_CHUNK) gives each frame's 96
+    rays of the hand case above, frame after frame; no frame gives no ray."""
+    from virus_nerf.maps.evidence import FRAMES_PER_CHUNK
+
+    n = FRAMES_PER_CHUNK + 3
+    poses = np.stack([camera_looking(1.0 + 0.01 * k, 0.5, 0.0, z=0.4) for k in range(n)])
+    rays = irs_rays_2d(poses, np.full((n, 8, 8), 2.0), height=0.4, band=0.1)
+    assert len(rays) == 96 * n
+    np.testing.assert_allclose(rays.origins[:, 0], np.repeat(1.0 + 0.01 * np.arange(n), 96), atol=1e-12)
+    np.testing.assert_allclose(rays.ends()[:, 0], np.repeat(3.0 + 0.01 * np.arange(n), 96), atol=1e-9)
+    assert len(irs_rays_2d(np.zeros((0, 4, 4)), np.zeros((0, 8, 8)), 0.4)) == 0
+
+
 def test_a_uss_echo_is_a_fan_across_the_cone_ending_on_its_arc():
     pose = camera_looking(0.0, 0.0, math.pi / 2)  # looking along +y
     rays = uss_rays_2d(np.stack([pose, pose]), np.array([1.5, np.nan]), fan_step_deg=5.0)

@@ -62,8 +62,10 @@ def irs_rays_2d(cam_to_world: np.ndarray, irs_range: np.ndarray, height: float, 
     horizontal distance to the hit). Each zone is covered by samples_per_axis^2 rays
     (sensors/irs.zone_rays, as the training's IRS rays)."""
     poses = np.asarray(cam_to_world, dtype=np.float64).reshape(-1, 4, 4)
+    if not len(poses):
+        return Rays2D.empty()
     z_depth = np.asarray(irs_range, dtype=np.float64).reshape(len(poses), -1)
-    out = Rays2D.empty()
+    parts = []  # (origins, directions, ranges) of each chunk's rays hitting at camera height
     for s in range(0, len(poses), FRAMES_PER_CHUNK):  # bounded memory on long drives
         origins, dirs, ranges = irs.zone_rays(poses[s : s + FRAMES_PER_CHUNK], z_depth[s : s + FRAMES_PER_CHUNK],
                                               samples_per_axis)
@@ -73,8 +75,8 @@ def irs_rays_2d(cam_to_world: np.ndarray, irs_range: np.ndarray, height: float, 
         end_z = o[:, 2] + d[:, 2] * r
         flat = np.linalg.norm(d[:, :2], axis=1)  # (K,) horizontal part of the direction
         keep = (np.abs(end_z - height) <= band) & (flat > 1e-6)
-        out = out.concat(Rays2D(o[keep, :2], d[keep, :2] / flat[keep, None], (r * flat)[keep]))
-    return out
+        parts.append((o[keep, :2], d[keep, :2] / flat[keep, None], (r * flat)[keep]))
+    return Rays2D(*(np.concatenate(a) for a in zip(*parts, strict=True)))
 
 
 def uss_rays_2d(cam_to_world: np.ndarray, uss_range: np.ndarray, fan_step_deg: float = 1.0) -> Rays2D:
