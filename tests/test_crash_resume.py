@@ -123,7 +123,7 @@ def test_killed_at_every_checkpoint_equals_an_uninterrupted_run(tiny_office, tmp
 
     def watched(self):
         terms = real_step(self)
-        shares.append(self.mapper.model.visible_share)
+        shares.append(self.mapper.visible_share)
         return terms
 
     monkeypatch.setattr(Trainer, "train_step", watched)

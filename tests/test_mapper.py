@@ -311,7 +311,7 @@ def test_a_resumed_mapper_keeps_the_restored_render_path_statistic():
     c.load_state(state)
     c.add_frame(_frame(0.0))
     c.prepare()
-    assert c.model.visible_share == 0.123
+    assert c.visible_share == 0.123
 
 
 def test_rgbd_frames_with_and_without_depth_and_an_instant_ngp_snapshot(tmp_path):
@@ -549,3 +549,28 @@ def test_mapper_api_bad_input_round_two():
     outward.train(60.0, steps=2)
     assert outward.step == 2
     assert all(torch.equal(a, b.detach()) for a, b in zip(before, outward.field.parameters(), strict=True))
+
+
+def test_the_learning_rate_decays_over_the_horizon_the_caller_hands_in():
+    """One horizon for every caller (engine/schedule.py): a drive of 30 s of recording at playback
+    2 is 15 s of training; the lr after a step is lr * decay ** (share of that horizon), whatever
+    the config's own max_steps / max_time say."""
+    from virus_nerf.engine.schedule import Horizon, Schedules
+
+    horizon = Horizon.drive(30.0, 2.0)
+    assert horizon == Horizon(None, 15.0)
+    assert horizon.share(10**6, 7.5) == 0.5  # no step bound: the clock alone
+    assert Horizon(100, 10.0).share(50, 8.0) == 0.8  # the larger share counts
+    assert Horizon(100, 10.0).share(500, 1.0) == 1.0  # never past the end
+    assert Horizon.drive(0.0, 1.0).max_time == 1e-3  # a one-frame drive is not a division by zero
+
+    config = tiny_train_config(max_steps=3, max_time=None)
+    mapper = Mapper(config, {1: INTR, 3: INTR}, BOX, Schedules.of(config, Horizon(None, 1000.0)))
+    mapper.add_frame(_frame(0.0))
+    mapper.train_step()
+    clock = mapper.seconds  # the second step's lr comes from the horizon's share after the first
+    assert mapper.progress() == pytest.approx(clock / 1000.0)  # the config's max_steps 3 would say 1/3
+    mapper.train_step()
+    lr = mapper.optimizer.param_groups[0]["lr"]
+    assert lr == pytest.approx(config.optim.lr * config.optim.lr_decay_to ** (clock / 1000.0), rel=1e-12)
+    assert lr > config.optim.lr * config.optim.lr_decay_to ** 0.1

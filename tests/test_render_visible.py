@@ -55,12 +55,12 @@ def _model(min_transmittance: float) -> SceneModel:
     return SceneModel(field, grid, step_size=0.05, near=0.05, max_samples=256, min_transmittance=min_transmittance)
 
 
-def _render_and_grads(model: SceneModel, generator_seed: int = 5):
+def _render_and_grads(model: SceneModel, generator_seed: int = 5, visible_share: float = 1.0):
     g = torch.Generator().manual_seed(1)
     origins = torch.zeros(64, 3)
     directions = torch.nn.functional.normalize(torch.randn(64, 3, generator=g), dim=1)
     model.field.zero_grad(set_to_none=True)
-    out, stats = model.render(origins, directions)
+    out, stats = model.render(origins, directions, visible_share=visible_share)
     loss = (out.rgb - 0.3).square().sum() + (out.depth - 0.4).square().sum() + out.opacity.sum()
     loss.backward()
     grads = [p.grad.clone() for p in model.field.parameters()]
@@ -72,8 +72,8 @@ def test_visible_pass_matches_full_render():
     gradients): renders and gradients agree to 1e-3 (the error shrinks in proportion to eps)."""
     full_out, full_stats, full_grads = _render_and_grads(_model(0.0))
     two_pass = _model(1e-6)
-    two_pass.visible_share = 0.0  # as after a step that found most samples hidden
-    vis_out, vis_stats, vis_grads = _render_and_grads(two_pass)
+    # as after a step that found most samples hidden
+    vis_out, vis_stats, vis_grads = _render_and_grads(two_pass, visible_share=0.0)
     assert full_stats.n_samples == vis_stats.n_samples  # the same marched samples
     assert vis_stats.n_trained < 0.5 * vis_stats.n_samples  # most of them hidden and skipped
     assert full_stats.n_trained == full_stats.n_samples
@@ -101,13 +101,12 @@ def test_one_pass_path_trains_every_density_and_skips_hidden_colour():
     the full render (here exactly for the density path up to the hidden colours' < eps weight)."""
     full_out, _, full_grads = _render_and_grads(_model(0.0))
     model = _model(1e-6)
-    assert model.visible_share == 1.0  # a new model starts on the one-pass path
-    out, stats, grads = _render_and_grads(model)
+    out, stats, grads = _render_and_grads(model)  # a new mapper starts at 1.0: the one-pass path
     assert stats.n_trained == stats.n_samples  # every density trained
-    assert model.visible_share < 0.5  # measured: the next step takes the two-pass path
+    assert stats.visible_share < 0.5  # measured: the next step takes the two-pass path
     for a, b in ((full_out.rgb, out.rgb), (full_out.depth, out.depth), (full_out.opacity, out.opacity)):
         assert torch.allclose(a, b, atol=1e-3)
     for a, b in zip(full_grads, grads, strict=True):
         assert (a - b).norm() <= 1e-3 * a.norm()
-    _, stats2, _ = _render_and_grads(model)
+    _, stats2, _ = _render_and_grads(model, visible_share=stats.visible_share)
     assert stats2.n_trained < stats2.n_samples  # two-pass now

@@ -18,6 +18,8 @@ _PUBLIC = {
     "TrainSlice": "virus_nerf.engine.mapper",
     "MapperConfig": "virus_nerf.engine.config",
     "StepSchedule": "virus_nerf.engine.schedule",
+    "Schedules": "virus_nerf.engine.schedule",
+    "Horizon": "virus_nerf.engine.schedule",
     "TrainConfig": "virus_nerf.trainer.config",
     "SyncFrame": "virus_nerf.data.frame",
     "Intrinsics": "virus_nerf.sensors.camera",

@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,7 +40,7 @@ import torch
 from virus_nerf.data.frame import SyncFrame, check_frame
 from virus_nerf.engine.config import MapperConfig
 from virus_nerf.engine.model import SceneModel, build_grid, resolve_device, start_box
-from virus_nerf.engine.schedule import StepSchedule, budget_share
+from virus_nerf.engine.schedule import Schedules, StepSchedule
 from virus_nerf.engine.views import MapViews
 from virus_nerf.errors import UsageError
 from virus_nerf.field.field import NerfField
@@ -82,21 +82,24 @@ class TrainSlice:
 class Mapper(MapViews):
     """A VIRUS-NeRF (or Instant-NGP) map trained on frames as they arrive.
 
-    config: the training configuration (its max_steps/max_time only shape the learning-rate
-    decay; `train` decides how long to train). intrinsics: stack id -> camera intrinsics at the
+    config: the training configuration (`train` decides how long to train). intrinsics: stack id -> camera intrinsics at the
     frames' full resolution (frames are resized by config.image_scale). box: the scene box in
     metres: with `extent.mode` fitted the field's and grid's frame for the mapper's life (the
     room's extent, e.g. from a floor plan or a previous map); with grow the box around the first
     frame (grid/extent.py first_box), which grows as frames arrive to hold the camera positions
     and the points the depth sensors measured (or the reach around every camera; grid/extent.py).
+    schedules: the offline and driving step schedules and the learning-rate horizon
+    (engine/schedule.py; default: the config's, decaying over its max_steps / max_time; mapping
+    while driving hands in `Schedules.of(config, Horizon.drive(drive_s, playback))`).
     """
 
-    def __init__(self, config: MapperConfig, intrinsics: Mapping[int, Intrinsics], box: SceneBox):
+    def __init__(self, config: MapperConfig, intrinsics: Mapping[int, Intrinsics], box: SceneBox,
+                 schedules: Schedules | None = None):
         if not intrinsics:
             raise UsageError("Mapper intrinsics {}: expected at least one stack id -> Intrinsics")
         config = config.engine()  # the engine's knobs alone (a TrainConfig's run knobs stay with the run)
         self.config = config
-        self.schedules = {False: StepSchedule.for_mode(config, False), True: StepSchedule.for_mode(config, True)}
+        self.schedules = schedules or Schedules.of(config)
         self.intrinsics = dict(intrinsics)
         self.box = box
         self.device = resolve_device(config.device)
@@ -130,6 +133,7 @@ class Mapper(MapViews):
         self.rays = 0  # rays rendered, summed over steps
         self.last_loss: float | None = None
         self.last_samples_per_ray = 0.0
+        self.visible_share = 1.0  # the last step's visible sample share: picks the next render's path
         self.prior_s = 0.0  # seconds spent on the grid's sensor prior in `prepare`
         self._sampler: BatchSampler | None = None
         self._prior_done = 0  # frames (store rows 0..n-1) whose sensor prior the grid has had
@@ -142,10 +146,11 @@ class Mapper(MapViews):
         self._stereo_feed: StereoFeed | None = None  # fed by track_image (mapping while driving)
 
     @classmethod
-    def for_recording(cls, recording, config: MapperConfig) -> Mapper:
+    def for_recording(cls, recording, config: MapperConfig, schedules: Schedules | None = None) -> Mapper:
         """A mapper for a recording's stacks and scene box, no frames: the box fitted to the room
         (data.room_box.fit_scene_box), or with `extent.mode` grow the first frame's box."""
-        return cls(config, {s: st.intrinsics for s, st in recording.stacks.items()}, start_box(recording, config))
+        return cls(config, {s: st.intrinsics for s, st in recording.stacks.items()}, start_box(recording, config),
+                   schedules)
 
     # ------------------------------------------------------------------ frames
     @property
@@ -242,18 +247,26 @@ class Mapper(MapViews):
         if depth is not None:
             self.set_stereo(depth)
 
-    def add_store(self, store: FrameStore, rows: np.ndarray | None = None) -> None:
+    def add_store(self, store: FrameStore, rows: np.ndarray | None = None,
+                  images: Callable[[int], np.ndarray] | None = None) -> None:
         """Add frames already decoded at training resolution: `rows` of `store` in that order, or
-        all of them (taken over without a copy when the mapper has none yet)."""
+        all of them (taken over without a copy when the mapper has none yet). `images`: a
+        `store` row -> its full-resolution image (H, W, 3) uint8, fed to the stereo tracker as
+        `add_frame` does (rows in time order); without it the tracker hears nothing (offline,
+        the stereo targets of the whole drive come at once through `set_stereo`)."""
         if store.intrinsics != self.store.intrinsics:
             raise ValueError(f"store intrinsics {store.intrinsics} differ from the mapper's {self.store.intrinsics}")
         picked = np.arange(len(store)) if rows is None else np.asarray(rows)
         self._check_inside(store.cam_to_world[picked, :3, 3], store.times[picked])
         self._grow_for(store, picked)
-        if rows is None and self.frames == 0:
+        first = self.frames
+        if rows is None and first == 0:
             self._sampler = BatchSampler(store, self.config.sensors, self.config.shares, self.stereo)
-            return
-        self.store.append_rows(store, picked)
+        else:
+            self.store.append_rows(store, picked)
+        if images is not None and "stereo" in self.config.sensors:
+            for row, src in enumerate(picked, start=first):
+                self.track_image(row, images(int(src)))
 
     def set_stereo(self, depth: StereoDepth | None) -> None:
         """Triangulated depth targets (stereo.StereoDepth) for the frames added so far, rows in
@@ -299,17 +312,15 @@ class Mapper(MapViews):
         """Load (or compile) the marching, field and compositing kernels on a few rays, so the
         first timed step is an ordinary one. Draws no random numbers and leaves no gradient."""
         rays = self.sampler._rays(np.zeros(8, dtype=np.int64), np.arange(8, dtype=np.int64)).to(self.device)
-        visible_share = self.model.visible_share  # the render path statistic (restored on resume) stays
-        out, _ = self.model.render(rays.origins, rays.directions, generator=None)
+        out, _ = self.model.render(rays.origins, rays.directions, generator=None, visible_share=self.visible_share)
         warm = out.rgb.sum() + out.depth.sum()
         if warm.requires_grad:  # rays that march no occupied cell (a pruned grid on resume) have no graph
             warm.backward()
         self.optimizer.zero_grad(set_to_none=True)
-        self.model.visible_share = visible_share
 
     def progress(self) -> float:
-        """Share of the config's budget (max_steps / max_time) used: drives the lr decay."""
-        return budget_share(self.step, self.seconds, self.config.max_steps, self.config.max_time)
+        """Share of the learning-rate horizon (`schedules.horizon`) used: drives the lr decay."""
+        return self.schedules.horizon.share(self.step, self.seconds)
 
     def train_step(self, progress: float | None = None) -> LossTerms:
         """The one training step, on the training clock: every frame added so far (the prior of
@@ -329,7 +340,8 @@ class Mapper(MapViews):
         self._set_learning_rate(schedule, self.progress() if progress is None else progress)
         batch = self._sample(schedule)
         rgb_rays = colour_rays(self.config, batch)
-        out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator, rgb_rays=rgb_rays)
+        out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator, rgb_rays=rgb_rays,
+                                       visible_share=self.visible_share)
         terms = step_loss(self.config, batch, out, stats.samples, rgb_rays)
         self._optimise(terms)
         self._count(stats)
@@ -366,6 +378,8 @@ class Mapper(MapViews):
             self.optimizer.step()
 
     def _count(self, stats) -> None:
+        if stats.visible_share is not None:
+            self.visible_share = stats.visible_share
         self.step += 1
         self.samples += stats.n_samples
         self.rays += stats.n_rays
@@ -406,7 +420,7 @@ class Mapper(MapViews):
     @property
     def schedule(self) -> StepSchedule:
         """The next step's schedule: offline, or driving once frames arrive after the first step."""
-        return self.schedules[self.driving]
+        return self.schedules.pick(self.driving)
 
     @property
     def driving(self) -> bool:
@@ -480,7 +494,7 @@ class Mapper(MapViews):
             "prior_frames": self._prior_done,
             "frames_at_start": self._frames_at_start,
             "viewed_frames": self._viewed_frames,
-            "visible_share": self.model.visible_share,  # picks the next step's render path
+            "visible_share": self.visible_share,  # picks the next step's render path
         }
 
     def load_state(self, state: dict) -> None:
@@ -501,7 +515,7 @@ class Mapper(MapViews):
         self.last_samples_per_ray = float(state.get("last_samples_per_ray", 0.0))
         self.rng.bit_generator.state = state["numpy_rng"]
         self.generator.set_state(state["torch_generator"])
-        self.model.visible_share = float(state.get("visible_share", 1.0))
+        self.visible_share = float(state.get("visible_share", 1.0))
         self._frames_at_start = state.get("frames_at_start")
         # a state without it (written before the restart existed): the frames it was trained on
         # count as seen at step 0 when the grid first hears of them

@@ -39,6 +39,10 @@ class RenderStats:
     sigma: torch.Tensor | None = None  # (S,) 1/m at those points, detached
     samples: PackedSamples | None = None  # the rendered intervals (for losses on the weights)
     n_trained: int = 0  # samples rendered with gradients (below n_samples when hidden ones are skipped)
+    # share of the marched samples still visible (T >= min_transmittance), measured by a training
+    # render that skips hidden samples; None when not measured. The caller keeps it and hands it to
+    # the next render, where it picks the path (TWO_PASS_BELOW)
+    visible_share: float | None = None
 
 
 class SceneModel:
@@ -55,7 +59,6 @@ class SceneModel:
         self.backend = backend  # marching and compositing kernels (render.marching.resolve_backend)
         # training: samples behind transmittance < this skip the gradient pass (0 = render all)
         self.min_transmittance = min_transmittance
-        self.visible_share = 1.0  # share of the last training step's samples still visible
 
     @property
     def device(self) -> torch.device:
@@ -67,11 +70,14 @@ class SceneModel:
         directions: torch.Tensor,
         generator: torch.Generator | None = None,
         rgb_rays: torch.Tensor | None = None,
+        visible_share: float = 1.0,
     ) -> tuple[RenderOutput, RenderStats]:
         """origins, directions (R, 3) -> RenderOutput (rgb (R,3), depth (R,), opacity (R,)).
 
         rgb_rays (R,) bool, optional: rays whose colour is needed; the others are rendered for
-        depth only (their rgb is 0 and carries no gradient).
+        depth only (their rgb is 0 and carries no gradient). visible_share: the previous training
+        render's `RenderStats.visible_share`, which picks this one's path when hidden samples are
+        skipped (below TWO_PASS_BELOW: a density pre-pass). The model keeps no state of its own.
         """
         samples = march_rays(
             origins,
@@ -89,7 +95,7 @@ class SceneModel:
         dirs = directions[samples.ray_indices]  # (S, 3)
         rgb_mask = None if rgb_rays is None else rgb_rays[samples.ray_indices]  # (S,)
         if self.min_transmittance > 0 and torch.is_grad_enabled():
-            if self.visible_share < TWO_PASS_BELOW:
+            if visible_share < TWO_PASS_BELOW:
                 return self._render_visible(origins.shape[0], samples, positions, dirs, rgb_mask)
             return self._render_colour_visible(origins.shape[0], samples, positions, dirs, rgb_mask)
         sigma, rgb = self.field(positions, dirs, rgb_mask)
@@ -109,14 +115,13 @@ class SceneModel:
         with torch.no_grad():
             sigma_all = self.field.density(positions)  # (S,)
         keep = transmittance(sigma_all, samples) >= self.min_transmittance  # (S,) bool
-        self.visible_share = float(keep.float().mean()) if keep.numel() else 1.0
         visible = samples.select(keep)
         sub_mask = None if rgb_mask is None else rgb_mask[keep]
         sigma, rgb = self.field(positions[keep], dirs[keep], sub_mask)  # (V,), (V, 3)
         out = composite(sigma, rgb, visible, n_rays=n_rays, background=None, backend=self.backend)
         stats = RenderStats(
             n_rays=n_rays, n_samples=samples.n_samples, positions=positions.detach(), sigma=sigma_all,
-            samples=visible, n_trained=visible.n_samples,
+            samples=visible, n_trained=visible.n_samples, visible_share=_share(keep),
         )
         return out, stats
 
@@ -128,12 +133,11 @@ class SceneModel:
         (a hazy early field), where a density pre-pass would find little to skip."""
         sigma, h, idx = self.field.geometry(positions)  # (S,), (M, G), (M,)
         keep = transmittance(sigma, samples) >= self.min_transmittance  # (S,) bool
-        self.visible_share = float(keep.float().mean()) if keep.numel() else 1.0
         rgb = self.field.colour_at(h, idx, dirs, keep if rgb_mask is None else keep & rgb_mask)  # (S, 3)
         out = composite(sigma, rgb, samples, n_rays=n_rays, background=None, backend=self.backend)
         stats = RenderStats(
             n_rays=n_rays, n_samples=samples.n_samples, positions=positions.detach(), sigma=sigma.detach(),
-            samples=samples, n_trained=samples.n_samples,
+            samples=samples, n_trained=samples.n_samples, visible_share=_share(keep),
         )
         return out, stats
 
@@ -149,6 +153,11 @@ class SceneModel:
             r, _ = self.render(o, d, generator=None, rgb_rays=no_colour)
             out[start : start + len(o)] = scan_depth(r, self.min_opacity).double().cpu().numpy()
         return out
+
+
+def _share(keep: torch.Tensor) -> float:
+    """Share of True in (S,) bool `keep`; 1.0 for no sample."""
+    return float(keep.float().mean()) if keep.numel() else 1.0
 
 
 def resolve_device(name: str) -> torch.device:

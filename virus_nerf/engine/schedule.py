@@ -1,5 +1,7 @@
-"""How long and how wide a training step is: the budget share, the rays per step and the
-offline / driving schedule (`StepSchedule`)."""
+"""How long and how wide a training step is: the learning-rate horizon (`Horizon`), the rays per
+step and the offline / driving schedules (`StepSchedule`, `Schedules`), handed to a `Mapper` by
+its caller (gsplat's strategies): `train` with the config's budget, `train --online`, `map-bag`
+and the ROS 2 node with the drive's length (`Horizon.drive`)."""
 
 from __future__ import annotations
 
@@ -26,6 +28,30 @@ def rays_for_step(batch_size: int, max_samples: int | None, last_samples_per_ray
         return batch_size
     floor = max(1, batch_size // 8)
     return int(min(batch_size, max(floor, max_samples // max(1.0, last_samples_per_ray))))
+
+
+@dataclass(frozen=True)
+class Horizon:
+    """The budget the learning rate decays over: `max_steps` steps and/or `max_time` seconds of
+    training clock (the larger share counts; budget_share)."""
+
+    max_steps: int | None = None
+    max_time: float | None = None
+
+    @classmethod
+    def of(cls, config) -> Horizon:
+        """The config's own budget (a MapperConfig's max_steps / max_time)."""
+        return cls(config.max_steps, config.max_time)
+
+    @classmethod
+    def drive(cls, drive_s: float, playback: float, max_steps: int | None = None) -> Horizon:
+        """Mapping while driving: the drive's length in training seconds (`drive_s` of recording
+        at `playback` recording seconds per second; at least 1 ms), and a step bound if any."""
+        return cls(max_steps, max(drive_s / playback, 1e-3))
+
+    def share(self, step: int, seconds: float) -> float:
+        """Share in [0, 1] of the horizon used after `step` steps and `seconds` s of training."""
+        return budget_share(step, seconds, self.max_steps, self.max_time)
 
 
 @dataclass(frozen=True)
@@ -61,3 +87,21 @@ class StepSchedule:
     def rays(self, batch_size: int, last_samples_per_ray: float) -> int:
         """Rays of the next step under this mode's sample cap."""
         return rays_for_step(batch_size, self.max_samples_per_step, last_samples_per_ray)
+
+
+@dataclass(frozen=True)
+class Schedules:
+    """A mapper's schedules: offline, driving, and the learning-rate horizon both decay over."""
+
+    offline: StepSchedule
+    driving: StepSchedule
+    horizon: Horizon
+
+    @classmethod
+    def of(cls, config, horizon: Horizon | None = None) -> Schedules:
+        """`config`'s schedules (a MapperConfig) over `horizon` (default: the config's budget)."""
+        return cls(StepSchedule.for_mode(config, False), StepSchedule.for_mode(config, True),
+                   horizon or Horizon.of(config))
+
+    def pick(self, driving: bool) -> StepSchedule:
+        return self.driving if driving else self.offline

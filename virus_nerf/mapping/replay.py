@@ -86,6 +86,7 @@ def replay(
     """
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.engine.mapper import Mapper
+    from virus_nerf.engine.schedule import Horizon, Schedules
     from virus_nerf.trainer.config import TrainConfig
     from virus_nerf.utils.io import write_json_atomic
 
@@ -110,10 +111,12 @@ def replay(
     times = [float(recording.stacks[s].times[i]) for s, i in order]
     drive_s = times[-1] - times[0]
     cfg = config if config is not None else TrainConfig()
-    # lr decay horizon; the extent is unknown to a robot: the box grows from the first frame (docs/extent.md)
-    cfg = dataclasses.replace(cfg, max_steps=None, max_time=max(drive_s / playback, 1e-3),
+    # the extent is unknown to a robot: the box grows from the first frame (docs/extent.md); the
+    # learning rate decays over the drive (config.json records it as the budget)
+    horizon = Horizon.drive(drive_s, playback)
+    cfg = dataclasses.replace(cfg, max_steps=horizon.max_steps, max_time=horizon.max_time,
                               extent=dataclasses.replace(cfg.extent, mode="grow"))
-    mapper = Mapper.for_recording(recording, cfg)
+    mapper = Mapper.for_recording(recording, cfg, Schedules.of(cfg, horizon))
     with_depth = "rgbd" in cfg.sensors
 
     (out / SNAPSHOTS).mkdir(parents=True)

@@ -290,13 +290,16 @@ class StreamRun:
         first frame's prior and the kernels loaded (start-up, on the clock: the robot is driving)."""
         from virus_nerf.config_io import to_dict
         from virus_nerf.engine.mapper import Mapper
+        from virus_nerf.engine.schedule import Horizon, Schedules
         from virus_nerf.utils.io import write_json_atomic
 
-        # the extent is unknown: the box grows from the first frame (grid/extent.py)
-        cfg = dataclasses.replace(self.config, max_steps=None, max_time=max(self.drive_s / self.playback, 1e-3),
+        # the extent is unknown: the box grows from the first frame (grid/extent.py); the learning
+        # rate decays over the drive (config.json records it as the budget)
+        horizon = Horizon.drive(self.drive_s, self.playback)
+        cfg = dataclasses.replace(self.config, max_steps=horizon.max_steps, max_time=horizon.max_time,
                                   extent=dataclasses.replace(self.config.extent, mode="grow"))
         box = self.box(np.stack([f.frame.cam_to_world[:3, 3] for f in first]), cfg.extent, cfg.sensors)
-        self.mapper = Mapper(cfg, dict(self.sync.intrinsics), box)
+        self.mapper = Mapper(cfg, dict(self.sync.intrinsics), box, Schedules.of(cfg, horizon))
         (self.out / SNAPSHOTS).mkdir(parents=True)
         self.mapper.spill_frames(self.out)  # a long drive's frames beyond the budget go to disk
         write_json_atomic(self.out / SNAPSHOTS / "config.json", to_dict(cfg))

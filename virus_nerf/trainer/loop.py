@@ -28,7 +28,7 @@ from virus_nerf.data.ethz import Recording
 from virus_nerf.data.playback import Playback
 from virus_nerf.engine.mapper import Mapper
 from virus_nerf.engine.model import start_box
-from virus_nerf.engine.schedule import budget_share
+from virus_nerf.engine.schedule import Horizon, Schedules
 from virus_nerf.evaluation.evaluate import EvaluationResult, build_ground_truth, evaluate
 from virus_nerf.losses import LossTerms
 from virus_nerf.sampler.batch import BatchSampler
@@ -74,7 +74,12 @@ class Trainer:
         self.run_dir = Path(run_dir)
         self.quiet = (not sys.stderr.isatty()) if quiet is None else quiet
         box = start_box(recording, config)
-        self.mapper = Mapper(config, {s: st.intrinsics for s, st in recording.stacks.items()}, box)
+        # the learning rate decays over the budget; online over the drive, whose frames arrive as
+        # the training clock (times the playback speed) passes them
+        horizon = Horizon.drive(self.duration, config.playback_speed, config.max_steps) if config.online \
+            else Horizon.of(config)
+        self.mapper = Mapper(config, {s: st.intrinsics for s, st in recording.stacks.items()}, box,
+                             Schedules.of(config, horizon))
         if config.online:  # the frames arrive one by one: a long drive's beyond the budget go to disk
             self.mapper.spill_frames(self.run_dir)
         self._source: FrameStore | None = None  # every training frame, decoded on first use
@@ -121,15 +126,14 @@ class Trainer:
             return
         if new.size == len(store) and self.mapper.frames == 0 and not self.config.online:
             self.mapper.add_store(store)
-        else:
-            first = self.mapper.frames
-            ordered = new[np.lexsort((new, store.times[new]))]
-            self.mapper.add_store(store, ordered)
-            if "stereo" in self.config.sensors:  # the tracker reads the recording's own images
-                for row, src in enumerate(ordered, start=first):
-                    stack = self.recording.stacks[int(store.stack_ids[src])]
-                    self.mapper.track_image(row, stack.image(int(store.rows[src])))
+        else:  # the stereo tracker reads the recording's own images
+            self.mapper.add_store(store, new[np.lexsort((new, store.times[new]))], self._full_image)
         self._added[new] = True
+
+    def _full_image(self, src: int) -> np.ndarray:
+        """(H, W, 3) uint8: source row `src`'s image at the recording's resolution."""
+        store = self.store
+        return self.recording.stacks[int(store.stack_ids[src])].image(int(store.rows[src]))
 
     def prepare(self) -> None:
         """One-off start-up before the first step: decode frames, give the grid its prior.
@@ -170,19 +174,14 @@ class Trainer:
     # ------------------------------------------------------------------ limits and schedule
     @property
     def max_time(self) -> float | None:
-        if self.config.online:
-            return self.duration / self.config.playback_speed
-        return self.config.max_time
+        """The training seconds of the budget: online the drive's (duration / speed)."""
+        return self.mapper.schedules.horizon.max_time
 
     def done(self) -> bool:
         c = self.config
         if c.max_steps is not None and self.mapper.step >= c.max_steps:
             return True
         return self.max_time is not None and self.mapper.seconds >= self.max_time
-
-    def progress(self) -> float:
-        """The mapper's budget share, with the online run's time budget (duration / speed)."""
-        return budget_share(self.mapper.step, self.mapper.seconds, self.config.max_steps, self.max_time)
 
     def available_frames(self) -> np.ndarray:
         """Source frame rows the run may use now; online, only frames the clock has passed."""
@@ -197,7 +196,7 @@ class Trainer:
         frames arrive off the clock; their grid prior is on it)."""
         self.prepare()
         self._sync_frames()
-        return self.mapper.train_step(self.progress())
+        return self.mapper.train_step()
 
     # ------------------------------------------------------------------ evaluation
     def evaluate_on(self, recording: Recording) -> None:
