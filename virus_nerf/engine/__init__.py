@@ -3,11 +3,13 @@ command line or evaluation.
 
 config: `MapperConfig`, every knob the engine reads
 mapper: `Mapper`, frames in, training steps, map queries out (its public API)
+extent: `MapExtent`, the map's bounds the Mapper holds (fitted, or grown as frames arrive)
 model: `SceneModel` (field + occupancy grid + marcher), the grid and device it runs on
-schedule: how long and how wide a step is, offline or while driving (`StepSchedule`)
+schedule: how long and how wide a step is, offline or while driving, and the learning-rate
+  horizon (`Schedules`, handed to the Mapper by its caller)
 views: the map queries mixed into `Mapper` (scans, 2D maps, snapshots)
 memory: what a training step needs, checked before any work (`check_batch_memory`)
 """
 
 # its public modules; none is imported here, so `import virus_nerf.engine` loads nothing else
-__all__ = ["config", "mapper", "memory", "model", "schedule", "views"]
+__all__ = ["config", "extent", "mapper", "memory", "model", "schedule", "views"]

@@ -39,23 +39,13 @@ import torch
 
 from virus_nerf.data.frame import SyncFrame, check_frame
 from virus_nerf.engine.config import MapperConfig
+from virus_nerf.engine.extent import MapExtent
 from virus_nerf.engine.model import SceneModel, build_grid, resolve_device, start_box
 from virus_nerf.engine.schedule import Schedules, StepSchedule
 from virus_nerf.engine.views import MapViews
 from virus_nerf.errors import UsageError
 from virus_nerf.field.field import NerfField
-from virus_nerf.grid.base import GridSpec, GridUpdateBatch
-from virus_nerf.grid.extent import (
-    SensedSupport,
-    camera_margin_m,
-    field_config_for_frame,
-    field_frame,
-    grows_from_sensors,
-    growth_step_m,
-    holding_box,
-    inside_frame,
-    needed_box,
-)
+from virus_nerf.grid.base import GridUpdateBatch
 from virus_nerf.losses import LossTerms, distortion_loss, line_of_sight_terms, total_loss
 from virus_nerf.maps.observed import frames_observed
 from virus_nerf.render.marching import ray_box_interval
@@ -101,22 +91,15 @@ class Mapper(MapViews):
         self.config = config
         self.schedules = schedules or Schedules.of(config)
         self.intrinsics = dict(intrinsics)
-        self.box = box
         self.device = resolve_device(config.device)
         torch.manual_seed(config.seed)
         field_gen = torch.Generator().manual_seed(config.seed)
-        ext = config.extent
         # grow: the field lives in a fixed cube around the first box, the grid's cells keep their
         # size while the box grows (grid/extent.py); fitted: both span the given box
-        self.frame = field_frame(box, ext) if ext.mode == "grow" else box
-        field_cfg = field_config_for_frame(config.field, ext) if ext.mode == "grow" else config.field
-        self.field = NerfField(self.frame, field_cfg, generator=field_gen).to(self.device)
-        self.grid = build_grid(config, box, self.device, GridSpec.from_cell(box, ext.grid_cell_m)
-                               if ext.mode == "grow" else None)
-        # grow, sensed: the points the depth sensors measured, counted per support cell
-        self._support = SensedSupport(ext, self.frame, (box.lo[2], box.hi[2])) \
-            if ext.mode == "grow" and grows_from_sensors(ext, config.sensors) else None
-        self._stereo_counted = 0  # stereo points already counted in _support
+        self.extent = MapExtent(config.extent, config.sensors, box)
+        self.field = NerfField(self.extent.frame, self.extent.field_config(config.field),
+                               generator=field_gen).to(self.device)
+        self.grid = build_grid(config, box, self.device, self.extent.grid_spec())
         self.model = SceneModel(
             self.field, self.grid, config.march.step_size, config.march.near, config.march.max_samples,
             config.min_opacity, config.march.backend, config.march.min_transmittance,
@@ -144,6 +127,16 @@ class Mapper(MapViews):
         self._seen_at_start = 0  # frames that count as seen at step 0 besides those at the first step
         self.stereo: StereoDepth | None = None  # triangulated depth targets of the store's rows
         self._stereo_feed: StereoFeed | None = None  # fed by track_image (mapping while driving)
+
+    @property
+    def box(self) -> SceneBox:
+        """The map's box now (the grid's; grown while driving with `extent.mode` grow)."""
+        return self.extent.box
+
+    @property
+    def frame(self) -> SceneBox:
+        """The field's fixed frame: the box (fitted) or the cube around the first box (grow)."""
+        return self.extent.frame
 
     @classmethod
     def for_recording(cls, recording, config: MapperConfig, schedules: Schedules | None = None) -> Mapper:
@@ -184,55 +177,18 @@ class Mapper(MapViews):
         depth = None
         if self.store.depths_mm is not None and frame.depth is not None:
             depth = resize_depth_mm(np.asarray(frame.depth, dtype=np.float32), size)
-        self._check_inside(np.asarray(frame.cam_to_world, dtype=np.float64)[None, :3, 3], np.array([frame.time]))
+        self.extent.check_inside(np.asarray(frame.cam_to_world, dtype=np.float64)[None, :3, 3], np.array([frame.time]))
         row = self.store.append(frame.stack_id, self.frames, float(frame.time), np.asarray(frame.cam_to_world),
                                 resize_rgb(frame.rgb, size), depth, float(frame.uss_range),
                                 np.asarray(frame.irs_range, dtype=np.float64))
-        self._grow_for(self.store, np.array([row]))
+        self._grow(self.extent.add_frames(self.store, np.array([row])))
         self.track_image(row, frame.rgb)
         return row
 
-    def _check_inside(self, positions: np.ndarray, times: np.ndarray) -> None:
-        """With `extent.mode` grow: a camera position (K, 3) outside the field's frame is a
-        one-line UsageError naming the frame's time."""
-        ext = self.config.extent
-        if ext.mode != "grow":
-            return
-        for p, t in zip(positions, times, strict=True):
-            if not inside_frame(p, self.frame):
-                raise UsageError(
-                    f"frame at time {float(t):.3f} s: camera at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m lies outside "
-                    f"the map's frame {self.frame.lo}..{self.frame.hi} (extent.frame_m {ext.frame_m:g} m around "
-                    "the first frame); expected a drive within it (a larger extent.frame_m maps a larger area)")
-
-    def _grow_for(self, store: FrameStore, rows: np.ndarray) -> None:
-        """With `extent.mode` grow: the box (and the grid) grown to hold the camera positions of
-        `store`'s `rows` plus the camera margin and, with sensed growth, their IRS returns (counted
-        in the support cells first; grid/extent.py)."""
-        ext = self.config.extent
-        if ext.mode != "grow" or not len(rows):
-            return
-        if self._support is not None and "irs" in self.config.sensors:
-            rays = irs_zone_rays(store, rows, 1).valid()
-            if len(rays):
-                self._support.add((rays.origins + rays.directions * rays.ranges[:, None]).double().numpy())
-        self._grow_to(store.cam_to_world[rows, :3, 3])
-
-    def _grow_to(self, positions: np.ndarray) -> None:
-        """Grow the box (and the grid) to hold camera positions (K, 3) + the camera margin and
-        the supported sensed points + margin_m."""
-        ext = self.config.extent
-        box = self.box
-        margin = camera_margin_m(ext, self.config.sensors)
-        step = growth_step_m(ext, self.config.sensors)
-        if len(positions):
-            for corner in (positions.min(axis=0), positions.max(axis=0)):
-                box = needed_box(box, corner, ext, self.frame, margin, step) or box
-        if self._support is not None and (sensed := self._support.bounds()) is not None:
-            box = holding_box(box, sensed[0] - ext.margin_m, sensed[1] + ext.margin_m, ext, self.frame, step) or box
-        if box is not self.box:
+    def _grow(self, box: SceneBox | None) -> None:
+        """The grid grown to the extent's new box (None: it stayed)."""
+        if box is not None:
             self.grid.grow(box)
-            self.box = box
 
     def track_image(self, row: int, rgb: np.ndarray) -> None:
         """Feed frame `row`'s full-resolution image (H, W, 3) uint8 to the stereo sensor's tracker
@@ -257,8 +213,8 @@ class Mapper(MapViews):
         if store.intrinsics != self.store.intrinsics:
             raise ValueError(f"store intrinsics {store.intrinsics} differ from the mapper's {self.store.intrinsics}")
         picked = np.arange(len(store)) if rows is None else np.asarray(rows)
-        self._check_inside(store.cam_to_world[picked, :3, 3], store.times[picked])
-        self._grow_for(store, picked)
+        self.extent.check_inside(store.cam_to_world[picked, :3, 3], store.times[picked])
+        self._grow(self.extent.add_frames(store, picked))
         first = self.frames
         if rows is None and first == 0:
             self._sampler = BatchSampler(store, self.config.sensors, self.config.shares, self.stereo)
@@ -273,13 +229,8 @@ class Mapper(MapViews):
         the mapper's store order; used by the `stereo` sensor's share of each batch. With sensed
         growth the box grows to hold the new triangulated points (grid/extent.py)."""
         self.stereo = depth
-        if self._support is not None and depth is not None:
-            points = np.asarray(depth.points)
-            if len(points) < self._stereo_counted:  # a new set, not the old one extended: count it all
-                self._stereo_counted = 0
-            if self._support.add(points[self._stereo_counted:]):
-                self._grow_to(np.zeros((0, 3)))
-            self._stereo_counted = len(points)
+        if depth is not None:
+            self._grow(self.extent.add_stereo(depth.points))
         if self._sampler is not None:
             self._sampler.stereo = depth
 
@@ -500,11 +451,8 @@ class Mapper(MapViews):
     def load_state(self, state: dict) -> None:
         """Continue from `state()` (read on the CPU). The frames are not in it: add them again in
         the same order; the first `prior_frames` of them do not get the sensor prior again."""
-        if self.config.extent.mode == "grow" and "box" in state:  # the box had grown: grow to it first
-            saved = SceneBox.from_dict(state["box"])
-            if not np.allclose(saved.lo, self.box.lo) or not np.allclose(saved.hi, self.box.hi):
-                self.grid.grow(saved)
-                self.box = saved
+        if "box" in state:  # a grown box: the grid grows to it first
+            self._grow(self.extent.restore(SceneBox.from_dict(state["box"])))
         self.field.load_state_dict(state["field"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.grid.load_state_dict(state["grid"])
