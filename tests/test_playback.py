@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from virus_nerf.data.playback import Playback
+from virus_nerf.data.playback import FrameFeeder, Playback
 from virus_nerf.errors import UsageError, renamed_flag
 
 
@@ -18,6 +18,23 @@ def test_a_frame_is_due_once_elapsed_times_speed_passes_its_time():
     assert feeder.recording_time(1.25) == pytest.approx(102.5)
     assert feeder.elapsed_at(103.0) == pytest.approx(1.5)  # (103 - 100) / 2
     assert feeder.elapsed_at(feeder.recording_time(0.7)) == pytest.approx(0.7)
+
+
+def test_the_feeder_releases_each_frame_once_in_time_order():
+    """Rows 0..4 at times 10.4, 10.0, 10.0, 11.0, 10.2 s at speed 2: the clock starts at the first
+    frame's time (10.0); after 0.1 s the recording reached 10.2, after 0.5 s 11.0."""
+    feeder = FrameFeeder([10.4, 10.0, 10.0, 11.0, 10.2], speed=2.0)
+    np.testing.assert_array_equal(feeder.release(0.0), [1, 2])  # both at 10.0, ties in row order
+    assert feeder.wait(0.0) == pytest.approx(0.1)  # 10.2 is 0.2 s of recording away: 0.1 s at x2
+    np.testing.assert_array_equal(feeder.release(0.1), [4])
+    assert feeder.last_time == 10.2
+    np.testing.assert_array_equal(feeder.release(0.1), [])  # nothing twice
+    np.testing.assert_array_equal(feeder.due(0.2), [1, 2, 4, 0])  # every frame reached so far
+    np.testing.assert_array_equal(feeder.release(0.5), [0, 3])
+    assert feeder.done and feeder.wait(0.5) == float("inf") and feeder.last_time == 11.0
+    np.testing.assert_array_equal(FrameFeeder([5.0]).due(0.0), [0])  # the first frame is due at once
+    with pytest.raises(ValueError, match="at least one frame"):
+        FrameFeeder([])
 
 
 @pytest.mark.parametrize("speed", [0.0, -1.0, float("inf"), float("nan")])

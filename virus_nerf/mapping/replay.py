@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from virus_nerf.data.playback import Playback
+from virus_nerf.data.playback import FrameFeeder
 from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError, require_number
 
 SNAPSHOTS = "snapshots"
@@ -143,11 +143,12 @@ def replay(
         maps = _publish(mapper, recording_time, resolution, n_rays, max_poses, live, ros_bag)
         return mapper.snapshot(folder, resolution, n_rays, max_poses, with_state=with_state, maps=maps)
 
-    add(0)
+    feeder = FrameFeeder(times, playback)  # on the wall clock
+    for k in feeder.release(0.0):  # the first frame (and any at its time) before the clock starts
+        add(int(k))
     mapper.prepare()
-    feeder = Playback(times[0], playback)  # on the wall clock
     start = time.monotonic()
-    next_frame, next_snapshot = 1, snapshot_every
+    next_snapshot = snapshot_every
 
     def final() -> None:
         """The final map, small files first: OUT/map/'s maps, then mapper.pt (utils/io.py Outputs)."""
@@ -155,29 +156,25 @@ def replay(
 
         wall_s = time.monotonic() - start
         outputs, made = Outputs(), {}
-        if outputs.write(out / FINAL, lambda: made.update(info=snapshot(out / FINAL, times[next_frame - 1]))):
-            log(_progress_line("final map", wall_s, times[next_frame - 1] - times[0], drive_s, made["info"],
-                               out / FINAL))
+        if outputs.write(out / FINAL, lambda: made.update(info=snapshot(out / FINAL, feeder.last_time))):
+            log(_progress_line("final map", wall_s, feeder.last_time - times[0], drive_s, made["info"], out / FINAL))
         outputs.write(out / FINAL / "mapper.pt", lambda: save_torch_atomic(mapper.state(), out / FINAL / "mapper.pt"))
         outputs.check("free some space; the snapshots in " + str(out / SNAPSHOTS) + " are whole")
 
     try:
         while True:
             now = time.monotonic() - start
-            while next_frame < len(order) and feeder.elapsed_at(times[next_frame]) <= now:
-                add(next_frame)
-                next_frame += 1
-            if next_frame == len(order):
+            for k in feeder.release(now):
+                add(int(k))
+            if feeder.done:
                 break
             if now >= next_snapshot:
                 folder = out / SNAPSHOTS / f"{len(written) + 1:04d}_{now:.1f}s"
-                info = snapshot(folder, times[next_frame - 1])
+                info = snapshot(folder, feeder.last_time)
                 written.append(folder)
-                log(_progress_line(f"snapshot {len(written)}", now, times[next_frame - 1] - times[0], drive_s, info,
-                                   folder))
+                log(_progress_line(f"snapshot {len(written)}", now, feeder.last_time - times[0], drive_s, info, folder))
                 next_snapshot = (math.floor(now / snapshot_every) + 1) * snapshot_every  # skip any missed
-            wait_frame = feeder.elapsed_at(times[next_frame]) - now
-            budget = min(train_slice, wait_frame, next_snapshot - now)
+            budget = min(train_slice, feeder.wait(now), next_snapshot - now)
             if budget > 0:
                 mapper.train(budget)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM (utils/stop.py): the map of the frames so far

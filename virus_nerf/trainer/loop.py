@@ -25,7 +25,7 @@ import torch
 
 from virus_nerf.config_io import to_dict
 from virus_nerf.data.ethz import Recording
-from virus_nerf.data.playback import Playback
+from virus_nerf.data.playback import FrameFeeder, Playback
 from virus_nerf.engine.mapper import Mapper
 from virus_nerf.engine.model import start_box
 from virus_nerf.engine.schedule import Horizon, Schedules
@@ -83,7 +83,7 @@ class Trainer:
         if config.online:  # the frames arrive one by one: a long drive's beyond the budget go to disk
             self.mapper.spill_frames(self.run_dir)
         self._source: FrameStore | None = None  # every training frame, decoded on first use
-        self._added: np.ndarray | None = None  # (F,) bool: source rows the mapper has
+        self._feeder: FrameFeeder | None = None  # online: releases the source rows as the clock passes them
         self._gt = None
         self.eval_history: list[EvalPoint] = []
         self._prepared = False
@@ -105,7 +105,6 @@ class Trainer:
             if len(store) == 0:
                 raise ValueError(f"{self.recording.room_dir}: no frames labelled 'train' in the split")
             self._source = store
-            self._added = np.zeros(len(store), dtype=bool)
         return self._source
 
     @property
@@ -120,15 +119,12 @@ class Trainer:
         store = self.store
         if self.mapper.frames == len(store):
             return  # every frame is there (offline from the start, online once the drive is over)
-        avail = self.available_frames()
-        new = avail[~self._added[avail]]
-        if new.size == 0:
-            return
-        if new.size == len(store) and self.mapper.frames == 0 and not self.config.online:
+        if not self.config.online:
             self.mapper.add_store(store)
-        else:  # the stereo tracker reads the recording's own images
-            self.mapper.add_store(store, new[np.lexsort((new, store.times[new]))], self._full_image)
-        self._added[new] = True
+            return
+        new = self.feeder.release(self.mapper.seconds)
+        if new.size:  # the stereo tracker reads the recording's own images
+            self.mapper.add_store(store, new, self._full_image)
 
     def _full_image(self, src: int) -> np.ndarray:
         """(H, W, 3) uint8: source row `src`'s image at the recording's resolution."""
@@ -162,8 +158,15 @@ class Trainer:
         return float(min(s.times[s.split == "train"].min() for s in self.recording.stacks.values()))
 
     @property
-    def playback(self) -> Playback:
+    def feeder(self) -> FrameFeeder:
         """Online: the feeder that releases the training frames as the training clock passes them."""
+        if self._feeder is None:
+            self._feeder = FrameFeeder(self.store.times, self.config.playback_speed)
+        return self._feeder
+
+    @property
+    def playback(self) -> Playback:
+        """The online clock: recording time from the first training frame at the playback speed."""
         return Playback(self.t0, self.config.playback_speed)
 
     @property
@@ -187,8 +190,7 @@ class Trainer:
         """Source frame rows the run may use now; online, only frames the clock has passed."""
         if not self.config.online:
             return np.arange(len(self.store))
-        avail = np.flatnonzero(self.playback.due(self.store.times, self.mapper.seconds))
-        return avail if avail.size else np.array([int(np.argmin(self.store.times))])
+        return self.feeder.due(self.mapper.seconds)
 
     # ------------------------------------------------------------------ one step
     def train_step(self) -> LossTerms:
