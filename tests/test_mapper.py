@@ -8,6 +8,7 @@ import importlib.util
 import io
 import json
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -72,6 +73,8 @@ def test_a_spilled_store_keeps_its_frames_in_an_unlinked_file_and_trains_the_sam
     assert np.array_equal(store.images, np.stack(images)) and np.array_equal(store.times, np.arange(40.0))
     assert not isinstance(store._capacity["times"], np.memmap)  # only the pixels are spilled
     assert list((tmp_path / "spill").iterdir()) == []
+    store.release_spilled()  # the pages leave the process; the frames read back from the file
+    assert np.array_equal(store.images, np.stack(images))
 
     def trained(spill: bool) -> list[float]:
         torch.manual_seed(0)
@@ -79,7 +82,7 @@ def test_a_spilled_store_keeps_its_frames_in_an_unlinked_file_and_trains_the_sam
         if spill:
             mapper.spill_frames(tmp_path / "spill2", above_bytes=0)  # every buffer in a file
         losses = []
-        for k in range(3):
+        for k in range(3):  # 6 steps: the spilled pages are released at steps 0 and 4
             mapper.add_frame(_frame(float(k), stack=1 + 2 * (k % 2)))
             losses.append(mapper.train(600.0, steps=2).loss)
         assert isinstance(mapper.store._capacity["images"], np.memmap) == spill
@@ -574,3 +577,27 @@ def test_the_learning_rate_decays_over_the_horizon_the_caller_hands_in():
     lr = mapper.optimizer.param_groups[0]["lr"]
     assert lr == pytest.approx(config.optim.lr * config.optim.lr_decay_to ** (clock / 1000.0), rel=1e-12)
     assert lr > config.optim.lr * config.optim.lr_decay_to ** 0.1
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="RssFile and madvise are Linux's")
+def test_a_source_read_once_gives_its_pages_back_and_keeps_its_data(tmp_path):
+    """Issue 39: `train --online` copies each recorded frame into the mapper once; the source's
+    file pages then leave the process (its RSS) and the data stays readable from the file."""
+    from virus_nerf.sampler.frames import release_pages
+
+    def rss_file_kb() -> int:
+        return next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("RssFile"))
+
+    frames = np.random.default_rng(0).integers(0, 256, size=(200, 120, 160, 3), dtype=np.uint8)  # 11.5 MB
+    np.save(tmp_path / "images.npy", frames)
+    source = np.load(tmp_path / "images.npy", mmap_mode="r")
+    before = rss_file_kb()
+    assert np.array_equal(np.asarray(source), frames)  # every page read: mapped into the process
+    read = rss_file_kb() - before
+    release_pages(source, np.arange(200))
+    released = read - (rss_file_kb() - before)
+    assert read > 10_000 and released > 0.9 * frames.nbytes / 1024  # KB
+    assert np.array_equal(np.asarray(source[::7]), frames[::7])  # read back from the file
+    in_memory = frames.copy()
+    release_pages(in_memory, np.arange(200))  # an array in memory is left alone
+    assert np.array_equal(in_memory, frames)

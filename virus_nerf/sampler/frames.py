@@ -13,6 +13,7 @@ fixed one, and frames not yet appended cannot be drawn.
 from __future__ import annotations
 
 import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,7 +27,7 @@ from virus_nerf.sensors.irs import IRS_ZONE_COUNT
 from virus_nerf.stereo.build import FrameList
 
 MMAP_ABOVE_BYTES = 1 << 30  # a decoded store's images beyond this are memory-mapped from the run folder
-SPILL_ABOVE_BYTES = 512 << 20  # a growing store's images beyond this go to a file (`FrameStore.spill_to`)
+SPILL_ABOVE_BYTES = 128 << 20  # a growing store's images beyond this go to a file (`FrameStore.spill_to`)
 
 
 @dataclass
@@ -129,6 +130,16 @@ class FrameStore:
         them in and out, so an hour-long drive does not hold every frame in RAM (issue 39)."""
         self._spill = (Path(folder), int(above_bytes))
 
+    def release_spilled(self) -> None:
+        """Hand the spilled image (and depth) pages this process has read back to the OS page
+        cache (madvise MADV_DONTNEED; the data stays in the file): a step reads a few thousand
+        random pixels, so without this every page of an hour's frames would end up in the
+        process's RSS. Nothing for a store in memory."""
+        for name in self._PIXELS:
+            buf = (self._capacity or {}).get(name)
+            if isinstance(buf, np.memmap):
+                release_pages(buf, np.arange(len(buf)), whole=True)
+
     def _buffer(self, name: str, arr: np.ndarray, cap: int) -> np.ndarray:
         """A zeroed (cap, ...) buffer for array `name`: in memory, or a spilled file's map."""
         shape = (cap,) + arr.shape[1:]
@@ -176,6 +187,29 @@ class FrameStore:
     @property
     def width(self) -> int:
         return self.images.shape[2]
+
+
+def release_pages(arr: np.ndarray, rows: np.ndarray, whole: bool = False) -> None:
+    """Hand rows `rows` of a file-backed, shared `np.memmap` (F, ...) back to the OS page cache
+    (madvise MADV_DONTNEED): the data stays in the file and is read back on the next access, but
+    this process no longer holds the pages (its RSS). For a source read once, as `train --online`
+    copies each recorded frame into the mapper. Nothing for an array in memory or a private map.
+    `whole`: the whole array at once (rows are then ignored): one call for a spilled store."""
+    if not isinstance(arr, np.memmap) or arr.mode == "c" or not len(arr) or sys.platform != "linux":
+        return
+    import ctypes
+    import mmap
+
+    page = mmap.PAGESIZE
+    row_bytes = arr[0].nbytes
+    base = arr.ctypes.data
+    libc = ctypes.CDLL(None, use_errno=True)
+    spans = [(base, arr.nbytes)] if whole else \
+        [(base + int(r) * row_bytes, row_bytes) for r in np.unique(np.asarray(rows, dtype=np.int64))]
+    for start, length in spans:
+        lo = start // page * page  # the pages the span touches (a neighbour's share is read back)
+        hi = -(-(start + length) // page) * page
+        libc.madvise(ctypes.c_void_p(lo), ctypes.c_size_t(hi - lo), mmap.MADV_DONTNEED)
 
 
 def resize_rgb(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:

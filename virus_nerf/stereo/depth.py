@@ -128,7 +128,9 @@ class StereoBuilder:
         self._last: dict[int, tuple[int, float]] = {}  # stack -> (frame row, time) of its newest frame
         self.frame_stack: dict[int, int] = {}
         self.frame_pose: dict[int, np.ndarray] = {}
-        self._parts: list[StereoDepth] = []  # targets of the tracks triangulated so far
+        # targets of the tracks triangulated so far, sorted by frame: one copy, extended by each
+        # flush (a list of parts merged anew at every flush held the drive's targets twice)
+        self._targets = StereoDepth.empty()
 
     def add(self, frame: int, stack: int, time: float, cam_to_world: np.ndarray, rgb: np.ndarray) -> None:
         """One frame (store row `frame`, full-resolution RGB uint8) of camera `stack`."""
@@ -164,8 +166,8 @@ class StereoBuilder:
             t.views = self.views
         done = ~still_open
         if done.any():
-            self._parts.append(self._triangulate(track[done], frame[done], uv[done]))
-        return _merge(self._parts)
+            self._targets = _merge([self._targets, self._triangulate(track[done], frame[done], uv[done])])
+        return self._targets
 
     def result(self) -> StereoDepth:
         """Triangulate every track, followed or not (the end of a recording)."""

@@ -32,7 +32,7 @@ from virus_nerf.engine.schedule import Horizon, Schedules
 from virus_nerf.evaluation.evaluate import EvaluationResult, build_ground_truth, evaluate
 from virus_nerf.losses import LossTerms
 from virus_nerf.sampler.batch import BatchSampler
-from virus_nerf.sampler.frames import MMAP_ABOVE_BYTES, FrameStore, build_frame_store
+from virus_nerf.sampler.frames import MMAP_ABOVE_BYTES, FrameStore, build_frame_store, release_pages
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.run_folder import (
@@ -125,6 +125,9 @@ class Trainer:
         new = self.feeder.release(self.mapper.seconds)
         if new.size:  # the stereo tracker reads the recording's own images
             self.mapper.add_store(store, new, self._full_image)
+            for pixels in (store.images, store.depths_mm):  # copied: the source's pages go back to the OS
+                if pixels is not None:
+                    release_pages(pixels, new)
 
     def _full_image(self, src: int) -> np.ndarray:
         """(H, W, 3) uint8: source row `src`'s image at the recording's resolution."""
