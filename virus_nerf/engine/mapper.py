@@ -56,7 +56,6 @@ from virus_nerf.scene_box import SceneBox
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.stereo.depth import StereoDepth, StereoFeed
 
-
 # Steps between handing a spilled store's pages back (FrameStore.release_spilled): a step reads
 # ~4k random pixels, so at most ~4 x 4k pages (64 MB) stay mapped; measured on a 576 MB spilled
 # store, reading a batch's pixels takes 0.6 ms, 2.3 ms with the release after every step

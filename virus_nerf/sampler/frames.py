@@ -27,6 +27,9 @@ from virus_nerf.sensors.irs import IRS_ZONE_COUNT
 from virus_nerf.stereo.build import FrameList
 
 MMAP_ABOVE_BYTES = 1 << 30  # a decoded store's images beyond this are memory-mapped from the run folder
+# frames decoded into a memory-mapped file between handing its written pages back (release_pages):
+# a 30-minute drive's source frames would otherwise all stay in the process's RSS
+RELEASE_DECODED_EVERY = 256
 SPILL_ABOVE_BYTES = 128 << 20  # a growing store's images beyond this go to a file (`FrameStore.spill_to`)
 
 
@@ -252,6 +255,8 @@ def _decode(recording: Recording, entries: list[tuple[int, int]], size: tuple[in
         images[f] = resize_rgb(stack.image(i), (width, height))
         if depths is not None:
             depths[f] = resize_depth_mm(stack.depth(i), (width, height))
+        if (f + 1) % RELEASE_DECODED_EVERY == 0 or f + 1 == n:  # a file's written pages leave the process
+            release_pages(images, np.arange(f + 1 - (f % RELEASE_DECODED_EVERY), f + 1))
     return images, depths
 
 
@@ -289,6 +294,7 @@ def build_frame_store(
         images, depths = _decode(recording, entries, (width, height), with_depth, cache_dir, mmap_above_bytes, progress)
         if key is not None:
             frame_cache.store_frames(key, images, depths)
+            release_pages(images, np.arange(n), whole=True)  # the copy read every page back
     stack_ids = np.array([s for s, _ in entries], dtype=np.int64)
     rows = np.array([i for _, i in entries], dtype=np.int64)
     return FrameStore(
