@@ -56,9 +56,10 @@ from virus_nerf.scene_box import SceneBox
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.stereo.depth import StereoDepth, StereoFeed
 
-# Steps between handing a spilled store's pages back (FrameStore.release_spilled): a step reads
-# ~4k random pixels, so at most ~4 x 4k pages (64 MB) stay mapped; measured on a 576 MB spilled
-# store, reading a batch's pixels takes 0.6 ms, 2.3 ms with the release after every step
+# Steps between handing a spilled store's pages back (FrameStore.release_spilled). It bounds less
+# than the pixel count suggests: Linux maps 16 pages around each faulting page already in the page
+# cache, so a step's 2048 pixels map ~128 MB (D55). Measured on a 576 MB spilled store, reading
+# 4096 pixels takes 0.6 ms, 2.3 ms with a release after every step
 RELEASE_SPILLED_EVERY = 4
 
 
@@ -77,9 +78,9 @@ class TrainSlice:
 class Mapper(MapViews):
     """A VIRUS-NeRF (or Instant-NGP) map trained on frames as they arrive.
 
-    config: the training configuration (`train` decides how long to train). intrinsics: stack id -> camera intrinsics at the
-    frames' full resolution (frames are resized by config.image_scale). box: the scene box in
-    metres: with `extent.mode` fitted the field's and grid's frame for the mapper's life (the
+    config: the training configuration (`train` decides how long to train). intrinsics: stack
+    id -> camera intrinsics at the frames' full resolution (frames are resized by
+    config.image_scale). box: the scene box in metres: with `extent.mode` fitted the field's and grid's frame for the mapper's life (the
     room's extent, e.g. from a floor plan or a previous map); with grow the box around the first
     frame (grid/extent.py first_box), which grows as frames arrive to hold the camera positions
     and the points the depth sensors measured (or the reach around every camera; grid/extent.py).

@@ -141,7 +141,7 @@ class FrameStore:
         for name in self._PIXELS:
             buf = (self._capacity or {}).get(name)
             if isinstance(buf, np.memmap):
-                release_pages(buf, np.arange(len(buf)), whole=True)
+                release_pages(buf)
 
     def _buffer(self, name: str, arr: np.ndarray, cap: int) -> np.ndarray:
         """A zeroed (cap, ...) buffer for array `name`: in memory, or a spilled file's map."""
@@ -192,12 +192,11 @@ class FrameStore:
         return self.images.shape[2]
 
 
-def release_pages(arr: np.ndarray, rows: np.ndarray, whole: bool = False) -> None:
-    """Hand rows `rows` of a file-backed, shared `np.memmap` (F, ...) back to the OS page cache
+def release_pages(arr: np.ndarray, rows: np.ndarray | None = None) -> None:
+    """Hand rows `rows` (None: all) of a file-backed, shared `np.memmap` (F, ...) back to the OS page cache
     (madvise MADV_DONTNEED): the data stays in the file and is read back on the next access, but
     this process no longer holds the pages (its RSS). For a source read once, as `train --online`
-    copies each recorded frame into the mapper. Nothing for an array in memory or a private map.
-    `whole`: the whole array at once (rows are then ignored): one call for a spilled store."""
+    copies each recorded frame into the mapper. Nothing for an array in memory or a private map."""
     if not isinstance(arr, np.memmap) or arr.mode == "c" or not len(arr) or sys.platform != "linux":
         return
     import ctypes
@@ -207,7 +206,7 @@ def release_pages(arr: np.ndarray, rows: np.ndarray, whole: bool = False) -> Non
     row_bytes = arr[0].nbytes
     base = arr.ctypes.data
     libc = ctypes.CDLL(None, use_errno=True)
-    spans = [(base, arr.nbytes)] if whole else \
+    spans = [(base, arr.nbytes)] if rows is None else \
         [(base + int(r) * row_bytes, row_bytes) for r in np.unique(np.asarray(rows, dtype=np.int64))]
     for start, length in spans:
         lo = start // page * page  # the pages the span touches (a neighbour's share is read back)
@@ -256,7 +255,7 @@ def _decode(recording: Recording, entries: list[tuple[int, int]], size: tuple[in
         if depths is not None:
             depths[f] = resize_depth_mm(stack.depth(i), (width, height))
         if (f + 1) % RELEASE_DECODED_EVERY == 0 or f + 1 == n:  # a file's written pages leave the process
-            release_pages(images, np.arange(f + 1 - (f % RELEASE_DECODED_EVERY), f + 1))
+            release_pages(images, np.arange(f - f % RELEASE_DECODED_EVERY, f + 1))  # this chunk's rows
     return images, depths
 
 
@@ -294,7 +293,7 @@ def build_frame_store(
         images, depths = _decode(recording, entries, (width, height), with_depth, cache_dir, mmap_above_bytes, progress)
         if key is not None:
             frame_cache.store_frames(key, images, depths)
-            release_pages(images, np.arange(n), whole=True)  # the copy read every page back
+            release_pages(images)  # the copy read every page back
     stack_ids = np.array([s for s, _ in entries], dtype=np.int64)
     rows = np.array([i for _, i in entries], dtype=np.int64)
     return FrameStore(
