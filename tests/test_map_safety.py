@@ -163,6 +163,24 @@ def test_true_free_space_near_the_path_keeps_clear_of_obstacles_and_stays_on_the
     assert free_recall(image, FREE, np.zeros_like(obst)) is None
 
 
+def test_true_free_space_stays_inside_the_ground_truths_extent_where_a_wall_slice_has_a_gap():
+    from virus_nerf.evaluation.safety import true_free_near_path
+
+    res, origin = 0.1, (0.0, 0.0)
+    obst = np.zeros((10, 20), dtype=bool)  # rows = y 0.95 .. 0.05, columns x 0.05 .. 1.95
+    obst[:, 10] = True  # the room's wall at x 1.0-1.1 m ...
+    obst[4:7, 10] = False  # ... with a 0.3 m gap where furniture hid it from the LiDAR
+    path = np.array([[0.25, 0.45]])
+    leaked = true_free_near_path(obst, origin, res, path, within=3.0, clearance=0.05)
+    assert leaked[5, 15]  # (1.55, 0.45) beyond the wall, reached through the gap
+    inside = true_free_near_path(obst, origin, res, path, within=3.0, clearance=0.05,
+                                 extent=((0.0, 0.0), (1.1, 1.0)))
+    # the same pixels left of x = 1.1 m (centres 0.05 .. 1.05: columns 0..10), none beyond it
+    np.testing.assert_array_equal(inside[:, :11], leaked[:, :11])
+    assert not inside[:, 11:].any()
+    assert inside[5, 10]  # the gap's own pixel (centre 1.05 m) is inside the extent
+
+
 def test_the_planner_check_finds_paths_and_counts_the_ones_through_a_wall_the_map_lost():
     from virus_nerf.evaluation.safety import planner_check
 

@@ -9,8 +9,10 @@ miss). Obstacle pixels are grouped by their distance to the robot's path (the tr
 positions): within 1 m, within 2 m, and all. Lower is safer; 0 means no known obstacle is free.
 
 A map that marks nothing free is safe and useless, so beside it stands the map's free recall
-(issue 42): of the true free pixels within 3 m of the path, more than 0.15 m from every obstacle
-and connected to the path, the share the map marks free. Both figures are also given for two
+(issue 42): of the true free pixels within 3 m of the path, more than 0.15 m from every obstacle,
+connected to the path and inside the ground truth's own extent (the LiDAR map's box: beyond it the
+ground truth knows nothing, and a grown map's raster reaches there through the gaps that
+furniture leaves in a wall's camera-height slice), the share the map marks free. Both figures are also given for two
 anchors on the same raster: the classic inverse-sensor map of the robot's USS and IRS alone
 (maps/evidence.py, no NeRF) and the 2D map a LiDAR robot has, carved by the LiDAR's own scans at
 camera height at the same positions as the map's scans.
@@ -67,13 +69,16 @@ def free_for_sure(image: np.ndarray, free_value: int, resolution: float, toleran
 
 def true_free_near_path(obstacles: np.ndarray, origin: tuple[float, float], resolution: float,
                         path_xy: np.ndarray, within: float = FREE_NEAR_PATH_M,
-                        clearance: float = FREE_CLEARANCE_M) -> np.ndarray:
+                        clearance: float = FREE_CLEARANCE_M, extent: tuple | None = None) -> np.ndarray:
     """(H, W) bool: the free space a planner needs from the map, from the ground truth alone.
 
     Pixels more than `clearance` m from every ground-truth obstacle pixel (`obstacles`, (H, W)
-    bool), within `within` m of the path (P, 2) and connected (4-neighbours) to a pixel the path
-    passes through; the connection keeps out the space behind walls, the clearance closes the
-    gaps between a wall's LiDAR points.
+    bool), within `within` m of the path (P, 2), connected (4-neighbours) to a pixel the path
+    passes through, and with their centre inside `extent` ((x, y) lo, (x, y) hi in metres: the
+    ground truth's own box; None: the whole raster). The connection keeps out the space behind
+    walls, the clearance closes the gaps between a wall's LiDAR points; the extent keeps out the
+    space beyond the ground truth, which a wall's slice does not close where furniture hid it
+    from the LiDAR.
     """
     from scipy.ndimage import distance_transform_edt, label
 
@@ -88,7 +93,13 @@ def true_free_near_path(obstacles: np.ndarray, origin: tuple[float, float], reso
     labels, _ = label(clear)
     keep = np.unique(labels[on_path & clear])
     keep = keep[keep > 0]
-    return near & clear & np.isin(labels, keep)
+    free = near & clear & np.isin(labels, keep)
+    if extent is not None:
+        lo, hi = np.asarray(extent[0], dtype=np.float64), np.asarray(extent[1], dtype=np.float64)
+        x = origin[0] + (np.arange(w) + 0.5) * resolution  # (W,) pixel centres
+        y = origin[1] + (h - np.arange(h) - 0.5) * resolution  # (H,) row 0 = largest y
+        free &= ((y >= lo[1]) & (y <= hi[1]))[:, None] & ((x >= lo[0]) & (x <= hi[0]))[None, :]
+    return free
 
 
 def free_recall(image: np.ndarray, free_value: int, true_free: np.ndarray) -> float | None:
@@ -136,11 +147,12 @@ def _zone_name(within_m: float) -> str:
 
 
 def judge_map(image: np.ndarray, origin: tuple[float, float], resolution: float, obstacles_xy: np.ndarray,
-              path_xy: np.ndarray, free_value: int = 254) -> MapJudgement:
+              path_xy: np.ndarray, free_value: int = 254, extent: tuple | None = None) -> MapJudgement:
     """`map_safety` and `free_recall` of a trinary map `image` (H, W) against ground-truth
-    obstacle points (K, 2) at camera height and the robot's path (P, 2), metres."""
+    obstacle points (K, 2) at camera height and the robot's path (P, 2), metres; the true free
+    space lies inside `extent` ((x, y) lo, hi m, the ground truth's box; None: the raster)."""
     obst = obstacle_pixels(obstacles_xy, origin, resolution, np.asarray(image).shape)
-    free = true_free_near_path(obst, origin, resolution, path_xy)
+    free = true_free_near_path(obst, origin, resolution, path_xy, extent=extent)
     return MapJudgement(map_safety(image, origin, resolution, obstacles_xy, path_xy, free_value),
                         free_recall(image, free_value, free))
 
@@ -230,6 +242,7 @@ class RunSafety:
 def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> RunSafety | None:
     """The safety of the mapper's 2D map (as its snapshots write it) against the recording's
     LiDAR map at camera height (+-band m), beside its anchors; None without a LiDAR map or frames."""
+    from virus_nerf.data.room_box import fit_scene_box
     from virus_nerf.evaluation.gt import height_slice
     from virus_nerf.maps.evidence import sensor_rays_2d
     from virus_nerf.maps.extract import spread_rows
@@ -251,11 +264,13 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
     rows = spread_rows(len(store), MAP_POSES)  # the map's scan positions
     lidar = lidar_rays_2d(recording, store.times[rows], height, band)
     lidar_map = scan_occupancy(lidar.origins, lidar.directions, lidar.ranges, lo, hi, resolution)
+    gt_box = fit_scene_box(recording)  # the LiDAR map's extent: true free space lies inside it
+    extent = (gt_box.lo[:2], gt_box.hi[:2])
     anchors = {"sensors": judge_map(apply_mask(sensor_map.image, seen, UNKNOWN), m.origin, resolution,
-                                    obstacles, path),
-               "lidar": judge_map(lidar_map.image, m.origin, resolution, obstacles, path)}
-    doc = safety_document(judge_map(m.image, m.origin, resolution, obstacles, path), observed_share(seen), "map",
-                          resolution, anchors)
+                                    obstacles, path, extent=extent),
+               "lidar": judge_map(lidar_map.image, m.origin, resolution, obstacles, path, extent=extent)}
+    doc = safety_document(judge_map(m.image, m.origin, resolution, obstacles, path, extent=extent),
+                          observed_share(seen), "map", resolution, anchors)
     doc["planner"] = planner_check(m.image, m.origin, resolution, obstacles).block()
     return RunSafety(doc, safety_picture(m.image, m.origin, resolution, obstacles, path))
 
