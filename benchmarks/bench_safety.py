@@ -50,7 +50,7 @@ def train(data: Path, scene: str, run: Path, online: bool, seed: int) -> None:
 def judge(run: Path) -> dict:
     """The run's safety with and without the range evidence, and its anchors."""
     from virus_nerf.engine import views
-    from virus_nerf.evaluation.safety import mapper_safety
+    from virus_nerf.evaluation.safety import MAP_POSES, mapper_safety
     from virus_nerf.maps.planner import RangeEvidence
     from virus_nerf.trainer.run import load_trained
 
@@ -73,6 +73,7 @@ def judge(run: Path) -> dict:
     evidence = views.MapViews.range_evidence
     views.MapViews.range_evidence = lambda self: RangeEvidence.empty()
     try:
+        mapper.update_map(0.05, max_poses=MAP_POSES)  # the scans alone, for the query that follows
         before = mapper_safety(mapper, trainer.recording, cfg.evaluation.height_band_m).document
     finally:
         views.MapViews.range_evidence = evidence

@@ -601,3 +601,30 @@ def test_a_source_read_once_gives_its_pages_back_and_keeps_its_data(tmp_path):
     in_memory = frames.copy()
     release_pages(in_memory, np.arange(200))  # an array in memory is left alone
     assert np.array_equal(in_memory, frames)
+
+
+def test_map_queries_are_cheap_until_the_mapper_changes(monkeypatch):
+    """Issue 38 item 4: `map2d` answers from the map `update_map` made last while nothing it
+    depends on changed; a step, a frame or other settings render it again; a caller's copy is its own."""
+    import virus_nerf.engine.views as views
+
+    renders = []
+    real = views.occupancy_map
+    monkeypatch.setattr(views, "occupancy_map", lambda *a, **k: renders.append(1) or real(*a, **k))
+    mapper = _mapper()
+    for t in range(4):
+        mapper.add_frame(_frame(float(t)))
+    mapper.train(60.0, steps=2)
+    first = mapper.map2d(0.1, n_rays=32, max_poses=4)
+    first.image[:] = 7  # the caller's copy, not the mapper's
+    again = mapper.map2d(0.1, n_rays=32, max_poses=4)
+    assert len(renders) == 1 and not (again.image == 7).any()
+    assert np.array_equal(again.image, mapper.update_map(0.1, n_rays=32, max_poses=4).image)  # the same state
+    assert len(renders) == 2
+    mapper.map2d(0.1, n_rays=64, max_poses=4)  # other settings
+    assert len(renders) == 3
+    mapper.train(60.0, steps=1)
+    mapper.map2d(0.1, n_rays=64, max_poses=4)  # a step later
+    mapper.add_frame(_frame(4.0))
+    mapper.map2d(0.1, n_rays=64, max_poses=4)  # a frame later
+    assert len(renders) == 5

@@ -62,17 +62,39 @@ class MapViews:
         (evenly spread), cells a scan passed free, end cells occupied, the rest unknown; and
         unknown wherever no sensor looked (`observed`), whatever the NeRF says there; then
         occupied where the frames' IRS hits and unexplained USS echoes lie (maps/planner.py). The same
-        extraction as `virus-nerf export` (maps/extract.py)."""
+        extraction as `virus-nerf export` (maps/extract.py). A query: the map `update_map` made
+        last (a copy) while the mapper has not changed since (no step, frame, box or stereo
+        targets) and the settings are the same; otherwise `update_map` first."""
+        key = self._map_key(resolution, n_rays, max_poses)
+        cached = getattr(self, "_map_cache", None)
+        if cached is None or cached[0] != key:
+            return self.update_map(resolution, n_rays, max_poses)
+        return dataclasses.replace(cached[1], image=cached[1].image.copy())
+
+    def update_map(self, resolution: float = 0.05, n_rays: int = 360, max_poses: int = 30):
+        """Render the 2D map (`map2d`) from the current state now, and keep it for the queries
+        that follow (a snapshot, the live view, the safety figure)."""
+        key = self._map_key(resolution, n_rays, max_poses)
+        lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
+        self.field.eval()
+        try:
+            m = occupancy_map(self.model, self.store.cam_to_world[:, :3, 3], lo, hi, resolution, int(n_rays),
+                              int(max_poses), self.observed(resolution), self.range_evidence())
+        finally:
+            self.field.train()
+        self._map_cache = (key, dataclasses.replace(m, image=m.image.copy()))
+        return m
+
+    def _map_key(self, resolution, n_rays, max_poses) -> tuple:
+        """The settings, once checked, and what the map depends on: the training state (step and
+        clock: a loaded state changes both), the frames, the box and the stereo targets."""
         for name, v, lo in (("n_rays", n_rays, 0), ("max_poses", max_poses, 0)):
             if isinstance(v, bool) or not isinstance(v, int | float) or not v > lo or not math.isfinite(v):
                 raise UsageError(f"Mapper.map2d {name} {v!r}: expected a positive number")
-        lo, hi = self._raster_box("Mapper.map2d resolution", resolution)
-        self.field.eval()
-        try:
-            return occupancy_map(self.model, self.store.cam_to_world[:, :3, 3], lo, hi, resolution, int(n_rays),
-                                 int(max_poses), self.observed(resolution), self.range_evidence())
-        finally:
-            self.field.train()
+        self._raster_box("Mapper.map2d resolution", resolution)
+        stereo = getattr(self, "stereo", None)
+        return (self.step, self.seconds, self.frames, self.box, float(resolution), int(n_rays), int(max_poses),
+                id(stereo), 0 if stereo is None else len(stereo.points))
 
     def range_evidence(self) -> RangeEvidence:
         """What the frames' IRS, USS and stereo measured at camera height (maps/planner.py), for
