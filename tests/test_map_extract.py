@@ -110,3 +110,29 @@ def test_the_probability_map_is_half_where_no_sensor_looked():
     p = 1.0 - m.image[::-1].T / 255.0  # [ix, iy]
     assert p[0, 0] == pytest.approx(0.5, abs=0.003)
     assert p[1, 1] == pytest.approx(0.9, abs=0.003)
+
+
+class _LowWall:
+    """A range model: a wall at x = 2 m whose top is 3 cm below the camera (z < 0.97 m)."""
+
+    def ranges(self, origins, directions):
+        o, d = np.asarray(origins), np.asarray(directions)[:, 0]
+        t = (2.0 - o[:, 0]) / np.where(d > 1e-9, d, np.nan)
+        return np.where((d > 1e-9) & (o[:, 2] < 0.97), t, np.nan)
+
+
+def test_the_maps_scans_sample_the_height_band_so_a_wall_below_the_camera_plane_is_kept():
+    from virus_nerf.maps.extract import MAP_SCAN_HEIGHTS_M
+    from virus_nerf.maps.scans import scan_ranges
+
+    origins, _, r = scan_ranges(_LowWall(), np.array([0.25, 0.25, 1.0]), 360, MAP_SCAN_HEIGHTS_M)
+    assert origins[:3, 2] == pytest.approx([0.95, 1.0, 1.05])  # ray i at heights[i % 3]
+    assert np.isnan(scan_ranges(_LowWall(), np.array([0.25, 0.25, 1.0]), 360)[2]).all()  # one plane: no wall
+    assert r[0] == pytest.approx(1.75) and np.isnan(r[1]) and np.isnan(r[2])  # +x: only the low ray ends
+    lo, hi, res = np.array([0.0, -1.0]), np.array([3.0, 1.0]), 0.5
+    m = occupancy_map(_LowWall(), np.array([[0.25, 0.25, 1.0]]), lo, hi, res, 360, 30, np.ones((6, 4), dtype=bool))
+    grid = m.image[::-1].T  # [ix, iy]
+    # the wall cell on the scan's row: a third of the rays through it end there (the low ones)
+    # and two thirds pass, and a third is at least half of two thirds: occupied
+    assert grid[4, 2] == OCCUPIED
+    assert grid[1, 2] == FREE

@@ -107,10 +107,15 @@ def points_from_ranges(origin_xy: np.ndarray, directions: np.ndarray, ranges: np
     return np.asarray(origin_xy, dtype=np.float64)[None, :2] + directions[ok, :2] * r[ok, None]
 
 
-def scan_ranges(model: RangeModel, position: np.ndarray, n_rays: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def scan_ranges(model: RangeModel, position: np.ndarray, n_rays: int,
+                heights: tuple[float, ...] = (0.0,)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A model's 360 deg horizontal scan from `position` (3,) m: ray origins (N, 3), unit
     directions (N, 3) and ranges (N,) float64 m (NaN: no hit); the same rays for every consumer
-    (maps, exports, the Mapper's scans, the evaluation)."""
+    (maps, exports, the Mapper's scans, the evaluation). `heights` (m): ray i starts
+    heights[i % len(heights)] above `position` (the map's scans sample a height band at the cost
+    of one plane; the default is the plane itself)."""
     dirs = horizontal_directions(n_rays)
     origins = np.broadcast_to(np.asarray(position, dtype=np.float64).reshape(3), dirs.shape).copy()
+    if any(heights):
+        origins[:, 2] += np.asarray(heights, dtype=np.float64)[np.arange(n_rays) % len(heights)]
     return origins, dirs, np.asarray(model.ranges(origins, dirs), dtype=np.float64).reshape(-1)
