@@ -101,21 +101,49 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     prob.*, snapshot.json) and a metrics.json with gt null and no sensors, and says so in one line.
     A recording with only odometry poses is trained on them (one line says so).
     """
-    from virus_nerf.config_io import to_dict
-    from virus_nerf.data.ethz import load_recording, resolve_pose_source
-    from virus_nerf.errors import OutputExistsError
-    from virus_nerf.trainer.loop import Trainer
-    from virus_nerf.trainer.report import write_run_plots
-    from virus_nerf.trainer.run_folder import write_run_metrics
     from virus_nerf.trainer.trust import map_warnings
-    from virus_nerf.utils.io import new_output_dir, remove_stale_partials
-    from virus_nerf.utils.seeding import seed_everything
 
     out = Path(out)
-    if not resume:
-        remove_stale_partials(out)  # `.OUT.partial-<pid>-*` of a `train --out OUT` killed while starting
-    if not resume and out.exists():
+    _refuse_existing_out(out, resume)
+    cfg, recording, eval_recording = _prepare(data, room, cfg, auto_gt)
+    lock = RunLock(out, "--resume" if resume else "--out")
+    if resume:
+        lock.acquire()  # one process trains in a run folder at a time (released when it dies)
+    try:
+        trainer, summary = _resume(out, recording, cfg, quiet) if resume else \
+            _start(data, room, out, recording, cfg, lock, quiet)
+        warnings = map_warnings(trainer)
+        if not cfg.evaluation.gt:
+            _keep_resumed_config(out, cfg, resume)
+            return _finish_without_ground_truth(trainer, out, cfg, summary, resume, warnings)
+        result, run_safety = _score(trainer, out, cfg, eval_recording)
+        doc = _write_results(trainer, out, cfg, summary, result, run_safety, warnings, resume)
+    finally:
+        lock.release()
+    _print_results(trainer, out, summary, result, run_safety, warnings)
+    return doc
+
+
+def _refuse_existing_out(out: Path, resume: bool) -> None:
+    """A new run's OUT must not exist (stale `.OUT.partial-*` of a killed start are cleared first)."""
+    from virus_nerf.errors import OutputExistsError
+    from virus_nerf.utils.io import remove_stale_partials
+
+    if resume:
+        return
+    remove_stale_partials(out)  # `.OUT.partial-<pid>-*` of a `train --out OUT` killed while starting
+    if out.exists():
         raise OutputExistsError(out)
+
+
+def _prepare(data: Path, room: str, cfg, auto_gt: bool):
+    """(config, training recording, evaluation recording), every input checked before a file is
+    written: the device, the batch's memory, the poses (odometry when the config asks or there is
+    no LiDAR), no ground truth when `auto_gt` finds no LiDAR map, the recording's split and
+    ground-truth inputs."""
+    from virus_nerf.data.ethz import load_recording, resolve_pose_source
+    from virus_nerf.utils.seeding import seed_everything
+
     check_device(cfg)
     check_batch_memory(cfg)
     seed_everything(cfg.seed)
@@ -132,64 +160,82 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     need_eval_frame = cfg.odometry_poses and cfg.evaluation.gt and eval_source != source
     eval_recording = load_recording(data, room, poses=eval_source) if need_eval_frame else recording
     check_recording_for_training(recording, cfg, eval_recording)
+    return cfg, recording, eval_recording
 
-    lock = RunLock(out, "--resume" if resume else "--out")
-    if resume:
-        lock.acquire()  # one process trains in a run folder at a time (released when it dies)
+
+def _start(data: Path, room: str, out: Path, recording, cfg, lock, quiet):
+    """A new run: OUT appears with config.json, run.json and its lock held in one rename, then
+    the training; a failure before the first checkpoint (or map) removes OUT again."""
+    from virus_nerf.config_io import to_dict
+    from virus_nerf.trainer.loop import Trainer
+    from virus_nerf.utils.io import new_output_dir
+
+    with new_output_dir(out) as tmp:  # OUT appears with both files or not at all, and locked
+        write_json_atomic(tmp / CONFIG, to_dict(cfg))
+        RunInfo(data=str(Path(data).resolve()), room=room).write(tmp)
+        lock.folder = tmp
+        lock.acquire()  # the lock file's descriptor follows the folder's rename
+    lock.folder = out
     try:
-        if resume:
-            trainer, summary = _resume(out, recording, cfg, quiet)
-        else:
-            with new_output_dir(out) as tmp:  # OUT appears with both files or not at all, and locked
-                write_json_atomic(tmp / CONFIG, to_dict(cfg))
-                RunInfo(data=str(Path(data).resolve()), room=room).write(tmp)
-                lock.folder = tmp
-                lock.acquire()  # the lock file's descriptor follows the folder's rename
-            lock.folder = out
-            try:
-                trainer = Trainer(recording, cfg, out, quiet=quiet)
-                summary = _fit(trainer)
-            except BaseException:
-                if not (out / CHECKPOINT).is_file() and not (out / MAP_DIR).is_dir():
-                    shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
-                raise
-        warnings = map_warnings(trainer)
-        if not cfg.evaluation.gt:
-            if resume and to_dict(cfg) != _saved_config(out):
-                write_json_atomic(out / CONFIG, to_dict(cfg))
-            return _finish_without_ground_truth(trainer, out, cfg, summary, resume, warnings)
-        if eval_recording is not recording:
-            # the map and test points are judged in the true (optimised) frame
-            trainer.evaluate_on(eval_recording)
-        result = final_evaluation(trainer, out)
-        trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
-        from virus_nerf.evaluation.safety import mapper_safety
+        trainer = Trainer(recording, cfg, out, quiet=quiet)
+        return trainer, _fit(trainer)
+    except BaseException:
+        if not (out / CHECKPOINT).is_file() and not (out / MAP_DIR).is_dir():
+            shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
+        raise
 
-        run_safety = mapper_safety(trainer.mapper, trainer.recording, cfg.evaluation.height_band_m)
-        safety = None if run_safety is None else run_safety.document
-        if (out / MAP_DIR).is_dir():  # the map an interrupted online run left: this run's map now
-            trainer.mapper.snapshot(out / MAP_DIR, replace=True)
-        write_run_plots(out, result, trainer.eval_history, replace=resume,  # plots first: metrics.json marks the end
-                        safety_picture=None if run_safety is None else run_safety.picture)
-        if resume and to_dict(cfg) != _saved_config(out):
-            write_json_atomic(out / CONFIG, to_dict(cfg))  # a finished run's resume: evaluated with it
-        doc = write_run_metrics(out, result, cfg, summary, safety=safety, warnings=warnings)
-    finally:
-        lock.release()
+
+def _keep_resumed_config(out: Path, cfg, resume: bool) -> None:
+    """A resumed run is one of the config it was resumed with (config.json rewritten if it differs)."""
+    from virus_nerf.config_io import to_dict
+
+    if resume and to_dict(cfg) != _saved_config(out):
+        write_json_atomic(out / CONFIG, to_dict(cfg))
+
+
+def _score(trainer, out: Path, cfg, eval_recording):
+    """(EvaluationResult, RunSafety | None): the scans against the ground truth, in the true
+    (optimised) frame, and the planner's map against it."""
+    from virus_nerf.evaluation.safety import mapper_safety
+
+    if eval_recording is not trainer.recording:
+        trainer.evaluate_on(eval_recording)  # the map and test points are judged in the true frame
+    result = final_evaluation(trainer, out)
+    trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
+    return result, mapper_safety(trainer.mapper, trainer.recording, cfg.evaluation.height_band_m)
+
+
+def _write_results(trainer, out: Path, cfg, summary, result, run_safety, warnings, resume: bool) -> dict:
+    """The run's final files: the map an interrupted online run left (replaced by this run's), the
+    plots, the config of a resumed run, then metrics.json last (it marks a finished run)."""
+    from virus_nerf.trainer.report import write_run_plots
+    from virus_nerf.trainer.run_folder import write_run_metrics
+
+    if (out / MAP_DIR).is_dir():  # the map an interrupted online run left: this run's map now
+        trainer.mapper.snapshot(out / MAP_DIR, replace=True)
+    write_run_plots(out, result, trainer.eval_history, replace=resume,  # plots first: metrics.json marks the end
+                    safety_picture=None if run_safety is None else run_safety.picture)
+    _keep_resumed_config(out, cfg, resume)  # a finished run's resume: evaluated with it
+    return write_run_metrics(out, result, cfg, summary, safety=None if run_safety is None else run_safety.document,
+                             warnings=warnings)
+
+
+def _print_results(trainer, out: Path, summary, result, run_safety, warnings) -> None:
+    """The table, the warnings, the safety lines and the speed; then a final checkpoint that did
+    not fit is named (exit 2)."""
     print(result.table())
     for w in warnings:
         print(f"warning: {w}")
-    if safety is not None:
+    if run_safety is not None:
         from virus_nerf.evaluation.safety import safety_line
 
-        print(safety_line(safety))
+        print(safety_line(run_safety.document))
     print(
         f"trained {summary.steps} steps in {summary.seconds:.1f} s "
         f"({summary.steps_per_s:.2f} steps/s, {summary.samples_per_s / 1e6:.3f} M samples/s); "
         f"results in {out}"
     )
     _check_final_checkpoint(trainer, [out / PLOTS, out / METRICS])
-    return doc
 
 
 def _fit(trainer, started=None):
