@@ -75,7 +75,7 @@ class MapViews:
         """Render the 2D map (`map2d`) from the current state now, and keep it for the queries
         that follow (a snapshot, the live view, the safety figure)."""
         key = self._map_key(resolution, n_rays, max_poses)
-        lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
+        lo, hi = self._raster_box("Mapper.map2d resolution", resolution)
         self.field.eval()
         try:
             m = occupancy_map(self.model, self.store.cam_to_world[:, :3, 3], lo, hi, resolution, int(n_rays),
@@ -86,14 +86,14 @@ class MapViews:
         return m
 
     def _map_key(self, resolution, n_rays, max_poses) -> tuple:
-        """The settings, once checked, and what the map depends on: the training state (step and
+        """The settings (n_rays and max_poses checked; a resolution no cached map has goes to
+        `update_map`, which checks it) and what the map depends on: the training state (step and
         clock: a loaded state changes both), the frames, the box and the stereo targets."""
         for name, v, lo in (("n_rays", n_rays, 0), ("max_poses", max_poses, 0)):
             if isinstance(v, bool) or not isinstance(v, int | float) or not v > lo or not math.isfinite(v):
                 raise UsageError(f"Mapper.map2d {name} {v!r}: expected a positive number")
-        self._raster_box("Mapper.map2d resolution", resolution)
         stereo = getattr(self, "stereo", None)
-        return (self.step, self.seconds, self.frames, self.box, float(resolution), int(n_rays), int(max_poses),
+        return (self.step, self.seconds, self.frames, self.box, resolution, int(n_rays), int(max_poses),
                 id(stereo), 0 if stereo is None else len(stereo.points))
 
     def range_evidence(self) -> RangeEvidence:
