@@ -96,7 +96,7 @@ def child(args: argparse.Namespace) -> None:
                 trainer.train_step()  # on the training clock
             wall = since_process_start() - eval_s
             t0 = time.perf_counter()
-            result = trainer.evaluate(with_sensors=False)
+            result = trainer.evaluate(with_sensors=False, keep_scans=0)
             eval_s += time.perf_counter() - t0
             z3 = result.metrics["NeRF"].zones["zone3"]
             by_gt = {gt: {k: getattr(m["NeRF"].zones["zone3"], k) for k in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier")}

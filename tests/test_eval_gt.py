@@ -62,6 +62,17 @@ def test_band_drops_points_at_other_heights_and_first_hit_wins():
     assert gt.ranges[180] == pytest.approx(1.985, abs=0.01)
 
 
+def test_a_gt_scan_keeps_the_shared_map_not_a_copy_of_its_slice():
+    # a long drive's thousands of test points each kept a copy of the slice (D59): now they
+    # share the map, and the slice is cut when a plot asks for it
+    cloud = np.array([[0.0, 0.0, 1.00], [1.0, 0.0, 1.04], [2.0, 0.0, 1.20], [3.0, 0.0, 0.96]])
+    tp = horizontal_test_point(0.0, 0.0, 1.0)
+    gts = [gt_scan(cloud, tp, n_rays=8, band=0.05) for _ in range(3)]
+    assert all(g.map_slice.cloud is cloud for g in gts)
+    # |z - 1.0| <= 0.05: the points at 1.00, 1.04 and 0.96, not the one at 1.20
+    np.testing.assert_array_equal(gts[0].slice_xy, [[0.0, 0.0], [1.0, 0.0], [3.0, 0.0]])
+
+
 def test_no_map_points_no_hits_and_origin_cell_ignored():
     tp = horizontal_test_point(0.0, 0.0, 0.0)
     gt = gt_scan(room_cloud(heights=(1.0,)), tp, n_rays=64)

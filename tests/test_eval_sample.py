@@ -131,6 +131,24 @@ def test_models_plug_in_with_the_gt_origin(sample_recording):
     assert z3.n_pred == z3.n_gt == len(gts[0].scan)
 
 
+def test_keeping_few_scans_scores_every_test_point_alike(result, sample_recording):
+    # the sample's 2 test points (stack-1 frames 1 and 3): keeping the scans of one scores both
+    one = evaluate(sample_recording, keep_scans=1)
+    assert one.n_points == result.n_points == 2 and len(result.points) == 2
+    assert [p.test_point.index1 for p in one.points] == [1]  # the first of k = 1 evenly spread
+    assert one.metrics == result.metrics
+    none = evaluate(sample_recording, keep_scans=0)
+    assert none.points == [] and none.n_points == 2 and none.metrics == result.metrics
+
+
+def test_spread_indices_are_evenly_spread_first_and_last_included():
+    from virus_nerf.evaluation.evaluate import spread_indices
+
+    assert spread_indices(10, 4).tolist() == [0, 3, 6, 9]
+    assert spread_indices(3, 5).tolist() == [0, 1, 2] and spread_indices(3, None).tolist() == [0, 1, 2]
+    assert spread_indices(7, 0).tolist() == []
+
+
 def test_sensors_command_writes_schema_and_refuses_existing(sample_dir, tmp_path, capsys):
     from virus_nerf.evaluation.command import sensors
 

@@ -21,6 +21,7 @@ from virus_nerf.grid.extent import (
     field_config_for_frame,
     field_frame,
     first_box,
+    fitted_field_frame,
     grows_from_sensors,
     holding_box,
     needed_box,
@@ -30,6 +31,21 @@ from virus_nerf.grid.virus import VirusGrid, VirusGridConfig
 from virus_nerf.scene_box import SceneBox
 
 EXT = ExtentConfig(mode="grow", reach_m=2.0, height_m=1.0, grow_step_m=1.0, grid_cell_m=0.5, frame_m=20.0)
+
+
+def test_a_fitted_box_normalises_the_field_per_axis_or_over_its_cube():
+    box = SceneBox((1.0, -2.0, 0.0), (9.0, 2.0, 3.0))  # 8 x 4 x 3 m
+    assert fitted_field_frame(box, ExtentConfig(fitted_frame="box")) == box
+    cube = fitted_field_frame(box, ExtentConfig())  # the default (D58)
+    # the same centre (5, 0, 1.5), 8 m on every side
+    assert cube == SceneBox((1.0, -4.0, -2.5), (9.0, 4.0, 5.5))
+    # the mapper's extent: the grid keeps the box, the field takes the cube
+    from virus_nerf.engine.extent import MapExtent
+
+    extent = MapExtent(ExtentConfig(), ("camera",), box)
+    assert extent.box == box and extent.frame == cube and extent.grid_spec() is None
+    with pytest.raises(ValueError, match="extent.fitted_frame 'ball'"):
+        ExtentConfig(fitted_frame="ball")
 
 
 def test_first_box_is_the_reach_around_the_first_camera_in_whole_cells():

@@ -173,6 +173,21 @@ def test_an_old_config_with_a_removed_key_still_loads(tmp_path, capsys):
     assert capsys.readouterr().err == ""  # a bad file: the error alone
 
 
+def test_a_run_saved_before_a_key_was_added_loads_at_the_value_it_was_made_with(tmp_path):
+    # a run's config.json holds every key of its version: one without extent.fitted_frame was
+    # trained with the field over the box per axis, whatever today's default is
+    from virus_nerf.config_io import to_dict
+
+    old = to_dict(TrainConfig())
+    del old["extent"]["fitted_frame"]
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(old))
+    assert load_json_config(TrainConfig, path, saved=True).extent.fitted_frame == "box"
+    # a user's partial config file takes today's default
+    path.write_text(json.dumps({"extent": {"mode": "fitted"}}))
+    assert load_json_config(TrainConfig, path).extent.fitted_frame == TrainConfig().extent.fitted_frame
+
+
 def test_a_comment_after_a_field_describes_the_next_field_only():
     """A block comment shared by fields (free_uss, free_margin) ends at the next
     comment: `weights.distortion` gets its own comment, not the block above it."""

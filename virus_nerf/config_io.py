@@ -53,6 +53,33 @@ REMOVED_KEYS = {
 }
 
 
+# dotted key -> the value a saved config written before the key existed stands for. A run's
+# config.json holds every key of the version that wrote it, so a key it lacks was added since, and
+# its run was made with this value, whatever today's default is (`load_json_config(saved=True)`).
+ADDED_KEYS = {
+    "extent.fitted_frame": "box",  # the field spanned the fitted box per axis before (docs/decisions.md D58)
+}
+
+
+def with_added_keys(data: Any) -> Any:
+    """A saved config dict with the keys added since it was written (ADDED_KEYS) set to the values
+    its run was made with; a key is set only where its section is there (a complete dump)."""
+    if not isinstance(data, dict):
+        return data
+    out = dict(data)
+    for dotted, value in ADDED_KEYS.items():
+        *parents, leaf = dotted.split(".")
+        node, path = out, []
+        for name in parents:
+            if not isinstance(node.get(name), dict):
+                break
+            node[name] = dict(node[name])  # the caller's dict stays as it was
+            node, path = node[name], [*path, name]
+        else:
+            node.setdefault(leaf, value)
+    return out
+
+
 def to_dict(obj: Any) -> Any:
     if dataclasses.is_dataclass(obj):
         return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
@@ -224,8 +251,10 @@ def _convert(tp: Any, value: Any, ctx: _Ctx, key: str) -> Any:
     return value
 
 
-def load_json_config(cls: type[T], path: str | Path) -> T:
-    """Read a JSON config file into dataclass `cls`; every problem is a one-line ConfigError."""
+def load_json_config(cls: type[T], path: str | Path, saved: bool = False) -> T:
+    """Read a JSON config file into dataclass `cls`; every problem is a one-line ConfigError.
+    saved: the file is a run's own config.json (every key of its version): a key added since
+    loads at the value the run was made with (ADDED_KEYS), not today's default."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -241,4 +270,4 @@ def load_json_config(cls: type[T], path: str | Path) -> T:
         raise ConfigError(f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", file=path) from None
     except RecursionError:
         raise ConfigError("not valid JSON: nested too deeply", file=path) from None
-    return from_dict(cls, data, file=path)
+    return from_dict(cls, with_added_keys(data) if saved else data, file=path)

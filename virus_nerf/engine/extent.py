@@ -18,6 +18,7 @@ from virus_nerf.grid.extent import (
     camera_margin_m,
     field_config_for_frame,
     field_frame,
+    fitted_field_frame,
     grows_from_sensors,
     growth_step_m,
     holding_box,
@@ -39,7 +40,7 @@ class MapExtent:
         self.sensors = tuple(sensors)
         self.growing = config.mode == "grow"
         self.box = box
-        self.frame = field_frame(box, config) if self.growing else box  # the field's fixed cube
+        self.frame = field_frame(box, config) if self.growing else fitted_field_frame(box, config)  # the field's fixed frame
         # grow, sensed: the points the depth sensors measured, counted per support cell
         self.support = SensedSupport(config, self.frame, (box.lo[2], box.hi[2])) \
             if self.growing and grows_from_sensors(config, self.sensors) else None

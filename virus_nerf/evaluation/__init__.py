@@ -18,6 +18,7 @@ from virus_nerf.evaluation.gt import (
     GT_PROTOCOLS,
     PAPER_ROOMS,
     GroundTruth,
+    MapSlice,
     Raster2D,
     SquareExtent,
     cast_rays,
@@ -61,7 +62,7 @@ from virus_nerf.maps.scans import (
 
 __all__ = [
     "DEFAULT_ZONES", "GT_PROTOCOLS", "METRIC_KEYS", "PAPER_ROOMS", "SENSOR_NAMES",
-    "EvaluationConfig", "EvaluationResult", "FieldOfView", "GroundTruth",
+    "EvaluationConfig", "EvaluationResult", "FieldOfView", "GroundTruth", "MapSlice",
     "NNDSamples", "PointGroundTruth", "RangeModel", "Raster2D", "Scan2D", "Sector", "SensorMetrics",
     "SquareExtent", "TestPoint", "TestPointScans", "Zone", "ZoneMetrics",
     "mean_std", "build_ground_truth", "cast_rays", "check_metrics_document", "evaluate",

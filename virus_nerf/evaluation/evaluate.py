@@ -26,9 +26,9 @@ from virus_nerf.evaluation.gt import (
     GT_DESCRIPTIONS,
     GT_PROTOCOLS,
     GroundTruth,
+    MapSlice,
     exact_gt_scan,
     gt_scan,
-    height_slice,
     paper_extent,
     paper_gt_scan,
     paper_lidar_deg,
@@ -159,11 +159,16 @@ def fov_gt(gt: GroundTruth, scan: Scan2D) -> Scan2D:
 @dataclass
 class EvaluationResult:
     config: EvaluationConfig
-    points: list[TestPointScans]
+    points: list[TestPointScans]  # the test points whose scans were kept (all, or `evaluate`'s keep_scans)
     metrics: dict[str, SensorMetrics]  # name -> per-zone metrics, pooled over test points (protocol `gt`)
     samples: dict[str, NNDSamples] = field(repr=False, default_factory=dict)
     gt: str = "map"  # the protocol of `metrics`
     by_gt: dict[str, dict[str, SensorMetrics]] = field(default_factory=dict)  # every protocol -> metrics
+    n_points: int | None = None  # test points scored (None: len(points))
+
+    def __post_init__(self) -> None:
+        if self.n_points is None:
+            self.n_points = len(self.points)
 
     def document(self, train: Mapping[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
         """extra: safety, warnings (metrics_document)."""
@@ -227,7 +232,7 @@ def protocol_ground_truth(
         scene = load_exact_scene(recording)
         cloud = recording.lidar_map() if recording.map_path is not None else None
         return [exact_gt_scan(scene, tp, config.n_rays,
-                              None if cloud is None else height_slice(cloud, tp.height, config.height_band_m))
+                              None if cloud is None else MapSlice(cloud, tp.height, config.height_band_m))
                 for tp in test_points]
     if protocol == "paper":
         cloud = recording.lidar_map()
@@ -267,9 +272,15 @@ def evaluate(
     models: Mapping[str, RangeModel] | None = None,
     config: EvaluationConfig = EvaluationConfig(),
     ground_truth: Sequence[PointGroundTruth | GroundTruth] | None = None,
+    keep_scans: int | None = None,
 ) -> EvaluationResult:
     """Scan every test point with the configured sensors and the given models; score them
-    against the ground truth of every protocol (given, or built for `config.gt`)."""
+    against the ground truth of every protocol (given, or built for `config.gt`).
+
+    keep_scans: None keeps every test point's scans in `points`; k keeps those of k test points
+    evenly spread (`spread_indices`, the ones the plots draw). A long drive's thousands of test
+    points are scored all the same; only their scans are not held (~70 KB a point, D59).
+    """
     if ground_truth is not None:
         gts = [PointGroundTruth.of(g) for g in ground_truth]
     else:
@@ -280,7 +291,8 @@ def evaluate(
         raise ValueError(f"model names must differ from sensor names: {names}")
     per_point: list[TestPointScans] = []
     samples: dict[str, dict[str, list[NNDSamples]]] = {p: {n: [] for n in names} for p in protocols}
-    for pg in gts:
+    kept = set(range(len(gts)) if keep_scans is None else spread_indices(len(gts), keep_scans).tolist())
+    for i, pg in enumerate(gts):
         tp = pg.test_point
         if list(pg.by_protocol) != protocols:
             raise ValueError(f"every test point needs the same protocols {protocols}, got {list(pg.by_protocol)}")
@@ -296,10 +308,19 @@ def evaluate(
                 samples[p][name].append(nnd_samples(scan.points, fov_gt(gt, scan).points, tp.origin_xy))
             if k == 0:
                 primary_scans = own
-        per_point.append(TestPointScans(ground_truth=pg.primary, scans=primary_scans, all_gt=dict(pg.by_protocol)))
+        if i in kept:
+            per_point.append(TestPointScans(ground_truth=pg.primary, scans=primary_scans, all_gt=dict(pg.by_protocol)))
     pooled = {p: {n: NNDSamples.concat(v) for n, v in per.items()} for p, per in samples.items()}
     by_gt = {p: {n: zone_metrics(s, config.zones, config.inlier_m) for n, s in per.items()}
              for p, per in pooled.items()}
     first = protocols[0]
     return EvaluationResult(config=config, points=per_point, metrics=by_gt[first], samples=pooled[first],
-                            gt=first, by_gt=by_gt)
+                            gt=first, by_gt=by_gt, n_points=len(gts))
+
+
+def spread_indices(n: int, k: int | None) -> np.ndarray:
+    """Indices of k of n items evenly spread, first and last included (all n when k is None or
+    k >= n): the test points whose scans are kept and drawn."""
+    if k is None or k >= n:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, max(k, 0)).astype(int))

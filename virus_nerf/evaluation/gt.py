@@ -169,6 +169,22 @@ def cast_rays(raster: Raster2D, origin: np.ndarray, directions: np.ndarray) -> n
     return out
 
 
+@dataclass(frozen=True)
+class MapSlice:
+    """The map points within `band` of `height`, cut when asked for (`xy`). A test point keeps
+    this and not the cut: the thousands of test points of a long drive share one map, where a
+    copy each (0.14 MB for the simulated office) grew the evaluation by ~16 MB a minute of
+    driving (docs/decisions.md D59)."""
+
+    cloud: np.ndarray  # (P, 3) map points, metres, world frame (shared, never written)
+    height: float  # m
+    band: float  # m
+
+    def xy(self) -> np.ndarray:
+        """(K, 2) x, y of the map points with |z - height| <= band."""
+        return height_slice(self.cloud, self.height, self.band)
+
+
 @dataclass
 class GroundTruth:
     """GT scan of one test point plus the map slice it came from (for plots)."""
@@ -176,11 +192,16 @@ class GroundTruth:
     test_point: TestPoint
     scan: Scan2D  # name "GT", full 360 deg
     ranges: np.ndarray  # (n_rays,) m, NaN = no hit, ray k at angle scan_angles(n_rays)[k]
-    slice_xy: np.ndarray  # (K, 2) map points within the height band (for plots; may be empty)
+    map_slice: MapSlice | None  # the map slice the scan was cast into (for plots; None: none)
     protocol: str = "map"  # which protocol made it (GT_PROTOCOLS)
     # LiDAR horizontal range scored under this protocol, degrees relative to the LiDAR heading;
     # None: the evaluation's own setting (EvaluationConfig.lidar_angle_range_deg)
     lidar_deg: tuple[float, float] | None = None
+
+    @property
+    def slice_xy(self) -> np.ndarray:
+        """(K, 2) map points within the height band (may be empty), cut anew on each call."""
+        return np.zeros((0, 2)) if self.map_slice is None else self.map_slice.xy()
 
 
 def gt_scan(
@@ -194,15 +215,15 @@ def gt_scan(
     """Cast `n_rays` horizontal rays over 360 deg from the test point's scan origin into the map slice."""
     if res > 0.02 + 1e-12:
         raise ValueError(f"GT raster resolution must be <= 0.02 m (docs/method.md 6.2), got {res}")
-    slice_xy = height_slice(map_points, test_point.height, band)
+    cut = MapSlice(map_points, test_point.height, band)
     origin = test_point.origin_xy
-    raster = rasterise(slice_xy, res=res, footprint=footprint, include=origin)
+    raster = rasterise(cut.xy(), res=res, footprint=footprint, include=origin)
     dirs = horizontal_directions(n_rays)  # (N, 3)
     r = cast_rays(raster, origin, dirs[:, :2])
-    return _ground_truth(test_point, r, slice_xy, "map")
+    return _ground_truth(test_point, r, cut, "map")
 
 
-def _ground_truth(test_point: TestPoint, ranges: np.ndarray, slice_xy: np.ndarray, protocol: str,
+def _ground_truth(test_point: TestPoint, ranges: np.ndarray, map_slice: MapSlice | None, protocol: str,
                   lidar_deg: tuple[float, float] | None = None) -> GroundTruth:
     """GroundTruth of ranges (n_rays,) along horizontal_directions(n_rays) from the scan origin."""
     origin = test_point.origin_xy
@@ -217,18 +238,19 @@ def _ground_truth(test_point: TestPoint, ranges: np.ndarray, slice_xy: np.ndarra
         fov=FieldOfView.full(origin),
         extra={"angle": scan_angles(len(r))[ok]},
     )
-    return GroundTruth(test_point=test_point, scan=scan, ranges=r, slice_xy=np.asarray(slice_xy, dtype=np.float64),
-                       protocol=protocol, lidar_deg=lidar_deg)
+    return GroundTruth(test_point=test_point, scan=scan, ranges=r, map_slice=map_slice, protocol=protocol,
+                       lidar_deg=lidar_deg)
 
 
 # ---------------------------------------------------------------------------------- exact
-def exact_gt_scan(scene, test_point: TestPoint, n_rays: int = 512, slice_xy: np.ndarray | None = None) -> GroundTruth:
+def exact_gt_scan(scene, test_point: TestPoint, n_rays: int = 512, map_slice: MapSlice | None = None) -> GroundTruth:
     """`n_rays` horizontal rays from the test point's camera-1 position (at camera height) cast
-    into an exact scene (anything with `ranges(origins, directions)`, e.g. sim.scene.Scene)."""
+    into an exact scene (anything with `ranges(origins, directions)`, e.g. sim.scene.Scene);
+    `map_slice`, the LiDAR map's slice, is drawn beside it in the plots."""
     dirs = horizontal_directions(n_rays)
     origins = np.broadcast_to(test_point.origin, dirs.shape).copy()
     r = np.asarray(scene.ranges(origins, dirs), dtype=np.float64).reshape(-1)
-    return _ground_truth(test_point, r, np.zeros((0, 2)) if slice_xy is None else slice_xy, "exact")
+    return _ground_truth(test_point, r, map_slice, "exact")
 
 
 # ---------------------------------------------------------------------------------- paper
@@ -316,7 +338,7 @@ def paper_gt_scan(
 ) -> GroundTruth:
     """The authors' GT scan of one test point: the slice at `slice_height` (the mean camera height
     of all test points) +-band, rasterised and sampled as in `paper_cast`."""
-    slice_xy = height_slice(map_points, slice_height, band)
-    occ = paper_raster(slice_xy, extent)
+    cut = MapSlice(map_points, slice_height, band)
+    occ = paper_raster(cut.xy(), extent)
     r = paper_cast(occ, extent, test_point.origin_xy, horizontal_directions(n_rays)[:, :2])
-    return _ground_truth(test_point, r, slice_xy, "paper", lidar_deg=lidar_deg)
+    return _ground_truth(test_point, r, cut, "paper", lidar_deg=lidar_deg)

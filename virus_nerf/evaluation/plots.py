@@ -20,6 +20,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from virus_nerf.evaluation.evaluate import spread_indices  # noqa: E402
 from virus_nerf.evaluation.metrics import DEFAULT_ZONES, SensorMetrics, Zone  # noqa: E402
 from virus_nerf.maps.scans import FieldOfView  # noqa: E402
 from virus_nerf.utils.io import atomic_path, new_output_dir  # noqa: E402
@@ -227,9 +228,7 @@ def write_plot_files(result, folder: Path, max_maps: int | None = None) -> list[
     metrics_bars.png is the primary protocol's, metrics_bars_gt-<protocol>.png each further one.
     """
     names: list[str] = []
-    points = result.points
-    if max_maps is not None and len(points) > max_maps:
-        points = [points[i] for i in np.linspace(0, len(points) - 1, max_maps).astype(int)]
+    points = [result.points[i] for i in spread_indices(len(result.points), max_maps)]
     for tps in points:
         name = f"scan_frame{tps.test_point.index1:04d}.png"
         plot_test_point(tps, Path(folder) / name)

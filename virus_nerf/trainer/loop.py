@@ -210,11 +210,12 @@ class Trainer:
         self.recording = recording
         self._gt = None
 
-    def evaluate(self, with_sensors: bool = True) -> EvaluationResult | None:
+    def evaluate(self, with_sensors: bool = True, keep_scans: int | None = None) -> EvaluationResult | None:
         """Score the NeRF scan (and the instantaneous sensors) at the test points.
 
         Online, only test points the clock has reached count; None before the first one.
-        None without ground truth (evaluation.gt empty, `--gt none`).
+        None without ground truth (evaluation.gt empty, `--gt none`). keep_scans: the test points
+        whose scans the result keeps (evaluation.evaluate; None: all).
         """
         cfg = self.config.evaluation
         if not cfg.gt:
@@ -232,7 +233,7 @@ class Trainer:
         cfg = cfg if with_sensors else replace(cfg, sensors=())
         self.mapper.field.eval()
         try:
-            return evaluate(self.recording, {"NeRF": self.mapper.model}, cfg, ground_truth=gts)
+            return evaluate(self.recording, {"NeRF": self.mapper.model}, cfg, ground_truth=gts, keep_scans=keep_scans)
         finally:
             self.mapper.field.train()
 
@@ -333,7 +334,7 @@ class Trainer:
         return TrainSummary(self.mapper.step, self.mapper.seconds, self.mapper.samples, self.startup_s, wall_s)
 
     def _evaluate_during_training(self, log: TrainLog) -> None:
-        result = self.evaluate(with_sensors=False)
+        result = self.evaluate(with_sensors=False, keep_scans=0)  # the metrics alone
         if result is not None:
             self.record_eval(result, log)
 
@@ -358,7 +359,7 @@ class Trainer:
         point = EvalPoint(step=self.mapper.step, seconds=round(self.mapper.seconds, 3),
                           acc_mean=z3.acc_mean, cov_mean=z3.cov_mean,
                           acc_inlier=z3.acc_inlier, cov_inlier=z3.cov_inlier,
-                          n_test_points=len(result.points))
+                          n_test_points=result.n_points)
         self.eval_history.append(point)
         write_eval_history(self.run_dir / METRICS_VS_TIME, self.eval_history)
         if log is not None:

@@ -372,8 +372,9 @@ def final_evaluation(trainer, run: Path):
     """The run's evaluation with the instantaneous sensors; online, only test points the drive
     has reached count, and a run stopped before the first one has nothing to score."""
     from virus_nerf.errors import UsageError
+    from virus_nerf.trainer.report import RUN_SCAN_MAPS
 
-    result = trainer.evaluate(with_sensors=True)
+    result = trainer.evaluate(with_sensors=True, keep_scans=RUN_SCAN_MAPS)  # the scans the plots draw
     if result is None:
         raise UsageError(
             f"{run}: the online run stopped at step {trainer.mapper.step} before the drive reached its first "

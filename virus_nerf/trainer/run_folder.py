@@ -163,7 +163,7 @@ def open_run(run: Path, flag: str):
     for name in (CONFIG, RUN_INFO):
         if not (run / name).is_file():
             raise DataFormatError(run / name, f"missing; {flag} expects a run folder written by `virus-nerf train`")
-    cfg = load_json_config(TrainConfig, run / CONFIG)
+    cfg = load_json_config(TrainConfig, run / CONFIG, saved=True)
     return cfg, RunInfo.read(run)
 
 
