@@ -69,12 +69,12 @@ def with_added_keys(data: Any) -> Any:
     out = dict(data)
     for dotted, value in ADDED_KEYS.items():
         *parents, leaf = dotted.split(".")
-        node, path = out, []
+        node = out
         for name in parents:
             if not isinstance(node.get(name), dict):
                 break
             node[name] = dict(node[name])  # the caller's dict stays as it was
-            node, path = node[name], [*path, name]
+            node = node[name]
         else:
             node.setdefault(leaf, value)
     return out

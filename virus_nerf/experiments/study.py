@@ -101,7 +101,9 @@ def open_study(name: str, storage, objective: Objective, base: dict | None, seed
             raise UsageError(f"--config/--max-steps/--max-time/--eval-interval: study {name!r} was started with "
                              "another base config or budget; give the same (or none, to reuse the study's) "
                              "or a new --study")
-        base = stored
+        from virus_nerf.config_io import with_added_keys
+
+        base = with_added_keys(stored)  # a study started by an earlier version runs on as it began
     else:
         if base is None:
             from virus_nerf.config_io import to_dict
