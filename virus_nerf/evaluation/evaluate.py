@@ -291,7 +291,7 @@ def evaluate(
         raise ValueError(f"model names must differ from sensor names: {names}")
     per_point: list[TestPointScans] = []
     samples: dict[str, dict[str, list[NNDSamples]]] = {p: {n: [] for n in names} for p in protocols}
-    kept = set(range(len(gts)) if keep_scans is None else spread_indices(len(gts), keep_scans).tolist())
+    kept = set(spread_indices(len(gts), keep_scans).tolist())  # None: every point
     for i, pg in enumerate(gts):
         tp = pg.test_point
         if list(pg.by_protocol) != protocols:

@@ -130,16 +130,20 @@ def first_box(camera_position: np.ndarray, cfg: ExtentConfig, sensors=()) -> Sce
 
 def field_frame(box: SceneBox, cfg: ExtentConfig) -> SceneBox:
     """The field's fixed cube: `frame_m` on a side, centred on the first box."""
+    return cube_around(box, cfg.frame_m)
+
+
+def cube_around(box: SceneBox, side_m: float) -> SceneBox:
+    """The cube `side_m` on a side with the same centre as `box`."""
     c = np.asarray(box.center, dtype=np.float64)
-    return SceneBox(tuple(c - cfg.frame_m / 2), tuple(c + cfg.frame_m / 2))
+    return SceneBox(tuple(c - side_m / 2), tuple(c + side_m / 2))
 
 
 def fitted_field_frame(box: SceneBox, cfg: ExtentConfig) -> SceneBox:
     """The field's frame over a fitted box: the box itself, or the cube around it (`fitted_frame`)."""
     if cfg.fitted_frame == "box":
         return box
-    c, half = np.asarray(box.center, dtype=np.float64), float(box.size.max()) / 2
-    return SceneBox(tuple(c - half), tuple(c + half))
+    return cube_around(box, float(box.size.max()))
 
 
 def field_config_for_frame(field, cfg: ExtentConfig):
