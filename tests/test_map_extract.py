@@ -136,3 +136,41 @@ def test_the_maps_scans_sample_the_height_band_so_a_wall_below_the_camera_plane_
     # and two thirds pass, and a third is at least half of two thirds: occupied
     assert grid[4, 2] == OCCUPIED
     assert grid[1, 2] == FREE
+
+
+class _PalletBeforeWall:
+    """A range model: a wall at x = 3.1 m, and before it a box from x = 2.1 m whose top is 10 cm
+    below the camera (z < 0.9 m): only rays starting below 0.9 m meet the box."""
+
+    def ranges(self, origins, directions):
+        o, d = np.asarray(origins), np.asarray(directions)[:, 0]
+        front = np.where(o[:, 2] < 0.9, 2.1, 3.1)
+        t = (front - o[:, 0]) / np.where(d > 1e-9, d, np.nan)
+        return np.where(d > 1e-9, t, np.nan)
+
+
+def test_what_the_rays_below_the_band_hit_is_occupied_and_their_passes_claim_nothing():
+    from virus_nerf.maps.extract import MAP_LOW_HEIGHTS_M, MAP_SCAN_HEIGHTS_M
+    from virus_nerf.maps.scans import scan_ranges
+
+    camera = np.array([0.25, 0.25, 1.0])
+    _, _, band = scan_ranges(_PalletBeforeWall(), camera, 360, MAP_SCAN_HEIGHTS_M)
+    _, _, low = scan_ranges(_PalletBeforeWall(), camera, 180, MAP_LOW_HEIGHTS_M)
+    assert band[0] == pytest.approx(2.85) and low[0] == pytest.approx(1.85)  # +x: over the box, into it
+    lo, hi, res = np.array([0.0, -1.0]), np.array([3.5, 1.0]), 0.25  # 14 x 8 pixels
+    m = occupancy_map(_PalletBeforeWall(), camera[None], lo, hi, res, 360, 30, np.ones((14, 8), dtype=bool))
+    row = m.image[::-1].T[:, 5]  # [ix] on the scan's row, y in [0.25, 0.5)
+    # the band's rays pass from the camera (x 0.25) to a pixel before their end (x 2.625) and end at
+    # it (x in [3, 3.25)); the low rays end at the box's front (x in [2, 2.25)), which the band
+    # passed: occupied there, free behind it (the low rays' passes claim nothing)
+    assert list(row[1:13]) == [FREE] * 7 + [OCCUPIED, FREE, FREE, UNKNOWN, OCCUPIED]
+
+
+def test_scan_rays_of_several_positions_turn_over_heights_and_start_at_the_first_angle():
+    from virus_nerf.maps.scans import scan_rays
+
+    origins, dirs = scan_rays(np.array([[0.0, 0.0, 1.0], [2.0, 0.0, 1.0]]), 4, (-0.3, -0.15), first_angle=np.pi / 4)
+    h = np.sqrt(0.5)
+    assert dirs[:4] == pytest.approx(np.array([[h, h, 0], [-h, h, 0], [-h, -h, 0], [h, -h, 0]]))
+    assert np.array_equal(dirs[4:], dirs[:4])
+    assert origins[:, 2] == pytest.approx([0.7, 0.85, 0.7, 0.85] * 2) and origins[4:, 0] == pytest.approx([2.0] * 4)

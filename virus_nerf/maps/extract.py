@@ -1,10 +1,11 @@
 """One map extraction for every consumer: `virus-nerf export` (a trained run), the Mapper's
 `map2d` / `probability_map` / snapshots (mapping while driving) and the planner-safety figure.
 
-The 2D map of a trained model is its own 360 deg scans at camera height from evenly spread
-camera positions, rasterised (maps/occupancy.py: passed cells free, end cells occupied), then
-unknown wherever no sensor looked (maps/observed.py), occupied wherever the infrared or
-ultrasonic sensors touched an obstacle the scans called free (maps/planner.py). The probability map is the VIRUS grid's
+The 2D map of a trained model is its own 360 deg scans in the camera-height band from evenly
+spread camera positions, rasterised (maps/occupancy.py: passed cells free, end cells occupied),
+occupied where its scans just below the band end (what the robot's body meets), then unknown
+wherever no sensor looked (maps/observed.py), occupied wherever the infrared or ultrasonic
+sensors touched an obstacle the scans called free (maps/planner.py). The probability map is the VIRUS grid's
 occupancy probability at camera height, 0.5 where no sensor looked. The caller chooses the
 positions and the observed mask (a run: the recording's frames; the Mapper: the frames it has).
 """
@@ -16,7 +17,9 @@ import numpy as np
 from virus_nerf.errors import UsageError
 from virus_nerf.maps.observed import apply_mask
 from virus_nerf.maps.occupancy import (
+    FREE,
     MAX_PIXELS,
+    OCCUPIED,
     UNKNOWN,
     OccupancyMap2D,
     probability_slice,
@@ -25,7 +28,7 @@ from virus_nerf.maps.occupancy import (
     scan_occupancy,
 )
 from virus_nerf.maps.planner import RangeEvidence, planner_image
-from virus_nerf.maps.scans import scan_ranges
+from virus_nerf.maps.scans import scan_rays
 from virus_nerf.sensors.rig import MAIN_STACK
 from virus_nerf.utils.memory import require_memory
 
@@ -38,6 +41,13 @@ RASTER_BYTES_PER_PIXEL = 56
 # the 2D map and its ground truth stand for (evaluation.height_band_m), sampled at the cost of one
 # plane (D56: office free recall 83.3 -> 85.7 %, warehouse obstacles marked free 16.7 -> 16.4 %)
 MAP_SCAN_HEIGHTS_M = (-0.05, 0.0, 0.05)
+# and rays cast below the band, half as many, at these heights in turn: the robot's body below its
+# cameras meets what they hit (the 0.3 m of the IRS hits and stereo points, maps/planner.py), so a
+# pixel they call occupied by the scan rule (ends >= half the passes: a floater near the floor that
+# most rays pass is not one) is occupied where the band said free, and their passes claim nothing;
+# they point between the band's rays (D60: goods and pallet tops just below camera height)
+MAP_LOW_HEIGHTS_M = (-0.15, -0.3)
+MAP_LOW_RAYS_SHARE = 0.5  # low rays per band ray
 
 
 def check_raster(what: str, lo: np.ndarray, hi: np.ndarray, resolution, limit: int | None = None) -> tuple[int, int]:
@@ -81,19 +91,22 @@ def camera_height(cam_to_world: np.ndarray, stack_ids: np.ndarray, default: floa
 
 def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int):
     """360 deg model scans from camera `positions` (N, 3) -> a trinary OccupancyMap2D over the
-    (x, y) box [lo, hi] (maps.occupancy.scan_occupancy: passed cells free, end cells occupied).
-    The rays' heights take turns over MAP_SCAN_HEIGHTS_M: the map stands for the camera-height
-    band, not one plane (docs/decisions.md D56)."""
-    origins_all, dirs_all, ranges_all = [], [], []
-    for p in np.asarray(positions, dtype=np.float64).reshape(-1, 3):
-        origins, dirs, ranges = scan_ranges(model, p, n_rays, MAP_SCAN_HEIGHTS_M)
-        ranges_all.append(ranges)
-        origins_all.append(origins[:, :2])
-        dirs_all.append(dirs[:, :2])
-    if not ranges_all:
-        return scan_occupancy(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), lo, hi, resolution)
-    return scan_occupancy(np.concatenate(origins_all), np.concatenate(dirs_all), np.concatenate(ranges_all),
-                          lo, hi, resolution)
+    (x, y) box [lo, hi]: the band's `n_rays` rays a position, whose heights take turns over
+    MAP_SCAN_HEIGHTS_M (maps.occupancy.scan_occupancy: passed cells free, end cells occupied; the
+    map stands for the camera-height band, not one plane, D56), then occupied where the band's
+    rays said free and the low rays (MAP_LOW_HEIGHTS_M, half a band ray's angle apart from them)
+    by the same rule said occupied (D60). One render for all."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    band_o, band_d = scan_rays(positions, n_rays, MAP_SCAN_HEIGHTS_M)  # (N n_rays, 3) each
+    low_o, low_d = scan_rays(positions, max(1, round(n_rays * MAP_LOW_RAYS_SHARE)), MAP_LOW_HEIGHTS_M,
+                             first_angle=np.pi / n_rays)  # between the band's rays: a leg they pass between
+    ranges = np.asarray(model.ranges(np.concatenate([band_o, low_o]), np.concatenate([band_d, low_d])),
+                        dtype=np.float64).reshape(-1) if len(positions) else np.zeros(0)
+    band_r, low_r = ranges[: len(band_o)], ranges[len(band_o) :]
+    m = scan_occupancy(band_o[:, :2], band_d[:, :2], band_r, lo, hi, resolution)
+    low = scan_occupancy(low_o[:, :2], low_d[:, :2], low_r, lo, hi, resolution).image  # the same scan rule
+    m.image = np.where((low == OCCUPIED) & (m.image == FREE), OCCUPIED, m.image).astype(np.uint8)
+    return m
 
 
 def occupancy_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int,

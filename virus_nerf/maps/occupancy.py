@@ -71,18 +71,24 @@ def scan_counts(
     end = o + d * r[:, None]
     ij = np.floor((end - lo) / resolution).astype(int)
     inside = np.all((ij >= 0) & (ij < shape), axis=1)
-    np.add.at(hits, (ij[inside, 0], ij[inside, 1]), 1)
+    hits += _pixel_counts(ij[inside, 0], ij[inside, 1], shape)
     step = resolution / 2
     n_steps = np.floor(np.maximum(r - resolution, 0) / step).astype(np.int64)  # (N,) pass points a ray
     for rows in _bounded_chunks(n_steps, SCAN_POINTS_PER_CHUNK):  # bounded memory at any resolution
         k = n_steps[rows]
-        ray = np.repeat(rows, k)
-        t = (np.arange(k.sum()) - np.repeat(np.cumsum(k) - k, k)) * step
-        pts = o[ray] + d[ray] * t[:, None]
-        ij = np.floor((pts - lo) / resolution).astype(int)
-        inside = np.all((ij >= 0) & (ij < shape), axis=1)
-        np.add.at(passes, (ij[inside, 0], ij[inside, 1]), 1)
+        t = (np.arange(k.sum()) - np.repeat(np.cumsum(k) - k, k)) * step  # (K,) m along each ray
+        # per axis, each ray's values repeated over its points (a repeat, not a gather: ~3x faster)
+        ix, iy = (np.floor((np.repeat(o[rows, a], k) + np.repeat(d[rows, a], k) * t - lo[a]) / resolution)
+                  .astype(np.int64) for a in (0, 1))
+        inside = (ix >= 0) & (ix < shape[0]) & (iy >= 0) & (iy < shape[1])
+        passes += _pixel_counts(ix[inside], iy[inside], shape)
     return passes, hits
+
+
+def _pixel_counts(ix: np.ndarray, iy: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(K,) int pixel indices ix, iy inside `shape` -> (nx, ny) int64 count of each pixel
+    (np.bincount over the flat index: faster than np.add.at)."""
+    return np.bincount(ix.astype(np.int64) * shape[1] + iy, minlength=shape[0] * shape[1]).reshape(shape)
 
 
 def _bounded_chunks(counts: np.ndarray, budget: int):

@@ -107,15 +107,29 @@ def points_from_ranges(origin_xy: np.ndarray, directions: np.ndarray, ranges: np
     return np.asarray(origin_xy, dtype=np.float64)[None, :2] + directions[ok, :2] * r[ok, None]
 
 
+def scan_rays(positions: np.ndarray, n_rays: int, heights: tuple[float, ...] = (0.0,),
+              first_angle: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The rays of 360 deg horizontal scans from camera `positions` (P, 3) m: origins (P n_rays, 3)
+    and unit directions (P n_rays, 3), position by position; within a scan, ray i points
+    `first_angle` + i 2 pi / n_rays rad from +x and starts heights[i % len(heights)] m above its
+    position (a height band at the cost of one plane)."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if first_angle:
+        a = scan_angles(n_rays) + first_angle
+        dirs = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
+    else:
+        dirs = horizontal_directions(n_rays)  # (n, 3), the rays every consumer shares
+    offsets = np.zeros((n_rays, 3))
+    offsets[:, 2] = np.asarray(heights, dtype=np.float64)[np.arange(n_rays) % len(heights)]
+    origins = (positions[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
+    return origins, np.tile(dirs, (len(positions), 1))
+
+
 def scan_ranges(model: RangeModel, position: np.ndarray, n_rays: int,
                 heights: tuple[float, ...] = (0.0,)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A model's 360 deg horizontal scan from `position` (3,) m: ray origins (N, 3), unit
     directions (N, 3) and ranges (N,) float64 m (NaN: no hit); the same rays for every consumer
     (maps, exports, the Mapper's scans, the evaluation). `heights` (m): ray i starts
-    heights[i % len(heights)] above `position` (the map's scans sample a height band at the cost
-    of one plane; the default is the plane itself)."""
-    dirs = horizontal_directions(n_rays)
-    origins = np.broadcast_to(np.asarray(position, dtype=np.float64).reshape(3), dirs.shape).copy()
-    if any(heights):
-        origins[:, 2] += np.asarray(heights, dtype=np.float64)[np.arange(n_rays) % len(heights)]
+    heights[i % len(heights)] above `position` (`scan_rays`; the default is the plane itself)."""
+    origins, dirs = scan_rays(position, n_rays, heights)
     return origins, dirs, np.asarray(model.ranges(origins, dirs), dtype=np.float64).reshape(-1)

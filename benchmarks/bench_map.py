@@ -1,0 +1,64 @@
+"""How long the planner's map and a snapshot take (issue 42, item 4: a snapshot may not get slower
+by more than a quarter): for trained run folders, the median wall time of `Mapper.update_map`
+(the NeRF's scans, the observed mask, the range evidence: `map.pgm`) and of `Mapper.snapshot`
+(map.pgm, prob.pgm, their PNGs and snapshot.json) over --repeats, with torch's default threads
+(--threads to set them). Run it on an idle machine; compare commits on the same runs:
+
+    .venv/bin/python benchmarks/bench_map.py --runs RUN [RUN ...] --out map_time.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def time_run(run: Path, repeats: int) -> dict:
+    from virus_nerf.evaluation.safety import MAP_POSES
+    from virus_nerf.trainer.run import load_trained
+
+    trainer, _, _ = load_trained(run, "--run")
+    trainer._sync_frames()  # the training frames, as `train` had them at its end
+    mapper = trainer.mapper
+    mapper.update_map(0.05, max_poses=MAP_POSES)  # warm: the observed mask is cached as while driving
+    maps, snaps = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(repeats):
+            t = time.perf_counter()
+            mapper.update_map(0.05, max_poses=MAP_POSES)
+            maps.append(time.perf_counter() - t)
+            mapper._map_cache = None  # a snapshot after a training step renders the map again
+            t = time.perf_counter()
+            mapper.snapshot(Path(tmp) / f"s{k}", max_poses=MAP_POSES)
+            snaps.append(time.perf_counter() - t)
+    return {"run": str(run), "frames": mapper.frames, "map_s": round(statistics.median(maps), 3),
+            "snapshot_s": round(statistics.median(snaps), 3)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", type=Path, nargs="+", required=True)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, help="torch threads (default: torch's own)")
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    if args.out is not None and args.out.exists():
+        sys.exit(f"--out {args.out}: exists; choose a new file (nothing is overwritten)")
+    import torch
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    rows = [time_run(r, args.repeats) for r in args.runs]
+    for r in rows:
+        print(json.dumps(r))
+    if args.out is not None:
+        args.out.write_text(json.dumps({"threads": torch.get_num_threads(), "repeats": args.repeats, "runs": rows}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
