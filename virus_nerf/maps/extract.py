@@ -3,7 +3,7 @@
 
 The 2D map of a trained model is its own 360 deg scans in the camera-height band from evenly
 spread camera positions, rasterised (maps/occupancy.py: passed cells free, end cells occupied),
-occupied where its scans just below the band end (what the robot's body meets), then unknown
+occupied where its scans just below the band end (the scan rule; what the robot's body meets), then unknown
 wherever no sensor looked (maps/observed.py), occupied wherever the infrared or ultrasonic
 sensors touched an obstacle the scans called free (maps/planner.py). The probability map is the VIRUS grid's
 occupancy probability at camera height, 0.5 where no sensor looked. The caller chooses the

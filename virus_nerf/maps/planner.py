@@ -1,8 +1,8 @@
 """The map a planner reads (issue 42): the NeRF's scans, then what the robot's range sensors touched.
 
-The NeRF's 360 deg scans (maps/extract.py: the camera-height band, and the ends of scans just
-below it) keep the free space but miss what the colour loss does not hold at camera height: round objects in the open floor, thin table and chair legs,
-furniture ends. The robot carries the sensors made for exactly these, so two rules follow the
+The NeRF's 360 deg scans (maps/extract.py: the camera-height band, and scans just below it) keep
+the free space but miss what the colour loss does not hold at camera height: round objects in the
+open floor, thin table and chair legs, furniture ends. The robot carries the sensors made for exactly these, so two rules follow the
 scans, each only turning free pixels occupied (a planner's map may lose free space, never gain it):
 
 1. **IRS hits and stereo points.** Every infrared sub-ray whose end lies within
@@ -84,17 +84,6 @@ def _pixels(points: np.ndarray, lo: np.ndarray, resolution: float, shape: tuple[
     return np.clip(ij, 0, np.array(shape) - 1), inside
 
 
-def occupy_free(image: np.ndarray, points: np.ndarray, lo: np.ndarray, resolution: float) -> np.ndarray:
-    """The trinary map (H, W) (row 0 = largest y) with the free pixels holding one of the world
-    `points` (K, 2) m made occupied; points outside the raster are left out. A copy."""
-    grid = from_image(image).copy()  # [ix, iy]
-    ij, inside = _pixels(points, np.asarray(lo, dtype=np.float64)[:2], resolution, grid.shape)
-    hit = np.zeros(grid.shape, dtype=bool)
-    hit[ij[inside, 0], ij[inside, 1]] = True
-    grid[hit & (grid == FREE)] = OCCUPIED
-    return to_image(grid)
-
-
 def uss_arcs(evidence: RangeEvidence, step_deg: float = USS_ARC_STEP_DEG) -> np.ndarray:
     """(E, A, 2) world points along each echo's horizontal arc (+-27.5 deg at its range)."""
     a = evidence.uss_yaw[:, None] + uss.fan_offsets(step_deg)[None]  # (E, A)
@@ -121,9 +110,12 @@ def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence
     (already unknown where no sensor looked) and the range evidence: IRS hits and stereo points,
     then the voted arcs of unexplained USS echoes, occupied where the scans said free. The input
     is not changed."""
+    grid = from_image(image).copy()  # [ix, iy]
     lo = np.asarray(lo, dtype=np.float64)[:2]
-    grid = from_image(occupy_free(image, np.concatenate([evidence.irs_hits, evidence.stereo_points]), lo,
-                                  resolution)).copy()  # [ix, iy]
+    ij, inside = _pixels(np.concatenate([evidence.irs_hits, evidence.stereo_points]), lo, resolution, grid.shape)
+    hit = np.zeros(grid.shape, dtype=bool)
+    hit[ij[inside, 0], ij[inside, 1]] = True
+    grid[hit & (grid == FREE)] = OCCUPIED
     arcs = uss_arcs(evidence)
     lost = unexplained_echoes(grid == OCCUPIED, arcs, lo, resolution, explained_m)
     votes = np.zeros(grid.shape, dtype=np.int64)  # unexplained arcs through each pixel
