@@ -2,8 +2,9 @@
 
 The NeRF's 360 deg scans (maps/extract.py: the camera-height band, and scans just below it) keep
 the free space but miss what the colour loss does not hold at camera height: round objects in the
-open floor, thin table and chair legs, furniture ends. The robot carries the sensors made for exactly these, so two rules follow the
-scans, each only turning free pixels occupied (a planner's map may lose free space, never gain it):
+open floor, thin table and chair legs, furniture ends. The robot carries the sensors made for
+exactly these, so two rules follow the scans, each only turning free pixels occupied (a planner's
+map may lose free space, never gain it):
 
 1. **IRS hits and stereo points.** Every infrared sub-ray whose end lies within
    `OBSTACLE_BAND_M` of camera height (maps/evidence.py) marks its end pixel occupied: the sensor

@@ -94,9 +94,10 @@ def scan_angles(n_rays: int) -> np.ndarray:
     return np.arange(n_rays) * (2 * np.pi / n_rays)
 
 
-def horizontal_directions(n_rays: int) -> np.ndarray:
-    """(n_rays, 3) unit directions in the horizontal plane, the same for GT and model scans."""
-    a = scan_angles(n_rays)
+def horizontal_directions(n_rays: int, first_angle: float = 0.0) -> np.ndarray:
+    """(n_rays, 3) unit directions in the horizontal plane, the same for GT and model scans;
+    turned by `first_angle` rad (the map's rays below the band point between the band's)."""
+    a = scan_angles(n_rays) + first_angle
     return np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
 
 
@@ -114,11 +115,7 @@ def scan_rays(positions: np.ndarray, n_rays: int, heights: tuple[float, ...] = (
     `first_angle` + i 2 pi / n_rays rad from +x and starts heights[i % len(heights)] m above its
     position (a height band at the cost of one plane)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    if first_angle:
-        a = scan_angles(n_rays) + first_angle
-        dirs = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
-    else:
-        dirs = horizontal_directions(n_rays)  # (n, 3), the rays every consumer shares
+    dirs = horizontal_directions(n_rays, first_angle)  # (n, 3)
     offsets = np.zeros((n_rays, 3))
     offsets[:, 2] = np.asarray(heights, dtype=np.float64)[np.arange(n_rays) % len(heights)]
     origins = (positions[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
