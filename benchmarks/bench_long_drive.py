@@ -42,20 +42,26 @@ def _status_kb(pid: int) -> dict[str, int]:
     return out
 
 
-def run_sampled(cmd: list[str]) -> dict:
-    """Run `cmd`; its wall seconds and peak VmRSS / RssAnon / RssFile (MB), sampled every 0.5 s."""
+def run_sampled(cmd: list[str], every_s: float = 10.0) -> dict:
+    """Run `cmd`; its wall seconds and peak VmRSS / RssAnon / RssFile (MB), sampled every 0.5 s,
+    and a timeline of [s, RssAnon MB, RssFile MB] every `every_s` (where in the run memory grows)."""
     start = time.monotonic()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     peak: dict[str, int] = {}
+    timeline: list[list[float]] = []
     while proc.poll() is None:
-        for k, v in _status_kb(proc.pid).items():
+        now = _status_kb(proc.pid)
+        for k, v in now.items():
             peak[k] = max(peak.get(k, 0), v)
+        if now and time.monotonic() - start >= len(timeline) * every_s:
+            timeline.append([round(time.monotonic() - start), round(now.get("RssAnon", 0) / 1024),
+                             round(now.get("RssFile", 0) / 1024)])
         time.sleep(0.5)
     stdout, stderr = proc.communicate()
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed: {stderr.strip()[-800:]}")
     return {"wall_s": round(time.monotonic() - start, 1), "stdout": stdout,
-            **{f"peak_{k}_mb": round(v / 1024, 1) for k, v in sorted(peak.items())}}
+            **{f"peak_{k}_mb": round(v / 1024, 1) for k, v in sorted(peak.items())}, "timeline": timeline}
 
 
 def main() -> None:

@@ -9,6 +9,7 @@ import io
 import json
 import math
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -69,12 +70,31 @@ def test_a_spilled_store_keeps_its_frames_in_an_unlinked_file_and_trains_the_sam
         images.append(np.full((INTR.height, INTR.width, 3), 3 * k, dtype=np.uint8))
         store.append(1 + 2 * (k % 2), k, float(k), np.eye(4), images[-1], None, float(k), np.full((8, 8), k))
         spilled = isinstance(store._capacity["images"], np.memmap)
-        assert spilled == (k >= 34), k
-    assert np.array_equal(store.images, np.stack(images)) and np.array_equal(store.times, np.arange(40.0))
+        assert spilled == (k >= 34) and store.spilled == (("images",) if spilled else ()), k
+    file = store._spill_files["images"]
+    for k in range(40, 80):  # capacity 70 -> 142: the file grows in place
+        images.append(np.full((INTR.height, INTR.width, 3), k, dtype=np.uint8))
+        images[-1][1, 2] = (k, 7, 200)  # one pixel unlike the rest: pixel 1 * W + 2
+        store.append(1, k, float(k), np.eye(4), images[-1], None, float(k), np.full((8, 8), k))
+    assert store._spill_files["images"] is file and len(store._capacity["images"]) == 142
     assert not isinstance(store._capacity["times"], np.memmap)  # only the pixels are spilled
     assert list((tmp_path / "spill").iterdir()) == []
-    store.release_spilled()  # the pages leave the process; the frames read back from the file
-    assert np.array_equal(store.images, np.stack(images))
+    rows, pix = np.array([0, 33, 34, 41, 79, 41]), np.array([0, 5, 9, INTR.width + 2, INTR.width + 2, 3])
+    want = [(0, 0, 0), (99, 99, 99), (102, 102, 102), (41, 7, 200), (79, 7, 200), (41, 41, 41)]
+    assert store.pixels("images", rows, pix).tolist() == [list(w) for w in want]
+
+    def mapped_kb() -> int:  # the spilled file's pages this process maps (/proc/self/smaps)
+        total, inside = 0, False
+        for line in Path("/proc/self/smaps").read_text().splitlines():
+            if line[:1].isdigit() or line[:1] in "abcdef":
+                inside = ".frames-images-" in line
+            elif inside and line.startswith("Rss:"):
+                total += int(line.split()[1])
+        return total
+
+    if Path("/proc/self/smaps").exists():  # written with pwrite, read with pread: nothing mapped
+        assert mapped_kb() == 0
+    assert np.array_equal(store.images, np.stack(images)) and np.array_equal(store.times, np.arange(80.0))
 
     def trained(spill: bool) -> list[float]:
         torch.manual_seed(0)
@@ -82,7 +102,7 @@ def test_a_spilled_store_keeps_its_frames_in_an_unlinked_file_and_trains_the_sam
         if spill:
             mapper.spill_frames(tmp_path / "spill2", above_bytes=0)  # every buffer in a file
         losses = []
-        for k in range(3):  # 6 steps: the spilled pages are released at steps 0 and 4
+        for k in range(3):  # 6 steps
             mapper.add_frame(_frame(float(k), stack=1 + 2 * (k % 2)))
             losses.append(mapper.train(600.0, steps=2).loss)
         assert isinstance(mapper.store._capacity["images"], np.memmap) == spill

@@ -56,12 +56,6 @@ from virus_nerf.scene_box import SceneBox
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.stereo.depth import StereoDepth, StereoFeed
 
-# Steps between handing a spilled store's pages back (FrameStore.release_spilled). It bounds less
-# than the pixel count suggests: Linux maps 16 pages around each faulting page already in the page
-# cache, so a step's 2048 pixels map ~128 MB (D55). Measured on a 576 MB spilled store, reading
-# 4096 pixels takes 0.6 ms, 2.3 ms with a release after every step
-RELEASE_SPILLED_EVERY = 4
-
 
 @dataclass(frozen=True)
 class TrainSlice:
@@ -321,12 +315,9 @@ class Mapper(MapViews):
 
     def _sample(self, schedule: StepSchedule) -> RayBatch:
         """The step's rays: as many as the schedule's sample cap allows, the newest frames
-        favoured while driving (RecentFrames). A spilled store's pages read by the last
-        RELEASE_SPILLED_EVERY steps go back to the page cache (its RSS stays flat in the drive)."""
+        favoured while driving (RecentFrames)."""
         n_rays = schedule.rays(self.config.batch_size, self.last_samples_per_ray)
         batch = self.sampler.sample(self.rng, n_rays, np.arange(self.frames), self._frame_odds(schedule))
-        if self.step % RELEASE_SPILLED_EVERY == 0:
-            self.store.release_spilled()
         return batch.to(self.device)
 
     def _optimise(self, terms: LossTerms) -> None:

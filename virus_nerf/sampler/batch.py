@@ -157,7 +157,7 @@ class BatchSampler:
             uss_range[:] = np.nan
         rgbd_range = np.full(n, np.nan)
         if "rgbd" in self.sensors and store.depths_mm is not None:
-            mm = store.depths_mm.reshape(len(store), -1)[f, pix].astype(np.float64)
+            mm = store.pixels("depths_mm", f, pix).astype(np.float64)
             rgbd_range = np.where(mm > 0, mm / 1000.0, np.nan) / dirs_cam[:, 2]
         if target is not None and "stereo" in self.sensors:
             stereo_range, stereo_sigma = np.full(n, np.nan), np.full(n, np.nan)
@@ -173,8 +173,7 @@ class BatchSampler:
             stereo_sigma = torch.from_numpy(stereo_sigma.astype(np.float32))
         pose = store.cam_to_world[f]  # (n, 4, 4)
         dirs = np.einsum("nij,nj->ni", pose[:, :3, :3], dirs_cam)
-        v, u = np.divmod(pix, store.width)
-        rgb = store.images[f, v, u].astype(np.float32) / 255.0
+        rgb = store.pixels("images", f, pix).astype(np.float32) / 255.0
         return RayBatch(
             origins=torch.from_numpy(pose[:, :3, 3].astype(np.float32)),
             directions=torch.from_numpy(dirs.astype(np.float32)),

@@ -65,6 +65,48 @@ class StackFootprints:
         )
 
 
+class SpillFile:
+    """The unlinked file behind one spilled (cap, ...) array of a growing store (issue 39, D63).
+
+    It grows in place (ftruncate: the rows written stay where they are, no copy), and the
+    training path writes a frame and reads its sampled pixels with pwrite / pread, so the file's
+    pages live in the kernel's page cache only and never in the process's RSS. (Reading a mapping
+    instead maps 16 cached pages around each faulting one: a step's 2048 random pixels mapped
+    ~128 MB, and the RSS followed the drive, D55.) `view` still maps it for the rare whole-array
+    readers (tests, a store copied whole)."""
+
+    def __init__(self, folder: Path, name: str, dtype: np.dtype, row_shape: tuple[int, ...]):
+        import tempfile
+
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, path = tempfile.mkstemp(prefix=f".frames-{name}-", suffix=".bin", dir=folder)
+        os.unlink(path)  # the open file keeps its blocks; the name is gone (no litter after a kill)
+        self.file = os.fdopen(fd, "r+b")  # closed with the object
+        self.dtype = np.dtype(dtype)
+        self.row_shape = tuple(row_shape)  # (H, W[, C])
+        self.pixel_shape = self.row_shape[2:]  # () for depth, (3,) for colour
+        self.pixel_bytes = int(np.prod(self.pixel_shape, dtype=np.int64)) * self.dtype.itemsize
+        self.row_bytes = self.pixel_bytes * self.row_shape[0] * self.row_shape[1]
+
+    def resize(self, cap: int) -> np.ndarray:
+        """Room for `cap` rows (new rows read as zeros: sparse, no disk written); its (cap, ...) map."""
+        os.ftruncate(self.file.fileno(), cap * self.row_bytes)
+        return np.memmap(self.file, dtype=self.dtype, mode="r+", shape=(cap,) + self.row_shape)
+
+    def write(self, first_row: int, rows: np.ndarray) -> None:
+        """Rows (k, ...) written from row `first_row` on, in pieces of at most 64 rows."""
+        for k in range(0, len(rows), 64):
+            data = np.ascontiguousarray(rows[k:k + 64], dtype=self.dtype).tobytes()
+            os.pwrite(self.file.fileno(), data, (first_row + k) * self.row_bytes)
+
+    def gather(self, rows: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """(n, *pixel_shape): pixel `pixels[i]` (v * W + u) of row `rows[i]`, one pread each."""
+        fd, size = self.file.fileno(), self.pixel_bytes
+        offsets = np.asarray(rows, dtype=np.int64) * self.row_bytes + np.asarray(pixels, dtype=np.int64) * size
+        data = b"".join([os.pread(fd, size, off) for off in offsets.tolist()])
+        return np.frombuffer(data, dtype=self.dtype).reshape((len(offsets),) + self.pixel_shape)
+
+
 @dataclass
 class FrameStore:
     """Frames of all stacks used for training, row f = one frame."""
@@ -81,6 +123,7 @@ class FrameStore:
     footprints: dict[int, StackFootprints]
     _capacity: dict[str, np.ndarray] | None = field(default=None, repr=False)  # buffers behind the views
     _spill: tuple[Path, int] | None = field(default=None, repr=False)  # (folder, bytes) of `spill_to`
+    _spill_files: dict[str, SpillFile] = field(default_factory=dict, repr=False)  # the spilled arrays' files
 
     def __len__(self) -> int:
         return len(self.stack_ids)
@@ -109,9 +152,9 @@ class FrameStore:
         self._grow(f + 1)
         self.stack_ids[f], self.rows[f], self.times[f] = stack_id, row, time
         self.cam_to_world[f] = cam_to_world
-        self.images[f] = image
+        self._put("images", f, image)
         if self.depths_mm is not None:
-            self.depths_mm[f] = 0 if depth_mm is None else depth_mm
+            self._put("depths_mm", f, np.zeros(self.depths_mm.shape[1:], np.uint16) if depth_mm is None else depth_mm)
         self.uss_range[f] = uss_range
         self.irs_range[f] = irs_range
         return f
@@ -128,39 +171,49 @@ class FrameStore:
 
     def spill_to(self, folder: Path, above_bytes: int = SPILL_ABOVE_BYTES) -> None:
         """From now on, a growing store whose image (and depth) buffers would pass `above_bytes`
-        keeps them in files under `folder` (memory-mapped, unlinked at once: nothing stays on disk
-        when the process ends, however it ends) instead of in anonymous memory. The OS pages
-        them in and out, so an hour-long drive does not hold every frame in RAM (issue 39)."""
+        keeps them in files under `folder` (`SpillFile`: unlinked at once, so nothing stays on disk
+        when the process ends, however it ends) instead of in anonymous memory, and reads the
+        sampled pixels back from the page cache: an hour-long drive does not hold its frames in
+        the process's memory (issue 39)."""
         self._spill = (Path(folder), int(above_bytes))
 
-    def release_spilled(self) -> None:
-        """Hand the spilled image (and depth) pages this process has read back to the OS page
-        cache (madvise MADV_DONTNEED; the data stays in the file): a step reads a few thousand
-        random pixels, so without this every page of an hour's frames would end up in the
-        process's RSS. Nothing for a store in memory."""
-        for name in self._PIXELS:
-            buf = (self._capacity or {}).get(name)
-            if isinstance(buf, np.memmap):
-                release_pages(buf)
+    @property
+    def spilled(self) -> tuple[str, ...]:
+        """The arrays kept in files (`spill_to`)."""
+        return tuple(self._spill_files)
+
+    def pixels(self, name: str, rows: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """Array `name` ("images" or "depths_mm") at pixel `pixels[i]` (v * W + u) of frame
+        `rows[i]`: (n, 3) uint8 colour or (n,) uint16 depth. A spilled array is read with one
+        pread a pixel, which never maps its pages into the process."""
+        spill = self._spill_files.get(name)
+        if spill is not None and hasattr(os, "pread"):
+            return spill.gather(rows, pixels)
+        arr = getattr(self, name)
+        return arr.reshape((len(arr), -1) + arr.shape[3:])[rows, pixels]
+
+    def _put(self, name: str, row: int, value: np.ndarray) -> None:
+        """Row `row` of array `name` = value; a spilled array's with pwrite (its map stays untouched)."""
+        spill = self._spill_files.get(name)
+        if spill is not None and hasattr(os, "pwrite"):
+            spill.write(row, value[None])
+        else:
+            getattr(self, name)[row] = value
 
     def _buffer(self, name: str, arr: np.ndarray, cap: int) -> np.ndarray:
-        """A zeroed (cap, ...) buffer for array `name`: in memory, or a spilled file's map."""
+        """A (cap, ...) buffer for array `name` holding `arr`'s rows first: in memory, or a spilled
+        file's map (a file once spilled grows in place, its rows already written)."""
+        spill = self._spill_files.get(name)
         shape = (cap,) + arr.shape[1:]
         nbytes = int(np.prod(shape, dtype=np.int64)) * arr.dtype.itemsize
-        if self._spill is None or name not in self._PIXELS or nbytes <= self._spill[1]:
-            return np.zeros(shape, dtype=arr.dtype)
-        import tempfile
-
-        folder = self._spill[0]
-        folder.mkdir(parents=True, exist_ok=True)
-        fd, path = tempfile.mkstemp(prefix=f".frames-{name}-", suffix=".bin", dir=folder)
-        try:
-            os.ftruncate(fd, nbytes)  # sparse: zero-filled, no disk written until a page is
-            buf = np.memmap(path, dtype=arr.dtype, mode="r+", shape=shape)
-        finally:
-            os.close(fd)
-            os.unlink(path)  # the map keeps the file's blocks; the name is gone (no litter after a kill)
-        return buf
+        if spill is None and (self._spill is None or name not in self._PIXELS or nbytes <= self._spill[1]):
+            buf = np.zeros(shape, dtype=arr.dtype)
+            buf[: len(arr)] = arr
+            return buf
+        if spill is None:
+            spill = self._spill_files[name] = SpillFile(self._spill[0], name, arr.dtype, arr.shape[1:])
+            spill.write(0, arr)  # the rows held in memory until now
+        return spill.resize(cap)
 
     def _grow(self, n: int) -> None:
         """Make every array n rows long (views of buffers, reallocated at twice the size when full)."""
@@ -170,11 +223,8 @@ class FrameStore:
             fresh = {}
             for name in self._ARRAYS:
                 arr = getattr(self, name)
-                if arr is None:
-                    continue
-                buf = self._buffer(name, arr, cap)
-                buf[: len(arr)] = arr
-                fresh[name] = buf
+                if arr is not None:
+                    fresh[name] = self._buffer(name, arr, cap)
             self._capacity = buffers = fresh
         for name, buf in buffers.items():
             setattr(self, name, buf[:n])
