@@ -12,6 +12,7 @@ import torch
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.stereo import StereoBuilder, StereoConfig, StereoDepth
 from virus_nerf.stereo import triangulation as tri
+from virus_nerf.stereo.depth import _extend
 from virus_nerf.stereo.tracking import epipolar_distance, fundamental, rotation_homography
 
 F_PX = 200.0
@@ -271,3 +272,20 @@ def test_mapper_gets_stereo_targets_while_frames_arrive():
     assert mapper.stereo.frames.max() < mapper.frames
     terms = mapper.train_step(0.0)
     assert terms.stereo is not None and float(terms.stereo.detach()) > 0.0
+
+
+def test_targets_extended_by_a_flush_stay_sorted_by_frame_and_keep_their_order():
+    """Issue 39 (D63): a flush inserts its targets into the sorted ones; equal frames keep the
+    earlier flush's targets first, and each flush's own order (hand-made case)."""
+    def depth(frames, ranges):
+        n = len(frames)
+        return StereoDepth(np.array(frames, np.int64), np.stack([np.array(ranges, np.float32)] * 2, axis=1),
+                           np.array(ranges, np.float32), np.array(ranges, np.float32) / 10, np.zeros((n, 3), np.float32))
+
+    old = depth([0, 2, 2, 5], [1.0, 2.0, 2.5, 5.0])
+    new = depth([5, 2, 7, 0, 2], [5.5, 2.7, 7.0, 0.5, 2.9])
+    out = _extend(old, new)
+    assert out.frames.tolist() == [0, 0, 2, 2, 2, 2, 5, 5, 7]
+    assert out.ranges.tolist() == pytest.approx([1.0, 0.5, 2.0, 2.5, 2.7, 2.9, 5.0, 5.5, 7.0])
+    assert out.uv[:, 1].tolist() == out.ranges.tolist() and out.sigmas.tolist() == pytest.approx(out.ranges / 10)
+    assert len(out.points) == 9 and _extend(out, StereoDepth.empty()).frames.tolist() == out.frames.tolist()
