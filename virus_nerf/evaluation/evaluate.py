@@ -161,7 +161,6 @@ class EvaluationResult:
     config: EvaluationConfig
     points: list[TestPointScans]  # the test points whose scans were kept (all, or `evaluate`'s keep_scans)
     metrics: dict[str, SensorMetrics]  # name -> per-zone metrics, pooled over test points (protocol `gt`)
-    samples: dict[str, NNDSamples] = field(repr=False, default_factory=dict)
     gt: str = "map"  # the protocol of `metrics`
     by_gt: dict[str, dict[str, SensorMetrics]] = field(default_factory=dict)  # every protocol -> metrics
     n_points: int | None = None  # test points scored (None: len(points))
@@ -310,12 +309,13 @@ def evaluate(
                 primary_scans = own
         if i in kept:
             per_point.append(TestPointScans(ground_truth=pg.primary, scans=primary_scans, all_gt=dict(pg.by_protocol)))
-    pooled = {p: {n: NNDSamples.concat(v) for n, v in per.items()} for p, per in samples.items()}
-    by_gt = {p: {n: zone_metrics(s, config.zones, config.inlier_m) for n, s in per.items()}
-             for p, per in pooled.items()}
+    by_gt: dict[str, dict[str, SensorMetrics]] = {p: {} for p in protocols}
+    for p, per in samples.items():
+        for name in list(per):  # one sensor's pool at a time, its per-point parts dropped first (D63)
+            by_gt[p][name] = zone_metrics(NNDSamples.concat(per.pop(name)), config.zones, config.inlier_m)
     first = protocols[0]
-    return EvaluationResult(config=config, points=per_point, metrics=by_gt[first], samples=pooled[first],
-                            gt=first, by_gt=by_gt, n_points=len(gts))
+    return EvaluationResult(config=config, points=per_point, metrics=by_gt[first], gt=first, by_gt=by_gt,
+                            n_points=len(gts))
 
 
 def spread_indices(n: int, k: int | None) -> np.ndarray:
