@@ -72,8 +72,8 @@ class SpillFile:
     training path writes a frame and reads its sampled pixels with pwrite / pread, so the file's
     pages live in the kernel's page cache only and never in the process's RSS. (Reading a mapping
     instead maps 16 cached pages around each faulting one: a step's 2048 random pixels mapped
-    ~128 MB, and the RSS followed the drive, D55.) `view` still maps it for the rare whole-array
-    readers (tests, a store copied whole)."""
+    ~128 MB, and the RSS followed the drive, D55.) The store's array is still a map of the file
+    (`resize`) for the rare whole-array readers (tests, a store copied whole)."""
 
     def __init__(self, folder: Path, name: str, dtype: np.dtype, row_shape: tuple[int, ...]):
         import tempfile
