@@ -162,6 +162,38 @@ def test_play_map_and_a_late_reader_get_the_map_over_loopback_dds(office_bag, ti
     assert f"maps published on /map; final map in {out / 'map'}" in stdout
 
 
+def test_the_node_stopped_by_sigterm_keeps_its_final_map_in_one_line(office_bag, tiny_office, tmp_path):
+    """Issue 39: `systemctl stop` / `docker stop` (SIGTERM) while the node maps: the final map and
+    stream.json on disk, one line saying where, exit 143, no traceback."""
+    import signal
+
+    domain, out = _domain(), tmp_path / "node"
+    node = _node(out, domain)  # runs until stopped
+    try:
+        _wait_for(node, "node up on ROS 2 domain")
+        player = dds.Participant("jazzy", domain, loopback=True)
+        try:
+            from virus_nerf.ros2.play import play
+
+            play(office_bag, player, delay_s=1.5, log=lambda line: None)
+        finally:
+            player.close()
+        start = time.monotonic()
+        while not list((out / "snapshots").glob("[0-9]*")) and time.monotonic() - start < 60:
+            time.sleep(0.2)  # a first map, so there is one to keep
+        node.send_signal(signal.SIGTERM)
+        stdout, stderr = node.communicate(timeout=60)
+    finally:
+        if node.poll() is None:
+            node.kill()
+    assert node.returncode == 143 and "Traceback" not in stderr, stderr
+    last = stdout.splitlines()[-1]
+    assert last.startswith("ros2: stopped by SIGTERM; ") and f"final map in {out / 'map'}" in last, last
+    assert (out / "map" / "map.pgm").is_file() and (out / "map" / "map.yaml").is_file()
+    report = json.loads((out / "stream.json").read_text())
+    assert report["stopped"] == "interrupted (SIGTERM)" and report["final"] == str(out / "map")
+
+
 def test_ros2_flags_are_refused_in_one_line(tmp_path):
     code, _, err = run_cli(["ros2", "--out", tmp_path / "o"])
     assert code == 2 and "--poses tf needs --tf-child FRAME" in err and "Traceback" not in err
