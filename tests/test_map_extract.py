@@ -162,8 +162,56 @@ def test_what_the_rays_below_the_band_hit_is_occupied_and_their_passes_claim_not
     row = m.image[::-1].T[:, 5]  # [ix] on the scan's row, y in [0.25, 0.5)
     # the band's rays pass from the camera (x 0.25) to a pixel before their end (x 2.625) and end at
     # it (x in [3, 3.25)); the low rays end at the box's front (x in [2, 2.25)), which the band
-    # passed: occupied there, free behind it (the low rays' passes claim nothing)
-    assert list(row[1:13]) == [FREE] * 7 + [OCCUPIED, FREE, FREE, UNKNOWN, OCCUPIED]
+    # passed: occupied there; behind it no low ray looked, so what the band passed there is
+    # unknown (MAP_LOW_SHADOW_M, 1 m from the front: x up to 3.1); the low rays' passes claim nothing
+    assert list(row[1:13]) == [FREE] * 7 + [OCCUPIED, UNKNOWN, UNKNOWN, UNKNOWN, OCCUPIED]
+
+
+class _BoxSeenFromBothSides:
+    """A range model: walls at x = -0.3 m and 4.2 m; between them a box over x in [2.1, 2.6]
+    (every y) whose top is 10 cm below the camera: rays starting below 0.9 m meet its front from
+    the -x side and its back from the +x side."""
+
+    def ranges(self, origins, directions):
+        o, d = np.asarray(origins), np.asarray(directions)[:, 0]
+        low = o[:, 2] < 0.9
+        with np.errstate(divide="ignore", invalid="ignore"):
+            fwd = np.where(low & (o[:, 0] < 2.1), (2.1 - o[:, 0]) / d, (4.2 - o[:, 0]) / d)
+            back = np.where(low & (o[:, 0] > 2.6), (o[:, 0] - 2.6) / -d, (o[:, 0] + 0.3) / -d)
+        return np.where(d > 1e-9, fwd, np.where(d < -1e-9, back, np.nan))
+
+
+def test_behind_what_the_low_rays_met_only_what_other_low_rays_passed_stays_free():
+    # cameras at x 0.3 and 3.8 (y 0.3, 1 m high), 0.25 m pixels over x in [-0.5, 4.5), pixel i
+    # holding x in [-0.5 + i / 4, -0.25 + i / 4). The band passes over the box from both cameras
+    # and ends at the walls (pixels 0 and 18; pixel 1 is the one before the -x wall, which the
+    # pass points, every half pixel up to a pixel short of the end, reach from neither camera).
+    # The low rays of the first camera end at the box's front (x 2.1, pixel 10) and pass pixels
+    # 3-8; those of the second end at its back (x 2.6, pixel 12) and pass pixels 14-17. Behind the
+    # front (x 2.1-3.1: pixels 10-13) and behind the back (x 2.6-1.6: pixels 12 down to 8), what no
+    # low ray passed is unknown: the box's inside (pixel 11) and the pixel before each face (9,
+    # 13); the two faces are occupied; pixel 8 stays free (passed by the first camera's low rays).
+    cameras = np.array([[0.3, 0.3, 1.0], [3.8, 0.3, 1.0]])
+    lo, hi, res = np.array([-0.5, -1.0]), np.array([4.5, 1.0]), 0.25  # 20 x 8 pixels
+    m = occupancy_map(_BoxSeenFromBothSides(), cameras, lo, hi, res, 360, 30, np.ones((20, 8), dtype=bool))
+    row = m.image[::-1].T[:, 5]  # [ix] on the cameras' row, y in [0.25, 0.5)
+    assert list(row[:19]) == ([OCCUPIED, UNKNOWN] + [FREE] * 7 + [UNKNOWN, OCCUPIED, UNKNOWN, OCCUPIED, UNKNOWN]
+                              + [FREE] * 4 + [OCCUPIED])
+
+
+def test_behind_ends_covers_the_depth_beyond_the_ends_of_rays_that_met_an_occupied_pixel():
+    from virus_nerf.maps.extract import behind_ends
+
+    occupied = np.zeros((10, 2), dtype=bool)
+    occupied[2, 0] = True  # x in [1, 1.5)
+    origins = np.array([[0.0, 0.25], [0.0, 0.75]])
+    dirs = np.array([[1.0, 0.0], [1.0, 0.0]])
+    # the first ray ends in the occupied pixel (x 1.2): 1 m behind it is x 1.2 .. 2.2, pixels 2-4;
+    # the second ends at the same x in a pixel that is not occupied: nothing behind it
+    out = behind_ends(origins, dirs, np.array([1.2, 1.2]), occupied, 1.0, np.zeros(2), np.array([5.0, 1.0]), 0.5)
+    assert np.flatnonzero(out[:, 0]).tolist() == [2, 3, 4] and not out[:, 1].any()
+    assert not behind_ends(origins, dirs, np.array([1.2, 1.2]), occupied, 0.0, np.zeros(2),
+                           np.array([5.0, 1.0]), 0.5).any()
 
 
 def test_scan_rays_of_several_positions_turn_over_heights_and_start_at_the_first_angle():

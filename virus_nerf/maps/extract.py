@@ -3,8 +3,9 @@
 
 The 2D map of a trained model is its own 360 deg scans in the camera-height band from evenly
 spread camera positions, rasterised (maps/occupancy.py: passed cells free, end cells occupied),
-occupied where its scans just below the band end (the scan rule; what the robot's body meets), then unknown
-wherever no sensor looked (maps/observed.py), occupied wherever the infrared or ultrasonic
+occupied where its scans just below the band end (the scan rule; what the robot's body meets) and
+unknown up to 1 m behind what they met where none of them passed (what the body's rays did not see),
+then unknown wherever no sensor looked (maps/observed.py), occupied wherever the infrared or ultrasonic
 sensors touched an obstacle the scans called free (maps/planner.py). The probability map is the VIRUS grid's
 occupancy probability at camera height, 0.5 where no sensor looked. The caller chooses the
 positions and the observed mask (a run: the recording's frames; the Mapper: the frames it has).
@@ -22,10 +23,14 @@ from virus_nerf.maps.occupancy import (
     OCCUPIED,
     UNKNOWN,
     OccupancyMap2D,
+    from_image,
     probability_slice,
     raster_shape,
     scale_map,
+    scan_counts,
     scan_occupancy,
+    scan_rule_occupied,
+    to_image,
 )
 from virus_nerf.maps.planner import RangeEvidence, planner_image
 from virus_nerf.maps.scans import scan_rays
@@ -48,6 +53,10 @@ MAP_SCAN_HEIGHTS_M = (-0.05, 0.0, 0.05)
 # they point between the band's rays (D60: goods and pallet tops just below camera height)
 MAP_LOW_HEIGHTS_M = (-0.15, -0.3)
 MAP_LOW_RAYS_SHARE = 0.5  # low rays per band ray
+# behind what the low rays met (a pixel they call occupied), the band's free pixels that no low ray
+# passed are unknown up to this far (m): the band passes over a box whose top is at camera height,
+# and the robot's body cannot see past its front (D64: the warehouse's goods tops)
+MAP_LOW_SHADOW_M = 1.0
 
 
 def check_raster(what: str, lo: np.ndarray, hi: np.ndarray, resolution, limit: int | None = None) -> tuple[int, int]:
@@ -95,7 +104,9 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     MAP_SCAN_HEIGHTS_M (maps.occupancy.scan_occupancy: passed cells free, end cells occupied; the
     map stands for the camera-height band, not one plane, D56), then occupied where the band's
     rays said free and the low rays (MAP_LOW_HEIGHTS_M, half a band ray's angle apart from them)
-    by the same rule said occupied (D60). One render for all."""
+    by the same rule said occupied (D60), and unknown where the band said free up to
+    MAP_LOW_SHADOW_M behind the low rays' occupied ends and no low ray passed (D64). One render
+    for all."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     band_o, band_d = scan_rays(positions, n_rays, MAP_SCAN_HEIGHTS_M)  # (N n_rays, 3) each
     low_o, low_d = scan_rays(positions, max(1, round(n_rays * MAP_LOW_RAYS_SHARE)), MAP_LOW_HEIGHTS_M,
@@ -104,9 +115,36 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
                         dtype=np.float64).reshape(-1) if len(positions) else np.zeros(0)
     band_r, low_r = ranges[: len(band_o)], ranges[len(band_o) :]
     m = scan_occupancy(band_o[:, :2], band_d[:, :2], band_r, lo, hi, resolution)
-    low = scan_occupancy(low_o[:, :2], low_d[:, :2], low_r, lo, hi, resolution).image  # the same scan rule
-    m.image = np.where((low == OCCUPIED) & (m.image == FREE), OCCUPIED, m.image).astype(np.uint8)
+    grid = from_image(m.image).copy()  # [ix, iy]
+    low_passes, low_hits = scan_counts(low_o[:, :2], low_d[:, :2], low_r, lo, hi, resolution)
+    low_occupied = scan_rule_occupied(low_passes, low_hits)  # the same scan rule as the band's
+    grid[low_occupied & (grid == FREE)] = OCCUPIED
+    behind = behind_ends(low_o[:, :2], low_d[:, :2], low_r, low_occupied, MAP_LOW_SHADOW_M, lo, hi, resolution)
+    grid[behind & (low_passes == 0) & (grid == FREE)] = UNKNOWN
+    m.image = to_image(grid)
     return m
+
+
+def behind_ends(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray, occupied: np.ndarray,
+                depth: float, lo: np.ndarray, hi: np.ndarray, resolution: float) -> np.ndarray:
+    """(nx, ny) bool [ix, iy]: the pixels up to `depth` m beyond the ends of the 2D rays (origins
+    (N, 2), directions (N, 2) unit, ranges (N,) m) that ended in an `occupied` pixel ((nx, ny) bool):
+    what those rays did not see behind the surface they met."""
+    ranges = np.asarray(ranges, dtype=np.float64)
+    ok = np.isfinite(ranges) & (ranges > 0)
+    if depth <= 0 or not ok.any():
+        return np.zeros(occupied.shape, dtype=bool)
+    d = np.asarray(directions, dtype=np.float64)[ok]
+    ends = np.asarray(origins, dtype=np.float64)[ok] + d * ranges[ok, None]  # (N, 2)
+    ij = np.floor((ends - lo[:2]) / resolution).astype(np.int64)
+    inside = np.all((ij >= 0) & (ij < occupied.shape), axis=1)
+    stopped = np.zeros(len(ends), dtype=bool)
+    stopped[inside] = occupied[ij[inside, 0], ij[inside, 1]]
+    # a ray from each end whose pass points (every half pixel, stopping a pixel short of its end:
+    # scan_counts) reach `depth` m
+    passes, _ = scan_counts(ends[stopped], d[stopped], np.full(int(stopped.sum()), depth + 1.5 * resolution), lo,
+                            hi, resolution)
+    return passes > 0
 
 
 def occupancy_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int,

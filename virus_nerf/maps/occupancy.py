@@ -103,6 +103,12 @@ def _bounded_chunks(counts: np.ndarray, budget: int):
         start = stop
 
 
+def scan_rule_occupied(passes: np.ndarray, hits: np.ndarray) -> np.ndarray:
+    """The scan rule (nx, ny) bool: a pixel where rays ended at least half as often as rays
+    passed it is occupied (a floater that most rays pass is not an obstacle)."""
+    return (hits > 0) & (hits >= 0.5 * passes)
+
+
 def scan_occupancy(
     origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float
 ) -> OccupancyMap2D:
@@ -111,7 +117,7 @@ def scan_occupancy(
     passes, hits = scan_counts(origins, directions, ranges, lo, hi, resolution)
     img = np.full(passes.shape, UNKNOWN, dtype=np.uint8)
     img[passes > 0] = FREE
-    img[(hits > 0) & (hits >= 0.5 * passes)] = OCCUPIED
+    img[scan_rule_occupied(passes, hits)] = OCCUPIED
     return OccupancyMap2D(image=to_image(img), resolution=resolution, origin=(float(lo[0]), float(lo[1])))
 
 
