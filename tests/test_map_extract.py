@@ -222,3 +222,53 @@ def test_scan_rays_of_several_positions_turn_over_heights_and_start_at_the_first
     assert dirs[:4] == pytest.approx(np.array([[h, h, 0], [-h, h, 0], [-h, -h, 0], [h, -h, 0]]))
     assert np.array_equal(dirs[4:], dirs[:4])
     assert origins[:, 2] == pytest.approx([0.7, 0.85, 0.7, 0.85] * 2) and origins[4:, 0] == pytest.approx([2.0] * 4)
+
+
+def test_grown_in_z_occupies_the_cells_above_and_below_each_occupied_cell():
+    import torch
+
+    from virus_nerf.maps.extract import grown_in_z
+
+    occ = torch.zeros((2, 1, 6), dtype=torch.bool)
+    occ[0, 0, 2] = True
+    occ[1, 0, 0] = True
+    grown = grown_in_z(occ, 1)
+    assert grown[0, 0].tolist() == [False, True, True, True, False, False]
+    assert grown[1, 0].tolist() == [True, True, False, False, False, False]  # clipped at the bottom
+    assert grown_in_z(occ, 2)[0, 0].tolist() == [True, True, True, True, True, False]
+    assert not occ[0, 0, 1]  # the input is not changed
+
+
+class _GridScene:
+    """A range model with an occupancy grid of 5 cells in z over z in [0, 1): a wall at x = 2 m
+    that a ray meets only if the cell of its height is occupied (as the marcher skips empty
+    cells); the grid holds only the cell z in [0.6, 0.8)."""
+
+    class Grid:
+        occupied = None
+
+    def __init__(self):
+        import torch
+
+        self.grid = self.Grid()
+        self.grid.occupied = torch.zeros((1, 1, 5), dtype=torch.bool)
+        self.grid.occupied[0, 0, 3] = True
+
+    def ranges(self, origins, directions, occupied=None):
+        occ = (self.grid.occupied if occupied is None else occupied)[0, 0].numpy()
+        o, d = np.asarray(origins), np.asarray(directions)[:, 0]
+        cell = np.clip(np.floor(o[:, 2] / 0.2).astype(int), 0, 4)
+        t = (2.0 - o[:, 0]) / np.where(d > 1e-9, d, np.nan)
+        return np.where((d > 1e-9) & occ[cell], t, np.nan)
+
+
+def test_the_low_rays_march_the_grid_grown_by_a_cell_in_z_and_the_band_the_grid_as_trained():
+    from virus_nerf.maps.extract import low_ranges
+
+    scene = _GridScene()
+    origins = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.9], [0.0, 0.0, 0.3]])  # cells 2, 4 and 1
+    dirs = np.array([[1.0, 0.0, 0.0]] * 3)
+    assert np.isnan(scene.ranges(origins, dirs)).all()  # as trained: only cell 3 is occupied
+    r = low_ranges(scene, origins, dirs)  # grown: cells 2, 3 and 4
+    assert r[0] == pytest.approx(2.0) and r[1] == pytest.approx(2.0) and np.isnan(r[2])
+    assert low_ranges(_LowWall(), origins[:1], dirs[:1]) == pytest.approx([2.0])  # a model without a grid: as before

@@ -71,18 +71,21 @@ class SceneModel:
         generator: torch.Generator | None = None,
         rgb_rays: torch.Tensor | None = None,
         visible_share: float = 1.0,
+        occupied: torch.Tensor | None = None,
     ) -> tuple[RenderOutput, RenderStats]:
         """origins, directions (R, 3) -> RenderOutput (rgb (R,3), depth (R,), opacity (R,)).
 
         rgb_rays (R,) bool, optional: rays whose colour is needed; the others are rendered for
         depth only (their rgb is 0 and carries no gradient). visible_share: the previous training
         render's `RenderStats.visible_share`, which picks this one's path when hidden samples are
-        skipped (below TWO_PASS_BELOW: a density pre-pass). The model keeps no state of its own.
+        skipped (below TWO_PASS_BELOW: a density pre-pass). occupied (rx, ry, rz) bool, optional:
+        the cells to march instead of the grid's own (the map's low scans, maps/extract.py). The
+        model keeps no state of its own.
         """
         samples = march_rays(
             origins,
             directions,
-            self.grid.occupied,
+            self.grid.occupied if occupied is None else occupied,
             self.grid.spec,
             near=self.near,
             far=1e4,
@@ -142,15 +145,17 @@ class SceneModel:
         return out, stats
 
     @torch.no_grad()
-    def ranges(self, origins: np.ndarray, directions: np.ndarray, chunk: int = 8192) -> np.ndarray:
-        """Scan depth (N,) metres along unit rays; NaN where the model sees nothing (docs/method.md 3.1)."""
+    def ranges(self, origins: np.ndarray, directions: np.ndarray, chunk: int = 8192,
+               occupied: torch.Tensor | None = None) -> np.ndarray:
+        """Scan depth (N,) metres along unit rays; NaN where the model sees nothing (docs/method.md 3.1).
+        occupied: the cells to march instead of the grid's own (`render`)."""
         out = np.full(len(origins), np.nan)
         o_all = torch.as_tensor(np.asarray(origins, dtype=np.float32), device=self.device)
         d_all = torch.as_tensor(np.asarray(directions, dtype=np.float32), device=self.device)
         for start in range(0, len(origins), chunk):
             o, d = o_all[start : start + chunk], d_all[start : start + chunk]
             no_colour = torch.zeros(o.shape[0], dtype=torch.bool, device=self.device)  # scans need depth only
-            r, _ = self.render(o, d, generator=None, rgb_rays=no_colour)
+            r, _ = self.render(o, d, generator=None, rgb_rays=no_colour, occupied=occupied)
             out[start : start + len(o)] = scan_depth(r, self.min_opacity).double().cpu().numpy()
         return out
 

@@ -14,6 +14,7 @@ positions and the observed mask (a run: the recording's frames; the Mapper: the 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from virus_nerf.errors import UsageError
 from virus_nerf.maps.observed import apply_mask
@@ -57,6 +58,10 @@ MAP_LOW_RAYS_SHARE = 0.5  # low rays per band ray
 # passed are unknown up to this far (m): the band passes over a box whose top is at camera height,
 # and the robot's body cannot see past its front (D64: the warehouse's goods tops)
 MAP_LOW_SHADOW_M = 1.0
+# the low rays march over the grid's occupied cells grown by this many cells up and down: the
+# fitted warehouse's 25 cm cells beside a box whose top is at camera height are empty though the
+# field holds the box, and a low ray skipped it (D66); the band's rays march the grid as trained
+MAP_LOW_GRID_GROW_Z = 1
 
 
 def check_raster(what: str, lo: np.ndarray, hi: np.ndarray, resolution, limit: int | None = None) -> tuple[int, int]:
@@ -111,9 +116,9 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     band_o, band_d = scan_rays(positions, n_rays, MAP_SCAN_HEIGHTS_M)  # (N n_rays, 3) each
     low_o, low_d = scan_rays(positions, max(1, round(n_rays * MAP_LOW_RAYS_SHARE)), MAP_LOW_HEIGHTS_M,
                              first_angle=np.pi / n_rays)  # between the band's rays: a leg they pass between
-    ranges = np.asarray(model.ranges(np.concatenate([band_o, low_o]), np.concatenate([band_d, low_d])),
-                        dtype=np.float64).reshape(-1) if len(positions) else np.zeros(0)
-    band_r, low_r = ranges[: len(band_o)], ranges[len(band_o) :]
+    band_r = np.asarray(model.ranges(band_o, band_d), dtype=np.float64).reshape(-1) if len(positions) \
+        else np.zeros(0)
+    low_r = low_ranges(model, low_o, low_d) if len(positions) else np.zeros(0)
     m = scan_occupancy(band_o[:, :2], band_d[:, :2], band_r, lo, hi, resolution)
     grid = from_image(m.image).copy()  # [ix, iy]
     low_passes, low_hits = scan_counts(low_o[:, :2], low_d[:, :2], low_r, lo, hi, resolution)
@@ -123,6 +128,29 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     grid[behind & (low_passes == 0) & (grid == FREE)] = UNKNOWN
     m.image = to_image(grid)
     return m
+
+
+def low_ranges(model, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(N,) ranges (m) of the low rays (origins, directions (N, 3)): a model with an occupancy
+    grid marches them over its occupied cells grown by MAP_LOW_GRID_GROW_Z cells up and down
+    (`grown_in_z`); any other range model (an analytic scene) answers as for every ray."""
+    grid = getattr(model, "grid", None)
+    if grid is None or MAP_LOW_GRID_GROW_Z <= 0:
+        return np.asarray(model.ranges(origins, directions), dtype=np.float64).reshape(-1)
+    occupied = grown_in_z(grid.occupied, MAP_LOW_GRID_GROW_Z)
+    return np.asarray(model.ranges(origins, directions, occupied=occupied), dtype=np.float64).reshape(-1)
+
+
+def grown_in_z(occupied: torch.Tensor, cells: int) -> torch.Tensor:
+    """(rx, ry, rz) bool cells -> the same with every occupied cell's `cells` neighbours above
+    and below occupied too (on the grid's own device)."""
+    out = occupied.clone()
+    for k in range(1, cells + 1):
+        if k >= occupied.shape[2]:
+            break
+        out[:, :, k:] |= occupied[:, :, :-k]
+        out[:, :, :-k] |= occupied[:, :, k:]
+    return out
 
 
 def behind_ends(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray, occupied: np.ndarray,
