@@ -110,8 +110,8 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     map stands for the camera-height band, not one plane, D56), then occupied where the band's
     rays said free and the low rays (MAP_LOW_HEIGHTS_M, half a band ray's angle apart from them)
     by the same rule said occupied (D60), and unknown where the band said free up to
-    MAP_LOW_SHADOW_M behind the low rays' occupied ends and no low ray passed (D64). One render
-    for all."""
+    MAP_LOW_SHADOW_M behind the low rays' occupied ends and no low ray passed (D64). Two renders:
+    the band's rays march the grid as trained, the low rays the grid grown in z (`low_ranges`, D66)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     band_o, band_d = scan_rays(positions, n_rays, MAP_SCAN_HEIGHTS_M)  # (N n_rays, 3) each
     low_o, low_d = scan_rays(positions, max(1, round(n_rays * MAP_LOW_RAYS_SHARE)), MAP_LOW_HEIGHTS_M,
