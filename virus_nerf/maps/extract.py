@@ -27,6 +27,7 @@ from virus_nerf.maps.occupancy import (
     from_image,
     probability_slice,
     raster_shape,
+    ray_ends,
     scale_map,
     scan_counts,
     scan_occupancy,
@@ -135,10 +136,9 @@ def low_ranges(model, origins: np.ndarray, directions: np.ndarray) -> np.ndarray
     grid marches them over its occupied cells grown by MAP_LOW_GRID_GROW_Z cells up and down
     (`grown_in_z`); any other range model (an analytic scene) answers as for every ray."""
     grid = getattr(model, "grid", None)
-    if grid is None or MAP_LOW_GRID_GROW_Z <= 0:
-        return np.asarray(model.ranges(origins, directions), dtype=np.float64).reshape(-1)
-    occupied = grown_in_z(grid.occupied, MAP_LOW_GRID_GROW_Z)
-    return np.asarray(model.ranges(origins, directions, occupied=occupied), dtype=np.float64).reshape(-1)
+    grown = {} if grid is None or MAP_LOW_GRID_GROW_Z <= 0 \
+        else {"occupied": grown_in_z(grid.occupied, MAP_LOW_GRID_GROW_Z)}
+    return np.asarray(model.ranges(origins, directions, **grown), dtype=np.float64).reshape(-1)
 
 
 def grown_in_z(occupied: torch.Tensor, cells: int) -> torch.Tensor:
@@ -158,14 +158,10 @@ def behind_ends(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray,
     """(nx, ny) bool [ix, iy]: the pixels up to `depth` m beyond the ends of the 2D rays (origins
     (N, 2), directions (N, 2) unit, ranges (N,) m) that ended in an `occupied` pixel ((nx, ny) bool):
     what those rays did not see behind the surface they met."""
-    ranges = np.asarray(ranges, dtype=np.float64)
-    ok = np.isfinite(ranges) & (ranges > 0)
+    ok, ends, ij, inside = ray_ends(origins, directions, ranges, lo[:2], resolution, occupied.shape)
     if depth <= 0 or not ok.any():
         return np.zeros(occupied.shape, dtype=bool)
     d = np.asarray(directions, dtype=np.float64)[ok]
-    ends = np.asarray(origins, dtype=np.float64)[ok] + d * ranges[ok, None]  # (N, 2)
-    ij = np.floor((ends - lo[:2]) / resolution).astype(np.int64)
-    inside = np.all((ij >= 0) & (ij < occupied.shape), axis=1)
     stopped = np.zeros(len(ends), dtype=bool)
     stopped[inside] = occupied[ij[inside, 0], ij[inside, 1]]
     # a ray from each end whose pass points (every half pixel, stopping a pixel short of its end:

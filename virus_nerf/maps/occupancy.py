@@ -55,6 +55,18 @@ def from_image(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.flipud(np.asarray(image)).T)
 
 
+def ray_ends(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray, lo: np.ndarray, resolution: float,
+             shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The 2D rays (origins (N, 2), directions (N, 2) unit, ranges (N,) m) with a finite, positive
+    range: which they are ((N,) bool, M of them), their ends (M, 2) m, their end pixels (M, 2) int
+    [ix, iy] of the raster at `lo`, and whether each end pixel lies inside `shape` (M,) bool."""
+    ranges = np.asarray(ranges, dtype=np.float64)
+    ok = np.isfinite(ranges) & (ranges > 0)
+    end = np.asarray(origins)[ok] + np.asarray(directions)[ok] * ranges[ok, None]
+    ij = np.floor((end - lo) / resolution).astype(np.int64)
+    return ok, end, ij, np.all((ij >= 0) & (ij < shape), axis=1)
+
+
 def scan_counts(
     origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -65,12 +77,8 @@ def scan_counts(
     shape = raster_shape(lo, hi, resolution)  # (nx, ny), as every other raster of the box (observed mask)
     passes = np.zeros(shape, dtype=np.int64)
     hits = np.zeros(shape, dtype=np.int64)
-    ranges = np.asarray(ranges, dtype=np.float64)
-    ok = np.isfinite(ranges) & (ranges > 0)
-    o, d, r = np.asarray(origins)[ok], np.asarray(directions)[ok], ranges[ok]
-    end = o + d * r[:, None]
-    ij = np.floor((end - lo) / resolution).astype(int)
-    inside = np.all((ij >= 0) & (ij < shape), axis=1)
+    ok, _, ij, inside = ray_ends(origins, directions, ranges, lo, resolution, shape)
+    o, d, r = np.asarray(origins)[ok], np.asarray(directions)[ok], np.asarray(ranges, dtype=np.float64)[ok]
     hits += _pixel_counts(ij[inside, 0], ij[inside, 1], shape)
     step = resolution / 2
     n_steps = np.floor(np.maximum(r - resolution, 0) / step).astype(np.int64)  # (N,) pass points a ray
