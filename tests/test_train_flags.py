@@ -42,6 +42,11 @@ def test_a_flag_given_replaces_one_value_and_one_not_given_keeps_the_files(tmp_p
     assert cfg.march == TrainConfig().march  # no flag, not in the file: the default
     assert resolve(config=path) == load_json_config(TrainConfig, path)  # no flag: the file as it is
     assert resolve() == TrainConfig()
+    # a file that sets no time budget: --max-steps bounds the run by steps alone, as without a file
+    path.write_text(json.dumps({"virus_grid": {"warmup_steps": 660}}))
+    cfg = resolve("--max-steps", "9", config=path)
+    assert (cfg.max_steps, cfg.max_time, cfg.virus_grid.warmup_steps) == (9, None, 660)
+    assert resolve(config=path).max_time == TrainConfig().max_time  # no --max-steps: the default budget
 
 
 def test_the_short_flags_are_the_derived_ones_and_keep_their_meaning():

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import json
 from pathlib import Path
 from typing import Annotated
 
@@ -38,8 +39,9 @@ from virus_nerf.utils.parent import watch_parent
 # evaluation zones (a list of objects) by a config file only.
 TRAIN_FLAG_SPECS: dict[str, FlagSpec | None] = {
     "sensors": FlagSpec(type=str, metavar="NAMES", help=f"Sensors to train on, comma-separated, of {','.join(SENSORS)}."),
-    "max_steps": FlagSpec(help="Training steps. Alone (no --max-time, no --config, no --resume) it also sets "
-                               "max_time None: a run bounded by steps, bit-reproducible on CPU."),
+    "max_steps": FlagSpec(help="Training steps. With no time budget given (no --max-time, no max_time in the "
+                               "--config file, no --resume) it also sets max_time None: a run bounded by steps, "
+                               "bit-reproducible on CPU."),
     "playback_speed": FlagSpec(name="playback", help="Online mode: recording seconds per training second (the "
                                                      "frame feeder's speed, as map-bag's --playback on the wall clock)."),
     "evaluation.gt": None,
@@ -86,12 +88,15 @@ def _resolve_config(config: Path | None, given: dict, flags: dict, base=None) ->
     defaults, with the fields the flags give on top; a flag not given keeps the value below it."""
     from virus_nerf.config_io import load_json_config
 
+    file_sets_time = False
     if config is not None:
         cfg = load_json_config(TrainConfig, config)
+        file_sets_time = "max_time" in json.loads(Path(config).read_text())  # valid: it was just read
     else:
         cfg = base if base is not None else TrainConfig()
-    if given.get("max_steps") is not None and "max_time" not in given and config is None and base is None:
-        given = {**given, "max_time": None}  # --max-steps alone: a step-bounded, bit-reproducible run
+    if given.get("max_steps") is not None and "max_time" not in given and not file_sets_time and base is None:
+        # --max-steps with no time budget given (flag or file): a step-bounded, bit-reproducible run
+        given = {**given, "max_time": None}
     return apply_flags(cfg, given, flags)
 
 
