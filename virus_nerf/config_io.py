@@ -255,6 +255,14 @@ def load_json_config(cls: type[T], path: str | Path, saved: bool = False) -> T:
     """Read a JSON config file into dataclass `cls`; every problem is a one-line ConfigError.
     saved: the file is a run's own config.json (every key of its version): a key added since
     loads at the value the run was made with (ADDED_KEYS), not today's default."""
+    data = read_json_config(path)
+    return from_dict(cls, with_added_keys(data) if saved else data, file=Path(path))
+
+
+def read_json_config(path: str | Path) -> Any:
+    """A JSON config file's parsed content, before any check of its keys (the keys a file sets,
+    e.g. whether it gives a time budget); a file that cannot be read or parsed is a one-line
+    ConfigError."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -270,4 +278,4 @@ def load_json_config(cls: type[T], path: str | Path, saved: bool = False) -> T:
         raise ConfigError(f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}", file=path) from None
     except RecursionError:
         raise ConfigError("not valid JSON: nested too deeply", file=path) from None
-    return from_dict(cls, with_added_keys(data) if saved else data, file=path)
+    return data

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import json
 from pathlib import Path
 from typing import Annotated
 
@@ -86,12 +85,13 @@ def train_flags(knobs: dict, gt: str | None = None, playback_speed: float | None
 def _resolve_config(config: Path | None, given: dict, flags: dict, base=None) -> TrainConfig:
     """The run's TrainConfig: `base` (the run's own on --resume), or the --config file, or the
     defaults, with the fields the flags give on top; a flag not given keeps the value below it."""
-    from virus_nerf.config_io import load_json_config
+    from virus_nerf.config_io import from_dict, read_json_config
 
     file_sets_time = False
     if config is not None:
-        cfg = load_json_config(TrainConfig, config)
-        file_sets_time = "max_time" in json.loads(Path(config).read_text())  # valid: it was just read
+        data = read_json_config(config)
+        cfg = from_dict(TrainConfig, data, file=Path(config))
+        file_sets_time = "max_time" in data  # a file that gives its own budget keeps it
     else:
         cfg = base if base is not None else TrainConfig()
     if given.get("max_steps") is not None and "max_time" not in given and not file_sets_time and base is None:
