@@ -43,9 +43,9 @@ def test_a_flag_given_replaces_one_value_and_one_not_given_keeps_the_files(tmp_p
     assert resolve(config=path) == load_json_config(TrainConfig, path)  # no flag: the file as it is
     assert resolve() == TrainConfig()
     # a file that sets no time budget: --max-steps bounds the run by steps alone, as without a file
-    path.write_text(json.dumps({"virus_grid": {"warmup_steps": 660}}))
+    path.write_text(json.dumps({"virus_grid": {"warmup_steps": 700}}))
     cfg = resolve("--max-steps", "9", config=path)
-    assert (cfg.max_steps, cfg.max_time, cfg.virus_grid.warmup_steps) == (9, None, 660)
+    assert (cfg.max_steps, cfg.max_time, cfg.virus_grid.warmup_steps) == (9, None, 700)
     assert resolve(config=path).max_time == TrainConfig().max_time  # no --max-steps: the default budget
 
 
@@ -133,7 +133,7 @@ def test_help_all_lists_every_knob_with_its_comment():
     assert code == 0 and err == ""
     assert "--optim.lr FLOAT" in out and "Adam's learning rate" in out
     assert "--virus-grid.warmup-steps INT" in out and "training steps (not updates) of the decay init -> prior." in out
-    assert "(default: 330)" in out and "virus-grid options" in out
+    assert "(default: 660)" in out and "virus-grid options" in out
 
     def paths(doc: dict, prefix: str = ""):
         for key, value in doc.items():

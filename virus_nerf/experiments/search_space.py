@@ -45,7 +45,7 @@ SEARCH_SPACE: tuple[Param, ...] = (
     Param("virus_grid.zeta", 0.05, 1.0, why="NeRF-Update slope (default 0.4196; earlier 0.25)"),
     Param("virus_grid.update_interval", 4, 64, integer=True, why="training steps between grid updates (default 21; earlier 16)"),
     Param("virus_grid.rays_per_update", 256, 4096, integer=True, why="rays per grid update (default 438; earlier 1024)"),
-    Param("virus_grid.warmup_steps", 16, 2048, integer=True, why="grid warm-up in training steps (default 330; earlier 128; 1000 helps long runs only)"),
+    Param("virus_grid.warmup_steps", 16, 2048, integer=True, why="grid warm-up in training steps (default 660; earlier 330 and 128; D70)"),
 )
 
 

@@ -28,9 +28,10 @@ class VirusGridConfig:
     logodds_max: float = 4.0  # clamp (p ~ 0.982)
     init_probability: float = 0.55  # slightly above 0.5: everything is marched at first
     prior_probability: float = 0.49  # where unsupported cells end after the warm-up (empty)
-    # training steps (not updates) of the decay init -> prior. Short enough that Table I's 75 s
-    # runs finish it (docs/decisions.md D4)
-    warmup_steps: int = 330
+    # training steps (not updates) of the decay init -> prior. 660, the driving length, by the
+    # wall clock: better coverage in the office at 60 s and the common area at 180 s, the warehouse
+    # even (D70; earlier 330, D4; 1000 never leaves the warm-up in Table I's 75 s runs)
+    warmup_steps: int = 660
     # while mapping while driving (frames keep arriving): a cell first seen after the warm-up can
     # only come back through the IRS, so the warm-up lasts longer (D6)
     warmup_steps_driving: int = 660
