@@ -17,10 +17,10 @@ def _logit(p: float) -> float:
 class VirusGridConfig:
     """VIRUS grid parameters; every length in metres, rates per metre, densities in 1/m.
 
-    warmup_steps, update_interval, rays_per_update, std_per_m, false_rate and zeta come from the
-    tuning study (see LossWeights); threshold_alpha from the time-to-map benchmark (0.15, above
-    the study's range; the study gave 0.0438); configs/paper.json restores the earlier values
-    (128, 16, 1024, 0.03, 0.3, 0.25, 0.01).
+    update_interval, rays_per_update, std_per_m, false_rate and zeta come from the tuning study
+    (see LossWeights); threshold_alpha (0.15, above the study's range; the study gave 0.0438) and
+    warmup_steps (660; the study gave 330, D70) from the time-to-map benchmark; configs/paper.json
+    restores the earlier values (128, 16, 1024, 0.03, 0.3, 0.25, 0.01).
     """
 
     max_resolution: int = 128  # cells along the longest box axis (GridSpec.from_box)
@@ -30,7 +30,7 @@ class VirusGridConfig:
     prior_probability: float = 0.49  # where unsupported cells end after the warm-up (empty)
     # training steps (not updates) of the decay init -> prior. 660, the driving length, by the
     # wall clock: better coverage in the office at 60 s and the common area at 180 s, the warehouse
-    # even (D70; earlier 330, D4; 1000 never leaves the warm-up in Table I's 75 s runs)
+    # the same (D70; earlier 330, D4; 1000 never leaves the warm-up in Table I's 75 s runs)
     warmup_steps: int = 660
     # while mapping while driving (frames keep arriving): a cell first seen after the warm-up can
     # only come back through the IRS, so the warm-up lasts longer (D6)
