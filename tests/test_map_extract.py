@@ -272,3 +272,70 @@ def test_the_low_rays_march_the_grid_grown_by_a_cell_in_z_and_the_band_the_grid_
     r = low_ranges(scene, origins, dirs)  # grown: cells 2, 3 and 4
     assert r[0] == pytest.approx(2.0) and r[1] == pytest.approx(2.0) and np.isnan(r[2])
     assert low_ranges(_LowWall(), origins[:1], dirs[:1]) == pytest.approx([2.0])  # a model without a grid: as before
+
+
+def test_grown_around_occupies_the_26_neighbours_of_each_occupied_cell_clipped_at_the_borders():
+    import torch
+
+    from virus_nerf.maps.extract import grown_around
+
+    occ = torch.zeros((4, 3, 5), dtype=torch.bool)
+    occ[1, 1, 2] = True  # inside: its 3 x 3 x 3 block
+    occ[3, 0, 0] = True  # in a corner: the 2 x 2 x 2 block inside the grid
+    grown = grown_around(occ)
+    expected = torch.zeros_like(occ)
+    expected[0:3, 0:3, 1:4] = True
+    expected[2:4, 0:2, 0:2] = True
+    assert torch.equal(grown, expected)
+    assert int(grown.sum()) == 27 + 8 - 2  # the blocks share cells (2, 0..1, 1)
+    assert int(occ.sum()) == 2  # the input is not changed
+
+
+class _GridSceneXY(_GridScene):
+    """_GridScene with two columns in y: the wall at x = 2 m stands in column y = 1 only, and the
+    grid holds the cell z in [0.6, 0.8) of column y = 0 only (a box top the grid left out)."""
+
+    def __init__(self):
+        import torch
+
+        self.grid = self.Grid()
+        self.grid.occupied = torch.zeros((1, 2, 5), dtype=torch.bool)
+        self.grid.occupied[0, 0, 3] = True
+
+    def ranges(self, origins, directions, occupied=None):
+        occ = (self.grid.occupied if occupied is None else occupied)[0, 1].numpy()  # the wall's column
+        o, d = np.asarray(origins), np.asarray(directions)[:, 0]
+        cell = np.clip(np.floor(o[:, 2] / 0.2).astype(int), 0, 4)
+        t = (2.0 - o[:, 0]) / np.where(d > 1e-9, d, np.nan)
+        return np.where((d > 1e-9) & occ[cell], t, np.nan)
+
+
+def test_the_low_rays_flagged_around_march_the_grid_grown_in_x_and_y_as_well():
+    from virus_nerf.maps.extract import low_ranges
+
+    scene = _GridSceneXY()
+    origins = np.array([[0.0, 0.0, 0.7], [0.0, 0.0, 0.7], [0.0, 0.0, 0.1]])  # cells 3, 3 and 0
+    dirs = np.array([[1.0, 0.0, 0.0]] * 3)
+    # grown in z only, the wall's column stays empty: no ray meets it
+    assert np.isnan(low_ranges(scene, origins, dirs)).all()
+    # grown around, its cells 2, 3 and 4 are occupied: the second ray meets the wall, the third
+    # (cell 0) does not
+    r = low_ranges(scene, origins, dirs, around=np.array([False, True, True]))
+    assert np.isnan(r[0]) and r[1] == pytest.approx(2.0) and np.isnan(r[2])
+
+
+def test_the_map_flags_the_low_rays_15_cm_below_the_cameras_to_march_the_grid_grown_around(monkeypatch):
+    import virus_nerf.maps.extract as extract
+
+    seen = {}
+
+    def spy(model, origins, directions, around=None):
+        seen["z"], seen["around"] = np.asarray(origins)[:, 2].copy(), np.asarray(around).copy()
+        return np.full(len(origins), np.nan)
+
+    monkeypatch.setattr(extract, "low_ranges", spy)
+    positions = np.array([[0.25, 0.25, 1.0], [0.5, 0.25, 1.2]])
+    extract.scan_map(_LowWall(), positions, np.array([0.0, -1.0]), np.array([3.0, 1.0]), 0.5, 36)
+    below = seen["z"] - np.repeat(positions[:, 2], 18)  # 18 low rays a position, -0.15 and -0.3 m in turn
+    assert below[:4] == pytest.approx([-0.15, -0.3, -0.15, -0.3])
+    assert np.array_equal(seen["around"], np.isclose(below, -0.15)) and seen["around"].sum() == 18

@@ -63,6 +63,11 @@ MAP_LOW_SHADOW_M = 1.0
 # fitted warehouse's 25 cm cells beside a box whose top is at camera height are empty though the
 # field holds the box, and a low ray skipped it (D66); the band's rays march the grid as trained
 MAP_LOW_GRID_GROW_Z = 1
+# and the low rays at these heights march the occupied cells grown by one cell in x and y as well
+# (`grown_around`): goods on a rack whose tops stand at camera height fill too little of the
+# fitted warehouse's 25 cm cells to keep them, and the rays 15 cm below the cameras passed them;
+# the 30 cm rays keep D66's cells, near the floor's haze that grown cells would make ends (D73)
+MAP_LOW_AROUND_HEIGHTS_M = (-0.15,)
 
 
 def check_raster(what: str, lo: np.ndarray, hi: np.ndarray, resolution, limit: int | None = None) -> tuple[int, int]:
@@ -111,15 +116,19 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     map stands for the camera-height band, not one plane, D56), then occupied where the band's
     rays said free and the low rays (MAP_LOW_HEIGHTS_M, half a band ray's angle apart from them)
     by the same rule said occupied (D60), and unknown where the band said free up to
-    MAP_LOW_SHADOW_M behind the low rays' occupied ends and no low ray passed (D64). Two renders:
-    the band's rays march the grid as trained, the low rays the grid grown in z (`low_ranges`, D66)."""
+    MAP_LOW_SHADOW_M behind the low rays' occupied ends and no low ray passed (D64). The band's
+    rays march the grid as trained, the low rays the grid grown in z (`low_ranges`, D66), those
+    at MAP_LOW_AROUND_HEIGHTS_M the grid grown in x and y as well (D73)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     band_o, band_d = scan_rays(positions, n_rays, MAP_SCAN_HEIGHTS_M)  # (N n_rays, 3) each
     low_o, low_d = scan_rays(positions, max(1, round(n_rays * MAP_LOW_RAYS_SHARE)), MAP_LOW_HEIGHTS_M,
                              first_angle=np.pi / n_rays)  # between the band's rays: a leg they pass between
     band_r = np.asarray(model.ranges(band_o, band_d), dtype=np.float64).reshape(-1) if len(positions) \
         else np.zeros(0)
-    low_r = low_ranges(model, low_o, low_d) if len(positions) else np.zeros(0)
+    n_low = max(1, round(n_rays * MAP_LOW_RAYS_SHARE))
+    low_height = np.tile(np.asarray(MAP_LOW_HEIGHTS_M)[np.arange(n_low) % len(MAP_LOW_HEIGHTS_M)], len(positions))
+    around = np.isin(low_height, MAP_LOW_AROUND_HEIGHTS_M)  # (N n_low,) the rays that march `grown_around`
+    low_r = low_ranges(model, low_o, low_d, around) if len(positions) else np.zeros(0)
     m = scan_occupancy(band_o[:, :2], band_d[:, :2], band_r, lo, hi, resolution)
     grid = from_image(m.image).copy()  # [ix, iy]
     low_passes, low_hits = scan_counts(low_o[:, :2], low_d[:, :2], low_r, lo, hi, resolution)
@@ -131,14 +140,23 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     return m
 
 
-def low_ranges(model, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+def low_ranges(model, origins: np.ndarray, directions: np.ndarray, around: np.ndarray | None = None) -> np.ndarray:
     """(N,) ranges (m) of the low rays (origins, directions (N, 3)): a model with an occupancy
     grid marches them over its occupied cells grown by MAP_LOW_GRID_GROW_Z cells up and down
-    (`grown_in_z`); any other range model (an analytic scene) answers as for every ray."""
+    (`grown_in_z`), the rays flagged in `around` ((N,) bool; None: none) over the cells grown by
+    one in every direction (`grown_around`); any other range model (an analytic scene) answers
+    as for every ray."""
     grid = getattr(model, "grid", None)
-    grown = {} if grid is None or MAP_LOW_GRID_GROW_Z <= 0 \
-        else {"occupied": grown_in_z(grid.occupied, MAP_LOW_GRID_GROW_Z)}
-    return np.asarray(model.ranges(origins, directions, **grown), dtype=np.float64).reshape(-1)
+    if grid is None or MAP_LOW_GRID_GROW_Z <= 0:
+        return np.asarray(model.ranges(origins, directions), dtype=np.float64).reshape(-1)
+    around = np.zeros(len(origins), dtype=bool) if around is None else np.asarray(around, dtype=bool)
+    out = np.full(len(origins), np.nan)
+    for rays, grow in ((~around, lambda occ: grown_in_z(occ, MAP_LOW_GRID_GROW_Z)), (around, grown_around)):
+        if rays.any():
+            cells = grow(grid.occupied)
+            out[rays] = np.asarray(model.ranges(origins[rays], directions[rays], occupied=cells),
+                                   dtype=np.float64).reshape(-1)
+    return out
 
 
 def grown_in_z(occupied: torch.Tensor, cells: int) -> torch.Tensor:
@@ -151,6 +169,13 @@ def grown_in_z(occupied: torch.Tensor, cells: int) -> torch.Tensor:
         out[:, :, k:] |= occupied[:, :, :-k]
         out[:, :, :-k] |= occupied[:, :, k:]
     return out
+
+
+def grown_around(occupied: torch.Tensor) -> torch.Tensor:
+    """(rx, ry, rz) bool cells -> the same with the 26 neighbours of every occupied cell occupied
+    too (on the grid's own device)."""
+    cells = occupied[None, None].to(torch.float32)  # (1, 1, rx, ry, rz)
+    return torch.nn.functional.max_pool3d(cells, kernel_size=3, stride=1, padding=1)[0, 0] > 0
 
 
 def behind_ends(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray, occupied: np.ndarray,
