@@ -247,6 +247,8 @@ class _GridScene:
     class Grid:
         occupied = None
 
+    wall_column = 0  # the grid column (y) the wall stands in
+
     def __init__(self):
         import torch
 
@@ -255,7 +257,7 @@ class _GridScene:
         self.grid.occupied[0, 0, 3] = True
 
     def ranges(self, origins, directions, occupied=None):
-        occ = (self.grid.occupied if occupied is None else occupied)[0, 0].numpy()
+        occ = (self.grid.occupied if occupied is None else occupied)[0, self.wall_column].numpy()
         o, d = np.asarray(origins), np.asarray(directions)[:, 0]
         cell = np.clip(np.floor(o[:, 2] / 0.2).astype(int), 0, 4)
         t = (2.0 - o[:, 0]) / np.where(d > 1e-9, d, np.nan)
@@ -295,19 +297,14 @@ class _GridSceneXY(_GridScene):
     """_GridScene with two columns in y: the wall at x = 2 m stands in column y = 1 only, and the
     grid holds the cell z in [0.6, 0.8) of column y = 0 only (a box top the grid left out)."""
 
+    wall_column = 1
+
     def __init__(self):
         import torch
 
         self.grid = self.Grid()
         self.grid.occupied = torch.zeros((1, 2, 5), dtype=torch.bool)
         self.grid.occupied[0, 0, 3] = True
-
-    def ranges(self, origins, directions, occupied=None):
-        occ = (self.grid.occupied if occupied is None else occupied)[0, 1].numpy()  # the wall's column
-        o, d = np.asarray(origins), np.asarray(directions)[:, 0]
-        cell = np.clip(np.floor(o[:, 2] / 0.2).astype(int), 0, 4)
-        t = (2.0 - o[:, 0]) / np.where(d > 1e-9, d, np.nan)
-        return np.where((d > 1e-9) & occ[cell], t, np.nan)
 
 
 def test_the_low_rays_flagged_around_march_the_grid_grown_in_x_and_y_as_well():
