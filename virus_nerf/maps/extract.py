@@ -121,11 +121,11 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     at MAP_LOW_AROUND_HEIGHTS_M the grid grown in x and y as well (D73)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     band_o, band_d = scan_rays(positions, n_rays, MAP_SCAN_HEIGHTS_M)  # (N n_rays, 3) each
-    low_o, low_d = scan_rays(positions, max(1, round(n_rays * MAP_LOW_RAYS_SHARE)), MAP_LOW_HEIGHTS_M,
+    n_low = max(1, round(n_rays * MAP_LOW_RAYS_SHARE))
+    low_o, low_d = scan_rays(positions, n_low, MAP_LOW_HEIGHTS_M,
                              first_angle=np.pi / n_rays)  # between the band's rays: a leg they pass between
     band_r = np.asarray(model.ranges(band_o, band_d), dtype=np.float64).reshape(-1) if len(positions) \
         else np.zeros(0)
-    n_low = max(1, round(n_rays * MAP_LOW_RAYS_SHARE))
     low_height = np.tile(np.asarray(MAP_LOW_HEIGHTS_M)[np.arange(n_low) % len(MAP_LOW_HEIGHTS_M)], len(positions))
     around = np.isin(low_height, MAP_LOW_AROUND_HEIGHTS_M)  # (N n_low,) the rays that march `grown_around`
     low_r = low_ranges(model, low_o, low_d, around) if len(positions) else np.zeros(0)
