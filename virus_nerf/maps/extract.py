@@ -126,8 +126,8 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
                              first_angle=np.pi / n_rays)  # between the band's rays: a leg they pass between
     band_r = np.asarray(model.ranges(band_o, band_d), dtype=np.float64).reshape(-1) if len(positions) \
         else np.zeros(0)
-    low_height = np.tile(np.asarray(MAP_LOW_HEIGHTS_M)[np.arange(n_low) % len(MAP_LOW_HEIGHTS_M)], len(positions))
-    around = np.isin(low_height, MAP_LOW_AROUND_HEIGHTS_M)  # (N n_low,) the rays that march `grown_around`
+    below = low_o[:, 2] - np.repeat(positions[:, 2], n_low)  # (N n_low,) m, each low ray's height
+    around = np.isclose(below[:, None], np.asarray(MAP_LOW_AROUND_HEIGHTS_M)[None, :]).any(axis=1)
     low_r = low_ranges(model, low_o, low_d, around) if len(positions) else np.zeros(0)
     m = scan_occupancy(band_o[:, :2], band_d[:, :2], band_r, lo, hi, resolution)
     grid = from_image(m.image).copy()  # [ix, iy]
@@ -147,7 +147,7 @@ def low_ranges(model, origins: np.ndarray, directions: np.ndarray, around: np.nd
     one in every direction (`grown_around`); any other range model (an analytic scene) answers
     as for every ray."""
     grid = getattr(model, "grid", None)
-    if grid is None or MAP_LOW_GRID_GROW_Z <= 0:
+    if grid is None:
         return np.asarray(model.ranges(origins, directions), dtype=np.float64).reshape(-1)
     around = np.zeros(len(origins), dtype=bool) if around is None else np.asarray(around, dtype=bool)
     out = np.full(len(origins), np.nan)
