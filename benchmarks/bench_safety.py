@@ -7,10 +7,20 @@ evaluation/safety.py on the same raster against the `map` ground truth.
 Each room is simulated (simulation seeds 81, 82, 83 by default: no test uses them), trained with
 the defaults by `virus-nerf train` (offline: bounded by steps, so bit-reproducible and
 independent of the machine's load; --online: `train --online --playback 1` with
-{"extent": {"mode": "grow"}}, the driving map), then judged twice from its checkpoint:
+{"extent": {"mode": "grow"}}, the driving map), then judged twice from its checkpoint (the
+Mapper's map, as its snapshots and the run's metrics.json make it: 360 rays from 30 training
+positions), and once more as `virus-nerf export` writes map.pgm (720 rays from 60 positions of
+every frame; `export`, judged along every frame's path):
 
     .venv/bin/python benchmarks/bench_safety.py --out benchmarks/results/safety_d47.json
     .venv/bin/python benchmarks/bench_safety.py --online --scenes office,common --out online.json
+
+--bag judges what `map-bag` writes instead: each room's recording is written to a ROS 2 bag
+(MCAP, the poses on /tf), streamed by `virus-nerf map-bag BAG --playback 1 --poses tf` in its
+own process (real time: run it on an idle machine), and the final map's map.pgm / map.yaml, the
+file a planner reads, is judged as it lies on disk against the recording's LiDAR map:
+
+    .venv/bin/python benchmarks/bench_safety.py --bag --out bag.json
 
 Runs are kept under --runs (a run folder that exists is judged again, not retrained). Training
 runs one at a time: two trainings on 2 cores run ~20x slower each (measured).
@@ -23,6 +33,8 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+
+import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -47,10 +59,12 @@ def train(data: Path, scene: str, run: Path, online: bool, seed: int) -> None:
         raise RuntimeError(f"training failed ({run}):\n{proc.stderr[-3000:]}")
 
 
-def judge(run: Path) -> dict:
-    """The run's safety with and without the range evidence, and its anchors."""
+def judge(run: Path, data: Path, scene: str) -> dict:
+    """The run's safety with and without the range evidence, its anchors, and the figures of
+    the map.pgm that `virus-nerf export` writes (`exported`)."""
     from virus_nerf.engine import views
-    from virus_nerf.evaluation.safety import MAP_POSES, mapper_safety
+    from virus_nerf.evaluation.safety import mapper_safety
+    from virus_nerf.maps.extract import MAP_POSES
     from virus_nerf.maps.planner import RangeEvidence
     from virus_nerf.trainer.run import load_trained
 
@@ -78,8 +92,77 @@ def judge(run: Path) -> dict:
     finally:
         views.MapViews.range_evidence = evidence
     return {"run": str(run), "frames": mapper.frames, "steps": mapper.step,
-            "map": figures(after, after["planner"]), "nerf_scans_alone": figures(before, before["planner"]),
+            "map": figures(after, after["planner"]), "export": judge_files(exported(run), data, scene),
+            "nerf_scans_alone": figures(before, before["planner"]),
             "sensors_alone": figures(after["anchors"]["sensors"]), "lidar": figures(after["anchors"]["lidar"])}
+
+
+def exported(run: Path) -> Path:
+    """RUN/export_map/: `virus-nerf export --what map` of the run with its defaults (made once)."""
+    out = run / "export_map"
+    if not out.exists():
+        cmd = [sys.executable, "-m", "virus_nerf.cli", "export", "--run", str(run), "--out", str(out), "--what", "map"]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"export failed ({run}):\n{proc.stderr[-3000:]}")
+    return out
+
+
+def stream(data: Path, scene: str, bags: Path, run: Path) -> None:
+    """The room's recording as a ROS 2 bag (made once under `bags`), mapped by `map-bag` at
+    playback 1 into `run` (kept: a run folder that exists is judged again, not streamed again)."""
+    from virus_nerf.data.bags.writer import write_bag
+
+    bag = bags / data.name
+    if not bag.exists():
+        bags.mkdir(parents=True, exist_ok=True)
+        write_bag(data, bag, ros_version=2, room=scene, storage="mcap", tf=True)
+    if run.exists():
+        return
+    cmd = [sys.executable, "-m", "virus_nerf.cli", "map-bag", str(bag), "--out", str(run), "--playback", "1",
+           "--poses", "tf"]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"map-bag failed ({run}):\n{proc.stderr[-3000:]}")
+
+
+def read_map_files(folder: Path):
+    """(image (H, W) uint8, origin (x, y) m, resolution m) of folder/map.pgm and map.yaml."""
+    from PIL import Image
+
+    fields = dict(line.split(":", 1) for line in (folder / "map.yaml").read_text().splitlines() if ":" in line)
+    origin = [float(v) for v in fields["origin"].strip().strip("[]").split(",")]
+    image = np.asarray(Image.open(folder / "map.pgm"))
+    return image, (origin[0], origin[1]), float(fields["resolution"])
+
+
+def judge_files(folder: Path, data: Path, scene: str) -> dict:
+    """map.pgm / map.yaml in `folder` against the recording's LiDAR map at the cameras' height
+    (+-the evaluation's band), the path being every camera position of the recording."""
+    from virus_nerf.data.ethz import load_recording
+    from virus_nerf.data.room_box import fit_scene_box
+    from virus_nerf.evaluation.evaluate import EvaluationConfig
+    from virus_nerf.evaluation.gt import height_slice
+    from virus_nerf.evaluation.safety import judge_map, planner_check
+    from virus_nerf.maps.extract import camera_height
+
+    rec = load_recording(data, scene)
+    poses = np.concatenate([st.cam_to_world for st in rec.stacks.values()])  # (N, 4, 4)
+    stack_ids = np.concatenate([np.full(len(st.times), sid) for sid, st in rec.stacks.items()])
+    image, origin, resolution = read_map_files(folder)
+    obstacles = height_slice(rec.lidar_map(), camera_height(poses, stack_ids), EvaluationConfig().height_band_m)
+    box = fit_scene_box(rec)
+    block = judge_map(image, origin, resolution, obstacles, poses[:, :2, 3], extent=(box.lo[:2], box.hi[:2])).block()
+    planner = planner_check(image, origin, resolution, obstacles).block()
+    out = {z: block["zones"][z]["free_share"] for z in ("1m", "2m", "all")}
+    out.update(free_recall=block["free_recall"], planner_crossing=planner["crossing"], planner_paths=planner["paths"])
+    return out
+
+
+def judge_bag(run: Path, data: Path, scene: str) -> dict:
+    report = json.loads((run / "stream.json").read_text())
+    return {"run": str(run), "frames": report["frames"], "dropped": int(sum(report["dropped"].values())),
+            "steps": report["steps"], "map": judge_files(run / "map", data, scene)}
 
 
 def mean(rows: list[dict]) -> dict:
@@ -93,6 +176,7 @@ def main() -> None:
     ap.add_argument("--scenes", default="office,common,warehouse")
     ap.add_argument("--seeds", default="81,82,83")
     ap.add_argument("--online", action="store_true", help="train while driving (playback 1, grown box)")
+    ap.add_argument("--bag", action="store_true", help="map-bag at playback 1 on each room's bag, its map.pgm judged")
     ap.add_argument("--data", type=Path, default=HERE / ".data")
     ap.add_argument("--runs", type=Path, default=HERE / ".runs")
     ap.add_argument("--train-seed", type=int, default=0)
@@ -100,20 +184,25 @@ def main() -> None:
     args = ap.parse_args()
     if args.out.exists():
         sys.exit(f"--out {args.out}: exists; choose a new file (nothing is overwritten)")
-    doc: dict = {"online": args.online, "steps": None if args.online else STEPS, "gt": "map", "rooms": {},
-                 "mean": {}}
+    mode = "bag" if args.bag else "online" if args.online else "offline"
+    doc: dict = {"mode": mode, "online": args.online, "steps": STEPS if mode == "offline" else None, "gt": "map",
+                 "rooms": {}, "mean": {}}
     for scene in args.scenes.split(","):
         rows = []
         for seed in (int(s) for s in args.seeds.split(",")):
             data = ensure_data(args.data, scene, seed)
-            run = args.runs / ("online" if args.online else "offline") / f"{scene}{seed}"
+            run = args.runs / mode / f"{scene}{seed}"
             run.parent.mkdir(parents=True, exist_ok=True)
-            train(data, scene, run, args.online, args.train_seed)
-            rows.append(judge(run))
+            if args.bag:
+                stream(data, scene, args.data / "bags", run)
+                rows.append(judge_bag(run, data, scene))
+            else:
+                train(data, scene, run, args.online, args.train_seed)
+                rows.append(judge(run, data, scene))
             doc["rooms"][f"{scene}{seed}"] = rows[-1]
             print(json.dumps({f"{scene}{seed}": rows[-1]}), file=sys.stderr)
-        doc["mean"][scene] = {k: mean([r[k] for r in rows])
-                              for k in ("map", "nerf_scans_alone", "sensors_alone", "lidar")}
+        kinds = ("map",) if args.bag else ("map", "export", "nerf_scans_alone", "sensors_alone", "lidar")
+        doc["mean"][scene] = {k: mean([r[k] for r in rows]) for k in kinds}
     args.out.write_text(json.dumps(doc, indent=1) + "\n")
     print(json.dumps(doc["mean"], indent=1))
 

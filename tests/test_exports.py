@@ -346,3 +346,23 @@ def test_evaluate_and_export_wait_for_no_one_in_the_run(trained_run, tmp_path):
         with pytest.raises(UsageError, match=rf"--run {trained_run}: the run is in use"):
             export(run=trained_run, out=tmp_path / "export")
     assert not (tmp_path / "metrics.json").exists() and not (tmp_path / "export").exists()
+
+
+def test_default_map_is_the_snapshots_map_and_scans_stay_fine(trained_run, tmp_path):
+    """Without --n-rays / --max-poses, map.pgm is scanned as every snapshot's map (360 rays from
+    30 positions: the counts its safety is measured at, D75) and the scans keep 720 rays."""
+    from virus_nerf.maps.scans import horizontal_directions
+    from virus_nerf.trainer.run import load_trained
+
+    default, explicit = tmp_path / "default", tmp_path / "explicit"
+    code, _, err = run_cli(["export", "--run", trained_run, "--out", default, "--what", "map,scans"])
+    assert code == 0, err
+    code, _, err = run_cli(["export", "--run", trained_run, "--out", explicit, "--what", "map", "--n-rays", "360",
+                            "--max-poses", "30"])
+    assert code == 0, err
+    assert (default / "map.pgm").read_bytes() == (explicit / "map.pgm").read_bytes()
+    trainer, _, _ = load_trained(trained_run, "--run")
+    rows = [ln.split(",") for ln in (default / "poses.csv").read_text().splitlines()[1:]]
+    pos = np.array([float(v) for v in rows[0][2:5]])
+    r = trainer.mapper.model.ranges(np.tile(pos, (720, 1)), horizontal_directions(720))
+    assert len(read_ply(default / "scans" / "scan_0000.ply")) == int((np.isfinite(r) & (r > 0)).sum())

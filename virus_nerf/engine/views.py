@@ -17,7 +17,14 @@ import torch
 
 from virus_nerf.errors import UsageError
 from virus_nerf.grid.virus import VirusGrid
-from virus_nerf.maps.extract import camera_height, check_raster, occupancy_map, probability_map
+from virus_nerf.maps.extract import (
+    MAP_POSES,
+    MAP_RAYS,
+    camera_height,
+    check_raster,
+    occupancy_map,
+    probability_map,
+)
 from virus_nerf.maps.observed import frames_observed
 from virus_nerf.maps.occupancy import raster_shape
 from virus_nerf.maps.planner import RangeEvidence
@@ -56,7 +63,7 @@ class MapViews:
             self.field.train()
         return out
 
-    def map2d(self, resolution: float = 0.05, n_rays: int = 360, max_poses: int = 30):
+    def map2d(self, resolution: float = 0.05, n_rays: int = MAP_RAYS, max_poses: int = MAP_POSES):
         """The current 2D occupancy map (maps.occupancy.OccupancyMap2D, trinary, over the box's
         x, y): NeRF scans from up to `max_poses` camera positions of the frames added so far
         (evenly spread), cells a scan passed free, end cells occupied, the rest unknown; and
@@ -71,7 +78,7 @@ class MapViews:
             return self.update_map(resolution, n_rays, max_poses)
         return dataclasses.replace(cached[1], image=cached[1].image.copy())
 
-    def update_map(self, resolution: float = 0.05, n_rays: int = 360, max_poses: int = 30):
+    def update_map(self, resolution: float = 0.05, n_rays: int = MAP_RAYS, max_poses: int = MAP_POSES):
         """Render the 2D map (`map2d`) from the current state now, and keep it for the queries
         that follow (a snapshot, the live view, the safety figure)."""
         key = self._map_key(resolution, n_rays, max_poses)
@@ -135,7 +142,7 @@ class MapViews:
         """Median height (m) of the main stack's cameras (all stacks' without it) so far."""
         return camera_height(self.store.cam_to_world, self.store.stack_ids, default=float(self.box.center[2]))
 
-    def snapshot(self, folder: Path, resolution: float = 0.05, n_rays: int = 360, max_poses: int = 30,
+    def snapshot(self, folder: Path, resolution: float = 0.05, n_rays: int = MAP_RAYS, max_poses: int = MAP_POSES,
                  with_state: bool = False, replace: bool = False, maps: tuple | None = None) -> SnapshotInfo:
         """Write the current map into the new folder `folder` (refused if it exists; built under a
         temporary name and renamed): map.pgm/.yaml/.png (map2d), prob.pgm/.yaml/.png (VIRUS grid),

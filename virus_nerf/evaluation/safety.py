@@ -29,7 +29,6 @@ SAFETY_ZONES_M = (1.0, 2.0, math.inf)  # obstacle distance to the robot's path
 SAFETY_TOLERANCE_M = 0.1  # the paper's inlier distance
 FREE_NEAR_PATH_M = 3.0  # free recall: true free space this close to the path ...
 FREE_CLEARANCE_M = 0.15  # ... and at least this far from every obstacle
-MAP_POSES = 30  # the judged map's scan positions (Mapper.map2d's default)
 
 
 @dataclass(frozen=True)
@@ -245,7 +244,7 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
     from virus_nerf.data.room_box import fit_scene_box
     from virus_nerf.evaluation.gt import height_slice
     from virus_nerf.maps.evidence import sensor_rays_2d
-    from virus_nerf.maps.extract import spread_rows
+    from virus_nerf.maps.extract import MAP_POSES, spread_rows
     from virus_nerf.maps.observed import apply_mask, observed_share
     from virus_nerf.maps.occupancy import UNKNOWN, scan_occupancy
 

@@ -17,6 +17,10 @@ from virus_nerf.maps.extract import check_raster
 KINDS = ("map", "prob", "grid3d", "esdf", "scans", "cloud", "images")
 DEFAULT_KINDS = ("map", "prob", "grid3d", "esdf", "scans")  # cloud and images render many camera rays
 NEEDS_VIRUS = ("prob", "grid3d")  # read the Bayesian grid's probabilities
+# the scans' defaults (scans/): finer than the map's (maps.extract.MAP_RAYS, MAP_POSES), which
+# keeps the counts its safety was measured at (D75)
+SCAN_RAYS = 720
+SCAN_POSES = 60
 
 
 def parse_what(what: str | None, grid: str) -> tuple[str, ...]:
@@ -44,8 +48,8 @@ def export(
     what: str | None = None,
     poses: Path | None = None,
     resolution: float = 0.05,
-    n_rays: int = 720,
-    max_poses: int = 60,
+    n_rays: int | None = None,
+    max_poses: int | None = None,
     band: float = 0.1,
     cloud_points: int = 200_000,
     image_scale: float | None = None,
@@ -58,8 +62,8 @@ def export(
         what: Comma-separated subset of map,prob,grid3d,esdf,scans,cloud,images, or 'all' (default: map,prob,grid3d,esdf,scans).
         poses: CSV of camera poses time,x,y,z,qx,qy,qz,qw (s, m, camera-to-world, OpenCV axes) for scans and images (default: the recording's test poses).
         resolution: Metres per map pixel (> 0).
-        n_rays: Rays per 360 deg scan.
-        max_poses: At most this many poses for the map's scans, for scans and for images (evenly spread).
+        n_rays: Rays per 360 deg scan (default: 360 for map.pgm and the ESDF, as every snapshot's map, whose safety is measured at that count; 720 for scans).
+        max_poses: At most this many poses (evenly spread) for the map's scans (default 30, as every snapshot's map), for scans and for images (default 60).
         band: Metres above and below camera height whose grid layers form the probability map.
         cloud_points: At most this many rays (points) for the dense surface cloud.
         image_scale: Rendered image size as a share of the camera's (default: the run's image_scale).
@@ -70,8 +74,10 @@ def export(
     from virus_nerf.utils.io import new_output_dir
 
     require_number("--resolution", resolution, 0.0)
-    require_int("--n-rays", n_rays, 1, 1_000_000)
-    require_int("--max-poses", max_poses, 1)
+    if n_rays is not None:
+        require_int("--n-rays", n_rays, 1, 1_000_000)
+    if max_poses is not None:
+        require_int("--max-poses", max_poses, 1)
     require_number("--band", band, 0.0, 10.0, lo_open=False)
     require_int("--cloud-points", cloud_points, 1, 50_000_000)
     if image_scale is not None:
@@ -117,7 +123,9 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
     poses, stack_ids = trainer.recording.camera_poses()  # every frame, stack by stack
     if "map" in kinds or "esdf" in kinds:
         evidence = training_evidence(trainer, extract.camera_height(poses, stack_ids), cfg)
-        m = extract.occupancy_map(trainer.mapper.model, poses[:, :3, 3], lo, hi, resolution, n_rays, max_poses, seen,
+        m = extract.occupancy_map(trainer.mapper.model, poses[:, :3, 3], lo, hi, resolution,
+                                  extract.MAP_RAYS if n_rays is None else n_rays,
+                                  extract.MAP_POSES if max_poses is None else max_poses, seen,
                                   evidence)
         if "map" in kinds:
             maps.write_map_server(m, folder, "map")
@@ -145,14 +153,15 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
             grid3d.write_grid3d(prob3, grid.logodds.detach().cpu().numpy(), info, folder)
             done.append(f"grid_probability.npy {prob3.shape}")
     if {"scans", "images"} & set(kinds):
-        pose_set = (pose_set or views.recording_test_poses(trainer.recording)).subsample(max_poses)
+        pose_set = (pose_set or views.recording_test_poses(trainer.recording)).subsample(
+            SCAN_POSES if max_poses is None else max_poses)
         write_text_atomic(folder / "poses.csv", pose_set.csv())
         summary["poses"] = {"source": pose_set.source, "count": len(pose_set)}
     if "scans" in kinds:
         (folder / "scans").mkdir()
         n_pts = 0
         for k, pose in enumerate(pose_set.cam_to_world):
-            pts = views.scan_points(trainer.mapper.model, pose[:3, 3], n_rays)
+            pts = views.scan_points(trainer.mapper.model, pose[:3, 3], SCAN_RAYS if n_rays is None else n_rays)
             clouds.write_pcd(folder / "scans" / f"scan_{k:04d}.pcd", pts)
             clouds.write_ply(folder / "scans" / f"scan_{k:04d}.ply", pts)
             n_pts += len(pts)
