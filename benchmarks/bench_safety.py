@@ -114,10 +114,15 @@ def stream(data: Path, scene: str, bags: Path, run: Path) -> None:
     from virus_nerf.data.bags.writer import write_bag
 
     bag = bags / data.name
+    if bag.exists() and not (bag / "metadata.yaml").is_file():  # the writer puts it last
+        sys.exit(f"{bag}: a bag whose writing was stopped (no metadata.yaml); remove it to write it again")
     if not bag.exists():
         bags.mkdir(parents=True, exist_ok=True)
         write_bag(data, bag, ros_version=2, room=scene, storage="mcap", tf=True)
     if run.exists():
+        if not (run / "map" / "map.pgm").is_file():  # a stream that was stopped before its final map
+            sys.exit(f"{run}: a map-bag run without its final map (stopped?); run `virus-nerf map-bag --resume "
+                     f"--out {run}` or choose another --runs")
         return
     cmd = [sys.executable, "-m", "virus_nerf.cli", "map-bag", str(bag), "--out", str(run), "--playback", "1",
            "--poses", "tf"]
