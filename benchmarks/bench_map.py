@@ -19,7 +19,7 @@ from pathlib import Path
 
 
 def time_run(run: Path, repeats: int) -> dict:
-    from virus_nerf.maps.extract import MAP_POSES
+    from virus_nerf.maps.occupancy import MAP_POSES
     from virus_nerf.trainer.run import load_trained
 
     trainer, _, _ = load_trained(run, "--run")

@@ -9,8 +9,8 @@ the defaults by `virus-nerf train` (offline: bounded by steps, so bit-reproducib
 independent of the machine's load; --online: `train --online --playback 1` with
 {"extent": {"mode": "grow"}}, the driving map), then judged twice from its checkpoint (the
 Mapper's map, as its snapshots and the run's metrics.json make it: 360 rays from 30 training
-positions), and once more as `virus-nerf export` writes map.pgm (720 rays from 60 positions of
-every frame; `export`, judged along every frame's path):
+positions), and once more as `virus-nerf export` writes map.pgm (the same counts over every
+frame's positions; `export`, judged along every frame's path):
 
     .venv/bin/python benchmarks/bench_safety.py --out benchmarks/results/safety_d47.json
     .venv/bin/python benchmarks/bench_safety.py --online --scenes office,common --out online.json
@@ -64,7 +64,7 @@ def judge(run: Path, data: Path, scene: str) -> dict:
     the map.pgm that `virus-nerf export` writes (`exported`)."""
     from virus_nerf.engine import views
     from virus_nerf.evaluation.safety import mapper_safety
-    from virus_nerf.maps.extract import MAP_POSES
+    from virus_nerf.maps.occupancy import MAP_POSES
     from virus_nerf.maps.planner import RangeEvidence
     from virus_nerf.trainer.run import load_trained
 
@@ -152,8 +152,7 @@ def judge_files(folder: Path, data: Path, scene: str) -> dict:
     from virus_nerf.maps.extract import camera_height
 
     rec = load_recording(data, scene)
-    poses = np.concatenate([st.cam_to_world for st in rec.stacks.values()])  # (N, 4, 4)
-    stack_ids = np.concatenate([np.full(len(st.times), sid) for sid, st in rec.stacks.items()])
+    poses, stack_ids = rec.camera_poses()  # (N, 4, 4), (N,): every frame
     image, origin, resolution = read_map_files(folder)
     obstacles = height_slice(rec.lidar_map(), camera_height(poses, stack_ids), EvaluationConfig().height_band_m)
     box = fit_scene_box(rec)

@@ -17,16 +17,9 @@ import torch
 
 from virus_nerf.errors import UsageError
 from virus_nerf.grid.virus import VirusGrid
-from virus_nerf.maps.extract import (
-    MAP_POSES,
-    MAP_RAYS,
-    camera_height,
-    check_raster,
-    occupancy_map,
-    probability_map,
-)
+from virus_nerf.maps.extract import camera_height, check_raster, occupancy_map, probability_map
 from virus_nerf.maps.observed import frames_observed
-from virus_nerf.maps.occupancy import raster_shape
+from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS, raster_shape
 from virus_nerf.maps.planner import RangeEvidence
 from virus_nerf.maps.scans import FieldOfView, Scan2D, points_from_ranges, scan_ranges
 

@@ -244,9 +244,9 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
     from virus_nerf.data.room_box import fit_scene_box
     from virus_nerf.evaluation.gt import height_slice
     from virus_nerf.maps.evidence import sensor_rays_2d
-    from virus_nerf.maps.extract import MAP_POSES, spread_rows
+    from virus_nerf.maps.extract import spread_rows
     from virus_nerf.maps.observed import apply_mask, observed_share
-    from virus_nerf.maps.occupancy import UNKNOWN, scan_occupancy
+    from virus_nerf.maps.occupancy import MAP_POSES, UNKNOWN, scan_occupancy
 
     if recording.map_path is None or not mapper.frames:
         return None

@@ -17,7 +17,7 @@ from virus_nerf.maps.extract import check_raster
 KINDS = ("map", "prob", "grid3d", "esdf", "scans", "cloud", "images")
 DEFAULT_KINDS = ("map", "prob", "grid3d", "esdf", "scans")  # cloud and images render many camera rays
 NEEDS_VIRUS = ("prob", "grid3d")  # read the Bayesian grid's probabilities
-# the scans' defaults (scans/): finer than the map's (maps.extract.MAP_RAYS, MAP_POSES), which
+# the scans' defaults (scans/): finer than the map's (maps.occupancy.MAP_RAYS, MAP_POSES), which
 # keeps the counts its safety was measured at (D75)
 SCAN_RAYS = 720
 SCAN_POSES = 60
@@ -124,8 +124,8 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
     if "map" in kinds or "esdf" in kinds:
         evidence = training_evidence(trainer, extract.camera_height(poses, stack_ids), cfg)
         m = extract.occupancy_map(trainer.mapper.model, poses[:, :3, 3], lo, hi, resolution,
-                                  extract.MAP_RAYS if n_rays is None else n_rays,
-                                  extract.MAP_POSES if max_poses is None else max_poses, seen,
+                                  maps.MAP_RAYS if n_rays is None else n_rays,
+                                  maps.MAP_POSES if max_poses is None else max_poses, seen,
                                   evidence)
         if "map" in kinds:
             maps.write_map_server(m, folder, "map")

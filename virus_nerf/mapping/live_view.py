@@ -46,7 +46,7 @@ import numpy as np
 from virus_nerf.data.frame import SyncFrame
 from virus_nerf.errors import OutputExistsError, UsageError
 from virus_nerf.mapping.ros_maps import base_pose
-from virus_nerf.maps.occupancy import OccupancyMap2D
+from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS, OccupancyMap2D
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.sensors.irs import IRS_MAX_RANGE_M, zone_directions
 from virus_nerf.sensors.uss import USS_FOV_H_DEG, USS_FOV_V_DEG
@@ -285,8 +285,8 @@ class LiveView:
         self.close()
 
 
-def log_mapper(view: LiveView, mapper, time: float, resolution: float = 0.05, n_rays: int = 360,
-               max_poses: int = 30) -> tuple[OccupancyMap2D, OccupancyMap2D | None, np.ndarray | None]:
+def log_mapper(view: LiveView, mapper, time: float, resolution: float = 0.05, n_rays: int = MAP_RAYS,
+               max_poses: int = MAP_POSES) -> tuple[OccupancyMap2D, OccupancyMap2D | None, np.ndarray | None]:
     """Log a Mapper's current maps with `view.log_map` through the Mapper's public API only (the
     calls a robot program makes): map2d, probability_map and the NeRF scan from the newest
     frame's camera. Returns (map2d, prob, scan points (N, 2)) for other consumers, e.g.

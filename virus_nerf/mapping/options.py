@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from virus_nerf.errors import OutputExistsError, UsageError, require_int, require_number
+from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS
 
 
 @dataclass(frozen=True)
@@ -20,8 +21,8 @@ class MapRaster:
     """The maps of every snapshot and the final map."""
 
     resolution: float = 0.05  # Metres per map pixel.
-    n_rays: int = 360  # Rays per 360 deg scan of the maps.
-    max_poses: int = 30  # Camera positions scanned for each map (evenly over the frames so far).
+    n_rays: int = MAP_RAYS  # Rays per 360 deg scan of the maps.
+    max_poses: int = MAP_POSES  # Camera positions scanned for each map (evenly over the frames so far).
 
     def check(self) -> None:
         require_number("--resolution", self.resolution, 0.0)

@@ -21,6 +21,7 @@ from typing import Literal
 
 from virus_nerf.data.playback import FrameFeeder
 from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError, require_number
+from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS
 
 SNAPSHOTS = "snapshots"
 FINAL = "map"
@@ -67,8 +68,8 @@ def replay(
     poses: Literal["auto", "optimised", "odometry"] = "auto",
     frames: Literal["all", "train"] = "all",
     resolution: float = 0.05,
-    n_rays: int = 360,
-    max_poses: int = 30,
+    n_rays: int = MAP_RAYS,
+    max_poses: int = MAP_POSES,
     train_slice: float = 0.25,
     log: Callable[[str], None] = print,
     live=None,

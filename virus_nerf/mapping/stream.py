@@ -42,6 +42,7 @@ from virus_nerf.data.bags.live import LiveSync, StreamFrame
 from virus_nerf.data.playback import Playback
 from virus_nerf.errors import DataFormatError
 from virus_nerf.mapping.replay import FINAL, SNAPSHOTS, _progress_line, _publish
+from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.utils.stop import Stopped
 
@@ -113,7 +114,7 @@ class StreamRun:
 
     def __init__(self, sync: LiveSync, out: Path, config, *, playback: float = 1.0, snapshot_every: float = 10.0,
                  first_snapshot: float = 1.0, max_lag: float = 2.0, drive_s: float = 0.0, resolution: float = 0.05,
-                 n_rays: int = 360, max_poses: int = 30, train_slice: float = 0.25, train_share: float = 0.5,
+                 n_rays: int = MAP_RAYS, max_poses: int = MAP_POSES, train_slice: float = 0.25, train_share: float = 0.5,
                  box: Callable[..., SceneBox] = initial_box, log: Callable[[str], None] = print,
                  live=None, ros_bag=None, warm_step_s: float = 0.1) -> None:
         self.sync, self.out, self.config = sync, Path(out), config

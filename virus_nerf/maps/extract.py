@@ -44,12 +44,6 @@ from virus_nerf.utils.memory import require_memory
 # RSS over pixels (office 81, D48): 19.0 M px 1.51 GB, 75.8 M px 4.45 GB, 53 bytes a pixel; the
 # scans' pass points and the view wedges go in chunks and do not grow with the raster
 RASTER_BYTES_PER_PIXEL = 56
-# every consumer's map (the Mapper's snapshots and map2d, map-bag, the node, `export`'s map.pgm and
-# the safety figure) scans with this many rays a position from at most this many positions: the
-# rules below (the scan rule, the shadows) were measured at these counts, and twice the rays made
-# them less safe (D75: offline warehouse 83, obstacles within 1 m marked free 0.8 -> 6.8 %)
-MAP_RAYS = 360
-MAP_POSES = 30
 # the map's scan rays start at these heights (m) above the camera, in turn: the +-5 cm band that
 # the 2D map and its ground truth stand for (evaluation.height_band_m), sampled at the cost of one
 # plane (D56: office free recall 83.3 -> 85.7 %, warehouse obstacles marked free 16.7 -> 16.4 %)
