@@ -233,6 +233,54 @@ def test_free_space_loss_by_hand():
     np.testing.assert_allclose(weights.grad.numpy(), [0.1, 0.2, 0.0, 0.0, 0.0], atol=1e-7)  # 2 w / 2 rays
 
 
+def test_stereo_free_until_by_hand():
+    """Emptiness before a stereo target ends 10 % of its range and at least max(0.1 m, 2 sigma)
+    before it: 5 m, sigma 0.02 -> 4.5 - 0.1; 5 m, sigma 0.2 -> 4.5 - 0.4; no target stays NaN."""
+    from virus_nerf.losses import stereo_free_until
+
+    until = stereo_free_until(torch.tensor([5.0, 5.0, float("nan")]), torch.tensor([0.02, 0.2, float("nan")]),
+                              short=0.1, margin=0.1)
+    np.testing.assert_allclose(until.numpy()[:2], [4.4, 4.1], atol=1e-6)
+    assert bool(torch.isnan(until[2]))
+
+
+def test_line_of_sight_terms_add_the_stereo_targets_by_hand():
+    """free_uss 0.5 before an echo at 2.6 m (free until 2.5 m: the 1 m and 2 m samples, 0.01 + 0.04)
+    plus free_stereo 20 before a 2 m target with sigma 0.1 (free until 1.8 - 0.2 = 1.6 m: the 1 m
+    sample of the second ray, 0.09); each a mean over its own rays with evidence (one each)."""
+    from virus_nerf.losses import LossWeights, line_of_sight_terms
+
+    weights = torch.tensor([0.1, 0.2, 0.6, 0.3, 0.5])
+    t_ends = torch.tensor([1.0, 2.0, 3.0, 1.0, 2.0])
+    offsets = torch.tensor([0, 3, 5])
+    nan = float("nan")
+    w = LossWeights(free_uss=0.5, free_margin=0.1, free_stereo=20.0, free_stereo_short=0.1)
+    uss = torch.tensor([2.6, nan])
+    total = line_of_sight_terms(w, weights, t_ends, offsets, uss_range=uss, stereo_range=torch.tensor([nan, 2.0]),
+                                stereo_sigma=torch.tensor([nan, 0.1]))
+    assert float(total) == pytest.approx(0.5 * 0.05 + 20.0 * 0.09)
+    assert float(line_of_sight_terms(w, weights, t_ends, offsets, uss_range=uss)) == pytest.approx(0.5 * 0.05)
+
+
+def test_stereo_line_of_sight_only_offline_in_a_fitted_room_up_to_its_size():
+    """The stereo line of sight trains with the stereo sensor, offline, in a fitted box whose
+    longest horizontal side is at most weights.free_stereo_room_m (12 m): a 9 x 8 m office yes; an
+    18 m common area, a grown box, driving or no stereo sensor no."""
+    from virus_nerf.engine.config import MapperConfig
+    from virus_nerf.engine.mapper import stereo_line_of_sight
+    from virus_nerf.scene_box import SceneBox
+
+    config = MapperConfig()
+    office, common = SceneBox((-4.6, -4.1, -1.0), (4.6, 4.1, 1.8)), SceneBox((-9.1, -6.1, -1.0), (9.1, 6.1, 2.2))
+    assert config.weights.free_stereo_room_m == 12.0 and "stereo" in config.sensors
+    assert stereo_line_of_sight(config, office, growing=False, driving=False)
+    assert not stereo_line_of_sight(config, common, growing=False, driving=False)
+    assert not stereo_line_of_sight(config, office, growing=True, driving=False)
+    assert not stereo_line_of_sight(config, office, growing=False, driving=True)
+    assert not stereo_line_of_sight(MapperConfig(sensors=("camera", "uss", "irs")), office, growing=False,
+                                    driving=False)
+
+
 def test_targets_while_driving_equal_the_offline_ones(wall_drive):
     """Flushing ended tracks every 4 frames (mapping while driving) gives, by the end, the same
     targets as one pass over the whole drive; targets appear before the drive ends."""

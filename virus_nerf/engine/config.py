@@ -187,8 +187,9 @@ class MapperConfig:
         for name in ("colour", "irs", "uss", "rgbd", "stereo", "distortion"):
             number(f"weights.{name}", 0.0, lo_open=False)
         number("weights.stereo_sigma_ref", 0.0)
-        for name in ("free_uss", "free_margin"):
+        for name in ("free_uss", "free_margin", "free_stereo", "free_stereo_room_m"):
             number(f"weights.{name}", 0.0, lo_open=False)
+        number("weights.free_stereo_short", 0.0, 1.0, lo_open=False, hi_open=True)
 
     def engine(self) -> MapperConfig:
         """This config's engine knobs alone (a `TrainConfig` drops its run knobs; the sections

@@ -293,7 +293,8 @@ class Mapper(MapViews):
         rgb_rays = colour_rays(self.config, batch)
         out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator, rgb_rays=rgb_rays,
                                        visible_share=self.visible_share)
-        terms = step_loss(self.config, batch, out, stats.samples, rgb_rays)
+        terms = step_loss(self.config, batch, out, stats.samples, rgb_rays,
+                          stereo_line_of_sight(self.config, self.box, self.extent.growing, self.driving))
         self._optimise(terms)
         self._count(stats)
         self._update_grid(schedule, batch, stats)
@@ -488,10 +489,23 @@ def colour_rays(config: MapperConfig, batch: RayBatch) -> torch.Tensor | None:
     return ~has_depth
 
 
-def step_loss(config: MapperConfig, batch: RayBatch, out, samples, rgb_rays: torch.Tensor | None) -> LossTerms:
+def stereo_line_of_sight(config: MapperConfig, box: SceneBox, growing: bool, driving: bool) -> bool:
+    """Whether the stereo targets' line-of-sight term trains (`weights.free_stereo`): the stereo
+    sensor trained, offline (while driving it marked more obstacles near the path free), in a
+    fitted box (a grown one's room size is not known when the drive starts) whose longest
+    horizontal side is at most `weights.free_stereo_room_m` (docs/decisions.md D77)."""
+    w = config.weights
+    side = float(max(box.hi[0] - box.lo[0], box.hi[1] - box.lo[1]))
+    return (w.free_stereo > 0 and "stereo" in config.sensors and not growing and not driving
+            and side <= w.free_stereo_room_m)
+
+
+def step_loss(config: MapperConfig, batch: RayBatch, out, samples, rgb_rays: torch.Tensor | None,
+              stereo_free: bool = False) -> LossTerms:
     """A step's loss from its rays' targets (`batch`), the render (`out`: rgb, depth, weights)
     and its packed samples: the weighted sum of docs/method.md 3.2 over the sensors trained,
-    then the distortion and USS line-of-sight terms when their weights are on. Pure: no state."""
+    then the distortion and the line-of-sight terms when their weights are on (the stereo
+    targets' when `stereo_free`: `stereo_line_of_sight`). Pure: no state."""
     sensors, w = config.sensors, config.weights
     terms = total_loss(
         w,
@@ -508,7 +522,11 @@ def step_loss(config: MapperConfig, batch: RayBatch, out, samples, rgb_rays: tor
     if w.distortion > 0:
         ld = distortion_loss(out.weights, samples.t_starts, samples.t_ends, samples.ray_offsets)
         terms = dataclasses.replace(terms, total=terms.total + w.distortion * ld, distortion=ld)
-    if w.free_uss > 0 and "uss" in sensors:
-        free = line_of_sight_terms(w, out.weights, samples.t_ends, samples.ray_offsets, uss_range=batch.uss_range)
+    uss = batch.uss_range if w.free_uss > 0 and "uss" in sensors else None
+    stereo = stereo_free and batch.stereo_range is not None
+    if uss is not None or stereo:
+        free = line_of_sight_terms(w, out.weights, samples.t_ends, samples.ray_offsets, uss_range=uss,
+                                   stereo_range=batch.stereo_range if stereo else None,
+                                   stereo_sigma=batch.stereo_sigma if stereo else None)
         terms = dataclasses.replace(terms, total=terms.total + free)
     return terms

@@ -127,14 +127,28 @@ def free_space_loss(weights: torch.Tensor, t_ends: torch.Tensor, ray_offsets: to
     return _masked_mean(per_ray, valid)
 
 
+def stereo_free_until(ranges: torch.Tensor, sigmas: torch.Tensor, short: float, margin: float) -> torch.Tensor:
+    """(R,) m along each ray up to which a stereo target (range, sigma (R,) m; NaN: none) says
+    space is empty: `short` of its range before it, and at least max(margin, 2 sigma) before it.
+    A share rather than a fixed margin because a triangulated point's error grows with its range
+    and a far target's ray grazes more of what lies near it."""
+    return ranges * (1.0 - short) - torch.clamp(2.0 * sigmas, min=margin)
+
+
 def line_of_sight_terms(weights: LossWeights, sample_weights: torch.Tensor, t_ends: torch.Tensor,
-                        ray_offsets: torch.Tensor, uss_range: torch.Tensor | None = None) -> torch.Tensor:
-    """free_uss * free_space_loss before the USS echoes (free_margin m short of the echo); None:
-    the USS is not trained."""
+                        ray_offsets: torch.Tensor, uss_range: torch.Tensor | None = None,
+                        stereo_range: torch.Tensor | None = None,
+                        stereo_sigma: torch.Tensor | None = None) -> torch.Tensor:
+    """free_uss * free_space_loss before the USS echoes (free_margin m short of the echo), plus
+    free_stereo * free_space_loss before the stereo targets (`stereo_free_until`); None: that
+    sensor's term is off."""
     total = sample_weights.sum() * 0.0
     if weights.free_uss > 0 and uss_range is not None:
         total = total + weights.free_uss * free_space_loss(sample_weights, t_ends, ray_offsets,
                                                            uss_range - weights.free_margin)
+    if weights.free_stereo > 0 and stereo_range is not None and stereo_sigma is not None:
+        until = stereo_free_until(stereo_range, stereo_sigma, weights.free_stereo_short, weights.free_margin)
+        total = total + weights.free_stereo * free_space_loss(sample_weights, t_ends, ray_offsets, until)
     return total
 
 
@@ -166,6 +180,15 @@ class LossWeights:
     # D32), free_margin m short of the echo
     free_uss: float = 0.5
     free_margin: float = 0.1
+    # line-of-sight emptiness before each stereo target (free_space_loss), ending free_stereo_short
+    # of the target's range and at least max(free_margin, 2 sigma) before it (`stereo_free_until`),
+    # on only offline in a fitted box whose longest horizontal side is at most free_stereo_room_m:
+    # it clears the office's density sheets beside the path; in the larger rooms it cuts real
+    # surfaces (far targets graze or see past what their rays cross), and while driving it marked
+    # more obstacles near the path free (docs/decisions.md D77)
+    free_stereo: float = 40.0
+    free_stereo_short: float = 0.1
+    free_stereo_room_m: float = 12.0
     # interval distortion (m) on every ray against haze along rays; the paper has none; off (D21)
     distortion: float = 0.0
 
