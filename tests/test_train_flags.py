@@ -185,12 +185,16 @@ def test_a_run_saved_before_a_key_was_added_loads_at_the_value_it_was_made_with(
 
     old = to_dict(TrainConfig())
     del old["extent"]["fitted_frame"]
+    for key in ("free_stereo", "free_stereo_short", "free_stereo_room_m"):  # before D77
+        del old["weights"][key]
     path = tmp_path / "config.json"
     path.write_text(json.dumps(old))
-    assert load_json_config(TrainConfig, path, saved=True).extent.fitted_frame == "box"
+    loaded = load_json_config(TrainConfig, path, saved=True)
+    assert loaded.extent.fitted_frame == "box" and loaded.weights.free_stereo == 0.0
     # a user's partial config file takes today's default
     path.write_text(json.dumps({"extent": {"mode": "fitted"}}))
-    assert load_json_config(TrainConfig, path).extent.fitted_frame == TrainConfig().extent.fitted_frame
+    cfg = load_json_config(TrainConfig, path)
+    assert cfg.extent.fitted_frame == TrainConfig().extent.fitted_frame and cfg.weights.free_stereo == 40.0
 
 
 def test_a_comment_after_a_field_describes_the_next_field_only():

@@ -58,6 +58,7 @@ REMOVED_KEYS = {
 # its run was made with this value, whatever today's default is (`load_json_config(saved=True)`).
 ADDED_KEYS = {
     "extent.fitted_frame": "box",  # the field spanned the fitted box per axis before (docs/decisions.md D58)
+    "weights.free_stereo": 0.0,  # no emptiness before the stereo targets before docs/decisions.md D77
 }
 
 
