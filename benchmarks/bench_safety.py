@@ -132,13 +132,14 @@ def stream(data: Path, scene: str, bags: Path, run: Path) -> None:
 
 
 def read_map_files(folder: Path):
-    """(image (H, W) uint8, origin (x, y) m, resolution m) of folder/map.pgm and map.yaml."""
+    """(image (H, W) uint8, origin (x, y) m, resolution m) of folder/map.pgm and map.yaml (read as
+    bench_ros2_node.py reads it: PyYAML, which the dev extra brings)."""
+    import yaml
     from PIL import Image
 
-    fields = dict(line.split(":", 1) for line in (folder / "map.yaml").read_text().splitlines() if ":" in line)
-    origin = [float(v) for v in fields["origin"].strip().strip("[]").split(",")]
-    image = np.asarray(Image.open(folder / "map.pgm"))
-    return image, (origin[0], origin[1]), float(fields["resolution"])
+    meta = yaml.safe_load((folder / "map.yaml").read_text())
+    image = np.asarray(Image.open(folder / meta["image"]))
+    return image, (float(meta["origin"][0]), float(meta["origin"][1])), float(meta["resolution"])
 
 
 def judge_files(folder: Path, data: Path, scene: str) -> dict:
