@@ -11,10 +11,12 @@ offline and while driving alike.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from virus_nerf.checks import Checks
 from virus_nerf.sensors.camera import Intrinsics
 
 
@@ -52,6 +54,12 @@ def epipolar_distance(f: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray) -> np.n
     return np.abs(np.einsum("ni,ni->n", lines, xb)) / np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12)
 
 
+# the narrowest window the angle may give: fewer pixels average less of the images' noise in LK's
+# gradient sums, and 7 px is the narrowest measured (D78: on the simulator's 320 x 240 images; a
+# 160 x 120 image would get 3 px from the angle)
+MIN_WINDOW_PX = 7
+
+
 @dataclass(frozen=True)
 class TrackerConfig:
     """Corner detection and KLT settings (pixels at the recording's resolution)."""
@@ -59,10 +67,27 @@ class TrackerConfig:
     max_corners: int = 800  # per image
     quality: float = 0.001  # Shi-Tomasi quality level (share of the image's strongest corner)
     min_distance: float = 4.0  # px between corners
-    window: int = 15  # LK window side, px
+    # LK window side as an angle, the same part of the view at any image size: 15 px on the ETHZ
+    # recordings' 640 x 480 images (fx 388 px), 7 px on the simulator's 320 x 240 ones. A window
+    # across a depth edge follows the foreground and the background at once, and its track
+    # triangulates a point between them (docs/decisions.md D78)
+    window_deg: float = 2.2
+    window: int | None = None  # LK window side in px instead (a run saved before D78: 15)
     levels: int = 3  # LK pyramid levels
     fb_max_px: float = 0.5  # forward-backward error bound
     epipolar_max_px: float = 1.0  # distance from the epipolar line
+
+    def __post_init__(self) -> None:
+        check = Checks(self, "stereo.tracker.")
+        check.number("window_deg", 0.0)
+        check.integer("window", 3, optional=True)
+
+    def window_px(self, fx: float) -> int:
+        """The LK window side in pixels of an image with focal length `fx` px: `window` when set,
+        else `window_deg` rounded to the nearest odd number of pixels, at least MIN_WINDOW_PX."""
+        if self.window is not None:
+            return self.window
+        return max(MIN_WINDOW_PX, 2 * round((math.radians(self.window_deg) * fx - 1.0) / 2.0) + 1)
 
 
 @dataclass
@@ -96,7 +121,8 @@ def track_points(gray_a: np.ndarray, gray_b: np.ndarray, uv_a: np.ndarray, k_a: 
         return np.zeros((0, 2)), np.zeros(0, dtype=bool)
     h = rotation_homography(k_a, k_b, pose_a, pose_b)
     start = cv2.perspectiveTransform(uv_a.reshape(-1, 1, 2).astype(np.float32), h).reshape(-1, 2)
-    lk = dict(winSize=(cfg.window, cfg.window), maxLevel=cfg.levels,
+    side = cfg.window_px(float(k_a[0, 0]))
+    lk = dict(winSize=(side, side), maxLevel=cfg.levels,
               criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
     p0 = uv_a.reshape(-1, 1, 2).astype(np.float32)
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(gray_a, gray_b, p0, start.reshape(-1, 1, 2).copy(),
