@@ -89,36 +89,69 @@ def _texture(seed: int = 0, size: int = 600) -> np.ndarray:
     return 20 + 215 * tex
 
 
-def _render_wall(pose: np.ndarray, tex: np.ndarray, wall_z: float) -> tuple[np.ndarray, np.ndarray]:
-    """RGB image of a textured wall z = wall_z seen from `pose`, and each pixel's range (m)."""
-    from scipy.ndimage import map_coordinates
-
-    v, u = np.mgrid[0:INTR.height, 0:INTR.width].astype(float)
-    d = np.stack([(u - INTR.cx) / F_PX, (v - INTR.cy) / F_PX, np.ones_like(u)], -1)
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    dw = d @ pose[:3, :3].T
-    t = (wall_z - pose[2, 3]) / dw[..., 2]
-    hit = pose[:3, 3] + t[..., None] * dw
-    rows = (hit[..., 1] + 4.0) / 8.0 * (tex.shape[0] - 1)
-    cols = (hit[..., 0] + 6.0) / 12.0 * (tex.shape[1] - 1)
-    grey = map_coordinates(tex, [rows, cols], order=1, mode="nearest")
-    return np.repeat(np.clip(grey, 0, 255).astype(np.uint8)[..., None], 3, axis=2), t
+def _rays(pose: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(N, 3) world directions through pixels uv (N, 2) of INTR at `pose`."""
+    d = np.stack([(uv[:, 0] - INTR.cx) / F_PX, (uv[:, 1] - INTR.cy) / F_PX, np.ones(len(uv))], 1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True) @ pose[:3, :3].T
 
 
 WALL_Z = 6.0
+POLE_Z = 2.0
+POLES_X = np.arange(-1.6, 1.61, 0.4)  # centres of 8 cm wide vertical poles, 2 m in front of the wall
+POLE_HALF_WIDTH = 0.04
 
 
-def _wall_drive(flush_every: int | None = None):
+def _first_hit(pose: np.ndarray, dirs: np.ndarray, poles: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(range (N,) m, on a pole (N,)) of rays from `pose` to the wall z = WALL_Z, or to the poles
+    before it when there are `poles`."""
+    t_wall = (WALL_Z - pose[2, 3]) / dirs[:, 2]
+    if not poles:
+        return t_wall, np.zeros(len(dirs), dtype=bool)
+    t_pole = (POLE_Z - pose[2, 3]) / dirs[:, 2]
+    x_pole = pose[0, 3] + t_pole * dirs[:, 0]
+    on = (np.abs(x_pole[:, None] - POLES_X) < POLE_HALF_WIDTH).any(axis=1)
+    return np.where(on, t_pole, t_wall), on
+
+
+def _texture_at(tex: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """Grey values of `tex` spread over [-6, 6] x [-4, 4] m at world points hit (N, 3)."""
+    from scipy.ndimage import map_coordinates
+
+    rows = (hit[:, 1] + 4.0) / 8.0 * (tex.shape[0] - 1)
+    cols = (hit[:, 0] + 6.0) / 12.0 * (tex.shape[1] - 1)
+    return map_coordinates(tex, [rows, cols], order=1, mode="nearest")
+
+
+def _render_wall(pose: np.ndarray, tex: np.ndarray,
+                 pole_tex: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """RGB image of the textured wall z = WALL_Z seen from `pose` (and of the poles before it,
+    textured with `pole_tex`, when given), and each pixel's range (m)."""
+    v, u = np.mgrid[0:INTR.height, 0:INTR.width].astype(float)
+    dirs = _rays(pose, np.stack([u.ravel(), v.ravel()], 1))
+    t, on = _first_hit(pose, dirs, poles=pole_tex is not None)
+    hit = pose[:3, 3] + t[:, None] * dirs
+    grey = _texture_at(tex, hit)
+    if pole_tex is not None:
+        grey = np.where(on, _texture_at(pole_tex, hit), grey)
+    grey = np.clip(grey, 0, 255).astype(np.uint8).reshape(INTR.height, INTR.width)
+    return np.repeat(grey[..., None], 3, axis=2), t.reshape(INTR.height, INTR.width)
+
+
+def _wall_drive(flush_every: int | None = None, tracker=None, pole_tex: np.ndarray | None = None):
     """A camera pair (0.28 m apart, toed out 15 deg) drives sideways past a textured wall 6 m
-    away: (targets, poses by frame row, targets after each flush)."""
+    away (with `pole_tex`: past textured poles 2 m before it): (targets, poses by frame row,
+    targets after each flush)."""
+    from virus_nerf.stereo.tracking import TrackerConfig
+
     tex = _texture()
-    builder = StereoBuilder({1: INTR, 3: INTR}, {1: INTR, 3: INTR}, StereoConfig())
+    cfg = StereoConfig(tracker=TrackerConfig() if tracker is None else tracker)
+    builder = StereoBuilder({1: INTR, 3: INTR}, {1: INTR, 3: INTR}, cfg)
     poses, row, flushed = {}, 0, []
     for i in range(12):
         x = -1.0 + 0.15 * i
         for stack, dx, yaw in ((1, -0.14, -7.5), (3, 0.14, 7.5)):
             pose = _pose(x + dx, yaw_deg=yaw)
-            rgb, _ = _render_wall(pose, tex, WALL_Z)
+            rgb, _ = _render_wall(pose, tex, pole_tex)
             builder.add(row, stack, 0.2 * i, pose, rgb)
             poses[row] = pose
             row += 1
@@ -138,12 +171,7 @@ def test_tracks_on_a_textured_wall_give_its_distance(wall_drive):
     depth, poses, _ = wall_drive
     assert len(depth) > 2000 and len(depth.points) > 200
     assert np.all(np.diff(depth.frames) >= 0)
-    centres = np.stack([poses[int(f)][:3, 3] for f in depth.frames])
-    rots = np.stack([poses[int(f)][:3, :3] for f in depth.frames])
-    d = np.stack([(depth.uv[:, 0] - INTR.cx) / F_PX, (depth.uv[:, 1] - INTR.cy) / F_PX, np.ones(len(depth))], 1)
-    d = np.einsum("nij,nj->ni", rots, d / np.linalg.norm(d, axis=1, keepdims=True))
-    truth = (wall_z - centres[:, 2]) / d[:, 2]
-    err = depth.ranges - truth
+    err = depth.ranges - _truth(depth, poses, poles=False)
     assert np.median(np.abs(err)) < 0.03  # 6 m away
     assert np.percentile(np.abs(err), 99) < 0.3
     assert np.all(depth.sigmas > 0) and np.all(depth.sigmas <= 0.03 * depth.ranges + 1e-6)
@@ -151,52 +179,18 @@ def test_tracks_on_a_textured_wall_give_its_distance(wall_drive):
     assert np.abs(depth.points[:, 2] - wall_z).max() < 0.3
 
 
-POLE_Z = 2.0
-POLES_X = np.arange(-1.6, 1.61, 0.4)  # centres of 8 cm wide vertical poles, 2 m in front of the wall
-POLE_HALF_WIDTH = 0.04
-
-
-def _rays(pose: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """(N, 3) world directions through pixels uv (N, 2) of INTR at `pose`."""
-    d = np.stack([(uv[:, 0] - INTR.cx) / F_PX, (uv[:, 1] - INTR.cy) / F_PX, np.ones(len(uv))], 1)
-    return d / np.linalg.norm(d, axis=1, keepdims=True) @ pose[:3, :3].T
-
-
-def _first_hit(pose: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(range (N,), on a pole (N,)) of rays from `pose` through the poles before the wall."""
-    t_pole = (POLE_Z - pose[2, 3]) / dirs[:, 2]
-    x_pole = pose[0, 3] + t_pole * dirs[:, 0]
-    on = (np.abs(x_pole[:, None] - POLES_X) < POLE_HALF_WIDTH).any(axis=1)
-    return np.where(on, t_pole, (WALL_Z - pose[2, 3]) / dirs[:, 2]), on
+def _truth(depth, poses: dict, poles: bool) -> np.ndarray:
+    """(M,) m: the true first surface along each target's ray (targets are sorted by frame)."""
+    return np.concatenate([_first_hit(poses[int(f)], _rays(poses[int(f)], depth.uv[depth.frames == f]), poles)[0]
+                           for f in np.unique(depth.frames)])
 
 
 def _phantom_share(tracker) -> float:
     """The wall drive past textured poles before the textured wall: the share of targets more
     than 0.3 m from the true first surface along their ray."""
-    from scipy.ndimage import map_coordinates
-
-    wall_tex, pole_tex = _texture(0), _texture(1)
-    builder = StereoBuilder({1: INTR, 3: INTR}, {1: INTR, 3: INTR}, StereoConfig(tracker=tracker))
-    v, u = np.mgrid[0:INTR.height, 0:INTR.width].astype(float)
-    uv = np.stack([u.ravel(), v.ravel()], 1)
-    poses, row = {}, 0
-    for i in range(12):
-        for stack, dx, yaw in ((1, -0.14, -7.5), (3, 0.14, 7.5)):
-            pose = _pose(-1.0 + 0.15 * i + dx, yaw_deg=yaw)
-            wall, _ = _render_wall(pose, wall_tex, WALL_Z)
-            dirs = _rays(pose, uv)
-            t, on = _first_hit(pose, dirs)
-            hit = pose[:3, 3] + t[:, None] * dirs
-            pole = map_coordinates(pole_tex, [(hit[:, 1] + 4.0) / 8.0 * 599, (hit[:, 0] + 6.0) / 12.0 * 599], order=1)
-            grey = np.where(on, pole, wall[..., 0].ravel().astype(float)).reshape(INTR.height, INTR.width)
-            builder.add(row, stack, 0.2 * i, pose, np.repeat(np.clip(grey, 0, 255).astype(np.uint8)[..., None], 3, 2))
-            poses[row] = pose
-            row += 1
-    depth = builder.result()
+    depth, poses, _ = _wall_drive(tracker=tracker, pole_tex=_texture(1))
     assert len(depth) > 1000
-    truth = np.concatenate([_first_hit(poses[int(f)], _rays(poses[int(f)], depth.uv[depth.frames == f]))[0]
-                            for f in np.unique(depth.frames)])  # targets are sorted by frame
-    return float(np.mean(np.abs(depth.ranges - truth) > 0.3))
+    return float(np.mean(np.abs(depth.ranges - _truth(depth, poses, poles=True)) > 0.3))
 
 
 def test_tracker_window_is_an_angle():
@@ -387,7 +381,7 @@ def test_mapper_gets_stereo_targets_while_frames_arrive():
     for i in range(12):
         for stack, dx, yaw in ((1, -0.14, -7.5), (3, 0.14, 7.5)):
             pose = _pose(-1.0 + 0.15 * i + dx, yaw_deg=yaw)
-            rgb, _ = _render_wall(pose, tex, WALL_Z)
+            rgb, _ = _render_wall(pose, tex)
             mapper.add_frame(SyncFrame(time=0.2 * i, stack_id=stack, rgb=rgb, cam_to_world=pose,
                                        uss_range=math.nan, irs_range=np.full((8, 8), np.nan)))
     assert mapper.stereo is not None and len(mapper.stereo) > 500
