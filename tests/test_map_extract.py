@@ -167,6 +167,75 @@ def test_what_the_rays_below_the_band_hit_is_occupied_and_their_passes_claim_not
     assert list(row[1:13]) == [FREE] * 7 + [OCCUPIED, UNKNOWN, UNKNOWN, UNKNOWN, OCCUPIED]
 
 
+def _evidence(surfaces=(), irs_hits=()):
+    """RangeEvidence with IRS hits (K, 2) and stereo surface points (P, 2), no USS echo."""
+    from virus_nerf.maps.planner import RangeEvidence
+
+    return RangeEvidence(np.asarray(irs_hits, dtype=float).reshape(-1, 2), np.zeros((0, 2)), np.zeros(0), np.zeros(0),
+                         surfaces=np.asarray(surfaces, dtype=float).reshape(-1, 2))
+
+
+def test_a_low_end_casts_its_shadow_only_near_a_surface_the_cameras_measured():
+    from virus_nerf.maps.extract import scan_map
+
+    camera = np.array([[0.25, 0.25, 1.0]])
+    lo, hi, res = np.array([0.0, -1.0]), np.array([3.5, 1.0]), 0.25  # as the test above: 14 x 8 pixels
+
+    def row(evidence):
+        return scan_map(_PalletBeforeWall(), camera, lo, hi, res, 360, evidence).image[::-1].T[1:13, 5]
+
+    shadow = [FREE] * 7 + [OCCUPIED, UNKNOWN, UNKNOWN, UNKNOWN, OCCUPIED]  # the test above's row
+    assert list(row(None)) == shadow
+    # stereo points on the box's front (x 2.1, where the low rays end): the ends are real, their
+    # shadow stays
+    front = [[2.1, 0.3], [2.15, 0.45]]
+    assert list(row(_evidence(surfaces=front))) == shadow
+    # stereo points only on the wall (x 3.1, 1 m behind the ends): nothing measured the ends, which
+    # stay occupied (the scan rule) but cast no shadow; what the band passed behind them (to x 2.625)
+    # is free
+    wall = [[3.1, 0.3], [3.1, 0.4]]
+    assert list(row(_evidence(surfaces=wall))) == [FREE] * 7 + [OCCUPIED, FREE, FREE, UNKNOWN, OCCUPIED]
+    assert list(row(_evidence())) == shadow  # no stereo point at all (a run without stereo): D64's rule
+
+
+class _NothingStops:
+    """A range model whose rays nothing stops (the grid emptied every wall): NaN everywhere."""
+
+    def ranges(self, origins, directions):
+        return np.full(len(origins), np.nan)
+
+
+def test_a_ray_nothing_stops_is_free_up_to_the_first_surface_a_sensor_touched():
+    from virus_nerf.maps.extract import scan_map, through_lengths
+
+    # the box x in [0, 5], y in [-1, 1.5] at 0.25 m; the camera at (0.25, 0.25), its row y in [0.25, 0.5)
+    camera = np.array([[0.25, 0.25, 1.0]])
+    lo, hi, res = np.array([0.0, -1.0]), np.array([5.0, 1.5]), 0.25
+    o, d = np.array([[0.25, 0.25]]), np.array([[1.0, 0.0]])
+    # +x: the box's side 4.75 m away, free to 1 m before it (MAP_THROUGH_MARGIN_M)
+    assert through_lengths(o, d, np.zeros((0, 2)), lo, hi, res) == pytest.approx([3.75])
+    # an IRS hit at x 2.05: its pixel (x 2.0-2.25) is the only one within 0.1 m of it, entered at x 2.0
+    assert through_lengths(o, d, np.array([[2.05, 0.3]]), lo, hi, res) == pytest.approx([1.75])
+
+    def row(evidence):
+        return scan_map(_NothingStops(), camera, lo, hi, res, 360, evidence).image[::-1].T[:, 5]
+
+    assert (row(None) == UNKNOWN).all()  # the scans alone: a ray that ended nowhere claims nothing
+    # +x, the pass points every half pixel up to a pixel short of the end: x 0.25 .. 3.875 (1.875
+    # with the hit); pixel 0 is passed by the rays leaving up and to the left
+    assert list(row(_evidence())) == [FREE] * 16 + [UNKNOWN] * 4
+    assert list(row(_evidence(irs_hits=[[2.05, 0.3]]))) == [FREE] * 8 + [UNKNOWN] * 12
+
+
+def test_near_surfaces_is_a_distance_to_the_nearest_surface_point():
+    from virus_nerf.maps.extract import near_surfaces
+
+    points = np.array([[0.0, 0.0], [0.0, 0.2], [np.nan, 0.0]])
+    out = near_surfaces(points, np.array([[0.05, 0.05], [3.0, 3.0]]), 0.1)  # 0.071 m, 0.158 m, never
+    assert out.tolist() == [True, False, False]
+    assert not near_surfaces(points, np.zeros((0, 2)), 0.1).any()
+
+
 class _BoxSeenFromBothSides:
     """A range model: walls at x = -0.3 m and 4.2 m; between them a box over x in [2.1, 2.6]
     (every y) whose top is 10 cm below the camera: rays starting below 0.9 m meet its front from

@@ -110,6 +110,8 @@ def test_stereo_points_at_camera_height_mark_their_pixels_occupied():
     ev = RangeEvidence.of_frames(pose[None], np.array([np.nan]), np.full((1, 8, 8), np.nan), 0.5,
                                  ("camera", "stereo"), stereo_points=pts)
     np.testing.assert_allclose(ev.stereo_points, [[1.05, 0.05], [0.55, 0.35]])  # the one 0.45 m up is left out (0.3 m band)
+    np.testing.assert_allclose(ev.surfaces, pts[:, :2])  # all three within the scan rules' 0.5 m (SURFACE_BAND_M)
+    np.testing.assert_allclose(ev.touched(), [[1.05, 0.05], [0.55, 0.35]])  # no IRS hit: the stereo points
     assert len(RangeEvidence.of_frames(pose[None], np.array([np.nan]), np.full((1, 8, 8), np.nan), 0.5,
                                        ("camera",), stereo_points=pts).stereo_points) == 0  # not a sensor of the run
     image = np.full((10, 30), FREE, dtype=np.uint8)  # 3 x 1 m at 0.1 m

@@ -2,11 +2,12 @@
 `map2d` / `probability_map` / snapshots (mapping while driving) and the planner-safety figure.
 
 The 2D map of a trained model is its own 360 deg scans in the camera-height band from evenly
-spread camera positions, rasterised (maps/occupancy.py: passed cells free, end cells occupied),
-occupied where its scans just below the band end (the scan rule; what the robot's body meets) and
-unknown up to 1 m behind what they met where none of them passed (what the body's rays did not see),
-then unknown wherever no sensor looked (maps/observed.py), occupied wherever the infrared or ultrasonic
-sensors touched an obstacle the scans called free (maps/planner.py). The probability map is the VIRUS grid's
+spread camera positions, rasterised (maps/occupancy.py: passed cells free, end cells occupied; a
+scan that nothing stopped free up to the first surface a sensor touched), occupied where its scans
+just below the band end (the scan rule; what the robot's body meets) and unknown up to 1 m behind
+what they met, where a camera measured a surface and none of them passed (what the body's rays did
+not see), then unknown wherever no sensor looked (maps/observed.py), occupied wherever the infrared
+or ultrasonic sensors touched an obstacle the scans called free (maps/planner.py). The probability map is the VIRUS grid's
 occupancy probability at camera height, 0.5 where no sensor looked. The caller chooses the
 positions and the observed mask (a run: the recording's frames; the Mapper: the frames it has).
 """
@@ -22,15 +23,15 @@ from virus_nerf.maps.occupancy import (
     FREE,
     MAX_PIXELS,
     OCCUPIED,
+    SCAN_POINTS_PER_CHUNK,
     UNKNOWN,
     OccupancyMap2D,
-    from_image,
+    bounded_chunks,
     probability_slice,
     raster_shape,
     ray_ends,
     scale_map,
     scan_counts,
-    scan_occupancy,
     scan_rule_occupied,
     to_image,
 )
@@ -68,6 +69,20 @@ MAP_LOW_GRID_GROW_Z = 1
 # fitted warehouse's 25 cm cells to keep them, and the rays 15 cm below the cameras passed them;
 # the 30 cm rays keep D66's cells, near the floor's haze that grown cells would make ends (D73)
 MAP_LOW_AROUND_HEIGHTS_M = (-0.15,)
+# a low ray's end casts that shadow only where the cameras measured a surface (a stereo point within
+# 0.5 m of camera height) within this horizontal distance (m) of it: of the low ends the simulator
+# says are real 93-99 % have one, of the false ones (the field's haze near the floor, which casts two
+# thirds of the offices' shadow over free floor) 40-68 % (D80; at 0.1 m 78-92 % and 16-36 %, and the
+# warehouse's goods, whose fronts the cameras see at grazing angles, lose their shadow). A run without
+# stereo points keeps D64's rule (every end casts)
+MAP_LOW_SUPPORT_M = 0.2
+# a band ray that nothing in the box stops (its opacity never reaches the scan's 0.5: the grid
+# emptied the cells of a wall the field still holds) passed free space as far as it goes, but not
+# where it ends; it marks free what it passed up to this distance (m) from the first IRS hit or
+# stereo point at camera height that it meets, and no closer than MAP_THROUGH_MARGIN_M to the box's
+# side (the fitted box's walls, and the counters and cupboards against them), D80
+MAP_THROUGH_STOP_M = 0.1
+MAP_THROUGH_MARGIN_M = 1.0
 
 
 def check_raster(what: str, lo: np.ndarray, hi: np.ndarray, resolution, limit: int | None = None) -> tuple[int, int]:
@@ -109,7 +124,8 @@ def camera_height(cam_to_world: np.ndarray, stack_ids: np.ndarray, default: floa
     return float(np.median(z)) if len(z) else float(default)
 
 
-def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int):
+def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int,
+             evidence: RangeEvidence | None = None):
     """360 deg model scans from camera `positions` (N, 3) -> a trinary OccupancyMap2D over the
     (x, y) box [lo, hi]: the band's `n_rays` rays a position, whose heights take turns over
     MAP_SCAN_HEIGHTS_M (maps.occupancy.scan_occupancy: passed cells free, end cells occupied; the
@@ -118,7 +134,10 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     by the same rule said occupied (D60), and unknown where the band said free up to
     MAP_LOW_SHADOW_M behind the low rays' occupied ends and no low ray passed (D64). The band's
     rays march the grid as trained, the low rays the grid grown in z (`low_ranges`, D66), those
-    at MAP_LOW_AROUND_HEIGHTS_M the grid grown in x and y as well (D73)."""
+    at MAP_LOW_AROUND_HEIGHTS_M the grid grown in x and y as well (D73). With the robot's
+    `evidence` (maps/planner.py), only low ends near a measured surface cast the shadow, and the
+    band rays nothing stopped mark free what they passed up to the first surface a sensor
+    touched (`through_lengths`, D80)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     band_o, band_d = scan_rays(positions, n_rays, MAP_SCAN_HEIGHTS_M)  # (N n_rays, 3) each
     n_low = max(1, round(n_rays * MAP_LOW_RAYS_SHARE))
@@ -129,15 +148,86 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     below = low_o[:, 2] - np.repeat(positions[:, 2], n_low)  # (N n_low,) m, each low ray's height
     around = np.isclose(below[:, None], np.asarray(MAP_LOW_AROUND_HEIGHTS_M)[None, :]).any(axis=1)
     low_r = low_ranges(model, low_o, low_d, around) if len(positions) else np.zeros(0)
-    m = scan_occupancy(band_o[:, :2], band_d[:, :2], band_r, lo, hi, resolution)
-    grid = from_image(m.image).copy()  # [ix, iy]
+    passes, hits = scan_counts(band_o[:, :2], band_d[:, :2], band_r, lo, hi, resolution)
+    grid = np.full(passes.shape, UNKNOWN, dtype=np.uint8)  # [ix, iy]
+    grid[passes > 0] = FREE
+    if evidence is not None:  # the rays nothing stopped: free up to the first surface a sensor touched
+        through = ~np.isfinite(band_r)
+        o, d = band_o[through, :2], unit_2d(band_d[through, :2])
+        length = through_lengths(o, d, evidence.touched(), lo, hi, resolution)
+        grid[scan_counts(o, d, length + resolution, lo, hi, resolution)[0] > 0] = FREE  # passed up to `length`
+    grid[scan_rule_occupied(passes, hits)] = OCCUPIED  # the ends by the rays that met them
     low_passes, low_hits = scan_counts(low_o[:, :2], low_d[:, :2], low_r, lo, hi, resolution)
     low_occupied = scan_rule_occupied(low_passes, low_hits)  # the same scan rule as the band's
     grid[low_occupied & (grid == FREE)] = OCCUPIED
+    if evidence is not None and len(evidence.surfaces):
+        ends = low_o[:, :2] + low_d[:, :2] * low_r[:, None]  # (N n_low, 2), NaN where a low ray ended nowhere
+        low_r = np.where(near_surfaces(ends, evidence.surfaces, MAP_LOW_SUPPORT_M), low_r, np.nan)  # the rest cast none
     behind = behind_ends(low_o[:, :2], low_d[:, :2], low_r, low_occupied, MAP_LOW_SHADOW_M, lo, hi, resolution)
     grid[behind & (low_passes == 0) & (grid == FREE)] = UNKNOWN
-    m.image = to_image(grid)
-    return m
+    return OccupancyMap2D(image=to_image(grid), resolution=resolution, origin=(float(lo[0]), float(lo[1])))
+
+
+def unit_2d(directions: np.ndarray) -> np.ndarray:
+    """(N, 2) horizontal parts of unit 3D directions -> (N, 2) unit (the map's scan rays are level)."""
+    return directions / np.linalg.norm(directions, axis=1, keepdims=True)
+
+
+def near_surfaces(points: np.ndarray, surfaces: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) bool: the (N, D) points (NaN: never) with a point of `surfaces` (P, D) within `radius` m."""
+    from scipy.spatial import cKDTree
+
+    out = np.zeros(len(points), dtype=bool)
+    ok = np.isfinite(points).all(axis=1)
+    if ok.any() and len(surfaces):
+        dist, _ = cKDTree(surfaces).query(points[ok], distance_upper_bound=radius)
+        out[ok] = np.isfinite(dist)
+    return out
+
+
+def through_lengths(origins: np.ndarray, directions: np.ndarray, touched: np.ndarray, lo: np.ndarray,
+                    hi: np.ndarray, resolution: float) -> np.ndarray:
+    """(N,) m: how far the free space of 2D rays (origins (N, 2), directions (N, 2) unit) that no
+    surface stopped reaches: to the first pixel within MAP_THROUGH_STOP_M of a `touched` point
+    (K, 2), and no further than MAP_THROUGH_MARGIN_M before the side of the box [lo, hi]."""
+    from scipy.ndimage import distance_transform_edt
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        side = np.where(directions > 0, (hi[:2] - origins) / directions,
+                        np.where(directions < 0, (lo[:2] - origins) / directions, np.inf)).min(axis=1)
+    length = np.maximum(side - MAP_THROUGH_MARGIN_M, 0.0)
+    shape = raster_shape(lo, hi, resolution)
+    ij = np.floor((np.asarray(touched, dtype=np.float64).reshape(-1, 2) - lo[:2]) / resolution).astype(np.int64)
+    ij = ij[np.all((ij >= 0) & (ij < shape), axis=1)]
+    if not len(ij) or not len(origins):
+        return length
+    near = np.ones(shape, dtype=bool)
+    near[ij[:, 0], ij[:, 1]] = False
+    near = distance_transform_edt(near) * resolution <= MAP_THROUGH_STOP_M  # (nx, ny) the touched pixels, grown
+    return np.minimum(length, first_pixel(origins, directions, length, near, lo, resolution))
+
+
+def first_pixel(origins: np.ndarray, directions: np.ndarray, lengths: np.ndarray, mask: np.ndarray, lo: np.ndarray,
+                resolution: float) -> np.ndarray:
+    """(N,) m: the distance along each 2D ray (origins (N, 2), directions (N, 2) unit) to the
+    first of its points, every half pixel, that lies in a pixel of `mask` ((nx, ny) bool [ix, iy]);
+    `lengths` (N,) m where none does before it."""
+    out = np.asarray(lengths, dtype=np.float64).copy()
+    step = resolution / 2
+    k = np.floor(np.maximum(out, 0) / step).astype(np.int64) + 1  # (N,) points a ray, from its origin
+    for rows in bounded_chunks(k, SCAN_POINTS_PER_CHUNK):
+        kk = k[rows]
+        ray = np.repeat(np.arange(len(rows)), kk)
+        t = (np.arange(kk.sum()) - np.repeat(np.cumsum(kk) - kk, kk)) * step
+        ix, iy = (np.floor((origins[rows, a][ray] + directions[rows, a][ray] * t - lo[a]) / resolution)
+                  .astype(np.int64) for a in (0, 1))
+        inside = (ix >= 0) & (ix < mask.shape[0]) & (iy >= 0) & (iy < mask.shape[1])
+        hit = np.zeros(len(t), dtype=bool)
+        hit[inside] = mask[ix[inside], iy[inside]]
+        first = np.full(len(rows), np.inf)
+        np.minimum.at(first, ray[hit], t[hit])
+        out[rows] = np.minimum(out[rows], first)
+    return out
 
 
 def low_ranges(model, origins: np.ndarray, directions: np.ndarray, around: np.ndarray | None = None) -> np.ndarray:
@@ -202,7 +292,7 @@ def occupancy_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, 
     (N, 3), unknown outside `observed` ((nx, ny) bool [ix, iy], maps/observed.py) whatever the
     model says, then occupied where the IRS and USS `evidence` touched what the scans called free
     (maps/planner.py; None: the scans alone)."""
-    m = scan_map(model, spread_positions(positions, max_poses), lo, hi, resolution, n_rays)
+    m = scan_map(model, spread_positions(positions, max_poses), lo, hi, resolution, n_rays, evidence)
     m.image = apply_mask(m.image, observed, UNKNOWN)  # free only where a sensor looked
     if evidence is not None:
         m.image = planner_image(m.image, lo, resolution, evidence)

@@ -88,7 +88,7 @@ def scan_counts(
     hits += _pixel_counts(ij[inside, 0], ij[inside, 1], shape)
     step = resolution / 2
     n_steps = np.floor(np.maximum(r - resolution, 0) / step).astype(np.int64)  # (N,) pass points a ray
-    for rows in _bounded_chunks(n_steps, SCAN_POINTS_PER_CHUNK):  # bounded memory at any resolution
+    for rows in bounded_chunks(n_steps, SCAN_POINTS_PER_CHUNK):  # bounded memory at any resolution
         k = n_steps[rows]
         t = (np.arange(k.sum()) - np.repeat(np.cumsum(k) - k, k)) * step  # (K,) m along each ray
         # per axis, each ray's values repeated over its points (a repeat, not a gather: ~3x faster)
@@ -105,7 +105,7 @@ def _pixel_counts(ix: np.ndarray, iy: np.ndarray, shape: tuple[int, int]) -> np.
     return np.bincount(ix.astype(np.int64) * shape[1] + iy, minlength=shape[0] * shape[1]).reshape(shape)
 
 
-def _bounded_chunks(counts: np.ndarray, budget: int):
+def bounded_chunks(counts: np.ndarray, budget: int):
     """Index arrays over consecutive rows of `counts` (N,) whose counts sum to at most `budget`
     (a row over the budget alone goes alone): the pass points of a chunk of rays."""
     ends = np.cumsum(counts)

@@ -38,6 +38,9 @@ from virus_nerf.sensors import uss
 from virus_nerf.sensors.geometry import yaw_of
 
 OBSTACLE_BAND_M = 0.3  # IRS hits and stereo points this close to camera height are obstacles of the map
+# stereo points this close to camera height (m) are the measured surfaces the map's scan rules ask
+# about (maps/extract.py, D80): the band and the map's low rays, 30 cm below it, with room to spare
+SURFACE_BAND_M = 0.5
 USS_EXPLAINED_M = 0.1  # an echo whose arc passes this close to an occupied pixel is explained
 USS_ARC_STEP_DEG = 1.0  # points along an echo's arc
 USS_ARC_VOTE = 0.25  # an arc pixel is occupied when unexplained arcs >= this share of the cones that passed it
@@ -53,10 +56,18 @@ class RangeEvidence:
     uss_yaw: np.ndarray  # (E,) rad, the cone's heading
     uss_range: np.ndarray  # (E,) m, radial echo range
     stereo_points: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))  # (S, 2) at camera height
+    # (P, 2) the stereo points within SURFACE_BAND_M of camera height: where the cameras measured a
+    # surface at the heights the map's scans look at (maps/extract.py)
+    surfaces: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
 
     @staticmethod
     def empty() -> RangeEvidence:
         return RangeEvidence(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+
+    def touched(self) -> np.ndarray:
+        """(K + S, 2) world points where a sensor touched a surface at camera height: the IRS hits
+        and the stereo points."""
+        return np.concatenate([self.irs_hits, self.stereo_points])
 
     @staticmethod
     def of_frames(cam_to_world: np.ndarray, uss_range: np.ndarray, irs_range: np.ndarray, height: float,
@@ -67,15 +78,16 @@ class RangeEvidence:
         the map was trained with; "irs", "uss" and "stereo" count) at camera `height` (m)."""
         poses = np.asarray(cam_to_world, dtype=np.float64).reshape(-1, 4, 4)
         irs = irs_rays_2d(poses, irs_range, height, band).ends() if "irs" in sensors else np.zeros((0, 2))
-        stereo = np.zeros((0, 2))
+        stereo, surfaces = np.zeros((0, 2)), np.zeros((0, 2))
         if "stereo" in sensors and stereo_points is not None:
             pts = np.asarray(stereo_points, dtype=np.float64).reshape(-1, 3)
             stereo = pts[np.abs(pts[:, 2] - height) <= band, :2]
+            surfaces = pts[np.abs(pts[:, 2] - height) <= SURFACE_BAND_M, :2]
         if "uss" not in sensors:
-            return RangeEvidence(irs, np.zeros((0, 2)), np.zeros(0), np.zeros(0), stereo)
+            return RangeEvidence(irs, np.zeros((0, 2)), np.zeros(0), np.zeros(0), stereo, surfaces)
         r = np.asarray(uss_range, dtype=np.float64).reshape(-1)
         ok = np.isfinite(r) & (r > 0)
-        return RangeEvidence(irs, poses[ok, :2, 3].copy(), yaw_of(poses[ok]), r[ok], stereo)
+        return RangeEvidence(irs, poses[ok, :2, 3].copy(), yaw_of(poses[ok]), r[ok], stereo, surfaces)
 
 
 def _pixels(points: np.ndarray, lo: np.ndarray, resolution: float, shape: tuple[int, int]):
@@ -113,7 +125,7 @@ def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence
     is not changed."""
     grid = from_image(image).copy()  # [ix, iy]
     lo = np.asarray(lo, dtype=np.float64)[:2]
-    ij, inside = _pixels(np.concatenate([evidence.irs_hits, evidence.stereo_points]), lo, resolution, grid.shape)
+    ij, inside = _pixels(evidence.touched(), lo, resolution, grid.shape)
     hit = np.zeros(grid.shape, dtype=bool)
     hit[ij[inside, 0], ij[inside, 1]] = True
     grid[hit & (grid == FREE)] = OCCUPIED
