@@ -22,9 +22,13 @@ def time_run(run: Path, repeats: int) -> dict:
     from virus_nerf.maps.occupancy import MAP_POSES
     from virus_nerf.trainer.run import load_trained
 
-    trainer, _, _ = load_trained(run, "--run")
+    trainer, cfg, _ = load_trained(run, "--run")
     trainer._sync_frames()  # the training frames, as `train` had them at its end
     mapper = trainer.mapper
+    if "stereo" in cfg.sensors:  # the stereo points the map's rules ask about, as while driving (cached pass)
+        from virus_nerf.stereo.build import stereo_depth
+
+        mapper.set_stereo(stereo_depth(trainer.recording, trainer.store.frame_list(), cfg.stereo))
     mapper.update_map(0.05, max_poses=MAP_POSES)  # warm: the observed mask is cached as while driving
     maps, snaps = [], []
     with tempfile.TemporaryDirectory() as tmp:
