@@ -7,9 +7,10 @@ scan that nothing stopped free up to the first surface a sensor touched), occupi
 just below the band end (the scan rule; what the robot's body meets) and unknown up to 1 m behind
 what they met, where a camera measured a surface and none of them passed (what the body's rays did
 not see), then unknown wherever no sensor looked (maps/observed.py), occupied wherever the infrared
-or ultrasonic sensors touched an obstacle the scans called free (maps/planner.py). The probability map is the VIRUS grid's
-occupancy probability at camera height, 0.5 where no sensor looked. The caller chooses the
-positions and the observed mask (a run: the recording's frames; the Mapper: the frames it has).
+or ultrasonic sensors touched an obstacle the scans called free (maps/planner.py). The probability
+map is the VIRUS grid's occupancy probability at camera height, 0.5 where no sensor looked. The
+caller chooses the positions and the observed mask (a run: the recording's frames; the Mapper: the
+frames it has).
 """
 
 from __future__ import annotations
