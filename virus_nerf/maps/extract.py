@@ -24,13 +24,12 @@ from virus_nerf.maps.occupancy import (
     FREE,
     MAX_PIXELS,
     OCCUPIED,
-    SCAN_POINTS_PER_CHUNK,
     UNKNOWN,
     OccupancyMap2D,
-    bounded_chunks,
     probability_slice,
     raster_shape,
     ray_ends,
+    ray_points,
     scale_map,
     scan_counts,
     scan_rule_occupied,
@@ -154,7 +153,7 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     grid[passes > 0] = FREE
     if evidence is not None:  # the rays nothing stopped: free up to the first surface a sensor touched
         through = ~np.isfinite(band_r)
-        o, d = band_o[through, :2], unit_2d(band_d[through, :2])
+        o, d = band_o[through, :2], band_d[through, :2]  # level unit directions (maps/scans.py)
         length = through_lengths(o, d, evidence.touched(), lo, hi, resolution)
         grid[scan_counts(o, d, length + resolution, lo, hi, resolution)[0] > 0] = FREE  # passed up to `length`
     grid[scan_rule_occupied(passes, hits)] = OCCUPIED  # the ends by the rays that met them
@@ -167,11 +166,6 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     behind = behind_ends(low_o[:, :2], low_d[:, :2], low_r, low_occupied, MAP_LOW_SHADOW_M, lo, hi, resolution)
     grid[behind & (low_passes == 0) & (grid == FREE)] = UNKNOWN
     return OccupancyMap2D(image=to_image(grid), resolution=resolution, origin=(float(lo[0]), float(lo[1])))
-
-
-def unit_2d(directions: np.ndarray) -> np.ndarray:
-    """(N, 2) horizontal parts of unit 3D directions -> (N, 2) unit (the map's scan rays are level)."""
-    return directions / np.linalg.norm(directions, axis=1, keepdims=True)
 
 
 def near_surfaces(points: np.ndarray, surfaces: np.ndarray, radius: float) -> np.ndarray:
@@ -214,19 +208,12 @@ def first_pixel(origins: np.ndarray, directions: np.ndarray, lengths: np.ndarray
     first of its points, every half pixel, that lies in a pixel of `mask` ((nx, ny) bool [ix, iy]);
     `lengths` (N,) m where none does before it."""
     out = np.asarray(lengths, dtype=np.float64).copy()
-    step = resolution / 2
-    k = np.floor(np.maximum(out, 0) / step).astype(np.int64) + 1  # (N,) points a ray, from its origin
-    for rows in bounded_chunks(k, SCAN_POINTS_PER_CHUNK):
-        kk = k[rows]
-        ray = np.repeat(np.arange(len(rows)), kk)
-        t = (np.arange(kk.sum()) - np.repeat(np.cumsum(kk) - kk, kk)) * step
-        ix, iy = (np.floor((origins[rows, a][ray] + directions[rows, a][ray] * t - lo[a]) / resolution)
-                  .astype(np.int64) for a in (0, 1))
-        inside = (ix >= 0) & (ix < mask.shape[0]) & (iy >= 0) & (iy < mask.shape[1])
+    k = np.floor(np.maximum(out, 0) / (resolution / 2)).astype(np.int64) + 1  # (N,) points a ray, from its origin
+    for rows, kk, t, ix, iy, inside in ray_points(origins, directions, k, lo, resolution, mask.shape):
         hit = np.zeros(len(t), dtype=bool)
         hit[inside] = mask[ix[inside], iy[inside]]
         first = np.full(len(rows), np.inf)
-        np.minimum.at(first, ray[hit], t[hit])
+        np.minimum.at(first, np.repeat(np.arange(len(rows)), kk)[hit], t[hit])
         out[rows] = np.minimum(out[rows], first)
     return out
 

@@ -86,17 +86,27 @@ def scan_counts(
     ok, _, ij, inside = ray_ends(origins, directions, ranges, lo, resolution, shape)
     o, d, r = np.asarray(origins)[ok], np.asarray(directions)[ok], np.asarray(ranges, dtype=np.float64)[ok]
     hits += _pixel_counts(ij[inside, 0], ij[inside, 1], shape)
-    step = resolution / 2
-    n_steps = np.floor(np.maximum(r - resolution, 0) / step).astype(np.int64)  # (N,) pass points a ray
-    for rows in bounded_chunks(n_steps, SCAN_POINTS_PER_CHUNK):  # bounded memory at any resolution
-        k = n_steps[rows]
-        t = (np.arange(k.sum()) - np.repeat(np.cumsum(k) - k, k)) * step  # (K,) m along each ray
-        # per axis, each ray's values repeated over its points (a repeat, not a gather: ~3x faster)
-        ix, iy = (np.floor((np.repeat(o[rows, a], k) + np.repeat(d[rows, a], k) * t - lo[a]) / resolution)
-                  .astype(np.int64) for a in (0, 1))
-        inside = (ix >= 0) & (ix < shape[0]) & (iy >= 0) & (iy < shape[1])
+    n_steps = np.floor(np.maximum(r - resolution, 0) / (resolution / 2)).astype(np.int64)  # (N,) pass points a ray
+    for _, _, _, ix, iy, inside in ray_points(o, d, n_steps, lo, resolution, shape):
         passes += _pixel_counts(ix[inside], iy[inside], shape)
     return passes, hits
+
+
+def ray_points(origins: np.ndarray, directions: np.ndarray, counts: np.ndarray, lo: np.ndarray, resolution: float,
+               shape: tuple[int, int]):
+    """The points of 2D rays (origins (N, 2), directions (N, 2) unit) every half pixel from their
+    origins, `counts` (N,) of them a ray, in chunks of at most SCAN_POINTS_PER_CHUNK points (bounded
+    memory at any resolution): yields (rows (M,) the chunk's rays, k (M,) their points, t (K,) m
+    along each ray, ix, iy (K,) pixel indices of the raster at `lo`, inside (K,) bool in `shape`)."""
+    step = resolution / 2
+    for rows in _bounded_chunks(counts, SCAN_POINTS_PER_CHUNK):
+        k = counts[rows]
+        t = (np.arange(k.sum()) - np.repeat(np.cumsum(k) - k, k)) * step  # (K,) m along each ray
+        # per axis, each ray's values repeated over its points (a repeat, not a gather: ~3x faster)
+        ix, iy = (np.floor((np.repeat(origins[rows, a], k) + np.repeat(directions[rows, a], k) * t - lo[a])
+                           / resolution).astype(np.int64) for a in (0, 1))
+        inside = (ix >= 0) & (ix < shape[0]) & (iy >= 0) & (iy < shape[1])
+        yield rows, k, t, ix, iy, inside
 
 
 def _pixel_counts(ix: np.ndarray, iy: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -105,7 +115,7 @@ def _pixel_counts(ix: np.ndarray, iy: np.ndarray, shape: tuple[int, int]) -> np.
     return np.bincount(ix.astype(np.int64) * shape[1] + iy, minlength=shape[0] * shape[1]).reshape(shape)
 
 
-def bounded_chunks(counts: np.ndarray, budget: int):
+def _bounded_chunks(counts: np.ndarray, budget: int):
     """Index arrays over consecutive rows of `counts` (N,) whose counts sum to at most `budget`
     (a row over the budget alone goes alone): the pass points of a chunk of rays."""
     ends = np.cumsum(counts)
