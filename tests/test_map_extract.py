@@ -405,3 +405,33 @@ def test_the_map_flags_the_low_rays_15_cm_below_the_cameras_to_march_the_grid_gr
     below = seen["z"] - np.repeat(positions[:, 2], 18)  # 18 low rays a position, -0.15 and -0.3 m in turn
     assert below[:4] == pytest.approx([-0.15, -0.3, -0.15, -0.3])
     assert np.array_equal(seen["around"], np.isclose(below, -0.15)) and seen["around"].sum() == 18
+
+
+class _Ring:
+    """A range model whose band rays (camera at z 1) end 1 m from where they start (D67's sheets
+    around a camera) and whose low rays nothing stops."""
+
+    def ranges(self, origins, directions):
+        return np.where(origins[:, 2] > 0.9, 1.0, np.nan)
+
+
+def test_the_stereo_cameras_sight_lines_count_as_the_bands_passes():
+    from virus_nerf.maps.evidence import Rays2D
+    from virus_nerf.maps.extract import scan_map
+    from virus_nerf.maps.planner import RangeEvidence
+
+    camera = np.array([[0.25, 0.25, 1.0]])
+    lo, hi, res = np.array([0.0, -1.0]), np.array([3.5, 1.5]), 0.25  # 14 x 10 pixels, row 5: y in [0.25, 0.5)
+
+    def row(evidence):
+        return list(scan_map(_Ring(), camera, lo, hi, res, 360, evidence).image[::-1].T[:, 5])
+
+    # the band's rays end on the ring, 14 of them in pixel 4 (x 1.0-1.25) of this row and one in
+    # pixel 5, which none passes: free before them, unknown behind
+    assert row(None) == [FREE] * 4 + [OCCUPIED] * 2 + [UNKNOWN] * 8
+    # 50 sight lines along the row, free 2.4 m from x 0.25 (to x 2.65, pixel 10): they pass each
+    # ring pixel 100 times (two pass points a pixel) against its 14 and 1 band ends, so the scan
+    # rule calls them free, and what they passed behind is free too
+    sight = Rays2D(np.tile([0.25, 0.3], (50, 1)), np.tile([1.0, 0.0], (50, 1)), np.full(50, 2.4))
+    evidence = RangeEvidence(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0), sight_lines=sight)
+    assert row(evidence) == [FREE] * 11 + [UNKNOWN] * 3

@@ -130,3 +130,55 @@ def test_cones_passing_counts_the_echoes_whose_cone_held_a_point_before_its_echo
     expected = [1, 1, 0, 1, 1]
     np.testing.assert_array_equal(cones_passing(pts, ev), expected)
     np.testing.assert_array_equal(cones_passing(pts, ev, pairs=2), expected)  # one point at a time
+
+
+def test_band_parts_keep_what_a_segment_runs_within_the_band_projected_on_the_floor():
+    from virus_nerf.maps.evidence import band_parts
+
+    # from (1, 2, 0.3) down along (0.8, 0, -0.6): z = 0.3 - 0.6 t enters the band 0 +- 0.1 at t = 1/3
+    # and leaves it at t = 2/3, 0.8 / 3 m apart on the floor; cut at t = 0.5, half of that stays
+    o = np.array([[1.0, 2.0, 0.3]] * 2)
+    d = np.array([[0.8, 0.0, -0.6]] * 2)
+    parts = band_parts(o, d, np.array([1.0, 0.5]), height=0.0, band=0.1)
+    np.testing.assert_allclose(parts.origins, [[1.0 + 0.8 / 3, 2.0]] * 2)
+    np.testing.assert_allclose(parts.directions, [[1.0, 0.0]] * 2)
+    np.testing.assert_allclose(parts.ranges, [0.8 / 3, 0.8 / 6])
+    # level inside the band: all of it; level outside, vertical, or ending before the band: nothing
+    level = band_parts(np.array([[0.0, 0.0, 0.05]]), np.array([[0.0, 1.0, 0.0]]), np.array([2.0]), 0.0, 0.1)
+    np.testing.assert_allclose(level.origins, [[0.0, 0.0]])
+    np.testing.assert_allclose(level.ranges, [2.0])
+    none = band_parts(np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.05], [1.0, 2.0, 0.3]]),
+                      np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.8, 0.0, -0.6]]), np.array([2.0, 2.0, 0.2]), 0.0,
+                      0.1)
+    assert len(none) == 0
+
+
+def test_a_stereo_view_is_free_space_up_to_its_point_less_the_margin_or_two_sigma():
+    from virus_nerf.maps.evidence import stereo_sight_lines
+    from virus_nerf.sensors.camera import Intrinsics
+    from virus_nerf.stereo.depth import StereoDepth
+
+    intr = Intrinsics(fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100)
+    pose = camera_looking(0.0, 0.0, 0.0, z=0.5)  # along +x, 0.5 m high
+    # frame row 1 (row 0 a camera elsewhere); views: the image centre at 3 m (sigma 0.02: margin 0.1 m;
+    # sigma 0.2: 2 sigma = 0.4 m), 100 px right (45 deg to the camera's right, -y) at 2 sqrt(2) m, and
+    # 50 px down (descending 1 in 2: it leaves the band 0.5 +- 0.1 0.2 m from the camera, on the floor)
+    views = StereoDepth(frames=np.array([1, 1, 1, 1]),
+                        uv=np.array([[50.0, 50.0], [50.0, 50.0], [150.0, 50.0], [50.0, 100.0]], dtype=np.float32),
+                        ranges=np.array([3.0, 3.0, 2 * math.sqrt(2), 3.0], dtype=np.float32),
+                        sigmas=np.array([0.02, 0.2, 0.02, 0.02], dtype=np.float32), points=np.zeros((4, 3)))
+    lines = stereo_sight_lines(views, np.stack([np.eye(4), pose]), np.array([0, 0]), {0: intr}, height=0.5)
+    np.testing.assert_allclose(lines.origins, np.zeros((4, 2)), atol=1e-9)
+    s = 1 / math.sqrt(2)
+    np.testing.assert_allclose(lines.directions, [[1, 0], [1, 0], [s, -s], [1, 0]], atol=1e-6)
+    np.testing.assert_allclose(lines.ranges, [2.9, 2.6, 2 * math.sqrt(2) - 0.1, 0.2], atol=1e-5)
+
+
+def test_the_range_evidence_keeps_the_sight_lines_only_for_a_run_with_the_stereo_sensor():
+    from virus_nerf.maps.evidence import Rays2D
+
+    sight = Rays2D(np.zeros((1, 2)), np.array([[1.0, 0.0]]), np.array([2.0]))
+    poses = camera_looking(0.0, 0.0, 0.0)[None]
+    args = (poses, np.array([np.nan]), np.full((1, 8, 8), np.nan), 0.5)
+    assert len(RangeEvidence.of_frames(*args, ("camera", "stereo"), sight_lines=sight).sight_lines) == 1
+    assert len(RangeEvidence.of_frames(*args, ("camera", "irs", "uss"), sight_lines=sight).sight_lines) == 0

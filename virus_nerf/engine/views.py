@@ -17,6 +17,7 @@ import torch
 
 from virus_nerf.errors import UsageError
 from virus_nerf.grid.virus import VirusGrid
+from virus_nerf.maps.evidence import stereo_sight_lines
 from virus_nerf.maps.extract import camera_height, check_raster, occupancy_map, probability_map
 from virus_nerf.maps.observed import frames_observed
 from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS, raster_shape
@@ -94,16 +95,20 @@ class MapViews:
                 raise UsageError(f"Mapper.map2d {name} {v!r}: expected a positive number")
         stereo = getattr(self, "stereo", None)
         return (self.step, self.seconds, self.frames, self.box, resolution, int(n_rays), int(max_poses),
-                id(stereo), 0 if stereo is None else len(stereo.points))
+                id(stereo), None if stereo is None else (len(stereo.points), len(stereo)))
 
     def range_evidence(self) -> RangeEvidence:
         """What the frames' IRS, USS and stereo measured at camera height (maps/planner.py), for
         the sensors the mapper trains with."""
         st = self.store
         stereo = getattr(self, "stereo", None)
-        return RangeEvidence.of_frames(st.cam_to_world, st.uss_range, st.irs_range, self.camera_height(),
+        height = self.camera_height()
+        sight = None
+        if stereo is not None and "stereo" in self.config.sensors:
+            sight = stereo_sight_lines(stereo, st.cam_to_world, st.stack_ids, st.intrinsics, height)
+        return RangeEvidence.of_frames(st.cam_to_world, st.uss_range, st.irs_range, height,
                                        tuple(self.config.sensors),
-                                       stereo_points=None if stereo is None else stereo.points)
+                                       stereo_points=None if stereo is None else stereo.points, sight_lines=sight)
 
     def _raster_box(self, what: str, resolution) -> tuple[np.ndarray, np.ndarray]:
         """The box's (x, y) corners, once `resolution` is checked (maps.extract.check_raster)."""

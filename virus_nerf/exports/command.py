@@ -204,21 +204,26 @@ def training_observed(recording, lo: np.ndarray, shape: tuple[int, int], resolut
 
 def training_evidence(trainer, height: float, cfg):
     """What the training frames' IRS, USS and stereo (the run's own sensors) measured at camera
-    `height` (maps/planner.py); the stereo's points are the training's (stereo/build.py's cache)."""
+    `height` (maps/planner.py); the stereo's points and views are the training's (stereo/build.py's
+    cache)."""
     from virus_nerf.maps.planner import RangeEvidence
 
     recording = trainer.recording
-    stereo = None
+    stereo = sight = None
     if "stereo" in cfg.sensors:
+        from virus_nerf.maps.evidence import stereo_sight_lines
         from virus_nerf.stereo.build import stereo_depth
 
-        stereo = stereo_depth(recording, trainer.store.frame_list(), cfg.stereo).points
+        store = trainer.store
+        depth = stereo_depth(recording, store.frame_list(), cfg.stereo)
+        stereo = depth.points
+        sight = stereo_sight_lines(depth, store.cam_to_world, store.stack_ids, store.intrinsics, height)
     stacks = list(recording.stacks.values())
     rows = [st.indices("train") for st in stacks]
     return RangeEvidence.of_frames(np.concatenate([st.cam_to_world[r] for st, r in zip(stacks, rows, strict=True)]),
                                    np.concatenate([st.uss_range[r] for st, r in zip(stacks, rows, strict=True)]),
                                    np.concatenate([st.irs_range[r] for st, r in zip(stacks, rows, strict=True)]),
-                                   height, tuple(cfg.sensors), stereo_points=stereo)
+                                   height, tuple(cfg.sensors), stereo_points=stereo, sight_lines=sight)
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:

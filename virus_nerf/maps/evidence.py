@@ -15,18 +15,30 @@ cell occupied), the same rasteriser as the NeRF's scans:
   somewhere along it (Elfes 1987's sonar model, without its angular weighting): a fan of rays one
   per `fan_step_deg` across the cone's horizontal opening, each ending at the echo range. With no
   echo nothing is claimed (the reading may have been absorbed).
+- Stereo sight lines: a point the cameras triangulated was seen through the space before it, so
+  every view of it (the tracked pixel's ray and the point's range) passed free space up to
+  max(`SIGHT_MARGIN_M`, 2 sigma) short of the point; its part within +-`SIGHT_BAND_M` of the map's
+  height, projected on the floor, is a 2D ray that passed free space (`stereo_sight_lines`, D81).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
 from virus_nerf.sensors import irs, uss
+from virus_nerf.sensors.camera import Intrinsics, pixel_directions
 from virus_nerf.sensors.geometry import yaw_of
 
 SENSOR_BAND_M = 0.1  # IRS hits this close to the camera height count at camera height
+# a stereo view's sight line counts at the map's height where it runs within this far (m) of it:
+# the band's +-5 cm and the cameras' own spread about their median height (D81)
+SIGHT_BAND_M = 0.1
+SIGHT_MARGIN_M = 0.1  # free space ends this far (m) short of a triangulated point, or 2 sigma if larger
+SIGHT_SIGMAS = 2.0
+VIEWS_PER_CHUNK = 1 << 17  # stereo views turned into sight lines at once (~17 MB of poses)
 FRAMES_PER_CHUNK = 256  # IRS frames turned into sub-rays at once (~8 MB of float64 each): a long drive's
 # ~10^4 frames would otherwise hold 576 sub-rays each at once, though few hit at camera height
 
@@ -93,6 +105,58 @@ def uss_rays_2d(cam_to_world: np.ndarray, uss_range: np.ndarray, fan_step_deg: f
     ang = (yaw_of(poses)[:, None] + offsets[None, :]).reshape(-1)  # (F A,)
     origins = np.repeat(poses[:, :2, 3], n, axis=0)
     return Rays2D(origins, np.column_stack([np.cos(ang), np.sin(ang)]), np.repeat(r, n))
+
+
+class StereoViews(Protocol):
+    """The views of triangulated points (stereo/depth.StereoDepth): a tracked pixel of a frame row
+    and the range along its ray to the point."""
+
+    frames: np.ndarray  # (M,) int frame rows
+    uv: np.ndarray  # (M, 2) sub-pixel (u column, v row) at training resolution
+    ranges: np.ndarray  # (M,) m along the pixel's ray
+    sigmas: np.ndarray  # (M,) m, the range's standard deviation
+
+
+def band_parts(origins: np.ndarray, directions: np.ndarray, lengths: np.ndarray, height: float,
+               band: float) -> Rays2D:
+    """The parts of 3D segments (origins (M, 3) m, unit directions (M, 3), lengths (M,) m) that run
+    within +-band of `height`, projected on the floor: each segment's part as one 2D ray (a straight
+    segment crosses the band once); segments that never do, or run vertically, give none."""
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    length = np.asarray(lengths, dtype=np.float64).reshape(-1)
+    level = np.abs(d[:, 2]) < 1e-9
+    with np.errstate(divide="ignore", invalid="ignore"):  # (M,) where each line meets the band's two planes
+        t_a, t_b = (height - band - o[:, 2]) / d[:, 2], (height + band - o[:, 2]) / d[:, 2]
+    inside = np.abs(o[:, 2] - height) <= band
+    start = np.maximum(np.where(level, np.where(inside, 0.0, np.inf), np.minimum(t_a, t_b)), 0.0)
+    stop = np.minimum(np.where(level, np.where(inside, np.inf, -np.inf), np.maximum(t_a, t_b)), length)
+    flat = np.linalg.norm(d[:, :2], axis=1)  # (M,) the horizontal part of each direction
+    ok = (stop > start) & (flat > 1e-6)
+    return Rays2D(o[ok, :2] + d[ok, :2] * start[ok, None], d[ok, :2] / flat[ok, None], (stop - start)[ok] * flat[ok])
+
+
+def stereo_sight_lines(stereo: StereoViews, cam_to_world: np.ndarray, stack_ids: np.ndarray,
+                       intrinsics: dict[int, Intrinsics], height: float, band: float = SIGHT_BAND_M) -> Rays2D:
+    """The free space the stereo views looked through at `height` +- band (m): each view's ray
+    (the camera of frame row `stereo.frames`, with cam_to_world (F, 4, 4) and stack_ids (F,) of
+    the frame rows, through its sub-pixel `uv` at its stack's training `intrinsics`) up to
+    max(SIGHT_MARGIN_M, SIGHT_SIGMAS sigma) short of its triangulated range (`band_parts`)."""
+    out = Rays2D.empty()
+    for a in range(0, len(stereo.frames), VIEWS_PER_CHUNK):  # bounded memory on long drives
+        rows = np.asarray(stereo.frames[a : a + VIEWS_PER_CHUNK], dtype=np.int64)
+        poses = np.asarray(cam_to_world[rows], dtype=np.float64)  # (m, 4, 4)
+        stacks = np.asarray(stack_ids)[rows]
+        uv = np.asarray(stereo.uv[a : a + VIEWS_PER_CHUNK], dtype=np.float64)
+        dirs_cam = np.zeros((len(rows), 3))
+        for s, intr in intrinsics.items():
+            sel = stacks == s
+            dirs_cam[sel] = pixel_directions(intr, uv[sel, 0], uv[sel, 1])
+        dirs = np.einsum("mij,mj->mi", poses[:, :3, :3], dirs_cam)  # (m, 3) world, unit
+        free = np.asarray(stereo.ranges[a : a + VIEWS_PER_CHUNK], dtype=np.float64) - np.maximum(
+            SIGHT_MARGIN_M, SIGHT_SIGMAS * np.asarray(stereo.sigmas[a : a + VIEWS_PER_CHUNK], dtype=np.float64))
+        out = out.concat(band_parts(poses[:, :3, 3], dirs, free, height, band))
+    return out
 
 
 def sensor_rays_2d(cam_to_world: np.ndarray, uss_range: np.ndarray, irs_range: np.ndarray, height: float,

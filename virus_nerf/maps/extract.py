@@ -149,6 +149,9 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     around = np.isclose(below[:, None], np.asarray(MAP_LOW_AROUND_HEIGHTS_M)[None, :]).any(axis=1)
     low_r = low_ranges(model, low_o, low_d, around) if len(positions) else np.zeros(0)
     passes, hits = scan_counts(band_o[:, :2], band_d[:, :2], band_r, lo, hi, resolution)
+    if evidence is not None and len(evidence.sight_lines):  # where the stereo cameras looked through (D81)
+        sight = evidence.sight_lines
+        passes += scan_counts(sight.origins, sight.directions, sight.ranges + resolution, lo, hi, resolution)[0]
     grid = np.full(passes.shape, UNKNOWN, dtype=np.uint8)  # [ix, iy]
     grid[passes > 0] = FREE
     if evidence is not None:  # the rays nothing stopped: free up to the first surface a sensor touched

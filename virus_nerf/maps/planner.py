@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from virus_nerf.maps.evidence import irs_rays_2d
+from virus_nerf.maps.evidence import Rays2D, irs_rays_2d
 from virus_nerf.maps.occupancy import FREE, OCCUPIED, from_image, to_image
 from virus_nerf.sensors import uss
 from virus_nerf.sensors.geometry import yaw_of
@@ -59,6 +59,9 @@ class RangeEvidence:
     # (P, 2) the stereo points within SURFACE_BAND_M of camera height: where the cameras measured a
     # surface at the heights the map's scans look at (maps/extract.py)
     surfaces: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
+    # the free space the stereo cameras looked through at camera height (maps/evidence.stereo_sight_lines):
+    # passes of the map's scans as the band's own rays (maps/extract.py, D81)
+    sight_lines: Rays2D = dataclasses.field(default_factory=Rays2D.empty)
 
     @staticmethod
     def empty() -> RangeEvidence:
@@ -72,22 +75,25 @@ class RangeEvidence:
     @staticmethod
     def of_frames(cam_to_world: np.ndarray, uss_range: np.ndarray, irs_range: np.ndarray, height: float,
                   sensors: tuple[str, ...], band: float = OBSTACLE_BAND_M,
-                  stereo_points: np.ndarray | None = None) -> RangeEvidence:
+                  stereo_points: np.ndarray | None = None, sight_lines: Rays2D | None = None) -> RangeEvidence:
         """The evidence of frames (cam_to_world (F, 4, 4), uss_range (F,) m, irs_range (F, 8, 8)
-        z-depth m) and of the stereo's world points (P, 3) for the sensors in `sensors` (the ones
-        the map was trained with; "irs", "uss" and "stereo" count) at camera `height` (m)."""
+        z-depth m), of the stereo's world points (P, 3) and of its views' `sight_lines` at camera
+        height (maps/evidence.stereo_sight_lines) for the sensors in `sensors` (the ones the map
+        was trained with; "irs", "uss" and "stereo" count) at camera `height` (m)."""
         poses = np.asarray(cam_to_world, dtype=np.float64).reshape(-1, 4, 4)
         irs = irs_rays_2d(poses, irs_range, height, band).ends() if "irs" in sensors else np.zeros((0, 2))
-        stereo, surfaces = np.zeros((0, 2)), np.zeros((0, 2))
+        stereo, surfaces, sight = np.zeros((0, 2)), np.zeros((0, 2)), Rays2D.empty()
         if "stereo" in sensors and stereo_points is not None:
             pts = np.asarray(stereo_points, dtype=np.float64).reshape(-1, 3)
             stereo = pts[np.abs(pts[:, 2] - height) <= band, :2]
             surfaces = pts[np.abs(pts[:, 2] - height) <= SURFACE_BAND_M, :2]
+        if "stereo" in sensors and sight_lines is not None:
+            sight = sight_lines
         if "uss" not in sensors:
-            return RangeEvidence(irs, np.zeros((0, 2)), np.zeros(0), np.zeros(0), stereo, surfaces)
+            return RangeEvidence(irs, np.zeros((0, 2)), np.zeros(0), np.zeros(0), stereo, surfaces, sight)
         r = np.asarray(uss_range, dtype=np.float64).reshape(-1)
         ok = np.isfinite(r) & (r > 0)
-        return RangeEvidence(irs, poses[ok, :2, 3].copy(), yaw_of(poses[ok]), r[ok], stereo, surfaces)
+        return RangeEvidence(irs, poses[ok, :2, 3].copy(), yaw_of(poses[ok]), r[ok], stereo, surfaces, sight)
 
 
 def _pixels(points: np.ndarray, lo: np.ndarray, resolution: float, shape: tuple[int, int]):
