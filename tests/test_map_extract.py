@@ -415,7 +415,7 @@ class _Ring:
         return np.where(origins[:, 2] > 0.9, 1.0, np.nan)
 
 
-def test_the_stereo_cameras_sight_lines_count_as_the_bands_passes():
+def test_the_stereo_cameras_sight_lines_free_what_the_scans_left_unknown_and_clear_no_end():
     from virus_nerf.maps.evidence import Rays2D
     from virus_nerf.maps.extract import scan_map
     from virus_nerf.maps.planner import RangeEvidence
@@ -429,9 +429,9 @@ def test_the_stereo_cameras_sight_lines_count_as_the_bands_passes():
     # the band's rays end on the ring, 14 of them in pixel 4 (x 1.0-1.25) of this row and one in
     # pixel 5, which none passes: free before them, unknown behind
     assert row(None) == [FREE] * 4 + [OCCUPIED] * 2 + [UNKNOWN] * 8
-    # 50 sight lines along the row, free 2.4 m from x 0.25 (to x 2.65, pixel 10): they pass each
-    # ring pixel 100 times (two pass points a pixel) against its 14 and 1 band ends, so the scan
-    # rule calls them free, and what they passed behind is free too
+    # 50 sight lines along the row, free 2.4 m from x 0.25 (to x 2.65, pixel 10): what they passed
+    # behind the ring is free; the ring's pixels, where band rays ended, stay occupied (a thin leg
+    # beside a sight line in the same pixel keeps its pixel)
     sight = Rays2D(np.tile([0.25, 0.3], (50, 1)), np.tile([1.0, 0.0], (50, 1)), np.full(50, 2.4))
     evidence = RangeEvidence(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0), sight_lines=sight)
-    assert row(evidence) == [FREE] * 11 + [UNKNOWN] * 3
+    assert row(evidence) == [FREE] * 4 + [OCCUPIED] * 2 + [FREE] * 5 + [UNKNOWN] * 3

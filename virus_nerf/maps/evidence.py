@@ -38,6 +38,9 @@ SENSOR_BAND_M = 0.1  # IRS hits this close to the camera height count at camera 
 SIGHT_BAND_M = 0.1
 SIGHT_MARGIN_M = 0.1  # free space ends this far (m) short of a triangulated point, or 2 sigma if larger
 SIGHT_SIGMAS = 2.0
+# only views of points at most this far (m) count: past it the cameras' short baseline matches
+# wrongly often enough to carve the far furniture of the common areas (D81)
+SIGHT_MAX_RANGE_M = 7.0
 VIEWS_PER_CHUNK = 1 << 17  # stereo views turned into sight lines at once (~17 MB of poses)
 FRAMES_PER_CHUNK = 256  # IRS frames turned into sub-rays at once (~8 MB of float64 each): a long drive's
 # ~10^4 frames would otherwise hold 576 sub-rays each at once, though few hit at camera height
@@ -141,20 +144,23 @@ def stereo_sight_lines(stereo: StereoViews, cam_to_world: np.ndarray, stack_ids:
     """The free space the stereo views looked through at `height` +- band (m): each view's ray
     (the camera of frame row `stereo.frames`, with cam_to_world (F, 4, 4) and stack_ids (F,) of
     the frame rows, through its sub-pixel `uv` at its stack's training `intrinsics`) up to
-    max(SIGHT_MARGIN_M, SIGHT_SIGMAS sigma) short of its triangulated range (`band_parts`)."""
+    max(SIGHT_MARGIN_M, SIGHT_SIGMAS sigma) short of its triangulated range (`band_parts`); views
+    of points farther than SIGHT_MAX_RANGE_M give none."""
     out = Rays2D.empty()
     for a in range(0, len(stereo.frames), VIEWS_PER_CHUNK):  # bounded memory on long drives
-        rows = np.asarray(stereo.frames[a : a + VIEWS_PER_CHUNK], dtype=np.int64)
+        ranges = np.asarray(stereo.ranges[a : a + VIEWS_PER_CHUNK], dtype=np.float64)  # (m,)
+        near = ranges <= SIGHT_MAX_RANGE_M
+        rows = np.asarray(stereo.frames[a : a + VIEWS_PER_CHUNK], dtype=np.int64)[near]
         poses = np.asarray(cam_to_world[rows], dtype=np.float64)  # (m, 4, 4)
         stacks = np.asarray(stack_ids)[rows]
-        uv = np.asarray(stereo.uv[a : a + VIEWS_PER_CHUNK], dtype=np.float64)
+        uv = np.asarray(stereo.uv[a : a + VIEWS_PER_CHUNK], dtype=np.float64)[near]
         dirs_cam = np.zeros((len(rows), 3))
         for s, intr in intrinsics.items():
             sel = stacks == s
             dirs_cam[sel] = pixel_directions(intr, uv[sel, 0], uv[sel, 1])
         dirs = np.einsum("mij,mj->mi", poses[:, :3, :3], dirs_cam)  # (m, 3) world, unit
-        free = np.asarray(stereo.ranges[a : a + VIEWS_PER_CHUNK], dtype=np.float64) - np.maximum(
-            SIGHT_MARGIN_M, SIGHT_SIGMAS * np.asarray(stereo.sigmas[a : a + VIEWS_PER_CHUNK], dtype=np.float64))
+        sigmas = np.asarray(stereo.sigmas[a : a + VIEWS_PER_CHUNK], dtype=np.float64)[near]
+        free = ranges[near] - np.maximum(SIGHT_MARGIN_M, SIGHT_SIGMAS * sigmas)
         out = out.concat(band_parts(poses[:, :3, 3], dirs, free, height, band))
     return out
 

@@ -3,7 +3,8 @@
 
 The 2D map of a trained model is its own 360 deg scans in the camera-height band from evenly
 spread camera positions, rasterised (maps/occupancy.py: passed cells free, end cells occupied; a
-scan that nothing stopped free up to the first surface a sensor touched), occupied where its scans
+scan that nothing stopped free up to the first surface a sensor touched; free too what the stereo
+cameras looked through at camera height, maps/evidence.py), occupied where its scans
 just below the band end (the scan rule; what the robot's body meets) and unknown up to 1 m behind
 what they met, where a camera measured a surface and none of them passed (what the body's rays did
 not see), then unknown wherever no sensor looked (maps/observed.py), occupied wherever the infrared
@@ -135,9 +136,11 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     MAP_LOW_SHADOW_M behind the low rays' occupied ends and no low ray passed (D64). The band's
     rays march the grid as trained, the low rays the grid grown in z (`low_ranges`, D66), those
     at MAP_LOW_AROUND_HEIGHTS_M the grid grown in x and y as well (D73). With the robot's
-    `evidence` (maps/planner.py), only low ends near a measured surface cast the shadow, and the
+    `evidence` (maps/planner.py), only low ends near a measured surface cast the shadow, the
     band rays nothing stopped mark free what they passed up to the first surface a sensor
-    touched (`through_lengths`, D80)."""
+    touched (`through_lengths`, D80), and what the stereo cameras looked through at camera height
+    is free where the band left it unknown (`evidence.sight_lines`; the scan rule's ends, the low
+    rays and the shadow still apply, D81)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     band_o, band_d = scan_rays(positions, n_rays, MAP_SCAN_HEIGHTS_M)  # (N n_rays, 3) each
     n_low = max(1, round(n_rays * MAP_LOW_RAYS_SHARE))
@@ -149,11 +152,11 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     around = np.isclose(below[:, None], np.asarray(MAP_LOW_AROUND_HEIGHTS_M)[None, :]).any(axis=1)
     low_r = low_ranges(model, low_o, low_d, around) if len(positions) else np.zeros(0)
     passes, hits = scan_counts(band_o[:, :2], band_d[:, :2], band_r, lo, hi, resolution)
-    if evidence is not None and len(evidence.sight_lines):  # where the stereo cameras looked through (D81)
-        sight = evidence.sight_lines
-        passes += scan_counts(sight.origins, sight.directions, sight.ranges + resolution, lo, hi, resolution)[0]
     grid = np.full(passes.shape, UNKNOWN, dtype=np.uint8)  # [ix, iy]
     grid[passes > 0] = FREE
+    if evidence is not None and len(evidence.sight_lines):  # where the stereo cameras looked through (D81)
+        sight = evidence.sight_lines
+        grid[scan_counts(sight.origins, sight.directions, sight.ranges + resolution, lo, hi, resolution)[0] > 0] = FREE
     if evidence is not None:  # the rays nothing stopped: free up to the first surface a sensor touched
         through = ~np.isfinite(band_r)
         o, d = band_o[through, :2], band_d[through, :2]  # level unit directions (maps/scans.py)

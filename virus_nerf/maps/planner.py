@@ -60,7 +60,7 @@ class RangeEvidence:
     # surface at the heights the map's scans look at (maps/extract.py)
     surfaces: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 2)))
     # the free space the stereo cameras looked through at camera height (maps/evidence.stereo_sight_lines):
-    # passes of the map's scans as the band's own rays (maps/extract.py, D81)
+    # free where the map's scans left it unknown (maps/extract.py, D81)
     sight_lines: Rays2D = dataclasses.field(default_factory=Rays2D.empty)
 
     @staticmethod
