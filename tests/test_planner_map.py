@@ -161,19 +161,21 @@ def test_a_stereo_view_is_free_space_up_to_its_point_less_the_margin_or_two_sigm
     intr = Intrinsics(fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100)
     pose = camera_looking(0.0, 0.0, 0.0, z=0.5)  # along +x, 0.5 m high
     # frame row 1 (row 0 a camera elsewhere); views: the image centre at 3 m (sigma 0.02: margin 0.1 m;
-    # sigma 0.2: 2 sigma = 0.4 m), 100 px right (45 deg to the camera's right, -y) at 2 sqrt(2) m, and
-    # 50 px down (descending 1 in 2: it leaves the band 0.5 +- 0.1 0.2 m from the camera, on the floor);
-    # the centre again at 7.5 m, past SIGHT_MAX_RANGE_M: none
-    views = StereoDepth(frames=np.array([1, 1, 1, 1, 1]),
-                        uv=np.array([[50.0, 50.0], [50.0, 50.0], [150.0, 50.0], [50.0, 100.0], [50.0, 50.0]],
-                                    dtype=np.float32),
-                        ranges=np.array([3.0, 3.0, 2 * math.sqrt(2), 3.0, 7.5], dtype=np.float32),
-                        sigmas=np.array([0.02, 0.2, 0.02, 0.02, 0.02], dtype=np.float32), points=np.zeros((5, 3)))
+    # sigma 0.2: 2 sigma = 0.4 m), 100 px right (45 deg to the camera's right, -y) at 2 sqrt(2) m;
+    # none from: 50 px down (descending 1 in 2, it leaves the band 0.5 +- 0.1 0.2 m from the camera,
+    # shorter than SIGHT_MIN_LENGTH_M), the centre at 5.5 m (past SIGHT_MAX_RANGE_M), a frame row 2
+    # that the poses do not hold
+    views = StereoDepth(frames=np.array([1, 1, 1, 1, 1, 2]),
+                        uv=np.array([[50.0, 50.0], [50.0, 50.0], [150.0, 50.0], [50.0, 100.0], [50.0, 50.0],
+                                     [50.0, 50.0]], dtype=np.float32),
+                        ranges=np.array([3.0, 3.0, 2 * math.sqrt(2), 3.0, 5.5, 3.0], dtype=np.float32),
+                        sigmas=np.full(6, 0.02, dtype=np.float32) + np.array([0, 0.18, 0, 0, 0, 0], dtype=np.float32),
+                        points=np.zeros((6, 3)))
     lines = stereo_sight_lines(views, np.stack([np.eye(4), pose]), np.array([0, 0]), {0: intr}, height=0.5)
-    np.testing.assert_allclose(lines.origins, np.zeros((4, 2)), atol=1e-9)
+    np.testing.assert_allclose(lines.origins, np.zeros((3, 2)), atol=1e-9)
     s = 1 / math.sqrt(2)
-    np.testing.assert_allclose(lines.directions, [[1, 0], [1, 0], [s, -s], [1, 0]], atol=1e-6)
-    np.testing.assert_allclose(lines.ranges, [2.9, 2.6, 2 * math.sqrt(2) - 0.1, 0.2], atol=1e-5)
+    np.testing.assert_allclose(lines.directions, [[1, 0], [1, 0], [s, -s]], atol=1e-6)
+    np.testing.assert_allclose(lines.ranges, [2.9, 2.6, 2 * math.sqrt(2) - 0.1], atol=1e-5)
 
 
 def test_the_range_evidence_keeps_the_sight_lines_only_for_a_run_with_the_stereo_sensor():
