@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from virus_nerf.errors import UsageError
+from virus_nerf.maps.evidence import Rays2D
 from virus_nerf.maps.observed import apply_mask
 from virus_nerf.maps.occupancy import (
     FREE,
@@ -35,6 +36,7 @@ from virus_nerf.maps.occupancy import (
     scan_counts,
     scan_rule_occupied,
     to_image,
+    world_pixels,
 )
 from virus_nerf.maps.planner import RangeEvidence, planner_image
 from virus_nerf.maps.scans import scan_rays
@@ -154,14 +156,12 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     passes, hits = scan_counts(band_o[:, :2], band_d[:, :2], band_r, lo, hi, resolution)
     grid = np.full(passes.shape, UNKNOWN, dtype=np.uint8)  # [ix, iy]
     grid[passes > 0] = FREE
-    if evidence is not None and len(evidence.sight_lines):  # where the stereo cameras looked through (D81)
-        sight = evidence.sight_lines
-        grid[scan_counts(sight.origins, sight.directions, sight.ranges + resolution, lo, hi, resolution)[0] > 0] = FREE
-    if evidence is not None:  # the rays nothing stopped: free up to the first surface a sensor touched
+    if evidence is not None:  # free space without an end: the rays nothing stopped, up to the first
+        # surface a sensor touched (D80), and what the stereo cameras looked through (D81)
         through = ~np.isfinite(band_r)
         o, d = band_o[through, :2], band_d[through, :2]  # level unit directions (maps/scans.py)
-        length = through_lengths(o, d, evidence.touched(), lo, hi, resolution)
-        grid[scan_counts(o, d, length + resolution, lo, hi, resolution)[0] > 0] = FREE  # passed up to `length`
+        free = Rays2D(o, d, through_lengths(o, d, evidence.touched(), lo, hi, resolution)).concat(evidence.sight_lines)
+        grid[scan_counts(free.origins, free.directions, free.ranges + resolution, lo, hi, resolution)[0] > 0] = FREE
     grid[scan_rule_occupied(passes, hits)] = OCCUPIED  # the ends by the rays that met them
     low_passes, low_hits = scan_counts(low_o[:, :2], low_d[:, :2], low_r, lo, hi, resolution)
     low_occupied = scan_rule_occupied(low_passes, low_hits)  # the same scan rule as the band's
@@ -198,8 +198,8 @@ def through_lengths(origins: np.ndarray, directions: np.ndarray, touched: np.nda
                         np.where(directions < 0, (lo[:2] - origins) / directions, np.inf)).min(axis=1)
     length = np.maximum(side - MAP_THROUGH_MARGIN_M, 0.0)
     shape = raster_shape(lo, hi, resolution)
-    ij = np.floor((np.asarray(touched, dtype=np.float64).reshape(-1, 2) - lo[:2]) / resolution).astype(np.int64)
-    ij = ij[np.all((ij >= 0) & (ij < shape), axis=1)]
+    ij, inside = world_pixels(np.asarray(touched, dtype=np.float64).reshape(-1, 2), lo[:2], resolution, shape)
+    ij = ij[inside]
     if not len(ij) or not len(origins):
         return length
     near = np.ones(shape, dtype=bool)

@@ -61,6 +61,14 @@ def from_image(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.flipud(np.asarray(image)).T)
 
 
+def world_pixels(points: np.ndarray, lo: np.ndarray, resolution: float, shape: tuple[int, int]):
+    """(..., 2) world points -> ((..., 2) int [ix, iy] of the raster at `lo`, clipped into `shape`,
+    (...) bool whether each lies inside it)."""
+    ij = np.floor((np.asarray(points, dtype=np.float64) - lo) / resolution).astype(np.int64)
+    inside = (ij[..., 0] >= 0) & (ij[..., 0] < shape[0]) & (ij[..., 1] >= 0) & (ij[..., 1] < shape[1])
+    return np.clip(ij, 0, np.array(shape) - 1), inside
+
+
 def ray_ends(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray, lo: np.ndarray, resolution: float,
              shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The 2D rays (origins (N, 2), directions (N, 2) unit, ranges (N,) m) with a finite, positive

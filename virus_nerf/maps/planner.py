@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from virus_nerf.maps.evidence import Rays2D, irs_rays_2d
-from virus_nerf.maps.occupancy import FREE, OCCUPIED, from_image, to_image
+from virus_nerf.maps.occupancy import FREE, OCCUPIED, from_image, to_image, world_pixels
 from virus_nerf.sensors import uss
 from virus_nerf.sensors.geometry import yaw_of
 
@@ -96,13 +96,6 @@ class RangeEvidence:
         return RangeEvidence(irs, poses[ok, :2, 3].copy(), yaw_of(poses[ok]), r[ok], stereo, surfaces, sight)
 
 
-def _pixels(points: np.ndarray, lo: np.ndarray, resolution: float, shape: tuple[int, int]):
-    """(..., 2) world points -> ((..., 2) int [ix, iy] clipped into the raster, (...) bool inside)."""
-    ij = np.floor((np.asarray(points, dtype=np.float64) - lo) / resolution).astype(np.int64)
-    inside = (ij[..., 0] >= 0) & (ij[..., 0] < shape[0]) & (ij[..., 1] >= 0) & (ij[..., 1] < shape[1])
-    return np.clip(ij, 0, np.array(shape) - 1), inside
-
-
 def uss_arcs(evidence: RangeEvidence, step_deg: float = USS_ARC_STEP_DEG) -> np.ndarray:
     """(E, A, 2) world points along each echo's horizontal arc (+-27.5 deg at its range)."""
     a = evidence.uss_yaw[:, None] + uss.fan_offsets(step_deg)[None]  # (E, A)
@@ -119,7 +112,7 @@ def unexplained_echoes(occupied: np.ndarray, arcs: np.ndarray, lo: np.ndarray, r
         return np.zeros(0, dtype=bool)
     near = distance_transform_edt(~occupied) * resolution <= explained_m + 1e-9 if occupied.any() \
         else np.zeros(occupied.shape, dtype=bool)
-    ij, inside = _pixels(arcs, lo, resolution, occupied.shape)
+    ij, inside = world_pixels(arcs, lo, resolution, occupied.shape)
     return ~(near[ij[..., 0], ij[..., 1]] & inside).any(axis=1)
 
 
@@ -131,7 +124,7 @@ def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence
     is not changed."""
     grid = from_image(image).copy()  # [ix, iy]
     lo = np.asarray(lo, dtype=np.float64)[:2]
-    ij, inside = _pixels(evidence.touched(), lo, resolution, grid.shape)
+    ij, inside = world_pixels(evidence.touched(), lo, resolution, grid.shape)
     hit = np.zeros(grid.shape, dtype=bool)
     hit[ij[inside, 0], ij[inside, 1]] = True
     grid[hit & (grid == FREE)] = OCCUPIED
@@ -139,7 +132,7 @@ def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence
     lost = unexplained_echoes(grid == OCCUPIED, arcs, lo, resolution, explained_m)
     votes = np.zeros(grid.shape, dtype=np.int64)  # unexplained arcs through each pixel
     for e in np.flatnonzero(lost):
-        ij, inside = _pixels(arcs[e], lo, resolution, grid.shape)
+        ij, inside = world_pixels(arcs[e], lo, resolution, grid.shape)
         ij = np.unique(ij[inside], axis=0)  # one vote a pixel and echo
         votes[ij[:, 0], ij[:, 1]] += 1
     cand = np.argwhere((votes > 0) & (grid == FREE))  # (M, 2) [ix, iy]
