@@ -178,6 +178,34 @@ def test_a_stereo_view_is_free_space_up_to_its_point_less_the_margin_or_two_sigm
     np.testing.assert_allclose(lines.ranges, [2.9, 2.6, 2 * math.sqrt(2) - 0.1], atol=1e-5)
 
 
+def test_the_mapper_keeps_its_sight_lines_until_the_stereo_targets_or_the_height_change():
+    """engine/views.py: the sight lines are computed once per set of stereo targets and height; new
+    targets (a refresh while driving) or another camera height give the new lines."""
+    from types import SimpleNamespace
+
+    from virus_nerf.engine.views import MapViews
+    from virus_nerf.sensors.camera import Intrinsics
+    from virus_nerf.stereo.depth import StereoDepth, _extend
+
+    intr = Intrinsics(fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100)
+    views = MapViews()
+    views.store = SimpleNamespace(cam_to_world=camera_looking(0.0, 0.0, 0.0, z=0.5)[None], stack_ids=np.array([0]),
+                                  intrinsics={0: intr})
+
+    def targets(*ranges):  # image-centre views of frame row 0 (along +x at 0.5 m) at these ranges
+        n = len(ranges)
+        return StereoDepth(np.zeros(n, np.int64), np.full((n, 2), 50.0, np.float32), np.array(ranges, np.float32),
+                           np.full(n, 0.02, np.float32), np.zeros((n, 3), np.float32))
+
+    first = targets(3.0)
+    lines = views._sight_lines(first, 0.5)
+    np.testing.assert_allclose(lines.ranges, [2.9], atol=1e-5)
+    assert views._sight_lines(first, 0.5) is lines  # kept
+    more = _extend(first, targets(2.0))  # a refresh: the same targets and one more
+    np.testing.assert_allclose(np.sort(views._sight_lines(more, 0.5).ranges), [1.9, 2.9], atol=1e-5)
+    assert len(views._sight_lines(more, 0.75)) == 0  # 0.25 m below the band: nothing
+
+
 def test_the_range_evidence_keeps_the_sight_lines_only_for_a_run_with_the_stereo_sensor():
     from virus_nerf.maps.evidence import Rays2D
 

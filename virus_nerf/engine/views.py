@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -105,10 +106,24 @@ class MapViews:
         height = self.camera_height()
         sight = None
         if stereo is not None and "stereo" in self.config.sensors:
-            sight = stereo_sight_lines(stereo, st.cam_to_world, st.stack_ids, st.intrinsics, height)
+            sight = self._sight_lines(stereo, height)
         return RangeEvidence.of_frames(st.cam_to_world, st.uss_range, st.irs_range, height,
                                        tuple(self.config.sensors),
                                        stereo_points=None if stereo is None else stereo.points, sight_lines=sight)
+
+    def _sight_lines(self, stereo, height: float):
+        """The stereo views' sight lines at `height` (maps.evidence.stereo_sight_lines), kept while
+        the stereo targets, the height and the frames they see are the same: offline they never
+        change, and while driving they change only when the tracker hands over new targets."""
+        st = self.store
+        seen = min(len(st.cam_to_world), int(stereo.frames.max()) + 1) if len(stereo) else 0  # rows the views see
+        key = (len(stereo), float(height), seen)
+        cached = getattr(self, "_sight_cache", None)
+        if cached is None or cached[0]() is not stereo or cached[1] != key:  # weak: the old targets may go
+            lines = stereo_sight_lines(stereo, st.cam_to_world, st.stack_ids, st.intrinsics, height)
+            cached = (weakref.ref(stereo), key, lines)
+            self._sight_cache = cached
+        return cached[2]
 
     def _raster_box(self, what: str, resolution) -> tuple[np.ndarray, np.ndarray]:
         """The box's (x, y) corners, once `resolution` is checked (maps.extract.check_raster)."""
