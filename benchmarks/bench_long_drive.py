@@ -97,7 +97,8 @@ def main() -> None:
                    "steps": doc["train"]["steps"], "train_s": doc["train"]["seconds"],
                    "zone3_accuracy_coverage_m": [round(nerf[k], 3) for k in ("acc_mean", "cov_mean") if k in nerf],
                    "safety_marked_free_1m_2m_all": [zones.get(z, {}).get("free_share") for z in ("1m", "2m", "all")],
-                   "free_recall": safety.get("free_recall")}
+                   "free_recall": safety.get("free_recall"),
+                   "free_recall_drivable": safety.get("free_recall_drivable")}
             rows.append(row)
             print(json.dumps(row), flush=True)
     if args.out:

@@ -78,7 +78,7 @@ def judge(run: Path, data: Path, scene: str) -> dict:
 
     def figures(block: dict, planner: dict | None = None) -> dict:
         out = {z: block["zones"][z]["free_share"] for z in ("1m", "2m", "all")}
-        out["free_recall"] = block["free_recall"]
+        out["free_recall"], out["free_recall_drivable"] = block["free_recall"], block.get("free_recall_drivable")
         if planner is not None:
             out["planner_crossing"], out["planner_paths"] = planner["crossing"], planner["paths"]
         return out
@@ -148,19 +148,22 @@ def judge_files(folder: Path, data: Path, scene: str) -> dict:
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.data.room_box import fit_scene_box
     from virus_nerf.evaluation.evaluate import EvaluationConfig
-    from virus_nerf.evaluation.gt import height_slice
+    from virus_nerf.evaluation.gt import body_slice, height_slice
     from virus_nerf.evaluation.safety import judge_map, planner_check
     from virus_nerf.maps.extract import camera_height
 
     rec = load_recording(data, scene)
     poses, stack_ids = rec.camera_poses()  # (N, 4, 4), (N,): every frame
     image, origin, resolution = read_map_files(folder)
-    obstacles = height_slice(rec.lidar_map(), camera_height(poses, stack_ids), EvaluationConfig().height_band_m)
+    height, band = camera_height(poses, stack_ids), EvaluationConfig().height_band_m
+    obstacles = height_slice(rec.lidar_map(), height, band)
     box = fit_scene_box(rec)
-    block = judge_map(image, origin, resolution, obstacles, poses[:, :2, 3], extent=(box.lo[:2], box.hi[:2])).block()
+    block = judge_map(image, origin, resolution, obstacles, poses[:, :2, 3], extent=(box.lo[:2], box.hi[:2]),
+                      body_xy=body_slice(rec.lidar_map(), height, band)).block()
     planner = planner_check(image, origin, resolution, obstacles).block()
     out = {z: block["zones"][z]["free_share"] for z in ("1m", "2m", "all")}
-    out.update(free_recall=block["free_recall"], planner_crossing=planner["crossing"], planner_paths=planner["paths"])
+    out.update(free_recall=block["free_recall"], free_recall_drivable=block["free_recall_drivable"],
+               planner_crossing=planner["crossing"], planner_paths=planner["paths"])
     return out
 
 

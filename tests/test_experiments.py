@@ -121,7 +121,8 @@ def test_demo_end_to_end(tmp_path: Path):
     safety = doc["safety"]
     shares = " | ".join(pct(b["free_share"]) for b in safety["zones"].values())
     assert "## Can a planner trust the map?" in report
-    assert f"| the map (`map.pgm`) | {shares} | {pct(safety['free_recall'])} |" in report
+    assert (f"| the map (`map.pgm`) | {shares} | {pct(safety['free_recall'])} | "
+            f"{pct(safety['free_recall_drivable'])} |") in report
     lidar = safety["anchors"]["lidar"]
     assert f"| LiDAR 2D map | {' | '.join(pct(b['free_share']) for b in lidar['zones'].values())} |" in report
     assert "(run/plots/map_safety.png)" in report and (out / "run" / "plots" / "map_safety.png").is_file()

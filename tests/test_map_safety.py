@@ -113,7 +113,8 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     assert z["1m"]["obstacles"] <= z["2m"]["obstacles"] <= z["all"]["obstacles"] and z["all"]["obstacles"] > 100
     for block in z.values():
         assert 0 <= block["marked_free"] <= block["obstacles"]
-    assert 0.0 < safety["free_recall"] <= 1.0
+    assert 0.0 < safety["free_recall"] <= 1.0 and 0.0 < safety["free_recall_drivable"] <= 1.0
+    assert safety["drivable_from_floor_m"] == 0.1
     assert set(safety["anchors"]) == {"sensors", "lidar"}
     for anchor in safety["anchors"].values():
         assert anchor["zones"]["all"]["obstacles"] == z["all"]["obstacles"] and 0.0 <= anchor["free_recall"] <= 1.0
@@ -203,3 +204,42 @@ def test_the_planner_check_finds_paths_and_counts_the_ones_through_a_wall_the_ma
     corridor[8:21, :] = FREE  # 1.3 m wide: passable, nothing to cross
     wide = planner_check(corridor, origin, res, np.zeros((0, 2)))
     assert wide.paths == 50 and wide.crossing == 0
+
+
+def test_the_floor_and_what_the_body_meets_below_the_band_by_hand():
+    from virus_nerf.evaluation.gt import body_slice, floor_height
+
+    rng = np.random.default_rng(0)
+    floor = np.column_stack([rng.uniform(0, 2, (500, 2)), rng.uniform(-0.5049, -0.4951, 500)])  # z -0.5 +- 5 mm
+    others = np.array([[0.5, 0.5, -0.3],  # a pallet's top, 0.2 m above the floor: the body meets it
+                       [0.6, 0.5, -0.45],  # a cable 5 cm above the floor: under the body
+                       [0.7, 0.5, -0.1],  # 10 cm under the cameras, below the +-5 cm band: the body meets it
+                       [0.8, 0.5, 0.0]])  # in the band: the map's own ground truth, not the body's
+    points = np.concatenate([floor, others])
+    assert floor_height(points, camera_height=0.0) == pytest.approx(-0.5, abs=0.01)  # a 2 cm bin's centre
+    np.testing.assert_allclose(body_slice(points, 0.0, 0.05), [[0.5, 0.5], [0.7, 0.5]])
+    assert floor_height(others[2:], camera_height=0.0) is None  # nothing 0.2 m under the cameras
+    assert body_slice(others[2:], 0.0, 0.05) is None
+
+
+def test_the_drivable_free_recall_leaves_out_what_the_body_meets():
+    """A wall at x 1.0-1.1 m (the band's ground truth) and a pallet under the band at x 0.2-0.4,
+    y 0.4-0.6 m that the map marks occupied: of the band's 90 true free pixels (columns 0-8) the
+    map keeps 86; the drivable truth leaves out the pallet's 4 pixels and the 12 within the 0.15 m
+    clearance around them, 74 pixels, all kept."""
+    from virus_nerf.evaluation.safety import judge_map
+
+    res, origin = 0.1, (0.0, 0.0)
+    wall = np.column_stack([np.full(10, 1.05), np.arange(10) * 0.1 + 0.05])
+    pallet = np.array([[0.25, 0.45], [0.35, 0.45], [0.25, 0.55], [0.35, 0.55]])
+    path = np.array([[0.05, 0.05]])
+    image = np.full((10, 20), UNKNOWN, dtype=np.uint8)  # rows y 0.95 .. 0.05, columns x 0.05 .. 1.95
+    image[:, :9] = FREE
+    image[4:6, 2:4] = OCCUPIED  # the pallet: rows 4-5 (y 0.5-0.6, 0.4-0.5), columns 2-3
+    judged = judge_map(image, origin, res, wall, path, body_xy=pallet)
+    assert judged.free_recall == pytest.approx(86 / 90)
+    assert judged.free_recall_drivable == pytest.approx(1.0)
+    image[0, 0] = OCCUPIED  # a corner pixel far from the pallet: lost in both
+    judged = judge_map(image, origin, res, wall, path, body_xy=pallet)
+    assert judged.free_recall == pytest.approx(85 / 90) and judged.free_recall_drivable == pytest.approx(73 / 74)
+    assert judge_map(image, origin, res, wall, path).block()["free_recall_drivable"] is None  # no body truth

@@ -82,6 +82,39 @@ def height_slice(points: np.ndarray, height: float, band: float = 0.05) -> np.nd
     return pts[keep, :2].astype(np.float64)
 
 
+# the robot's body meets what stands from this high above the floor (m; thresholds and cables lie
+# lower) up to its cameras: what the drivable free space leaves out (evaluation/safety.py)
+BODY_FLOOR_CLEARANCE_M = 0.1
+FLOOR_BELOW_CAMERAS_M = 0.2  # the floor is looked for this far (m) or more below the cameras
+FLOOR_BIN_M = 0.02  # m, the height bins of that search
+
+
+def floor_height(points: np.ndarray, camera_height: float) -> float | None:
+    """The floor's height (m, world z): the centre of the most populated FLOOR_BIN_M height bin of
+    the map points (P, 3) more than FLOOR_BELOW_CAMERAS_M below `camera_height` (the floor is the
+    largest level surface under a ground robot); None when the map holds no point there (a map
+    cut above its floor)."""
+    z = np.asarray(points, dtype=np.float64).reshape(-1, 3)[:, 2]
+    z = z[z < camera_height - FLOOR_BELOW_CAMERAS_M]
+    if not len(z):
+        return None
+    counts = np.bincount(np.floor((z - z.min()) / FLOOR_BIN_M).astype(np.int64))
+    return float(z.min() + (np.argmax(counts) + 0.5) * FLOOR_BIN_M)
+
+
+def body_slice(points: np.ndarray, camera_height: float, band: float) -> np.ndarray | None:
+    """(K, 2) x, y of the map points (P, 3) that the robot's body meets below the camera band: from
+    BODY_FLOOR_CLEARANCE_M above the floor (`floor_height`) up to camera_height - band; None when
+    the map has no floor."""
+    floor = floor_height(points, camera_height)
+    if floor is None:
+        return None
+    pts = np.asarray(points)
+    z = pts[:, 2].astype(np.float64)
+    keep = (z >= floor + BODY_FLOOR_CLEARANCE_M) & (z < camera_height - band)
+    return pts[keep, :2].astype(np.float64)
+
+
 def rasterise(
     xy: np.ndarray,
     res: float = 0.02,

@@ -16,6 +16,12 @@ furniture leaves in a wall's camera-height slice), the share the map marks free.
 anchors on the same raster: the classic inverse-sensor map of the robot's USS and IRS alone
 (maps/evidence.py, no NeRF) and the 2D map a LiDAR robot has, carved by the LiDAR's own scans at
 camera height at the same positions as the map's scans.
+
+The free recall's ground truth is the camera-height slice, so the space over a pallet or a low
+shelf counts free there, though the robot's body would meet it and the map rightly keeps it out.
+Beside it stands the drivable free recall: the same share of the true free space less what the
+LiDAR map holds from 0.1 m above the floor up to the camera band (evaluation/gt.py `body_slice`),
+the space the robot can actually cross.
 """
 
 from __future__ import annotations
@@ -133,12 +139,19 @@ class MapJudgement:
 
     zones: list[SafetyZone]
     free_recall: float | None  # share of the true free space near the path the map marks free
+    # the same share of the drivable free space (less what the body meets below the band); None
+    # without the body's ground truth (a map without its floor)
+    free_recall_drivable: float | None = None
 
     def block(self) -> dict:
         return {"zones": {_zone_name(z.within_m): {
             "obstacles": z.obstacles, "marked_free": z.marked_free,
             "free_share": None if z.free_share is None else round(z.free_share, 4)} for z in self.zones},
-            "free_recall": None if self.free_recall is None else round(self.free_recall, 4)}
+            "free_recall": _round(self.free_recall), "free_recall_drivable": _round(self.free_recall_drivable)}
+
+
+def _round(v: float | None) -> float | None:
+    return None if v is None else round(v, 4)
 
 
 def _zone_name(within_m: float) -> str:
@@ -146,23 +159,33 @@ def _zone_name(within_m: float) -> str:
 
 
 def judge_map(image: np.ndarray, origin: tuple[float, float], resolution: float, obstacles_xy: np.ndarray,
-              path_xy: np.ndarray, free_value: int = 254, extent: tuple | None = None) -> MapJudgement:
+              path_xy: np.ndarray, free_value: int = 254, extent: tuple | None = None,
+              body_xy: np.ndarray | None = None) -> MapJudgement:
     """`map_safety` and `free_recall` of a trinary map `image` (H, W) against ground-truth
     obstacle points (K, 2) at camera height and the robot's path (P, 2), metres; the true free
-    space lies inside `extent` ((x, y) lo, hi m, the ground truth's box; None: the raster)."""
+    space lies inside `extent` ((x, y) lo, hi m, the ground truth's box; None: the raster). With
+    `body_xy` (B, 2), the points the body meets below the band (gt.body_slice), the drivable free
+    recall too: the true free space taken as free of those as well."""
     obst = obstacle_pixels(obstacles_xy, origin, resolution, np.asarray(image).shape)
     free = true_free_near_path(obst, origin, resolution, path_xy, extent=extent)
+    drivable = None
+    if body_xy is not None:
+        body = obstacle_pixels(body_xy, origin, resolution, obst.shape)
+        drivable = free_recall(image, free_value, true_free_near_path(obst | body, origin, resolution, path_xy,
+                                                                      extent=extent))
     return MapJudgement(map_safety(image, origin, resolution, obstacles_xy, path_xy, free_value),
-                        free_recall(image, free_value, free))
+                        free_recall(image, free_value, free), drivable)
 
 
 def safety_document(judgement: MapJudgement, observed: float, gt: str, resolution: float,
                     anchors: dict[str, MapJudgement] | None = None) -> dict:
     """metrics.json's "safety" block: the map's figures, and the same figures of the anchors
     (the maps the robot's range sensors alone and a LiDAR give, judged on the same raster)."""
+    from virus_nerf.evaluation.gt import BODY_FLOOR_CLEARANCE_M
+
     doc = {"gt": gt, "resolution": resolution, "tolerance_m": SAFETY_TOLERANCE_M,
            "free_near_path_m": FREE_NEAR_PATH_M, "free_clearance_m": FREE_CLEARANCE_M,
-           "observed": round(float(observed), 4), **judgement.block()}
+           "drivable_from_floor_m": BODY_FLOOR_CLEARANCE_M, "observed": round(float(observed), 4), **judgement.block()}
     if anchors:
         doc["anchors"] = {name: j.block() for name, j in anchors.items()}
     return doc
@@ -174,8 +197,9 @@ ANCHOR_LABELS = {"sensors": "USS + IRS alone", "lidar": "LiDAR 2D map"}
 def _figures(block: dict) -> str:
     parts = [f"{name} " + ("-" if b["free_share"] is None else f"{b['free_share']:.1%}")
              for name, b in block["zones"].items()]
-    recall = block.get("free_recall")
-    return ", ".join(parts) + "; free space kept " + ("-" if recall is None else f"{recall:.1%}")
+    recall, drivable = block.get("free_recall"), block.get("free_recall_drivable")
+    return (", ".join(parts) + "; free space kept " + ("-" if recall is None else f"{recall:.1%}")
+            + ("" if drivable is None else f" ({drivable:.1%} of the drivable)"))
 
 
 def safety_line(doc: dict) -> str:
@@ -242,7 +266,7 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
     """The safety of the mapper's 2D map (as its snapshots write it) against the recording's
     LiDAR map at camera height (+-band m), beside its anchors; None without a LiDAR map or frames."""
     from virus_nerf.data.room_box import fit_scene_box
-    from virus_nerf.evaluation.gt import height_slice
+    from virus_nerf.evaluation.gt import body_slice, height_slice
     from virus_nerf.maps.evidence import sensor_rays_2d
     from virus_nerf.maps.extract import spread_rows
     from virus_nerf.maps.observed import apply_mask, observed_share
@@ -253,6 +277,7 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
     m = mapper.map2d(resolution, max_poses=MAP_POSES)
     height = mapper.camera_height()
     obstacles = height_slice(recording.lidar_map(), height, band)
+    body = body_slice(recording.lidar_map(), height, band)  # (B, 2) what the body meets below the band
     store = mapper.store
     path = store.cam_to_world[:, :2, 3]
     lo, hi = np.asarray(mapper.box.lo[:2]), np.asarray(mapper.box.hi[:2])
@@ -266,9 +291,10 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
     gt_box = fit_scene_box(recording)  # the LiDAR map's extent: true free space lies inside it
     extent = (gt_box.lo[:2], gt_box.hi[:2])
     anchors = {"sensors": judge_map(apply_mask(sensor_map.image, seen, UNKNOWN), m.origin, resolution,
-                                    obstacles, path, extent=extent),
-               "lidar": judge_map(lidar_map.image, m.origin, resolution, obstacles, path, extent=extent)}
-    doc = safety_document(judge_map(m.image, m.origin, resolution, obstacles, path, extent=extent),
+                                    obstacles, path, extent=extent, body_xy=body),
+               "lidar": judge_map(lidar_map.image, m.origin, resolution, obstacles, path, extent=extent,
+                                  body_xy=body)}
+    doc = safety_document(judge_map(m.image, m.origin, resolution, obstacles, path, extent=extent, body_xy=body),
                           observed_share(seen), "map", resolution, anchors)
     doc["planner"] = planner_check(m.image, m.origin, resolution, obstacles).block()
     return RunSafety(doc, safety_picture(m.image, m.origin, resolution, obstacles, path))

@@ -63,13 +63,16 @@ def safety_markdown(doc: Mapping[str, Any], picture: str | None = None) -> list[
                   f"(nothing but free within {safety['tolerance_m']:g} m), by distance to the robot's path, and the "
                   f"free space it keeps (of the true free space within {safety.get('free_near_path_m', 3):g} m of the "
                   f"path and {safety.get('free_clearance_m', 0.15):g} m from obstacles, the share marked free); "
-                  f"{safety['observed']:.0%} of the map observed by some sensor (the rest stays unknown). Beside "
-                  "the map, the same figures of the range sensors' own map (no NeRF) and of a LiDAR's.", "",
+                  f"{safety['observed']:.0%} of the map observed by some sensor (the rest stays unknown); the "
+                  "drivable free space leaves out, besides, what the LiDAR map holds from "
+                  f"{safety.get('drivable_from_floor_m', 0.1):g} m above the floor up to the camera band (what the "
+                  "robot's body meets). Beside the map, the same figures of the range sensors' own map (no NeRF) "
+                  "and of a LiDAR's.", "",
                   "| map | " + " | ".join(f"marked free, within {z}" if z != "all" else "marked free, all"
-                                         for z in zones) + " | free space kept |",
-                  "|---|" + "---|" * (len(zones) + 1)]
+                                         for z in zones) + " | free space kept | drivable free space kept |",
+                  "|---|" + "---|" * (len(zones) + 2)]
         lines += [f"| {name} | " + " | ".join(pct(b["zones"][z]["free_share"]) for z in zones)
-                  + f" | {pct(b.get('free_recall'))} |" for name, b in rows]
+                  + f" | {pct(b.get('free_recall'))} | {pct(b.get('free_recall_drivable'))} |" for name, b in rows]
         lines.append("")
         if "planner" in safety:
             p = safety["planner"]
