@@ -432,3 +432,23 @@ def test_nan_forward_densities_never_reach_a_cell():
     sigma_t = min(-math.log(0.99) / 0.01, 100.0)
     assert grid.logodds[1, 1, 1].item() == pytest.approx(L_INIT + 0.25 * math.log(100.0 / sigma_t), abs=1e-6)
     assert grid.logodds[8, 8, 8].item() == pytest.approx(L_INIT)  # only NaN there: untouched
+
+
+def test_surface_points_raise_their_cells_once_by_the_increment_and_clamp():
+    """D84: the stereo's triangulated points are surfaces for the grid. CUBE's 0.1 m cells: three
+    points in cell (2, 3, 4), one in (7, 7, 7), one outside the box and a NaN; two cells raised
+    by stereo_point_increment (1.5) once each, the rest at l_init; a second call adds again and
+    clamps at logodds_max; increment 0 raises nothing."""
+    grid = VirusGrid(CUBE, _config(max_resolution=10, stereo_point_increment=1.5))
+    points = np.array([[0.21, 0.31, 0.41], [0.25, 0.35, 0.45], [0.29, 0.39, 0.49], [0.75, 0.75, 0.75],
+                       [1.5, 0.5, 0.5], [np.nan, 0.5, 0.5]])
+    assert grid.surface_points(points) == 2
+    raised = torch.full(grid.logodds.shape, L_INIT, dtype=torch.float32)
+    raised[2, 3, 4] = raised[7, 7, 7] = L_INIT + 1.5
+    assert torch.allclose(grid.logodds, raised)
+    assert bool(grid.occupied[2, 3, 4]) and bool(grid.occupied[0, 0, 0])  # p_init is marched too
+    for _ in range(3):
+        grid.surface_points(points[:1])
+    assert grid.logodds[2, 3, 4] == pytest.approx(4.0) and grid.logodds[7, 7, 7] == pytest.approx(L_INIT + 1.5)
+    none = VirusGrid(CUBE, _config(max_resolution=10, stereo_point_increment=0.0))
+    assert none.surface_points(points) == 0 and torch.all(none.logodds == torch.tensor(L_INIT, dtype=torch.float32))

@@ -405,3 +405,47 @@ def test_targets_extended_by_a_flush_stay_sorted_by_frame_and_keep_their_order()
     assert out.ranges.tolist() == pytest.approx([1.0, 0.5, 2.0, 2.5, 2.7, 2.9, 5.0, 5.5, 7.0])
     assert out.uv[:, 1].tolist() == out.ranges.tolist() and out.sigmas.tolist() == pytest.approx(out.ranges / 10)
     assert len(out.points) == 9 and _extend(out, StereoDepth.empty()).frames.tolist() == out.frames.tolist()
+
+
+def test_the_mapper_gives_the_grid_each_stereo_point_once_and_its_state_keeps_the_count():
+    """D84: set_stereo raises the cells of the points not given yet (a refresh appends its own);
+    a mapper continued from `state()` does not give the rebuilt points again."""
+    import dataclasses
+
+    from helpers import tiny_train_config
+
+    from virus_nerf.engine.mapper import Mapper
+    from virus_nerf.grid.virus import VirusGrid
+    from virus_nerf.scene_box import SceneBox
+
+    cfg = tiny_train_config(sensors=("camera", "stereo"), device="cpu")
+    box = SceneBox((-3.0, -2.0, -0.5), (3.0, 2.0, 7.0))
+
+    def targets(points):
+        n = len(points)
+        return StereoDepth(np.zeros(n, np.int64), np.zeros((n, 2), np.float32), np.ones(n, np.float32),
+                           np.full(n, 0.02, np.float32), np.asarray(points, np.float32))
+
+    mapper = Mapper(cfg, {1: INTR}, box)
+    assert isinstance(mapper.grid, VirusGrid)
+    inc = mapper.config.virus_grid.stereo_point_increment
+    assert inc == 2.0
+    start = mapper.grid.logodds.clone()
+    first = targets([[0.0, 0.0, 3.0]])
+    mapper.set_stereo(first)
+    raised = (mapper.grid.logodds - start).nonzero()
+    assert len(raised) == 1 and float((mapper.grid.logodds - start).max()) == pytest.approx(inc)
+    both = _extend(first, targets([[1.0, 1.0, 5.0]]))
+    mapper.set_stereo(both)  # the first point is not given again
+    diff = mapper.grid.logodds - start
+    assert len(diff.nonzero()) == 2 and float(diff.max()) == pytest.approx(inc)
+    again = Mapper(cfg, {1: INTR}, box)
+    again.load_state(mapper.state())
+    saved = again.grid.logodds.clone()
+    again.set_stereo(both)  # rebuilt after a resume: nothing new
+    assert torch.equal(again.grid.logodds, saved)
+    off = Mapper(dataclasses.replace(cfg, virus_grid=dataclasses.replace(cfg.virus_grid, stereo_point_increment=0.0)),
+                 {1: INTR}, box)
+    before = off.grid.logodds.clone()
+    off.set_stereo(both)
+    assert torch.equal(off.grid.logodds, before)

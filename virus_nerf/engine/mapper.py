@@ -127,6 +127,7 @@ class Mapper(MapViews):
         self._seen_at_start = 0  # frames that count as seen at step 0 besides those at the first step
         self.stereo: StereoDepth | None = None  # triangulated depth targets of the store's rows
         self._stereo_feed: StereoFeed | None = None  # fed by track_image (mapping while driving)
+        self._stereo_points_done = 0  # stereo points (the first n of `stereo.points`) the grid has had
 
     @property
     def box(self) -> SceneBox:
@@ -231,6 +232,10 @@ class Mapper(MapViews):
         self.stereo = depth
         if depth is not None:
             self._grow(self.extent.add_stereo(depth.points))
+            # the points not given yet (a refresh appends its own, stereo/depth.py `_extend`; a resumed
+            # run's rebuilt ones come again in the same order) are surfaces for the grid
+            self.grid.surface_points(depth.points[self._stereo_points_done :])
+            self._stereo_points_done = max(self._stereo_points_done, len(depth.points))
         if self._sampler is not None:
             self._sampler.stereo = depth
 
@@ -444,6 +449,7 @@ class Mapper(MapViews):
             "torch_generator": self.generator.get_state(),
             "box": self.box.to_dict(),
             "prior_frames": self._prior_done,
+            "stereo_points": self._stereo_points_done,
             "frames_at_start": self._frames_at_start,
             "viewed_frames": self._viewed_frames,
             "visible_share": self.visible_share,  # picks the next step's render path
@@ -465,6 +471,7 @@ class Mapper(MapViews):
         self.rng.bit_generator.state = state["numpy_rng"]
         self.generator.set_state(state["torch_generator"])
         self.visible_share = float(state.get("visible_share", 1.0))
+        self._stereo_points_done = int(state.get("stereo_points", 0))  # its grid has had these
         self._frames_at_start = state.get("frames_at_start")
         # a state without it (written before the restart existed): the frames it was trained on
         # count as seen at step 0 when the grid first hears of them

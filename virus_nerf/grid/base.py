@@ -177,6 +177,11 @@ class OccupancyGrid(ABC):
         """Prior evidence before the first step (see `prior_request`); returns cell increments."""
         return 0
 
+    def surface_points(self, points: np.ndarray) -> int:
+        """Evidence that surfaces lie at world `points` (N, 3) m (the stereo's triangulated points);
+        returns the number of cells raised (a grid without evidence: none)."""
+        return 0
+
     @property
     @abstractmethod
     def occupied(self) -> torch.Tensor:

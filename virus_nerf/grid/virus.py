@@ -232,6 +232,22 @@ class VirusGrid(OccupancyGrid):
             return 0
         return self.depth_update(depth.origins, depth.directions, depth.ranges)
 
+    def surface_points(self, points: np.ndarray) -> int:
+        """Each cell holding one of the world `points` (N, 3) m gets `stereo_point_increment` in
+        log-odds, once per call however many points it holds (one measurement, as a NeRF-Update
+        cell); points outside the box and non-finite ones count nowhere. Returns the cells raised."""
+        inc = self.config.stereo_point_increment
+        pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+        pts = np.ascontiguousarray(pts[np.isfinite(pts).all(axis=1)])
+        if inc <= 0.0 or not len(pts):
+            return 0
+        cells = points_to_cells(pts, self._lo, self._size, self._res)
+        cells = np.unique(cells[cells >= 0])
+        self._occupied = None
+        flat = self._logodds.view(-1).numpy()  # shares memory
+        flat[cells] = np.clip(flat[cells] + np.float32(inc), self.config.logodds_min, self.config.logodds_max)
+        return int(len(cells))
+
     def depth_update(self, origins: torch.Tensor, directions: torch.Tensor, ranges: torch.Tensor) -> int:
         """Depth-Update: origins (K, 3), directions (K, 3), ranges (K,) metres along the ray.
 

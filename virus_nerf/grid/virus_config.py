@@ -47,6 +47,12 @@ class VirusGridConfig:
     # space and surfaces the IRS saw are known from the start; "none" = the paper's plain warm-up.
     init: Literal["sensors", "none"] = "sensors"
     init_zone_samples: int = 3  # rays per IRS zone and axis in that pass (3 -> 9 rays per zone)
+    # the cells holding the stereo sensor's triangulated points (issue 28's measured surfaces) get
+    # this log-odds increment once, as the points arrive (offline before step 0, while driving at
+    # each refresh of the tracker): a surface the cameras measured stays marched, so the field can
+    # learn it before the NeRF-Update empties it (D84: objects beside the path the field never
+    # held); 0 = none
+    stereo_point_increment: float = 2.0
     # NeRF-Update densities: "forward" (default, the paper's speed-up, D8) reuses the densities
     # of the training forward pass: no extra network pass, and only cells the marcher sampled get
     # evidence, so cells nothing renders through are not raised by haze. "resample" draws
@@ -85,6 +91,7 @@ class VirusGridConfig:
         number("depth_share", 0.0, 1.0, lo_open=False)
         choice("init", ("sensors", "none"))
         integer("init_zone_samples", 1)
+        number("stereo_point_increment", 0.0, lo_open=False)
         choice("nerf_update_source", ("resample", "forward"))
         number("std_per_m", 0.0, lo_open=False)
         number("std_floor", 0.0)
