@@ -50,8 +50,8 @@ class VirusGridConfig:
     # the cells holding the stereo sensor's triangulated points (issue 28's measured surfaces) get
     # this log-odds increment once, as the points arrive (offline before step 0, while driving at
     # each refresh of the tracker): a surface the cameras measured stays marched, so the field can
-    # learn it before the NeRF-Update empties it (D84: objects beside the path the field never
-    # held); 0 = none
+    # learn it before the NeRF-Update empties it (D84: zone 3 accuracy and free recall better in
+    # every room kind, offline and while driving); 0 = none
     stereo_point_increment: float = 2.0
     # NeRF-Update densities: "forward" (default, the paper's speed-up, D8) reuses the densities
     # of the training forward pass: no extra network pass, and only cells the marcher sampled get
