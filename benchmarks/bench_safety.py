@@ -9,8 +9,8 @@ the defaults by `virus-nerf train` (offline: bounded by steps, so bit-reproducib
 independent of the machine's load; --online: `train --online --playback 1` with
 {"extent": {"mode": "grow"}}, the driving map), then judged twice from its checkpoint (the
 Mapper's map, as its snapshots and the run's metrics.json make it: 360 rays from 30 training
-positions), and once more as `virus-nerf export` writes map.pgm (the same counts over every
-frame's positions; `export`, judged along every frame's path):
+positions), and once more as `virus-nerf export` writes map.pgm to disk (the same map since
+D85, read from the file and judged along every frame's path: `export`):
 
     .venv/bin/python benchmarks/bench_safety.py --out benchmarks/results/safety_d47.json
     .venv/bin/python benchmarks/bench_safety.py --online --scenes office,common --out online.json

@@ -98,6 +98,11 @@ def test_gt_none_on_a_recording_with_lidar_scores_nothing(tiny_office, small_con
     assert "no metrics computed" in out and "no LiDAR map" not in out
     assert json.loads((run / "metrics.json").read_text())["gt"] is None
     assert not (run / "plots").exists() and (run / "map" / "map.pgm").is_file()
+    # `export` of the same run writes the very map the run wrote: one map for every consumer
+    code, _, err = run_cli(["export", "--run", run, "--out", tmp_path / "export", "--what", "map,prob"])
+    assert code == 0, err
+    for name in ("map.pgm", "map.yaml", "prob.pgm", "prob.yaml"):
+        assert (tmp_path / "export" / name).read_bytes() == (run / "map" / name).read_bytes(), name
 
 
 def test_gt_flag_parses_none():

@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.errors import UsageError
-from virus_nerf.maps import extract
 from virus_nerf.maps.extract import check_raster
 
 KINDS = ("map", "prob", "grid3d", "esdf", "scans", "cloud", "images")
@@ -111,22 +110,21 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
     from virus_nerf.maps import occupancy as maps
     from virus_nerf.utils.io import write_json_atomic, write_text_atomic
 
-    box = trainer.mapper.box
+    mapper = trainer.mapper
+    box = mapper.box
     lo, hi = np.asarray(box.lo[:2], float), np.asarray(box.hi[:2], float)
     summary: dict = {"kinds": list(kinds), "resolution": resolution, "origin": [float(lo[0]), float(lo[1]), 0.0]}
     done = []
     seen = None
     if {"map", "esdf", "prob"} & set(kinds):
-        raster = check_raster("--resolution", lo, hi, resolution)  # (nx, ny), refused before any work if too large
-        seen = training_observed(trainer.recording, lo, raster, resolution)  # (nx, ny) [ix, iy]
+        check_raster("--resolution", lo, hi, resolution)  # refused before any work if too large
+        trainer.prepare()  # the frames the run trained on and its stereo points (cached), as `train` had them
+        seen = mapper.observed(resolution)  # (nx, ny) [ix, iy]: the training frames' view wedges
         summary["observed"] = round(observed.observed_share(seen), 4)
-    poses, stack_ids = trainer.recording.camera_poses()  # every frame, stack by stack
     if "map" in kinds or "esdf" in kinds:
-        evidence = training_evidence(trainer, extract.camera_height(poses, stack_ids), cfg)
-        m = extract.occupancy_map(trainer.mapper.model, poses[:, :3, 3], lo, hi, resolution,
-                                  maps.MAP_RAYS if n_rays is None else n_rays,
-                                  maps.MAP_POSES if max_poses is None else max_poses, seen,
-                                  evidence)
+        # the Mapper's own map (engine/views.py): what the run's snapshots wrote and its safety block judged
+        m = mapper.map2d(resolution, maps.MAP_RAYS if n_rays is None else n_rays,
+                         maps.MAP_POSES if max_poses is None else max_poses)
         if "map" in kinds:
             maps.write_map_server(m, folder, "map")
             _write_png(folder / "map.png", m.image)
@@ -141,9 +139,8 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
         prob3 = grid.probability.detach().cpu().numpy()
         spec = grid.spec
         if "prob" in kinds:
-            height = extract.camera_height(poses, stack_ids)
-            maps.write_map_server(extract.probability_map(prob3, spec.box.lo, spec.box.hi, height, band, lo, hi,
-                                                          resolution, seen), folder, "prob")
+            height = mapper.camera_height()
+            maps.write_map_server(mapper.probability_map(resolution, band), folder, "prob")
             summary["prob_map"] = {"height": height, "band": band, "projection": "max over layers in the band"}
             done.append(f"prob.pgm/.yaml (scale, z {height:.2f} +- {band:g} m)")
         if "grid3d" in kinds:
@@ -191,39 +188,6 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
         done.append(f"images/ ({len(pose_set)} x {intr.width}x{intr.height} colour + depth)")
     write_json_atomic(folder / "export.json", summary)
     return done
-
-
-def training_observed(recording, lo: np.ndarray, shape: tuple[int, int], resolution: float) -> np.ndarray:
-    """(nx, ny) bool [ix, iy]: map pixels the training frames' sensors looked at (maps/observed.py)."""
-    from virus_nerf.maps.observed import frames_observed
-
-    poses, stack_ids = recording.camera_poses("train")
-    return frames_observed(poses, stack_ids, {s: st.intrinsics for s, st in recording.stacks.items()}, lo, shape,
-                           resolution)
-
-
-def training_evidence(trainer, height: float, cfg):
-    """What the training frames' IRS, USS and stereo (the run's own sensors) measured at camera
-    `height` (maps/planner.py); the stereo's points and views are the training's (stereo/build.py's
-    cache)."""
-    from virus_nerf.maps.planner import RangeEvidence
-
-    recording = trainer.recording
-    stereo = sight = None
-    if "stereo" in cfg.sensors:
-        from virus_nerf.maps.evidence import stereo_sight_lines
-        from virus_nerf.stereo.build import stereo_depth
-
-        store = trainer.store
-        depth = stereo_depth(recording, store.frame_list(), cfg.stereo)
-        stereo = depth.points
-        sight = stereo_sight_lines(depth, store.cam_to_world, store.stack_ids, store.intrinsics, height)
-    stacks = list(recording.stacks.values())
-    rows = [st.indices("train") for st in stacks]
-    return RangeEvidence.of_frames(np.concatenate([st.cam_to_world[r] for st, r in zip(stacks, rows, strict=True)]),
-                                   np.concatenate([st.uss_range[r] for st, r in zip(stacks, rows, strict=True)]),
-                                   np.concatenate([st.irs_range[r] for st, r in zip(stacks, rows, strict=True)]),
-                                   height, tuple(cfg.sensors), stereo_points=stereo, sight_lines=sight)
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
