@@ -227,6 +227,64 @@ def test_a_ray_nothing_stops_is_free_up_to_the_first_surface_a_sensor_touched():
     assert list(row(_evidence(irs_hits=[[2.05, 0.3]]))) == [FREE] * 8 + [UNKNOWN] * 12
 
 
+def test_a_lone_low_end_occupies_its_pixel_only_where_a_sensor_backs_it():
+    from virus_nerf.maps.extract import lone_unsupported
+
+    # 0.1 m pixels from (0, 0); occupied: a lone pixel [2, 2] (centre (0.25, 0.25)) met by one ray, a
+    # lone pixel [2, 6] met by two, and two touching pixels [6, 2], [6, 3] met by one each
+    occupied = np.zeros((9, 9), dtype=bool)
+    hits = np.zeros((9, 9), dtype=np.int64)
+    for ix, iy, n in ((2, 2, 1), (2, 6, 2), (6, 2, 1), (6, 3, 1)):
+        occupied[ix, iy], hits[ix, iy] = True, n
+    lo = np.zeros(2)
+
+    def lone(support):
+        return sorted(map(tuple, np.argwhere(lone_unsupported(occupied, hits, np.asarray(support, float), lo, 0.1))))
+
+    far = [[0.85, 0.85]]  # 0.85 m from every occupied pixel: backs none
+    assert lone(far) == [(2, 2)]  # only the lone, once-met pixel; two ends or a neighbour keep a pixel
+    assert lone([[0.25, 0.44]]) == []  # a support point 0.19 m from its centre (MAP_LOW_SUPPORT_M 0.2) backs it
+    assert lone([[0.25, 0.46]]) == [(2, 2)]  # 0.21 m: not
+    assert lone(np.zeros((0, 2))) == []  # no stereo point or IRS hit at all: every end stays
+
+
+class _PostInRing:
+    """A round room (a wall 3 m around the z axis) with a post of 1 cm radius and 0.9 m high at 2 m
+    from the axis, 0.5 deg from +x: the cameras at 1.0 m look over it, and of the low rays (0.85 and
+    0.7 m) only the one leaving at 0.5 deg meets it."""
+
+    post = 2.0 * np.array([np.cos(np.deg2rad(0.5)), np.sin(np.deg2rad(0.5))])
+
+    def ranges(self, origins, directions):
+        o, d = np.asarray(origins, float), np.asarray(directions, float)
+        d2 = d[:, :2] / np.linalg.norm(d[:, :2], axis=1, keepdims=True)
+        b = (o[:, :2] * d2).sum(1)
+        wall = -b + np.sqrt(b**2 - (o[:, :2] ** 2).sum(1) + 9.0)  # |o + t d| = 3
+        along = ((self.post - o[:, :2]) * d2).sum(1)
+        miss2 = ((self.post - o[:, :2]) ** 2).sum(1) - along**2
+        post = np.where((miss2 <= 0.01**2) & (along > 0) & (o[:, 2] < 0.9), along - np.sqrt(np.maximum(0.01**2 - miss2, 0)),
+                        np.inf)
+        return np.minimum(wall, post)
+
+
+def test_scan_map_drops_a_lone_low_end_no_sensor_backs():
+    from virus_nerf.maps.extract import scan_map
+
+    camera = np.array([[0.0, 0.0, 1.0]])
+    lo, hi, res = np.array([-3.5, -3.5]), np.array([3.5, 3.5]), 0.1  # 70 x 70 pixels; the post (1.99, 0.01) in [54, 35]
+
+    def post_pixel(evidence):
+        grid = scan_map(_PostInRing(), camera, lo, hi, res, 360, evidence).image[::-1].T  # [ix, iy]
+        assert grid[45, 35] == FREE and grid[65, 35] == OCCUPIED  # the band passed over it; the wall
+        return grid[54, 35]
+
+    assert post_pixel(None) == OCCUPIED  # the scans alone: the low rays' end
+    assert post_pixel(_evidence(irs_hits=[[-2.9, 0.0]])) == FREE  # a lone end, one ray, nothing near it
+    assert post_pixel(_evidence(surfaces=[[2.0, 0.1]])) == OCCUPIED  # a stereo point 0.07 m from its centre (1.95, 0.05)
+    assert post_pixel(_evidence(irs_hits=[[2.0, -0.1]])) == OCCUPIED  # an IRS hit 0.16 m from it
+    assert post_pixel(_evidence()) == OCCUPIED  # no stereo point or IRS hit at all: kept
+
+
 def test_near_surfaces_is_a_distance_to_the_nearest_surface_point():
     from virus_nerf.maps.extract import near_surfaces
 

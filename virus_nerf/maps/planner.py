@@ -67,6 +67,11 @@ class RangeEvidence:
     def empty() -> RangeEvidence:
         return RangeEvidence(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0))
 
+    def support(self) -> np.ndarray:
+        """(K + P, 2) world points where a sensor measured a surface at the heights the map's scans
+        look at: the IRS hits and the stereo points within SURFACE_BAND_M of camera height."""
+        return np.concatenate([self.irs_hits, self.surfaces])
+
     def touched(self) -> np.ndarray:
         """(K + S, 2) world points where a sensor touched a surface at camera height: the IRS hits
         and the stereo points."""
