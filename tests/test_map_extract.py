@@ -239,7 +239,7 @@ def test_a_lone_low_end_occupies_its_pixel_only_where_a_sensor_backs_it():
     lo = np.zeros(2)
 
     def lone(support):
-        return sorted(map(tuple, np.argwhere(lone_unsupported(occupied, hits, np.asarray(support, float), lo, 0.1))))
+        return sorted(map(tuple, np.argwhere(lone_unsupported(occupied, hits, _evidence(irs_hits=support), lo, 0.1))))
 
     far = [[0.85, 0.85]]  # 0.85 m from every occupied pixel: backs none
     assert lone(far) == [(2, 2)]  # only the lone, once-met pixel; two ends or a neighbour keep a pixel
@@ -283,6 +283,15 @@ def test_scan_map_drops_a_lone_low_end_no_sensor_backs():
     assert post_pixel(_evidence(surfaces=[[2.0, 0.1]])) == OCCUPIED  # a stereo point 0.07 m from its centre (1.95, 0.05)
     assert post_pixel(_evidence(irs_hits=[[2.0, -0.1]])) == OCCUPIED  # an IRS hit 0.16 m from it
     assert post_pixel(_evidence()) == OCCUPIED  # no stereo point or IRS hit at all: kept
+    # a USS echo from the axis along +x: its arc (+-27.5 deg at its range, every degree) passes 0.05 m
+    # from the pixel's centre at 1.95 m (within USS_EXPLAINED_M, 0.1 m: backed), 0.35 m at 2.3 m (not)
+    from virus_nerf.maps.planner import RangeEvidence
+
+    def echo(r):
+        return RangeEvidence(np.array([[-2.9, 0.0]]), np.zeros((1, 2)), np.zeros(1), np.array([r]))
+
+    assert post_pixel(echo(1.95)) == OCCUPIED
+    assert post_pixel(echo(2.3)) == FREE
 
 
 def test_near_surfaces_is_a_distance_to_the_nearest_surface_point():

@@ -38,7 +38,7 @@ from virus_nerf.maps.occupancy import (
     to_image,
     world_pixels,
 )
-from virus_nerf.maps.planner import RangeEvidence, planner_image
+from virus_nerf.maps.planner import USS_EXPLAINED_M, RangeEvidence, planner_image, uss_arcs
 from virus_nerf.maps.scans import scan_rays
 from virus_nerf.sensors.rig import MAIN_STACK
 from virus_nerf.utils.memory import require_memory
@@ -80,12 +80,13 @@ MAP_LOW_AROUND_HEIGHTS_M = (-0.15,)
 # stereo points keeps D64's rule (every end casts)
 MAP_LOW_SUPPORT_M = 0.2
 # and a low ray's end pixel is occupied only where a sensor backs it when it is a lone one: no other
-# pixel the low rays call occupied among its 8 neighbours, one low ray ended there, and no stereo point
-# within 0.5 m of camera height nor IRS hit within MAP_LOW_SUPPORT_M of its centre. Such a pixel is a
-# 0.6 m disk to a planner with a 0.3 m robot, and 1.5 % of the warehouses' aisles were specks, half of
-# them these (D86, D87: the share of connected pairs of a warehouse map 81.6 -> 93.7 %); a real edge
-# of a pallet or goods is met by more rays or measured (dropping every lone end: within 1 m of the
-# path 0.41 -> 1.09 % marked free). A run without stereo points or IRS hits keeps every end
+# pixel the low rays call occupied among its 8 neighbours and one low ray ended there; backed by a
+# stereo point within 0.5 m of camera height or an IRS hit within MAP_LOW_SUPPORT_M of its centre, or
+# by a USS echo's arc that it would explain (maps/planner.py). Such a pixel is a 0.6 m disk to a
+# planner with a 0.3 m robot, and 1.5 % of the warehouses' aisles were specks, half of them these
+# (D86, D87); a real edge of a pallet or goods is met by more rays or measured (dropping every lone
+# end: within 1 m of the path 0.41 -> 1.09 % marked free). A run without stereo points or IRS hits
+# keeps every end
 MAP_LOW_LONE_HITS = 1
 # a band ray that nothing in the box stops (its opacity never reaches the scan's 0.5: the grid
 # emptied the cells of a wall the field still holds) passed free space as far as it goes, but not
@@ -175,7 +176,7 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     low_passes, low_hits = scan_counts(low_o[:, :2], low_d[:, :2], low_r, lo, hi, resolution)
     low_occupied = scan_rule_occupied(low_passes, low_hits)  # the same scan rule as the band's
     if evidence is not None:  # a lone end no sensor backs is the field's haze near the floor (D87)
-        low_occupied &= ~lone_unsupported(low_occupied, low_hits, evidence.support(), lo, resolution)
+        low_occupied &= ~lone_unsupported(low_occupied, low_hits, evidence, lo, resolution)
     grid[low_occupied & (grid == FREE)] = OCCUPIED
     if evidence is not None and len(evidence.surfaces):
         ends = low_o[:, :2] + low_d[:, :2] * low_r[:, None]  # (N n_low, 2), NaN where a low ray ended nowhere
@@ -185,22 +186,27 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     return OccupancyMap2D(image=to_image(grid), resolution=resolution, origin=(float(lo[0]), float(lo[1])))
 
 
-def lone_unsupported(occupied: np.ndarray, hits: np.ndarray, support: np.ndarray, lo: np.ndarray,
+def lone_unsupported(occupied: np.ndarray, hits: np.ndarray, evidence: RangeEvidence, lo: np.ndarray,
                      resolution: float) -> np.ndarray:
     """(nx, ny) bool: the pixels of `occupied` ((nx, ny) bool [ix, iy]) with no other occupied pixel
-    among their 8 neighbours, at most MAP_LOW_LONE_HITS ray ends (`hits`, (nx, ny) counts) and no
-    `support` point ((K, 2) m) within MAP_LOW_SUPPORT_M of their centre. None without support
+    among their 8 neighbours and at most MAP_LOW_LONE_HITS ray ends (`hits`, (nx, ny) counts) that
+    no sensor backs: no IRS hit or stereo surface point (`evidence.support()`) within
+    MAP_LOW_SUPPORT_M of their centre, and no USS echo's arc within USS_EXPLAINED_M (the closeness
+    at which such a pixel explains the echo, maps/planner.py). None without IRS hits and stereo
     points (nothing to tell a lone end by)."""
     from scipy.ndimage import convolve
 
     out = np.zeros(occupied.shape, dtype=bool)
+    support = evidence.support()  # (K, 2)
     if not len(support):
         return out
     neighbours = convolve(occupied.astype(np.int32), np.ones((3, 3), dtype=np.int32), mode="constant") - occupied
     lone = np.argwhere(occupied & (neighbours == 0) & (hits <= MAP_LOW_LONE_HITS))  # (M, 2) [ix, iy]
     centres = np.asarray(lo, dtype=np.float64)[:2] + (lone + 0.5) * resolution
-    keep = ~near_surfaces(centres, np.asarray(support, dtype=np.float64).reshape(-1, 2), MAP_LOW_SUPPORT_M)
-    out[lone[keep, 0], lone[keep, 1]] = True
+    backed = near_surfaces(centres, support, MAP_LOW_SUPPORT_M)
+    if len(evidence.uss_range):
+        backed |= near_surfaces(centres, uss_arcs(evidence).reshape(-1, 2), USS_EXPLAINED_M)
+    out[lone[~backed, 0], lone[~backed, 1]] = True
     return out
 
 
