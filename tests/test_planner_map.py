@@ -214,3 +214,27 @@ def test_the_range_evidence_keeps_the_sight_lines_only_for_a_run_with_the_stereo
     args = (poses, np.array([np.nan]), np.full((1, 8, 8), np.nan), 0.5)
     assert len(RangeEvidence.of_frames(*args, ("camera", "stereo"), sight_lines=sight).sight_lines) == 1
     assert len(RangeEvidence.of_frames(*args, ("camera", "irs", "uss"), sight_lines=sight).sight_lines) == 0
+
+
+def test_the_mapper_keeps_its_range_evidence_until_a_frame_arrives():
+    """engine/views.py: offline every map after the first reuses the frames' evidence; a new frame
+    (the store only grows) gives the evidence again, with its USS echo."""
+    from types import SimpleNamespace
+
+    from virus_nerf.engine.views import MapViews
+
+    def store(n):  # n frames along +x at 0.5 m, each with a 2 m echo
+        poses = np.stack([camera_looking(0.1 * k, 0.0, 0.0) for k in range(n)])
+        return SimpleNamespace(cam_to_world=poses, stack_ids=np.zeros(n, np.int64), uss_range=np.full(n, 2.0),
+                               irs_range=np.full((n, 8, 8), np.nan))
+
+    views = MapViews()
+    views.config = SimpleNamespace(sensors=("camera", "uss"))
+    views.box = SimpleNamespace(center=np.zeros(3))
+    views.store, views.frames = store(1), 1
+    first = views.range_evidence()
+    np.testing.assert_allclose(first.uss_range, [2.0])
+    assert views.range_evidence() is first  # kept
+    views.store, views.frames = store(2), 2
+    again = views.range_evidence()
+    np.testing.assert_allclose(again.uss_origins, [[0.0, 0.0], [0.1, 0.0]], atol=1e-9)

@@ -194,18 +194,31 @@ def lone_unsupported(occupied: np.ndarray, hits: np.ndarray, evidence: RangeEvid
     MAP_LOW_SUPPORT_M of their centre, and no USS echo's arc within USS_EXPLAINED_M (the closeness
     at which such a pixel explains the echo, maps/planner.py). None without IRS hits and stereo
     points (nothing to tell a lone end by)."""
-    from scipy.ndimage import convolve
+    from scipy.ndimage import convolve, maximum_filter
 
     out = np.zeros(occupied.shape, dtype=bool)
     support = evidence.support()  # (K, 2)
     if not len(support):
         return out
     neighbours = convolve(occupied.astype(np.int32), np.ones((3, 3), dtype=np.int32), mode="constant") - occupied
-    lone = np.argwhere(occupied & (neighbours == 0) & (hits <= MAP_LOW_LONE_HITS))  # (M, 2) [ix, iy]
-    centres = np.asarray(lo, dtype=np.float64)[:2] + (lone + 0.5) * resolution
-    backed = near_surfaces(centres, support, MAP_LOW_SUPPORT_M)
+    lone_mask = occupied & (neighbours == 0) & (hits <= MAP_LOW_LONE_HITS)
+    if not lone_mask.any():
+        return out
+    lo = np.asarray(lo, dtype=np.float64)[:2]
+    # only the points in pixels near a lone one can back it (tens of thousands of IRS hits: a tree
+    # over the few is what costs nothing); a point off the raster counts at its nearest border pixel
+    reach = maximum_filter(lone_mask, size=2 * (int(np.ceil(MAP_LOW_SUPPORT_M / resolution)) + 1) + 1)
+
+    def nearby(points: np.ndarray) -> np.ndarray:
+        ij = np.clip(np.floor((points - lo) / resolution), 0, np.array(occupied.shape) - 1)
+        ij = np.nan_to_num(ij).astype(np.int64)
+        return points[reach[ij[:, 0], ij[:, 1]]]
+
+    lone = np.argwhere(lone_mask)  # (M, 2) [ix, iy]
+    centres = lo + (lone + 0.5) * resolution
+    backed = near_surfaces(centres, nearby(support), MAP_LOW_SUPPORT_M)
     if len(evidence.uss_range):
-        backed |= near_surfaces(centres, uss_arcs(evidence).reshape(-1, 2), USS_EXPLAINED_M)
+        backed |= near_surfaces(centres, nearby(uss_arcs(evidence).reshape(-1, 2)), USS_EXPLAINED_M)
     out[lone[~backed, 0], lone[~backed, 1]] = True
     return out
 
