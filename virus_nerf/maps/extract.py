@@ -192,8 +192,8 @@ def lone_unsupported(occupied: np.ndarray, hits: np.ndarray, evidence: RangeEvid
     among their 8 neighbours and at most MAP_LOW_LONE_HITS ray ends (`hits`, (nx, ny) counts) that
     no sensor backs: no IRS hit or stereo surface point (`evidence.support()`) within
     MAP_LOW_SUPPORT_M of their centre, and no USS echo's arc within USS_EXPLAINED_M (the closeness
-    at which such a pixel explains the echo, maps/planner.py). None without IRS hits and stereo
-    points (nothing to tell a lone end by)."""
+    at which such a pixel explains the echo, maps/planner.py). No pixel without IRS hits and
+    stereo points (nothing to tell a lone end by)."""
     from scipy.ndimage import convolve, maximum_filter
 
     out = np.zeros(occupied.shape, dtype=bool)
@@ -210,8 +210,8 @@ def lone_unsupported(occupied: np.ndarray, hits: np.ndarray, evidence: RangeEvid
     reach = maximum_filter(lone_mask, size=2 * (int(np.ceil(MAP_LOW_SUPPORT_M / resolution)) + 1) + 1)
 
     def nearby(points: np.ndarray) -> np.ndarray:
-        ij = np.clip(np.floor((points - lo) / resolution), 0, np.array(occupied.shape) - 1)
-        ij = np.nan_to_num(ij).astype(np.int64)
+        points = points[np.isfinite(points).all(axis=1)]
+        ij = np.clip(np.floor((points - lo) / resolution), 0, np.array(occupied.shape) - 1).astype(np.int64)
         return points[reach[ij[:, 0], ij[:, 1]]]
 
     lone = np.argwhere(lone_mask)  # (M, 2) [ix, iy]
