@@ -79,6 +79,7 @@ def judge(run: Path, data: Path, scene: str) -> dict:
     def figures(block: dict, planner: dict | None = None) -> dict:
         out = {z: block["zones"][z]["free_share"] for z in ("1m", "2m", "all")}
         out["free_recall"], out["free_recall_drivable"] = block["free_recall"], block.get("free_recall_drivable")
+        out["planner_reach"] = block.get("planner_reach")
         if planner is not None:
             out["planner_crossing"], out["planner_paths"] = planner["crossing"], planner["paths"]
         return out
@@ -163,7 +164,7 @@ def judge_files(folder: Path, data: Path, scene: str) -> dict:
     planner = planner_check(image, origin, resolution, obstacles).block()
     out = {z: block["zones"][z]["free_share"] for z in ("1m", "2m", "all")}
     out.update(free_recall=block["free_recall"], free_recall_drivable=block["free_recall_drivable"],
-               planner_crossing=planner["crossing"], planner_paths=planner["paths"])
+               planner_reach=block["planner_reach"], planner_crossing=planner["crossing"], planner_paths=planner["paths"])
     return out
 
 

@@ -114,6 +114,7 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     for block in z.values():
         assert 0 <= block["marked_free"] <= block["obstacles"]
     assert 0.0 < safety["free_recall"] <= 1.0 and 0.0 < safety["free_recall_drivable"] <= 1.0
+    assert 0.0 <= safety["planner_reach"] <= 1.0
     assert safety["drivable_from_floor_m"] == 0.1
     assert set(safety["anchors"]) == {"sensors", "lidar"}
     for anchor in safety["anchors"].values():
@@ -243,3 +244,27 @@ def test_the_drivable_free_recall_leaves_out_what_the_body_meets():
     judged = judge_map(image, origin, res, wall, path, body_xy=pallet)
     assert judged.free_recall == pytest.approx(85 / 90) and judged.free_recall_drivable == pytest.approx(73 / 74)
     assert judge_map(image, origin, res, wall, path).block()["free_recall_drivable"] is None  # no body truth
+
+
+def test_planner_reach_is_what_a_planner_reaches_from_the_path_and_a_lone_speck_cuts_it():
+    """A corridor at 4 cm (20 x 60 pixels, walls on rows 0 and 19), the path along row 10. A 0.3 m
+    robot may stand on rows 8-11 (0.32 m or more from both walls; row 7 is 0.28 m): 4 x 60 = 240
+    pixels. The map of the walls alone reaches all of them; one occupied pixel at row 10, column 20
+    takes every configuration pixel within 0.3 m of it (dr^2 + dc^2 <= 56.25 pixels^2: columns 13-27
+    on rows 8-11) and cuts the corridor in two; a planner keeps the right part, which holds 32 of the
+    path's pixels against the left's 13: 4 x 32 = 128 of the 240."""
+    from virus_nerf.evaluation.safety import judge_map
+
+    h, w, res = 20, 60, 0.04
+    image = np.full((h, w), 254, dtype=np.uint8)
+    image[[0, h - 1], :] = 0
+    x = (np.arange(w) + 0.5) * res
+    walls = np.concatenate([np.column_stack([x, np.full(w, (h - 0.5) * res)]), np.column_stack([x, np.full(w, 0.5 * res)])])
+    path = np.column_stack([x, np.full(w, (h - 10 - 0.5) * res)])  # row 10
+    whole = judge_map(image, (0.0, 0.0), res, walls, path, body_xy=np.zeros((0, 2)))
+    assert whole.planner_reach == pytest.approx(1.0)
+    image[10, 20] = 0
+    cut = judge_map(image, (0.0, 0.0), res, walls, path, body_xy=np.zeros((0, 2)))
+    assert cut.planner_reach == pytest.approx(128 / 240)
+    assert cut.block()["planner_reach"] == round(128 / 240, 4)
+    assert judge_map(image, (0.0, 0.0), res, walls, path).planner_reach is None  # no body: no drivable truth

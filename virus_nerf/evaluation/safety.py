@@ -35,6 +35,7 @@ SAFETY_ZONES_M = (1.0, 2.0, math.inf)  # obstacle distance to the robot's path
 SAFETY_TOLERANCE_M = 0.1  # the paper's inlier distance
 FREE_NEAR_PATH_M = 3.0  # free recall: true free space this close to the path ...
 FREE_CLEARANCE_M = 0.15  # ... and at least this far from every obstacle
+PLANNER_RADIUS_M = 0.3  # the robot's radius for the planner's check
 
 
 @dataclass(frozen=True)
@@ -142,12 +143,16 @@ class MapJudgement:
     # the same share of the drivable free space (less what the body meets below the band); None
     # without the body's ground truth (a map without its floor)
     free_recall_drivable: float | None = None
+    # the share of the drivable space a PLANNER_RADIUS_M robot can stand in (near the path) that a
+    # planner on the map reaches from where the robot drove (`planner_reach`); None as above
+    planner_reach: float | None = None
 
     def block(self) -> dict:
         return {"zones": {_zone_name(z.within_m): {
             "obstacles": z.obstacles, "marked_free": z.marked_free,
             "free_share": None if z.free_share is None else round(z.free_share, 4)} for z in self.zones},
-            "free_recall": _round(self.free_recall), "free_recall_drivable": _round(self.free_recall_drivable)}
+            "free_recall": _round(self.free_recall), "free_recall_drivable": _round(self.free_recall_drivable),
+            "planner_reach": _round(self.planner_reach)}
 
 
 def _round(v: float | None) -> float | None:
@@ -168,13 +173,40 @@ def judge_map(image: np.ndarray, origin: tuple[float, float], resolution: float,
     recall too: the true free space taken as free of those as well."""
     obst = obstacle_pixels(obstacles_xy, origin, resolution, np.asarray(image).shape)
     free = true_free_near_path(obst, origin, resolution, path_xy, extent=extent)
-    drivable = None
+    drivable = reach = None
     if body_xy is not None:
         body = obstacle_pixels(body_xy, origin, resolution, obst.shape)
         drivable = free_recall(image, free_value, true_free_near_path(obst | body, origin, resolution, path_xy,
                                                                       extent=extent))
+        stand = true_free_near_path(obst | body, origin, resolution, path_xy, clearance=PLANNER_RADIUS_M,
+                                    extent=extent)  # where the robot's centre may truly be
+        reach = planner_reach(image, origin, resolution, stand, path_xy, free_value=free_value)
     return MapJudgement(map_safety(image, origin, resolution, obstacles_xy, path_xy, free_value),
-                        free_recall(image, free_value, free), drivable)
+                        free_recall(image, free_value, free), drivable, reach)
+
+
+def planner_reach(image: np.ndarray, origin: tuple[float, float], resolution: float, true_space: np.ndarray,
+                  path_xy: np.ndarray, radius: float = PLANNER_RADIUS_M, free_value: int = 254) -> float | None:
+    """Share of `true_space` ((H, W) bool: where a robot of `radius` m may truly stand) that lies in
+    the map's configuration space (free pixels farther than `radius` from every pixel that is not
+    free, as `planner_check` plans) connected, 8 ways, to the component holding most of the path's
+    pixels (P, 2 m): what a planner starting where the robot drove can reach. A lone occupied pixel
+    in an aisle cuts it, though the free recall counts it once. None without true space."""
+    from scipy.ndimage import distance_transform_edt, label
+
+    n = int(true_space.sum())
+    if not n:
+        return None
+    image = np.asarray(image)
+    space = distance_transform_edt(image == free_value) * resolution > radius
+    labels, _ = label(space, structure=np.ones((3, 3), dtype=bool))
+    on_path = labels[obstacle_pixels(np.asarray(path_xy, dtype=np.float64).reshape(-1, 2), origin, resolution,
+                                     image.shape)]
+    on_path = on_path[on_path > 0]
+    if not len(on_path):
+        return 0.0
+    main = np.bincount(on_path).argmax()
+    return float((true_space & (labels == main)).sum() / n)
 
 
 def safety_document(judgement: MapJudgement, observed: float, gt: str, resolution: float,
@@ -300,7 +332,6 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
     return RunSafety(doc, safety_picture(m.image, m.origin, resolution, obstacles, path))
 
 
-PLANNER_RADIUS_M = 0.3  # the robot's radius for the planner's check
 PLANNER_STARTS, PLANNER_GOALS = 10, 5  # 10 starts, 5 goals each: up to 50 paths
 
 

@@ -76,8 +76,12 @@ def safety_markdown(doc: Mapping[str, Any], picture: str | None = None) -> list[
         lines.append("")
         if "planner" in safety:
             p = safety["planner"]
+            reach = safety.get("planner_reach")
             lines += [f"A planner on the map (robot radius {p['radius_m']:g} m, shortest paths between random free "
-                      f"points): {p['crossing']} of {p['paths']} paths pass a real obstacle.", ""]
+                      f"points): {p['crossing']} of {p['paths']} paths pass a real obstacle."
+                      + ("" if reach is None else f" From where the robot drove it reaches {pct(reach)} of the drivable "
+                         "space near the path where such a robot may stand (a lone occupied pixel in an aisle cuts it)."),
+                      ""]
         if picture:
             lines += [f"![ground-truth obstacles over the map, the ones it marks free in red]({picture})", "",
                       "Blue: ground-truth obstacles; red: the ones the map marks free; green: the path.", ""]
