@@ -185,6 +185,14 @@ def judge_map(image: np.ndarray, origin: tuple[float, float], resolution: float,
                         free_recall(image, free_value, free), drivable, reach)
 
 
+def configuration_space(image: np.ndarray, resolution: float, radius: float, free_value: int = 254) -> np.ndarray:
+    """(H, W) bool: where the centre of a robot of `radius` m may be on the map (H, W): free pixels
+    farther than `radius` from every pixel that is not free (occupied or unknown alike)."""
+    from scipy.ndimage import distance_transform_edt
+
+    return distance_transform_edt(np.asarray(image) == free_value) * resolution > radius
+
+
 def planner_reach(image: np.ndarray, origin: tuple[float, float], resolution: float, true_space: np.ndarray,
                   path_xy: np.ndarray, radius: float = PLANNER_RADIUS_M, free_value: int = 254) -> float | None:
     """Share of `true_space` ((H, W) bool: where a robot of `radius` m may truly stand) that lies in
@@ -192,14 +200,13 @@ def planner_reach(image: np.ndarray, origin: tuple[float, float], resolution: fl
     free, as `planner_check` plans) connected, 8 ways, to the component holding most of the path's
     pixels (P, 2 m): what a planner starting where the robot drove can reach. A lone occupied pixel
     in an aisle cuts it, though the free recall counts it once. None without true space."""
-    from scipy.ndimage import distance_transform_edt, label
+    from scipy.ndimage import label
 
     n = int(true_space.sum())
     if not n:
         return None
     image = np.asarray(image)
-    space = distance_transform_edt(image == free_value) * resolution > radius
-    labels, _ = label(space, structure=np.ones((3, 3), dtype=bool))
+    labels, _ = label(configuration_space(image, resolution, radius, free_value), structure=np.ones((3, 3), dtype=bool))
     on_path = labels[obstacle_pixels(np.asarray(path_xy, dtype=np.float64).reshape(-1, 2), origin, resolution,
                                      image.shape)]
     on_path = on_path[on_path > 0]
@@ -362,7 +369,7 @@ def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: fl
 
     image = np.asarray(image)
     h, w = image.shape
-    space = distance_transform_edt(image == free_value) * resolution > radius  # (H, W) robot centre may be here
+    space = configuration_space(image, resolution, radius, free_value)  # (H, W) robot centre may be here
     obst = obstacle_pixels(obstacles_xy, origin, resolution, (h, w))
     danger = (distance_transform_edt(~obst) * resolution <= radius - tolerance) if obst.any() \
         else np.zeros((h, w), dtype=bool)
