@@ -34,6 +34,10 @@ def test_irs_rays_at_camera_height_end_on_the_wall_they_measured():
     up = irs_rays_2d(pose[None], np.full((1, 8, 8), 2.0), 0.9, band=0.1)
     assert len(up) == 72
     np.testing.assert_allclose(up.ends()[:, 0], 3.0, atol=1e-9)
+    # the range evidence keeps each hit's sensor position (the 0.3 m band: every sub-ray within it)
+    ev = RangeEvidence.of_frames(pose[None], np.array([np.nan]), np.full((1, 8, 8), 2.0), 0.4, ("camera", "irs"))
+    assert len(ev.irs_hits) == len(ev.irs_origins) > 96
+    np.testing.assert_allclose(ev.irs_origins, np.tile([1.0, 0.5], (len(ev.irs_hits), 1)))
 
 
 def test_irs_rays_of_many_frames_come_in_frame_order_across_chunks_and_none_for_no_frame():
@@ -86,7 +90,7 @@ def test_the_planner_map_adds_irs_hits_and_unexplained_arcs_where_the_scans_said
                        uss_origins=np.array([[1.05, 2.05], [2.05, 0.55]]), uss_yaw=np.array([0.0, math.pi / 2]),
                        uss_range=np.array([2.0, 2.7]))
     out = from_image(planner_image(image, lo, res, ev))
-    assert out[5, 5] == OCCUPIED  # the IRS hit
+    assert out[5, 5] == OCCUPIED  # the IRS hit (no sensor positions: every hit counts)
     # echo 0 ends on the NeRF's pixel: explained, nothing added around (3.05, 2.05)
     assert (out[25:40, 10:28] == grid[25:40, 10:28]).all()
     # echo 1 (from (2.05, 0.55) looking +y, 2.7 m) meets nothing: its arc is occupied where free...
@@ -102,6 +106,35 @@ def test_the_planner_map_adds_irs_hits_and_unexplained_arcs_where_the_scans_said
     assert changed.sum() == 1 + len({tuple(p) for p in ij[was_free]})  # nothing else moved
     assert image[0, 0] == from_image(image)[0, 39]  # the input is untouched
     assert (from_image(image) == grid).all()
+
+
+def test_an_irs_hit_marks_its_pixel_only_when_something_corroborates_it():
+    from virus_nerf.maps.planner import corroborated_irs
+
+    res, lo = 0.05, np.zeros(2)
+    occupied = np.zeros((60, 60), dtype=bool)  # 3 x 3 m at 5 cm, [ix, iy]
+    occupied[10, 30] = True  # a scan's end pixel at (0.525, 1.525)
+    hits = np.array([
+        [0.625, 1.525],  # 2 pixels (0.10 m) from the scan's end: corroborated
+        [0.675, 1.525],  # 3 pixels (0.15 m), seen from one place
+        [2.025, 0.525], [2.075, 0.575],  # neighbours seen from places 0.21 m apart: both corroborated
+        [1.025, 2.525], [1.075, 2.525],  # neighbours seen from places 0.19 m apart
+        [2.525, 2.025],  # a stereo point 0.19 m away
+        [2.525, 1.025],  # a stereo point 0.21 m away
+    ])
+    origins = np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 1.0], [1.12, 1.17], [2.0, 2.0], [2.0, 2.19],
+                        [1.0, 2.0], [1.0, 1.0]])
+    stereo = np.array([[2.525, 2.215], [2.525, 1.235]])
+    ev = RangeEvidence(hits, np.zeros((0, 2)), np.zeros(0), np.zeros(0), stereo_points=stereo, irs_origins=origins)
+    kept = corroborated_irs(occupied, ev, lo, res)
+    assert {tuple(p) for p in np.argwhere(kept)} == {(12, 30), (40, 10), (41, 11), (50, 40)}
+    # without the sensor positions every hit counts
+    unknown = RangeEvidence(hits, np.zeros((0, 2)), np.zeros(0), np.zeros(0), stereo_points=stereo)
+    assert corroborated_irs(occupied, unknown, lo, res).sum() == len(hits)
+    # the planner's map: the corroborated hits' pixels and the stereo points' occupied, the rest free
+    out = from_image(planner_image(to_image(np.where(occupied, OCCUPIED, FREE).astype(np.uint8)), lo, res, ev))
+    assert {tuple(p) for p in np.argwhere(out == OCCUPIED)} == \
+        {(10, 30), (12, 30), (40, 10), (41, 11), (50, 40), (50, 44), (50, 24)}
 
 
 def test_stereo_points_at_camera_height_mark_their_pixels_occupied():

@@ -38,7 +38,13 @@ from virus_nerf.maps.occupancy import (
     to_image,
     world_pixels,
 )
-from virus_nerf.maps.planner import USS_EXPLAINED_M, RangeEvidence, planner_image, uss_arcs
+from virus_nerf.maps.planner import (
+    USS_EXPLAINED_M,
+    RangeEvidence,
+    near_surfaces,
+    planner_image,
+    uss_arcs,
+)
 from virus_nerf.maps.scans import scan_rays
 from virus_nerf.sensors.rig import MAIN_STACK
 from virus_nerf.utils.memory import require_memory
@@ -220,18 +226,6 @@ def lone_unsupported(occupied: np.ndarray, hits: np.ndarray, evidence: RangeEvid
     if len(evidence.uss_range):
         backed |= near_surfaces(centres, nearby(uss_arcs(evidence).reshape(-1, 2)), USS_EXPLAINED_M)
     out[lone[~backed, 0], lone[~backed, 1]] = True
-    return out
-
-
-def near_surfaces(points: np.ndarray, surfaces: np.ndarray, radius: float) -> np.ndarray:
-    """(N,) bool: the (N, D) points (NaN: never) with a point of `surfaces` (P, D) within `radius` m."""
-    from scipy.spatial import cKDTree
-
-    out = np.zeros(len(points), dtype=bool)
-    ok = np.isfinite(points).all(axis=1)
-    if ok.any() and len(surfaces):
-        dist, _ = cKDTree(surfaces).query(points[ok], distance_upper_bound=radius)
-        out[ok] = np.isfinite(dist)
     return out
 
 

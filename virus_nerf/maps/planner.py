@@ -7,9 +7,11 @@ exactly these, so two rules follow the scans, each only turning free pixels occu
 map may lose free space, never gain it):
 
 1. **IRS hits and stereo points.** Every infrared sub-ray whose end lies within
-   `OBSTACLE_BAND_M` of camera height (maps/evidence.py) marks its end pixel occupied: the sensor
-   touched a surface there, one the robot's body (not only its cameras) would meet; so does every
-   triangulated stereo point (issue 28's measured surfaces) within the same height band.
+   `OBSTACLE_BAND_M` of camera height (maps/evidence.py) marks its end pixel occupied where
+   something corroborates it (`corroborated_irs`: the scans' own ends, a stereo point or hits
+   measured from elsewhere nearby): the sensor touched a surface there, one the robot's body
+   (not only its cameras) would meet; so does every triangulated stereo point (issue 28's
+   measured surfaces) within the same height band.
 2. **Unexplained USS echoes.** An echo says "the nearest surface in this cone is at r". If the map
    holds an occupied pixel within `USS_EXPLAINED_M` of the echo's horizontal arc, the echo is
    explained and adds nothing; otherwise the obstacle lies somewhere on the arc and the map
@@ -20,9 +22,10 @@ map may lose free space, never gain it):
    An obstacle on the arc stops every cone that meets it, so its pixels keep their votes; the
    rest of a 55 deg arc lies in space other cones crossed, and stays free.
 
-Measured and not kept (docs/decisions.md D47): the VIRUS grid's probability above 0.5 as
+Measured and not kept (docs/decisions.md D47, D89): the VIRUS grid's probability above 0.5 as
 obstacles, more scan positions and rays, a softer scan hit rule, every USS arc occupied, a
-0.1 m or 0.2 m band for the IRS hits and stereo points.
+0.1 m or 0.2 m band for the IRS hits and stereo points, two other hits nearby as an IRS hit's
+corroboration (a zone's stray sub-rays repeat while the robot stands).
 """
 
 from __future__ import annotations
@@ -45,6 +48,17 @@ USS_EXPLAINED_M = 0.1  # an echo whose arc passes this close to an occupied pixe
 USS_ARC_STEP_DEG = 1.0  # points along an echo's arc
 USS_ARC_VOTE = 0.25  # an arc pixel is occupied when unexplained arcs >= this share of the cones that passed it
 USS_FREE_MARGIN_M = 0.1  # a cone passed a point this much closer than its echo
+# an IRS hit marks its pixel occupied only when something corroborates it (D89): the NeRF's scans
+# hold an occupied pixel within IRS_SCAN_NEAR_M of its pixel, a stereo point at camera height lies
+# within IRS_STEREO_NEAR_M, or the hits in its pixel and the 8 around it were measured from sensor
+# positions at least IRS_SEEN_APART_M apart (the diagonal of the box around them). A surface is met
+# again as the robot moves; a zone's edge sub-ray ending short of the surface its zone measured
+# lands in free space, moves with the robot and repeats only while it stands (office 81: the hits
+# 0.3 m or more from every surface had sensor positions a median 0.00 m apart, those on a surface
+# 1.0 m)
+IRS_SCAN_NEAR_M = 0.1
+IRS_STEREO_NEAR_M = 0.2
+IRS_SEEN_APART_M = 0.2
 
 
 @dataclass(frozen=True)
@@ -62,6 +76,8 @@ class RangeEvidence:
     # the free space the stereo cameras looked through at camera height (maps/evidence.stereo_sight_lines):
     # free where the map's scans left it unknown (maps/extract.py, D81)
     sight_lines: Rays2D = dataclasses.field(default_factory=Rays2D.empty)
+    # (K, 2) where the IRS sensor stood for each hit (None: not known, every hit counts as seen apart)
+    irs_origins: np.ndarray | None = None
 
     @staticmethod
     def empty() -> RangeEvidence:
@@ -86,7 +102,8 @@ class RangeEvidence:
         height (maps/evidence.stereo_sight_lines) for the sensors in `sensors` (the ones the map
         was trained with; "irs", "uss" and "stereo" count) at camera `height` (m)."""
         poses = np.asarray(cam_to_world, dtype=np.float64).reshape(-1, 4, 4)
-        irs = irs_rays_2d(poses, irs_range, height, band).ends() if "irs" in sensors else np.zeros((0, 2))
+        irs_rays = irs_rays_2d(poses, irs_range, height, band) if "irs" in sensors else Rays2D.empty()
+        irs, irs_origins = irs_rays.ends(), irs_rays.origins
         stereo, surfaces, sight = np.zeros((0, 2)), np.zeros((0, 2)), Rays2D.empty()
         if "stereo" in sensors and stereo_points is not None:
             pts = np.asarray(stereo_points, dtype=np.float64).reshape(-1, 3)
@@ -95,10 +112,11 @@ class RangeEvidence:
         if "stereo" in sensors and sight_lines is not None:
             sight = sight_lines
         if "uss" not in sensors:
-            return RangeEvidence(irs, np.zeros((0, 2)), np.zeros(0), np.zeros(0), stereo, surfaces, sight)
+            return RangeEvidence(irs, np.zeros((0, 2)), np.zeros(0), np.zeros(0), stereo, surfaces, sight, irs_origins)
         r = np.asarray(uss_range, dtype=np.float64).reshape(-1)
         ok = np.isfinite(r) & (r > 0)
-        return RangeEvidence(irs, poses[ok, :2, 3].copy(), yaw_of(poses[ok]), r[ok], stereo, surfaces, sight)
+        return RangeEvidence(irs, poses[ok, :2, 3].copy(), yaw_of(poses[ok]), r[ok], stereo, surfaces, sight,
+                             irs_origins)
 
 
 def uss_arcs(evidence: RangeEvidence, step_deg: float = USS_ARC_STEP_DEG) -> np.ndarray:
@@ -129,8 +147,8 @@ def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence
     is not changed."""
     grid = from_image(image).copy()  # [ix, iy]
     lo = np.asarray(lo, dtype=np.float64)[:2]
-    ij, inside = world_pixels(evidence.touched(), lo, resolution, grid.shape)
-    hit = np.zeros(grid.shape, dtype=bool)
+    hit = corroborated_irs(grid == OCCUPIED, evidence, lo, resolution)
+    ij, inside = world_pixels(evidence.stereo_points, lo, resolution, grid.shape)
     hit[ij[inside, 0], ij[inside, 1]] = True
     grid[hit & (grid == FREE)] = OCCUPIED
     arcs = uss_arcs(evidence)
@@ -146,6 +164,65 @@ def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence
     occ = votes[cand[:, 0], cand[:, 1]] >= USS_ARC_VOTE * passed
     grid[cand[occ, 0], cand[occ, 1]] = OCCUPIED
     return to_image(grid)
+
+
+def corroborated_irs(occupied: np.ndarray, evidence: RangeEvidence, lo: np.ndarray, resolution: float) -> np.ndarray:
+    """(nx, ny) bool [ix, iy]: the pixels of the IRS hits that something corroborates: an occupied
+    pixel of the scans (`occupied`, (nx, ny) bool) within IRS_SCAN_NEAR_M, a stereo point at camera
+    height within IRS_STEREO_NEAR_M of the pixel's centre, or hits in the pixel and its 8
+    neighbours measured from sensor positions IRS_SEEN_APART_M apart (`evidence.irs_origins`; every
+    hit pixel without them). Only the hits' own neighbourhoods are looked at (a snapshot's cost
+    does not grow with the raster)."""
+    out = np.zeros(occupied.shape, dtype=bool)
+    ij, inside = world_pixels(evidence.irs_hits, lo, resolution, occupied.shape)
+    if not inside.any():
+        return out
+    shape = np.array(occupied.shape)
+    key_of_hit = ij[inside, 0] * shape[1] + ij[inside, 1]  # (K',) a hit's pixel, row by row
+    key, which = np.unique(key_of_hit, return_inverse=True)  # (M,) sorted hit pixels, (K',) a hit's
+    pix = np.stack([key // shape[1], key % shape[1]], axis=1)  # (M, 2) [ix, iy]
+    if evidence.irs_origins is None:
+        out[pix[:, 0], pix[:, 1]] = True
+        return out
+
+    def around(radius_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """(M, O, 2) the pixels within radius_px of each hit pixel (clipped), (M, O) inside the raster."""
+        r = int(np.floor(radius_px + 1e-9))
+        d = np.array([(x, y) for x in range(-r, r + 1) for y in range(-r, r + 1) if x * x + y * y <= radius_px ** 2 + 1e-9])
+        q = pix[:, None, :] + d[None]
+        ok = ((q >= 0) & (q < shape)).all(axis=2)
+        return np.clip(q, 0, shape - 1), ok
+
+    q, ok = around(IRS_SCAN_NEAR_M / resolution)
+    kept = (ok & occupied[q[..., 0], q[..., 1]]).any(axis=1)
+    # the box around the sensor positions of each hit pixel, then of its 3 x 3 block
+    origins = np.asarray(evidence.irs_origins, dtype=np.float64)[inside]  # (K', 2)
+    order = np.argsort(which, kind="stable")
+    starts = np.searchsorted(which[order], np.arange(len(key)))  # each pixel's first hit in `order`
+    low = np.minimum.reduceat(origins[order], starts)  # (M, 2)
+    high = np.maximum.reduceat(origins[order], starts)
+    q, ok = around(np.sqrt(2))
+    at = np.clip(np.searchsorted(key, q[..., 0] * shape[1] + q[..., 1]), 0, len(key) - 1)  # (M, 9)
+    ok &= key[at] == q[..., 0] * shape[1] + q[..., 1]  # a hit pixel
+    block_low = np.where(ok[..., None], low[at], np.inf).min(axis=1)
+    block_high = np.where(ok[..., None], high[at], -np.inf).max(axis=1)
+    kept |= np.linalg.norm(block_high - block_low, axis=1) >= IRS_SEEN_APART_M
+    rest = ~kept
+    kept[rest] = near_surfaces(lo + (pix[rest] + 0.5) * resolution, evidence.stereo_points, IRS_STEREO_NEAR_M)
+    out[pix[kept, 0], pix[kept, 1]] = True
+    return out
+
+
+def near_surfaces(points: np.ndarray, surfaces: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) bool: the (N, D) points (NaN: never) with a point of `surfaces` (P, D) within `radius` m."""
+    from scipy.spatial import cKDTree
+
+    out = np.zeros(len(points), dtype=bool)
+    ok = np.isfinite(points).all(axis=1)
+    if ok.any() and len(surfaces):
+        dist, _ = cKDTree(surfaces).query(points[ok], distance_upper_bound=radius)
+        out[ok] = np.isfinite(dist)
+    return out
 
 
 def cones_passing(points: np.ndarray, evidence: RangeEvidence, margin: float = USS_FREE_MARGIN_M,
