@@ -283,8 +283,9 @@ def test_scan_map_drops_a_lone_low_end_no_sensor_backs():
     assert post_pixel(_evidence(surfaces=[[2.0, 0.1]])) == OCCUPIED  # a stereo point 0.07 m from its centre (1.95, 0.05)
     assert post_pixel(_evidence(irs_hits=[[2.0, -0.1]])) == OCCUPIED  # an IRS hit 0.16 m from it
     assert post_pixel(_evidence()) == OCCUPIED  # no stereo point or IRS hit at all: kept
-    # a USS echo from the axis along +x: its arc (+-27.5 deg at its range, every degree) passes 0.05 m
-    # from the pixel's centre at 1.95 m (within USS_EXPLAINED_M, 0.1 m: backed), 0.35 m at 2.3 m (not)
+    # a USS echo from the axis along +x: its arc (+-27.5 deg at its range, every degree) passes 0.016 m
+    # from the pixel's centre (1.95, 0.05) at 1.95 m (its 1 deg point (1.9497, 0.0340), within
+    # USS_EXPLAINED_M, 0.05 m: backed), 0.35 m at 2.3 m (not)
     from virus_nerf.maps.planner import RangeEvidence
 
     def echo(r):

@@ -80,6 +80,20 @@ def test_an_echo_is_explained_by_an_occupied_pixel_near_its_arc():
     np.testing.assert_array_equal(unexplained_echoes(occupied, arcs, lo, res, 0.35), [False, False, True])
 
 
+def test_an_echo_is_explained_within_one_pixel_of_the_map_by_default():
+    # D91: USS_EXPLAINED_M is 0.05 m, one pixel of the 0.05 m map. Echoes from (1.025, 2.025) along
+    # +x: the arc's middle at 2.00 m lies in the occupied pixel (3.025, 2.025), at 2.05 m in the pixel
+    # beside it (0.05 m), at 2.10 m two pixels beyond (0.10 m; its other points, every degree, curve
+    # back toward the sensor and away in y: none nearer); D47's 0.1 m explained all three
+    res, lo = 0.05, np.zeros(2)
+    occupied = np.zeros((80, 80), dtype=bool)  # [ix, iy]
+    occupied[60, 40] = True
+    ev = RangeEvidence(np.zeros((0, 2)), np.tile([[1.025, 2.025]], (3, 1)), np.zeros(3), np.array([2.0, 2.05, 2.1]))
+    arcs = uss_arcs(ev)
+    np.testing.assert_array_equal(unexplained_echoes(occupied, arcs, lo, res), [False, False, True])
+    np.testing.assert_array_equal(unexplained_echoes(occupied, arcs, lo, res, 0.1), [False, False, False])
+
+
 def test_the_planner_map_adds_irs_hits_and_unexplained_arcs_where_the_scans_said_free():
     res, lo = 0.1, np.array([0.0, 0.0])
     grid = np.full((40, 40), FREE, dtype=np.uint8)  # [ix, iy]

@@ -22,10 +22,11 @@ map may lose free space, never gain it):
    An obstacle on the arc stops every cone that meets it, so its pixels keep their votes; the
    rest of a 55 deg arc lies in space other cones crossed, and stays free.
 
-Measured and not kept (docs/decisions.md D47, D89): the VIRUS grid's probability above 0.5 as
-obstacles, more scan positions and rays, a softer scan hit rule, every USS arc occupied, a
+Measured and not kept (docs/decisions.md D47, D89, D91): the VIRUS grid's probability above 0.5
+as obstacles, more scan positions and rays, a softer scan hit rule, every USS arc occupied, a
 0.1 m or 0.2 m band for the IRS hits and stereo points, two other hits nearby as an IRS hit's
-corroboration (a zone's stray sub-rays repeat while the robot stands).
+corroboration (a zone's stray sub-rays repeat while the robot stands), an echo explained by an
+occupied pixel 0.1 m from its arc (a soft object's inner pixels explained its echoes).
 """
 
 from __future__ import annotations
@@ -44,7 +45,11 @@ OBSTACLE_BAND_M = 0.3  # IRS hits and stereo points this close to camera height 
 # stereo points this close to camera height (m) are the measured surfaces the map's scan rules ask
 # about (maps/extract.py, D80): the band and the map's low rays, 30 cm below it, with room to spare
 SURFACE_BAND_M = 0.5
-USS_EXPLAINED_M = 0.1  # an echo whose arc passes this close to an occupied pixel is explained
+# an echo whose arc passes this close to an occupied pixel is explained: one pixel of the 0.05 m map,
+# about the URM37's bias and spread at 4 m (sim/sensors.UssModel). At D47's 0.1 m, a round object
+# whose front the scans miss but whose inside they end in explains its echoes and stays open to
+# the planner (D91: common area 81's plant, 2 of 50 paths through it)
+USS_EXPLAINED_M = 0.05
 USS_ARC_STEP_DEG = 1.0  # points along an echo's arc
 USS_ARC_VOTE = 0.25  # an arc pixel is occupied when unexplained arcs >= this share of the cones that passed it
 USS_FREE_MARGIN_M = 0.1  # a cone passed a point this much closer than its echo
