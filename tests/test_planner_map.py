@@ -12,7 +12,13 @@ from test_map_safety import camera_looking
 
 from virus_nerf.maps.evidence import irs_rays_2d, sensor_rays_2d, uss_rays_2d
 from virus_nerf.maps.occupancy import FREE, OCCUPIED, UNKNOWN, from_image, to_image
-from virus_nerf.maps.planner import RangeEvidence, planner_image, unexplained_echoes, uss_arcs
+from virus_nerf.maps.planner import (
+    RangeEvidence,
+    planner_image,
+    track_free,
+    unexplained_echoes,
+    uss_arcs,
+)
 
 
 def test_irs_rays_at_camera_height_end_on_the_wall_they_measured():
@@ -164,6 +170,23 @@ def test_stereo_points_at_camera_height_mark_their_pixels_occupied():
     image = np.full((10, 30), FREE, dtype=np.uint8)  # 3 x 1 m at 0.1 m
     out = from_image(planner_image(image, np.zeros(2), 0.1, ev))
     assert out[10, 0] == OCCUPIED and out[5, 3] == OCCUPIED and (out == OCCUPIED).sum() == 2
+
+
+def test_the_pixels_where_a_camera_stood_are_free_whatever_the_rules_said():
+    grid = np.full((30, 10), OCCUPIED, dtype=np.uint8)  # [ix, iy], 3 x 1 m at 0.1 m from (-1, 2)
+    grid[20:, :] = UNKNOWN
+    image = to_image(grid)
+    # a camera at (-0.95, 2.05) stands in pixel (0, 0), one at (1.25, 2.99) in (22, 9), one exactly
+    # on the corner between (4, 4) and (5, 5) in (5, 5); (2.0, 2.5) lies 1 pixel past the raster
+    positions = np.array([[-0.95, 2.05, 0.4], [1.25, 2.99, 0.4], [-0.5, 2.5, 0.4], [2.0, 2.5, 0.4]])
+    out = from_image(track_free(image, np.array([-1.0, 2.0]), 0.1, positions))
+    assert {tuple(p) for p in np.argwhere(out == FREE)} == {(0, 0), (22, 9), (5, 5)}
+    assert (out[grid == UNKNOWN] != OCCUPIED).all() and (out == OCCUPIED).sum() == 200 - 2
+    assert (from_image(image) == grid).all()  # the input is not changed
+    observed = np.ones(grid.shape, dtype=bool)
+    observed[22, 9] = False  # no sensor looked there: the map stays unknown, whatever stood there
+    out = from_image(track_free(image, np.array([-1.0, 2.0]), 0.1, positions, observed))
+    assert {tuple(p) for p in np.argwhere(out == FREE)} == {(0, 0), (5, 5)} and out[22, 9] == UNKNOWN
 
 
 def test_cones_passing_counts_the_echoes_whose_cone_held_a_point_before_its_echo():

@@ -8,7 +8,8 @@ cameras looked through at camera height, maps/evidence.py), occupied where its s
 just below the band end (the scan rule; what the robot's body meets) and unknown up to 1 m behind
 what they met, where a camera measured a surface and none of them passed (what the body's rays did
 not see), then unknown wherever no sensor looked (maps/observed.py), occupied wherever the infrared
-or ultrasonic sensors touched an obstacle the scans called free (maps/planner.py). The probability
+or ultrasonic sensors touched an obstacle the scans called free (maps/planner.py), and free where a
+camera stood. The probability
 map is the VIRUS grid's occupancy probability at camera height, 0.5 where no sensor looked. The
 caller chooses the positions and the observed mask (a run: the recording's frames; the Mapper: the
 frames it has).
@@ -43,6 +44,7 @@ from virus_nerf.maps.planner import (
     RangeEvidence,
     near_surfaces,
     planner_image,
+    track_free,
     uss_arcs,
 )
 from virus_nerf.maps.scans import scan_rays
@@ -328,11 +330,12 @@ def occupancy_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, 
     """The trinary 2D map a planner reads: scans from up to `max_poses` of the camera `positions`
     (N, 3), unknown outside `observed` ((nx, ny) bool [ix, iy], maps/observed.py) whatever the
     model says, then occupied where the IRS and USS `evidence` touched what the scans called free
-    (maps/planner.py; None: the scans alone)."""
+    (maps/planner.py; None: the scans alone), and free where a camera stood within `observed`."""
     m = scan_map(model, spread_positions(positions, max_poses), lo, hi, resolution, n_rays, evidence)
     m.image = apply_mask(m.image, observed, UNKNOWN)  # free only where a sensor looked
     if evidence is not None:
         m.image = planner_image(m.image, lo, resolution, evidence)
+    m.image = track_free(m.image, lo, resolution, positions, observed)  # the robot stood there
     return m
 
 

@@ -22,6 +22,9 @@ map may lose free space, never gain it):
    An obstacle on the arc stops every cone that meets it, so its pixels keep their votes; the
    rest of a 55 deg arc lies in space other cones crossed, and stays free.
 
+Last, the pixels holding a camera position are free (`track_free`, D92): the robot stood there,
+whatever a half-trained field's scans or a stray measurement say.
+
 Measured and not kept (docs/decisions.md D47, D89, D91): the VIRUS grid's probability above 0.5
 as obstacles, more scan positions and rays, a softer scan hit rule, every USS arc occupied, a
 0.1 m or 0.2 m band for the IRS hits and stereo points, two other hits nearby as an IRS hit's
@@ -168,6 +171,23 @@ def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence
     passed = cones_passing(centres, evidence)
     occ = votes[cand[:, 0], cand[:, 1]] >= USS_ARC_VOTE * passed
     grid[cand[occ, 0], cand[occ, 1]] = OCCUPIED
+    return to_image(grid)
+
+
+def track_free(image: np.ndarray, lo: np.ndarray, resolution: float, positions: np.ndarray,
+               observed: np.ndarray | None = None) -> np.ndarray:
+    """The trinary map (H, W) (row 0 = largest y) with the pixels that hold a camera position
+    (positions (N, 2+) m, world frame) free: the robot's own body stood there, so whatever a
+    rule or a half-trained field says, no obstacle does (D92). Only pixels a sensor looked at
+    (`observed`, (nx, ny) bool [ix, iy]; None: all): the map stays unknown wherever its observed
+    mask says so (maps/observed.py). The input is not changed."""
+    grid = from_image(image).copy()  # [ix, iy]
+    ij, inside = world_pixels(np.asarray(positions, dtype=np.float64).reshape(len(positions), -1)[:, :2],
+                              np.asarray(lo, dtype=np.float64)[:2], resolution, grid.shape)
+    ij = ij[inside]
+    if observed is not None:
+        ij = ij[np.asarray(observed, dtype=bool)[ij[:, 0], ij[:, 1]]]
+    grid[ij[:, 0], ij[:, 1]] = FREE
     return to_image(grid)
 
 
