@@ -187,6 +187,7 @@ def test_the_pixels_where_a_camera_stood_are_free_whatever_the_rules_said():
     observed[22, 9] = False  # no sensor looked there: the map stays unknown, whatever stood there
     out = from_image(track_free(image, np.array([-1.0, 2.0]), 0.1, positions, observed))
     assert {tuple(p) for p in np.argwhere(out == FREE)} == {(0, 0), (5, 5)} and out[22, 9] == UNKNOWN
+    assert (track_free(image, np.array([-1.0, 2.0]), 0.1, np.zeros((0, 3))) == image).all()  # no camera yet
 
 
 def test_cones_passing_counts_the_echoes_whose_cone_held_a_point_before_its_echo():

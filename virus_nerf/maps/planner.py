@@ -182,8 +182,9 @@ def track_free(image: np.ndarray, lo: np.ndarray, resolution: float, positions: 
     (`observed`, (nx, ny) bool [ix, iy]; None: all): the map stays unknown wherever its observed
     mask says so (maps/observed.py). The input is not changed."""
     grid = from_image(image).copy()  # [ix, iy]
-    ij, inside = world_pixels(np.asarray(positions, dtype=np.float64).reshape(len(positions), -1)[:, :2],
-                              np.asarray(lo, dtype=np.float64)[:2], resolution, grid.shape)
+    xy = np.asarray(positions, dtype=np.float64)
+    xy = xy.reshape(-1, xy.shape[-1])[:, :2] if xy.size else np.zeros((0, 2))  # (N, 2)
+    ij, inside = world_pixels(xy, np.asarray(lo, dtype=np.float64)[:2], resolution, grid.shape)
     ij = ij[inside]
     if observed is not None:
         ij = ij[np.asarray(observed, dtype=bool)[ij[:, 0], ij[:, 1]]]
