@@ -181,15 +181,14 @@ def track_free(image: np.ndarray, lo: np.ndarray, resolution: float, positions: 
     rule or a half-trained field says, no obstacle does (D92). Only pixels a sensor looked at
     (`observed`, (nx, ny) bool [ix, iy]; None: all): the map stays unknown wherever its observed
     mask says so (maps/observed.py). The input is not changed."""
-    grid = from_image(image).copy()  # [ix, iy]
-    xy = np.asarray(positions, dtype=np.float64)
-    xy = xy.reshape(-1, xy.shape[-1])[:, :2] if xy.size else np.zeros((0, 2))  # (N, 2)
-    ij, inside = world_pixels(xy, np.asarray(lo, dtype=np.float64)[:2], resolution, grid.shape)
-    ij = ij[inside]
+    out = np.array(image, copy=True)  # (H, W), row 0 = largest y
+    xy = np.asarray(positions, dtype=np.float64)[..., :2].reshape(-1, 2)  # (N, 2)
+    ij, inside = world_pixels(xy, np.asarray(lo, dtype=np.float64)[:2], resolution, out.shape[::-1])
+    ij = ij[inside]  # (M, 2) [ix, iy]
     if observed is not None:
         ij = ij[np.asarray(observed, dtype=bool)[ij[:, 0], ij[:, 1]]]
-    grid[ij[:, 0], ij[:, 1]] = FREE
-    return to_image(grid)
+    out[out.shape[0] - 1 - ij[:, 1], ij[:, 0]] = FREE
+    return out
 
 
 def corroborated_irs(occupied: np.ndarray, evidence: RangeEvidence, lo: np.ndarray, resolution: float) -> np.ndarray:
