@@ -393,7 +393,10 @@ class _GridScene:
         self.grid.occupied = torch.zeros((1, 1, 5), dtype=torch.bool)
         self.grid.occupied[0, 0, 3] = True
 
-    def ranges(self, origins, directions, occupied=None):
+    fronts_asked = ()  # the `front` of each `ranges` call (a hard wall: the same range at any level)
+
+    def ranges(self, origins, directions, occupied=None, front=None):
+        self.fronts_asked = (*self.fronts_asked, front)
         occ = (self.grid.occupied if occupied is None else occupied)[0, self.wall_column].numpy()
         o, d = np.asarray(origins), np.asarray(directions)[:, 0]
         cell = np.clip(np.floor(o[:, 2] / 0.2).astype(int), 0, 4)
@@ -402,7 +405,7 @@ class _GridScene:
 
 
 def test_the_low_rays_march_the_grid_grown_by_a_cell_in_z_and_the_band_the_grid_as_trained():
-    from virus_nerf.maps.extract import low_ranges
+    from virus_nerf.maps.extract import MAP_LOW_FRONT_OPACITY, low_ranges
 
     scene = _GridScene()
     origins = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.9], [0.0, 0.0, 0.3]])  # cells 2, 4 and 1
@@ -410,7 +413,18 @@ def test_the_low_rays_march_the_grid_grown_by_a_cell_in_z_and_the_band_the_grid_
     assert np.isnan(scene.ranges(origins, dirs)).all()  # as trained: only cell 3 is occupied
     r = low_ranges(scene, origins, dirs)  # grown: cells 2, 3 and 4
     assert r[0] == pytest.approx(2.0) and r[1] == pytest.approx(2.0) and np.isnan(r[2])
+    assert scene.fronts_asked == (None, MAP_LOW_FRONT_OPACITY)  # the low rays end at the opacity front (D94)
+    low_ranges(scene, origins, dirs, front=None)  # a field still haze: at D / A
+    assert scene.fronts_asked[-1] is None
     assert low_ranges(_LowWall(), origins[:1], dirs[:1]) == pytest.approx([2.0])  # a model without a grid: as before
+
+
+def test_the_low_rays_end_at_the_opacity_front_once_the_field_has_trained_100_steps():
+    from virus_nerf.maps.extract import MAP_LOW_FRONT_OPACITY, low_front_level
+
+    assert MAP_LOW_FRONT_OPACITY == 0.1
+    assert low_front_level(0) is None and low_front_level(99) is None  # a field of a few steps is haze
+    assert low_front_level(100) == 0.1 and low_front_level(5000) == 0.1
 
 
 def test_grown_around_occupies_the_26_neighbours_of_each_occupied_cell_clipped_at_the_borders():
@@ -463,8 +477,8 @@ def test_the_map_flags_the_low_rays_15_cm_below_the_cameras_to_march_the_grid_gr
 
     seen = {}
 
-    def spy(model, origins, directions, around=None):
-        seen["z"], seen["around"] = np.asarray(origins)[:, 2].copy(), np.asarray(around).copy()
+    def spy(model, origins, directions, around=None, front=None):
+        seen["z"], seen["around"], seen["front"] = np.asarray(origins)[:, 2].copy(), np.asarray(around).copy(), front
         return np.full(len(origins), np.nan)
 
     monkeypatch.setattr(extract, "low_ranges", spy)
@@ -473,6 +487,9 @@ def test_the_map_flags_the_low_rays_15_cm_below_the_cameras_to_march_the_grid_gr
     below = seen["z"] - np.repeat(positions[:, 2], 18)  # 18 low rays a position, -0.15 and -0.3 m in turn
     assert below[:4] == pytest.approx([-0.15, -0.3, -0.15, -0.3])
     assert np.array_equal(seen["around"], np.isclose(below, -0.15)) and seen["around"].sum() == 18
+    assert seen["front"] == extract.MAP_LOW_FRONT_OPACITY  # scan_map's default: the opacity front (D94)
+    extract.scan_map(_LowWall(), positions, np.array([0.0, -1.0]), np.array([3.0, 1.0]), 0.5, 36, low_front=None)
+    assert seen["front"] is None
 
 
 class _Ring:

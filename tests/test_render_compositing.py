@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from virus_nerf.grid.base import GridSpec
-from virus_nerf.render import PackedSamples, composite, march_rays, scan_depth
+from virus_nerf.render import PackedSamples, composite, march_rays, opacity_front, scan_depth
 from virus_nerf.scene_box import SceneBox
 
 BACKENDS = ["numba", "torch"]
@@ -35,6 +35,29 @@ def test_two_samples_by_hand(backend):
     np.testing.assert_allclose(out.depth, [a1 * 0.25 + w2 * 0.625, 0.0], rtol=1e-6)
     np.testing.assert_allclose(out.rgb[0], [a1, w2, math.exp(-1.0)], rtol=1e-6)
     np.testing.assert_allclose(out.rgb[1], [0, 0, 1], rtol=1e-6)  # no samples: background
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_opacity_front_is_where_the_accumulated_weight_first_reaches_the_level(backend):
+    # ray 0: alphas 0.04, 0.5, 0.5 over [1.0, 1.1), [1.1, 1.2), [1.2, 1.3): weights 0.04, 0.48, 0.24,
+    # running sums 0.04, 0.52, 0.76: the level 0.1 is reached in the second interval, which starts at
+    # 1.1 m (D / A = (0.04 * 1.05 + 0.48 * 1.15 + 0.24 * 1.25) / 0.76 = 1.1763 m lies behind it);
+    # ray 1: alphas 0.05, 0.05: opacity 0.0975; ray 2: no samples
+    alphas = torch.tensor([0.04, 0.5, 0.5, 0.05, 0.05], dtype=torch.float64)
+    starts = torch.tensor([1.0, 1.1, 1.2, 2.0, 2.1], dtype=torch.float64)
+    s = PackedSamples.from_counts(torch.tensor([3, 2, 0]), starts, starts + 0.1)
+    sigmas = -torch.log1p(-alphas) / 0.1  # tau = sigma * 0.1 gives these alphas
+    out = composite(sigmas, torch.zeros(5, 3, dtype=torch.float64), s, 3, backend=backend)
+    np.testing.assert_allclose(scan_depth(out)[0], 0.894 / 0.76, rtol=1e-9)
+    front = opacity_front(out, s, level=0.1, min_opacity=0.5)
+    np.testing.assert_allclose(front[0], 1.1, rtol=1e-12)
+    assert torch.isnan(front[1:]).all()  # ray 1's opacity is under 0.5, ray 2 met nothing
+    front = opacity_front(out, s, level=0.5, min_opacity=0.05)
+    np.testing.assert_allclose(front[0], 1.1, rtol=1e-12)  # 0.52 >= 0.5 in the second interval too
+    assert torch.isnan(front[1])  # opacity 0.0975 >= 0.05 but it never reaches the level 0.5
+    np.testing.assert_allclose(opacity_front(out, s, level=0.6, min_opacity=0.5)[0], 1.2, rtol=1e-12)
+    with pytest.raises(ValueError, match="level"):
+        opacity_front(out, s, level=0.0)
 
 
 def _slab_render(backend: str, sigma: float, a: float, thick: float, background=None):
@@ -181,3 +204,34 @@ def test_bad_shapes_raise():
         composite(sig, rgb, samples, samples.n_rays + 1)
     with pytest.raises(ValueError, match="rgbs"):
         composite(sig, rgb[:-1], samples, samples.n_rays)
+
+
+class _SoftColumn(torch.nn.Module):
+    """A field of density 1 /m for x in [1, 3] m and 0 elsewhere (a soft object 2 m deep), grey."""
+
+    def __init__(self):
+        super().__init__()
+        self.unused = torch.nn.Parameter(torch.zeros(1))  # SceneModel reads its device from here
+
+    def forward(self, positions, dirs, rgb_mask=None):
+        x = positions[:, 0]
+        sigma = ((x >= 1.0) & (x <= 3.0)).to(positions.dtype)  # (S,) 1 /m inside, 0 outside
+        return sigma, torch.full((len(positions), 3), 0.5, dtype=positions.dtype)
+
+
+def test_the_scan_ranges_of_a_soft_object_at_d_over_a_and_at_its_opacity_front():
+    from virus_nerf.engine.model import SceneModel
+    from virus_nerf.grid.ngp import NgpGrid, NgpGridConfig
+    from virus_nerf.scene_box import SceneBox
+
+    box = SceneBox((-4.0, -1.0, -1.0), (4.0, 1.0, 1.0))
+    grid = NgpGrid(GridSpec.from_box(box, 32), NgpGridConfig(), step_size=0.01)  # every cell occupied
+    model = SceneModel(_SoftColumn(), grid, step_size=0.01, near=0.01, max_samples=1024)
+    origins, dirs = np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0]])
+    # opacity over the 2 m: 1 - e^-2 = 0.865 >= 0.5; D / A = 1 + 1 - 2 e^-2 / (1 - e^-2) = 1.687 m,
+    # the mean depth of the light the column stops, 0.69 m inside it; the opacity reaches 0.1 at
+    # 1 + ln(1 / 0.9) = 1.105 m and 0.5 at 1 + ln 2 = 1.693 m (within a step of 0.01 m)
+    assert model.ranges(origins, dirs)[0] == pytest.approx(1.687, abs=0.01)
+    assert model.ranges(origins, dirs, front=0.1)[0] == pytest.approx(1.105, abs=0.01)
+    assert model.ranges(origins, dirs, front=0.5)[0] == pytest.approx(1.693, abs=0.01)
+    assert np.isnan(model.ranges(np.array([[0.0, 0.0, 0.0]]), np.array([[-1.0, 0.0, 0.0]]), front=0.1)[0])

@@ -18,7 +18,13 @@ from virus_nerf.field.field import NerfField
 from virus_nerf.grid.base import GridSpec, OccupancyGrid
 from virus_nerf.grid.ngp import NgpGrid
 from virus_nerf.grid.virus import VirusGrid
-from virus_nerf.render.compositing import RenderOutput, composite, scan_depth, transmittance
+from virus_nerf.render.compositing import (
+    RenderOutput,
+    composite,
+    opacity_front,
+    scan_depth,
+    transmittance,
+)
 from virus_nerf.render.marching import march_rays
 from virus_nerf.render.samples import PackedSamples
 from virus_nerf.scene_box import SceneBox
@@ -146,17 +152,20 @@ class SceneModel:
 
     @torch.no_grad()
     def ranges(self, origins: np.ndarray, directions: np.ndarray, chunk: int = 8192,
-               occupied: torch.Tensor | None = None) -> np.ndarray:
+               occupied: torch.Tensor | None = None, front: float | None = None) -> np.ndarray:
         """Scan depth (N,) metres along unit rays; NaN where the model sees nothing (docs/method.md 3.1).
-        occupied: the cells to march instead of the grid's own (`render`)."""
+        occupied: the cells to march instead of the grid's own (`render`). front: give the depth
+        where a ray's opacity first reaches this level instead of D / A (`opacity_front`)."""
         out = np.full(len(origins), np.nan)
         o_all = torch.as_tensor(np.asarray(origins, dtype=np.float32), device=self.device)
         d_all = torch.as_tensor(np.asarray(directions, dtype=np.float32), device=self.device)
         for start in range(0, len(origins), chunk):
             o, d = o_all[start : start + chunk], d_all[start : start + chunk]
             no_colour = torch.zeros(o.shape[0], dtype=torch.bool, device=self.device)  # scans need depth only
-            r, _ = self.render(o, d, generator=None, rgb_rays=no_colour, occupied=occupied)
-            out[start : start + len(o)] = scan_depth(r, self.min_opacity).double().cpu().numpy()
+            r, stats = self.render(o, d, generator=None, rgb_rays=no_colour, occupied=occupied)
+            depth = scan_depth(r, self.min_opacity) if front is None else \
+                opacity_front(r, stats.samples, front, self.min_opacity)  # (n,)
+            out[start : start + len(o)] = depth.double().cpu().numpy()
         return out
 
 

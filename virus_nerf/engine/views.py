@@ -19,7 +19,13 @@ import torch
 from virus_nerf.errors import UsageError
 from virus_nerf.grid.virus import VirusGrid
 from virus_nerf.maps.evidence import stereo_sight_lines
-from virus_nerf.maps.extract import camera_height, check_raster, occupancy_map, probability_map
+from virus_nerf.maps.extract import (
+    camera_height,
+    check_raster,
+    low_front_level,
+    occupancy_map,
+    probability_map,
+)
 from virus_nerf.maps.observed import frames_observed
 from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS, raster_shape
 from virus_nerf.maps.planner import RangeEvidence
@@ -81,7 +87,8 @@ class MapViews:
         self.field.eval()
         try:
             m = occupancy_map(self.model, self.store.cam_to_world[:, :3, 3], lo, hi, resolution, int(n_rays),
-                              int(max_poses), self.observed(resolution), self.range_evidence())
+                              int(max_poses), self.observed(resolution), self.range_evidence(),
+                              low_front_level(self.step))  # D / A while the field is haze (D94)
         finally:
             self.field.train()
         self._map_cache = (key, dataclasses.replace(m, image=m.image.copy()))

@@ -5,7 +5,9 @@ The 2D map of a trained model is its own 360 deg scans in the camera-height band
 spread camera positions, rasterised (maps/occupancy.py: passed cells free, end cells occupied; a
 scan that nothing stopped free up to the first surface a sensor touched; free too what the stereo
 cameras looked through at camera height, maps/evidence.py), occupied where its scans
-just below the band end (the scan rule; what the robot's body meets) and unknown up to 1 m behind
+just below the band end (the scan rule; what the robot's body meets; they end where their opacity
+first reaches MAP_LOW_FRONT_OPACITY once the field has trained MAP_LOW_FRONT_FROM_STEP steps) and
+unknown up to 1 m behind
 what they met, where a camera measured a surface and none of them passed (what the body's rays did
 not see), then unknown wherever no sensor looked (maps/observed.py), occupied wherever the infrared
 or ultrasonic sensors touched an obstacle the scans called free (maps/planner.py), and free where a
@@ -80,6 +82,19 @@ MAP_LOW_GRID_GROW_Z = 1
 # fitted warehouse's 25 cm cells to keep them, and the rays 15 cm below the cameras passed them;
 # the 30 cm rays keep D66's cells, near the floor's haze that grown cells would make ends (D73)
 MAP_LOW_AROUND_HEIGHTS_M = (-0.15,)
+# a low ray ends where its opacity first reaches this level (render/compositing.opacity_front), not
+# at D / A like the band's: a round object or a pillar that the cameras saw from one side is soft
+# density, and D / A lies 0.15-0.2 m inside its rim, where the band's passes made the rim free
+# (D90, D93, D94: on rooms 81-86 offline and driving every obstacle target met and no planner path
+# through an obstacle, for 0.5-1.9 points of free recall: the front also lies in the haze before walls)
+MAP_LOW_FRONT_OPACITY = 0.1
+# ... once the field has trained this many steps; before, they end at D / A as the band's rays do. A
+# field of a few steps holds a thin haze everywhere (about 1 /m), whose front lies 0.1 m from the
+# cameras: a ring of occupied pixels around the robot. The test drive's office (3 s, 90 rays from 5
+# positions) after 2 / 5 / 10 / 20 steps: its occupied pixels lie farther from the room's surfaces
+# than its free ones (0.96 against 0.75 m at 10 steps) and it keeps a third of D / A's free pixels;
+# from 40 steps both rules give sane maps (D94). Every map D94 measured had 241 steps or more
+MAP_LOW_FRONT_FROM_STEP = 100
 # a low ray's end casts that shadow only where the cameras measured a surface (a stereo point within
 # 0.5 m of camera height) within this horizontal distance (m) of it: of the low ends the simulator
 # says are real 93-99 % have one, of the false ones (the field's haze near the floor, which casts two
@@ -145,7 +160,7 @@ def camera_height(cam_to_world: np.ndarray, stack_ids: np.ndarray, default: floa
 
 
 def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int,
-             evidence: RangeEvidence | None = None):
+             evidence: RangeEvidence | None = None, low_front: float | None = MAP_LOW_FRONT_OPACITY):
     """360 deg model scans from camera `positions` (N, 3) -> a trinary OccupancyMap2D over the
     (x, y) box [lo, hi]: the band's `n_rays` rays a position, whose heights take turns over
     MAP_SCAN_HEIGHTS_M (maps.occupancy.scan_occupancy: passed cells free, end cells occupied; the
@@ -160,7 +175,8 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     touched (`through_lengths`, D80), and what the stereo cameras looked through at camera height
     is free where the band left it unknown (`evidence.sight_lines`; the scan rule's ends, the low
     rays and the shadow still apply, D81), and a lone low end that no sensor backs occupies nothing
-    (`lone_unsupported`, D87)."""
+    (`lone_unsupported`, D87). The low rays end where their opacity first reaches `low_front`
+    (None: at D / A; `low_front_level`)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     band_o, band_d = scan_rays(positions, n_rays, MAP_SCAN_HEIGHTS_M)  # (N n_rays, 3) each
     n_low = max(1, round(n_rays * MAP_LOW_RAYS_SHARE))
@@ -170,7 +186,7 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
         else np.zeros(0)
     below = low_o[:, 2] - np.repeat(positions[:, 2], n_low)  # (N n_low,) m, each low ray's height
     around = np.isclose(below[:, None], np.asarray(MAP_LOW_AROUND_HEIGHTS_M)[None, :]).any(axis=1)
-    low_r = low_ranges(model, low_o, low_d, around) if len(positions) else np.zeros(0)
+    low_r = low_ranges(model, low_o, low_d, around, low_front) if len(positions) else np.zeros(0)
     passes, hits = scan_counts(band_o[:, :2], band_d[:, :2], band_r, lo, hi, resolution)
     grid = np.full(passes.shape, UNKNOWN, dtype=np.uint8)  # [ix, iy]
     grid[passes > 0] = FREE
@@ -269,12 +285,19 @@ def first_pixel(origins: np.ndarray, directions: np.ndarray, lengths: np.ndarray
     return out
 
 
-def low_ranges(model, origins: np.ndarray, directions: np.ndarray, around: np.ndarray | None = None) -> np.ndarray:
+def low_front_level(step: int) -> float | None:
+    """The opacity at which the map's low rays end for a field trained `step` steps: None (D / A)
+    before MAP_LOW_FRONT_FROM_STEP, MAP_LOW_FRONT_OPACITY from then on."""
+    return MAP_LOW_FRONT_OPACITY if step >= MAP_LOW_FRONT_FROM_STEP else None
+
+
+def low_ranges(model, origins: np.ndarray, directions: np.ndarray, around: np.ndarray | None = None,
+               front: float | None = MAP_LOW_FRONT_OPACITY) -> np.ndarray:
     """(N,) ranges (m) of the low rays (origins, directions (N, 3)): a model with an occupancy
     grid marches them over its occupied cells grown by MAP_LOW_GRID_GROW_Z cells up and down
     (`grown_in_z`), the rays flagged in `around` ((N,) bool; None: none) over the cells grown by
-    one in every direction (`grown_around`); any other range model (an analytic scene) answers
-    as for every ray."""
+    one in every direction (`grown_around`), and ends them where their opacity first reaches
+    `front` (None: at D / A); any other range model (an analytic scene) answers as for every ray."""
     grid = getattr(model, "grid", None)
     if grid is None:
         return np.asarray(model.ranges(origins, directions), dtype=np.float64).reshape(-1)
@@ -283,7 +306,7 @@ def low_ranges(model, origins: np.ndarray, directions: np.ndarray, around: np.nd
     for rays, grow in ((~around, lambda occ: grown_in_z(occ, MAP_LOW_GRID_GROW_Z)), (around, grown_around)):
         if rays.any():
             cells = grow(grid.occupied)
-            out[rays] = np.asarray(model.ranges(origins[rays], directions[rays], occupied=cells),
+            out[rays] = np.asarray(model.ranges(origins[rays], directions[rays], occupied=cells, front=front),
                                    dtype=np.float64).reshape(-1)
     return out
 
@@ -326,12 +349,14 @@ def behind_ends(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray,
 
 
 def occupancy_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int,
-                  max_poses: int, observed: np.ndarray, evidence: RangeEvidence | None = None) -> OccupancyMap2D:
+                  max_poses: int, observed: np.ndarray, evidence: RangeEvidence | None = None,
+                  low_front: float | None = MAP_LOW_FRONT_OPACITY) -> OccupancyMap2D:
     """The trinary 2D map a planner reads: scans from up to `max_poses` of the camera `positions`
     (N, 3), unknown outside `observed` ((nx, ny) bool [ix, iy], maps/observed.py) whatever the
     model says, then occupied where the IRS and USS `evidence` touched what the scans called free
-    (maps/planner.py; None: the scans alone), and free where a camera stood within `observed`."""
-    m = scan_map(model, spread_positions(positions, max_poses), lo, hi, resolution, n_rays, evidence)
+    (maps/planner.py; None: the scans alone), and free where a camera stood within `observed`. The
+    low rays end at the opacity `low_front` (`scan_map`; the Mapper's: `low_front_level` of its step)."""
+    m = scan_map(model, spread_positions(positions, max_poses), lo, hi, resolution, n_rays, evidence, low_front)
     m.image = apply_mask(m.image, observed, UNKNOWN)  # free only where a sensor looked
     if evidence is not None:
         m.image = planner_image(m.image, lo, resolution, evidence)

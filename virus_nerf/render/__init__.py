@@ -5,7 +5,7 @@ sigmas, rgbs = field(samples.positions(origins, directions), directions[samples.
 out = composite(sigmas, rgbs, samples, n_rays, background)
 """
 
-from virus_nerf.render.compositing import RenderOutput, composite, scan_depth
+from virus_nerf.render.compositing import RenderOutput, composite, opacity_front, scan_depth
 from virus_nerf.render.marching import Backend, march_rays, ray_box_interval
 from virus_nerf.render.samples import PackedSamples
 
@@ -15,6 +15,7 @@ __all__ = [
     "RenderOutput",
     "composite",
     "march_rays",
+    "opacity_front",
     "ray_box_interval",
     "scan_depth",
 ]

@@ -4,7 +4,8 @@ Per ray, samples j = 1..M with density sigma_j, colour c_j, interval length delt
     tau_j = sigma_j delta_j,  alpha_j = 1 - exp(-tau_j),  T_j = exp(-sum_{l<j} tau_l),
     w_j = T_j alpha_j,  A = sum_j w_j,  C = sum_j w_j c_j + (1 - A) b,  D = sum_j w_j t_j.
 D is the paper's unnormalised depth (metres along the unit ray, biased short where A < 1);
-`scan_depth` gives D / A for the 2D scans (docs/method.md 6.3).
+`scan_depth` gives D / A for the 2D scans (docs/method.md 6.3), `opacity_front` the depth where
+a ray's accumulated weight first reaches a level (the map's low rays, D94).
 
 Backward (closed form used by the numba kernel). With upstream gradients g_C (3,), g_D, g_A per
 ray and g_w per sample, the loss depends on w_j through
@@ -92,6 +93,25 @@ def scan_depth(render: RenderOutput, min_opacity: float = 0.5) -> torch.Tensor:
     """(R,) metres: D / A where the opacity A >= min_opacity, else NaN (docs/method.md 3.1, 6.3)."""
     d = render.depth / render.opacity.clamp(min=1e-12)
     return torch.where(render.opacity >= min_opacity, d, torch.full_like(d, math.nan))
+
+
+def opacity_front(render: RenderOutput, samples: PackedSamples, level: float, min_opacity: float = 0.5) -> torch.Tensor:
+    """(R,) metres: where each ray's accumulated weight first reaches `level` (the start of the
+    interval of the sample that takes it there), NaN where the opacity A < min_opacity. The near
+    side of a surface, where D / A (`scan_depth`) lies inside a soft one; the map's low rays use it
+    (maps/extract.py, D94). Pure function of the packed weights (S,) in march order; no gradient."""
+    if not 0.0 < level <= 1.0:
+        raise ValueError(f"level must be in (0, 1], got {level}")
+    with torch.no_grad():
+        w = render.weights.detach().to(torch.float64)  # (S,)
+        incl = torch.cumsum(w, 0)  # (S,) global running sum
+        before_ray = torch.cat([incl.new_zeros(1), incl])[samples.ray_offsets[:-1]]  # (R,) sum of earlier rays
+        reached = incl - before_ray[samples.ray_indices] >= level  # (S,) the ray's own sum so far >= level
+        front = torch.full((samples.n_rays,), math.inf, dtype=torch.float64, device=w.device)
+        front.scatter_reduce_(0, samples.ray_indices[reached], samples.t_starts.to(torch.float64)[reached],
+                              reduce="amin")
+        seen = (render.opacity.detach() >= min_opacity) & torch.isfinite(front)
+        return torch.where(seen, front, torch.full_like(front, math.nan)).to(render.depth.dtype)
 
 
 # ----------------------------------------------------------------------------- torch twin
