@@ -648,3 +648,22 @@ def test_map_queries_are_cheap_until_the_mapper_changes(monkeypatch):
     mapper.add_frame(_frame(4.0))
     mapper.map2d(0.1, n_rays=64, max_poses=4)  # a frame later
     assert len(renders) == 5
+
+
+def test_the_mappers_map_ends_the_low_rays_at_d_over_a_until_the_field_has_trained_100_steps(monkeypatch):
+    """D94: a field of a few steps is haze everywhere, and its opacity front lies at the cameras;
+    the Mapper asks for the front from MAP_LOW_FRONT_FROM_STEP on."""
+    import virus_nerf.engine.views as views
+    from virus_nerf.maps.extract import MAP_LOW_FRONT_FROM_STEP, MAP_LOW_FRONT_OPACITY
+
+    asked = []
+    real = views.occupancy_map
+    monkeypatch.setattr(views, "occupancy_map", lambda *a, **k: asked.append(a[9]) or real(*a, **k))
+    mapper = _mapper()
+    for t in range(4):
+        mapper.add_frame(_frame(float(t)))
+    mapper.train(60.0, steps=2)
+    mapper.update_map(0.1, n_rays=32, max_poses=4)
+    mapper.step = MAP_LOW_FRONT_FROM_STEP  # as after that many steps (the map reads only the count)
+    mapper.update_map(0.1, n_rays=32, max_poses=4)
+    assert asked == [None, MAP_LOW_FRONT_OPACITY]
