@@ -4,17 +4,15 @@
 The 2D map of a trained model is its own 360 deg scans in the camera-height band from evenly
 spread camera positions, rasterised (maps/occupancy.py: passed cells free, end cells occupied; a
 scan that nothing stopped free up to the first surface a sensor touched; free too what the stereo
-cameras looked through at camera height, maps/evidence.py), occupied where its scans
-just below the band end (the scan rule; what the robot's body meets; they end where their opacity
-first reaches MAP_LOW_FRONT_OPACITY once the field has trained MAP_LOW_FRONT_FROM_STEP steps) and
-unknown up to 1 m behind
-what they met, where a camera measured a surface and none of them passed (what the body's rays did
-not see), then unknown wherever no sensor looked (maps/observed.py), occupied wherever the infrared
-or ultrasonic sensors touched an obstacle the scans called free (maps/planner.py), and free where a
-camera stood. The probability
-map is the VIRUS grid's occupancy probability at camera height, 0.5 where no sensor looked. The
-caller chooses the positions and the observed mask (a run: the recording's frames; the Mapper: the
-frames it has).
+cameras looked through at camera height, maps/evidence.py), occupied where its scans just below
+the band end (the scan rule; what the robot's body meets; they end where their opacity first
+reaches MAP_LOW_FRONT_OPACITY once the field has trained MAP_LOW_FRONT_FROM_STEP steps) and unknown
+up to 1 m behind what they met, where a camera measured a surface and none of them passed (what
+the body's rays did not see), then unknown wherever no sensor looked (maps/observed.py), occupied
+wherever the infrared or ultrasonic sensors touched an obstacle the scans called free
+(maps/planner.py), and free where a camera stood. The probability map is the VIRUS grid's
+occupancy probability at camera height, 0.5 where no sensor looked. The caller chooses the
+positions and the observed mask (a run: the recording's frames; the Mapper: the frames it has).
 """
 
 from __future__ import annotations
