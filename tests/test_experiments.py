@@ -113,6 +113,7 @@ def test_demo_end_to_end(tmp_path: Path):
     report = (out / "report.md").read_text()
     assert "| NeRF | zone3" in report and "| LiDAR | zone3" in report
     doc = json.loads((out / "metrics.json").read_text())
+    assert f"s of training on the {doc['train']['device']} device: {doc['train']['steps']} steps" in report
     assert doc["train"]["grid"] == "virus" and doc["train"]["sensors"] == ["camera", "uss", "irs", "stereo"]
     # the planner-safety figure and the warnings (a 4 s run ends in the grid's warm-up) in the report too
     def pct(v):

@@ -319,6 +319,7 @@ def test_metrics_record_start_up_and_wall_clock(tiny_office, tmp_path):
     t = doc["train"]
     assert 0 < t["startup_s"] < t["wall_s"]
     assert t["seconds"] <= t["wall_s"] - t["startup_s"] + 1e-3, "the training clock excludes start-up"
+    assert t["device"] == ("cuda" if torch.cuda.is_available() else "cpu"), "where the steps ran (device auto)"
 
 
 def test_checkpoint_of_another_scene_box_is_refused(tiny_office, tmp_path):

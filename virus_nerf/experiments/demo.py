@@ -68,7 +68,7 @@ def demo(
         "# VIRUS-NeRF demo",
         "",
         f"Simulated office (seed {seed}, {duration:.0f} s drive), VIRUS-NeRF trained on camera, USS and IRS "
-        f"with the Bayesian VIRUS occupancy grid for {train['seconds']:.0f} s of CPU time: "
+        f"with the Bayesian VIRUS occupancy grid for {train['seconds']:.0f} s of training{on_device(train)}: "
         f"{train['steps']} steps, {train['steps_per_s']:.2f} steps/s, {train['samples_per_s'] / 1e6:.3f} M samples/s.",
         "",
         "## 2D scan metrics (nearest-neighbour distances in metres, shares in [0, 1])",
@@ -99,3 +99,8 @@ def demo(
     ]
     write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
     print(f"done in {time.perf_counter() - t_start:.0f} s: {out / 'report.md'}")
+
+
+def on_device(train: dict) -> str:
+    """' on the cuda device' where metrics.json names it: a GPU's seconds buy more steps than a CPU's."""
+    return f" on the {train['device']} device" if train.get("device") else ""

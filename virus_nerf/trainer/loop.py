@@ -55,6 +55,7 @@ class TrainSummary:
     samples: int  # samples actually marched and rendered, summed over steps
     startup_s: float | None = None  # process start to the first training step (this process)
     wall_s: float | None = None  # process start to the end of training (this process)
+    device: str | None = None  # where the steps ran ("cpu", "cuda"), so a rate names its machine
 
     @property
     def steps_per_s(self) -> float:
@@ -331,7 +332,8 @@ class Trainer:
                 self.checkpoint_error = exc
         finally:
             log.close()
-        return TrainSummary(self.mapper.step, self.mapper.seconds, self.mapper.samples, self.startup_s, wall_s)
+        return TrainSummary(self.mapper.step, self.mapper.seconds, self.mapper.samples, self.startup_s, wall_s,
+                            self.mapper.device.type)
 
     def _evaluate_during_training(self, log: TrainLog) -> None:
         result = self.evaluate(with_sensors=False, keep_scans=0)  # the metrics alone

@@ -135,6 +135,7 @@ def train_summary_block(config, summary) -> dict:
         "samples_per_s": round(summary.samples_per_s, 1),
         "startup_s": None if summary.startup_s is None else round(summary.startup_s, 3),
         "wall_s": None if summary.wall_s is None else round(summary.wall_s, 3),
+        "device": summary.device,
         "grid": config.grid,
         "sensors": list(config.sensors),
         "seed": config.seed,
