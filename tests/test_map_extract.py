@@ -520,3 +520,41 @@ def test_the_stereo_cameras_sight_lines_free_what_the_scans_left_unknown_and_cle
     sight = Rays2D(np.tile([0.25, 0.3], (50, 1)), np.tile([1.0, 0.0], (50, 1)), np.full(50, 2.4))
     evidence = RangeEvidence(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0), sight_lines=sight)
     assert row(evidence) == [FREE] * 4 + [OCCUPIED] * 2 + [FREE] * 5 + [UNKNOWN] * 3
+
+
+class _TableTop:
+    """A range model: a table top 4 cm thick at the camera's height (z 0.98-1.02 m) from x = 2.2 m,
+    and a wall at x = 3.2 m: only the band's rays that start at the camera's own height meet the
+    top; those 5 cm above and below it pass to the wall."""
+
+    def ranges(self, origins, directions):
+        o, d = np.asarray(origins), np.asarray(directions)[:, 0]
+        front = np.where(np.abs(o[:, 2] - 1.0) < 0.02, 2.2, 3.2)
+        t = (front - o[:, 0]) / np.where(d > 1e-9, d, np.nan)
+        return np.where(d > 1e-9, t, np.nan)
+
+
+def test_the_scan_rule_holds_height_by_height_so_a_thin_table_top_is_kept():
+    from virus_nerf.maps.extract import MAP_SCAN_HEIGHTS_M, band_counts
+    from virus_nerf.maps.occupancy import scan_counts, scan_rule_occupied
+
+    # two scans of three rays along +x (ray i at MAP_SCAN_HEIGHTS_M[i % 3]) on a 7 x 1 raster of
+    # 0.5 m: the middle rays end on the top in pixel 4, the others pass it and end on the wall in 6
+    assert MAP_SCAN_HEIGHTS_M == (-0.05, 0.0, 0.05)
+    origins = np.array([[0.3, 0.25, 1.0 + h] for _ in range(2) for h in MAP_SCAN_HEIGHTS_M])
+    directions = np.tile([1.0, 0.0, 0.0], (6, 1))
+    ranges = np.array([2.9, 1.9, 2.9] * 2)
+    lo, hi = np.array([0.0, 0.0]), np.array([3.5, 0.5])
+    passes, hits, occupied = band_counts(origins, directions, ranges, 3, lo, hi, 0.5)
+    together = scan_counts(origins[:, :2], directions[:, :2], ranges, lo, hi, 0.5)
+    assert np.array_equal(passes, together[0]) and np.array_equal(hits, together[1])
+    # counted together the four rays that pass pixel 4 outvote the two that end there (2 < 8 / 2)...
+    assert hits[4, 0] == 2 and passes[4, 0] == 8 and not scan_rule_occupied(passes, hits)[4, 0]
+    # ...height by height the middle rays end there and none of their height passes it
+    assert occupied[:, 0].tolist() == [False, False, False, False, True, False, True]
+    # the whole map: the top's pixel on the scan's row is occupied, the floor before it free
+    lo, hi, res = np.array([0.0, -1.0]), np.array([3.5, 1.0]), 0.5
+    m = occupancy_map(_TableTop(), np.array([[0.25, 0.25, 1.0]]), lo, hi, res, 360, 30, np.ones((7, 4), dtype=bool))
+    grid = m.image[::-1].T  # [ix, iy]
+    assert grid[4, 2] == OCCUPIED and grid[6, 2] == OCCUPIED
+    assert (grid[1:4, 2] == FREE).all()

@@ -162,7 +162,8 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     """360 deg model scans from camera `positions` (N, 3) -> a trinary OccupancyMap2D over the
     (x, y) box [lo, hi]: the band's `n_rays` rays a position, whose heights take turns over
     MAP_SCAN_HEIGHTS_M (maps.occupancy.scan_occupancy: passed cells free, end cells occupied; the
-    map stands for the camera-height band, not one plane, D56), then occupied where the band's
+    map stands for the camera-height band, not one plane, D56; the scan rule height by height,
+    `band_counts`, D97), then occupied where the band's
     rays said free and the low rays (MAP_LOW_HEIGHTS_M, half a band ray's angle apart from them)
     by the same rule said occupied (D60), and unknown where the band said free up to
     MAP_LOW_SHADOW_M behind the low rays' occupied ends and no low ray passed (D64). The band's
@@ -185,7 +186,7 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     below = low_o[:, 2] - np.repeat(positions[:, 2], n_low)  # (N n_low,) m, each low ray's height
     around = np.isclose(below[:, None], np.asarray(MAP_LOW_AROUND_HEIGHTS_M)[None, :]).any(axis=1)
     low_r = low_ranges(model, low_o, low_d, around, low_front) if len(positions) else np.zeros(0)
-    passes, hits = scan_counts(band_o[:, :2], band_d[:, :2], band_r, lo, hi, resolution)
+    passes, hits, occupied = band_counts(band_o, band_d, band_r, n_rays, lo, hi, resolution)
     grid = np.full(passes.shape, UNKNOWN, dtype=np.uint8)  # [ix, iy]
     grid[passes > 0] = FREE
     if evidence is not None:  # free space without an end: the rays nothing stopped, up to the first
@@ -194,7 +195,7 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
         o, d = band_o[through, :2], band_d[through, :2]  # level unit directions (maps/scans.py)
         free = Rays2D(o, d, through_lengths(o, d, evidence.touched(), lo, hi, resolution)).concat(evidence.sight_lines)
         grid[scan_counts(free.origins, free.directions, free.ranges + resolution, lo, hi, resolution)[0] > 0] = FREE
-    grid[scan_rule_occupied(passes, hits)] = OCCUPIED  # the ends by the rays that met them
+    grid[occupied] = OCCUPIED  # the ends by the rays that met them, height by height (D97)
     low_passes, low_hits = scan_counts(low_o[:, :2], low_d[:, :2], low_r, lo, hi, resolution)
     low_occupied = scan_rule_occupied(low_passes, low_hits)  # the same scan rule as the band's
     if evidence is not None:  # a lone end no sensor backs is the field's haze near the floor (D87)
@@ -206,6 +207,24 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     behind = behind_ends(low_o[:, :2], low_d[:, :2], low_r, low_occupied, MAP_LOW_SHADOW_M, lo, hi, resolution)
     grid[behind & (low_passes == 0) & (grid == FREE)] = UNKNOWN
     return OccupancyMap2D(image=to_image(grid), resolution=resolution, origin=(float(lo[0]), float(lo[1])))
+
+
+def band_counts(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray, n_rays: int, lo: np.ndarray,
+                hi: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The band's scans (`scan_rays` with MAP_SCAN_HEIGHTS_M: origins (N n_rays, 3), directions
+    (N n_rays, 3), ranges (N n_rays,) m) -> passes and ends ((nx, ny) counts, all heights) and the
+    occupied pixels ((nx, ny) bool): the scan rule height by height, occupied where the rays of any
+    one height ended at least half as often as they passed. A table top 4 cm thick at camera height
+    stops the rays of one height while those above and below it pass: counted together, their
+    passes outvoted its ends and a planner drove through its edge (D96, D97)."""
+    heights = np.arange(len(ranges)) % n_rays % len(MAP_SCAN_HEIGHTS_M)  # ray i at heights[i % 3]
+    passes = hits = occupied = None
+    for h in range(len(MAP_SCAN_HEIGHTS_M)):
+        one = heights == h
+        p, e = scan_counts(origins[one, :2], directions[one, :2], ranges[one], lo, hi, resolution)
+        passes, hits = (p, e) if passes is None else (passes + p, hits + e)
+        occupied = scan_rule_occupied(p, e) if occupied is None else occupied | scan_rule_occupied(p, e)
+    return passes, hits, occupied
 
 
 def lone_unsupported(occupied: np.ndarray, hits: np.ndarray, evidence: RangeEvidence, lo: np.ndarray,
