@@ -222,8 +222,12 @@ def band_counts(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray,
     for h in range(len(MAP_SCAN_HEIGHTS_M)):
         one = heights == h
         p, e = scan_counts(origins[one, :2], directions[one, :2], ranges[one], lo, hi, resolution)
-        passes, hits = (p, e) if passes is None else (passes + p, hits + e)
-        occupied = scan_rule_occupied(p, e) if occupied is None else occupied | scan_rule_occupied(p, e)
+        if passes is None:  # the first height's rasters hold the sums (no copy of a raster a height)
+            passes, hits, occupied = p, e, scan_rule_occupied(p, e)
+        else:
+            passes += p
+            hits += e
+            occupied |= scan_rule_occupied(p, e)
     return passes, hits, occupied
 
 
