@@ -16,6 +16,7 @@ from virus_nerf.maps.planner import (
     RangeEvidence,
     planner_image,
     track_free,
+    track_points,
     unexplained_echoes,
     uss_arcs,
 )
@@ -188,6 +189,29 @@ def test_the_pixels_where_a_camera_stood_are_free_whatever_the_rules_said():
     out = from_image(track_free(image, np.array([-1.0, 2.0]), 0.1, positions, observed))
     assert {tuple(p) for p in np.argwhere(out == FREE)} == {(0, 0), (5, 5)} and out[22, 9] == UNKNOWN
     assert (track_free(image, np.array([-1.0, 2.0]), 0.1, np.zeros((0, 3))) == image).all()  # no camera yet
+
+
+def test_the_way_between_a_stacks_consecutive_camera_positions_is_free_too():
+    grid = np.full((10, 10), OCCUPIED, dtype=np.uint8)  # [ix, iy], 1 x 1 m at 0.1 m from (0, 0)
+    image = to_image(grid)
+    # stack 1 drove from (0.05, 0.05) to (0.45, 0.05) (0.4 m: a dropped frame or three between) and
+    # back up to (0.45, 0.35); stack 3 stood at (0.05, 0.65) and then 0.9 m away at (0.95, 0.65):
+    # farther than TRACK_GAP_M, so only its two pixels. The rows are not in time order, and rows 1
+    # and 2 of different stacks are not a way
+    positions = np.array([[0.45, 0.05], [0.05, 0.65], [0.05, 0.05], [0.95, 0.65], [0.45, 0.35]])
+    stacks, times = np.array([1, 3, 1, 3, 1]), np.array([1.0, 0.0, 0.0, 1.0, 2.0])
+    out = from_image(track_free(image, np.zeros(2), 0.1, positions, stack_ids=stacks, times=times))
+    way = {(ix, 0) for ix in range(5)} | {(4, iy) for iy in range(4)}
+    assert {tuple(p) for p in np.argwhere(out == FREE)} == way | {(0, 6), (9, 6)}
+    # without the times the rows' order is the way: (0.45, 0.05) -> (0.05, 0.05) -> (0.45, 0.35)
+    # (0.5 m, as long as TRACK_GAP_M: kept), a diagonal through pixels (0..4, 0..3)
+    out = from_image(track_free(image, np.zeros(2), 0.1, positions, stack_ids=stacks))
+    free = {tuple(p) for p in np.argwhere(out == FREE)}
+    assert {(ix, 0) for ix in range(5)} <= free and (2, 1) in free and (4, 3) in free and (4, 1) not in free
+    # the points: every half pixel or closer along each way, both ends included
+    pts = track_points(positions[[2, 0]], np.array([1, 1]), None, 0.05)
+    assert len(pts) == 9 and np.allclose(pts[:, 0], np.linspace(0.05, 0.45, 9)) and np.allclose(pts[:, 1], 0.05)
+    assert len(track_points(positions[:1], np.array([1]), None, 0.05)) == 0  # one position: no way
 
 
 def test_cones_passing_counts_the_echoes_whose_cone_held_a_point_before_its_echo():

@@ -88,7 +88,8 @@ class MapViews:
         try:
             m = occupancy_map(self.model, self.store.cam_to_world[:, :3, 3], lo, hi, resolution, int(n_rays),
                               int(max_poses), self.observed(resolution), self.range_evidence(),
-                              low_front_level(self.step))  # D / A while the field is haze (D94)
+                              low_front_level(self.step),  # D / A while the field is haze (D94)
+                              self.store.stack_ids, self.store.times)
         finally:
             self.field.train()
         self._map_cache = (key, dataclasses.replace(m, image=m.image.copy()))

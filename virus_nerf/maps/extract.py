@@ -371,17 +371,20 @@ def behind_ends(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray,
 
 def occupancy_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int,
                   max_poses: int, observed: np.ndarray, evidence: RangeEvidence | None = None,
-                  low_front: float | None = MAP_LOW_FRONT_OPACITY) -> OccupancyMap2D:
+                  low_front: float | None = MAP_LOW_FRONT_OPACITY, stack_ids: np.ndarray | None = None,
+                  times: np.ndarray | None = None) -> OccupancyMap2D:
     """The trinary 2D map a planner reads: scans from up to `max_poses` of the camera `positions`
     (N, 3), unknown outside `observed` ((nx, ny) bool [ix, iy], maps/observed.py) whatever the
     model says, then occupied where the IRS and USS `evidence` touched what the scans called free
-    (maps/planner.py; None: the scans alone), and free where a camera stood within `observed`. The
-    low rays end at the opacity `low_front` (`scan_map`; the Mapper's: `low_front_level` of its step)."""
+    (maps/planner.py; None: the scans alone), and free where a camera stood within `observed` (and,
+    given the positions' `stack_ids` and `times` (N,), on the way between a stack's consecutive
+    positions, maps/planner.track_free). The low rays end at the opacity `low_front` (`scan_map`;
+    the Mapper's: `low_front_level` of its step)."""
     m = scan_map(model, spread_positions(positions, max_poses), lo, hi, resolution, n_rays, evidence, low_front)
     m.image = apply_mask(m.image, observed, UNKNOWN)  # free only where a sensor looked
     if evidence is not None:
         m.image = planner_image(m.image, lo, resolution, evidence)
-    m.image = track_free(m.image, lo, resolution, positions, observed)  # the robot stood there
+    m.image = track_free(m.image, lo, resolution, positions, observed, stack_ids, times)  # the robot stood there
     return m
 
 

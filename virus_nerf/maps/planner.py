@@ -23,7 +23,8 @@ map may lose free space, never gain it):
    rest of a 55 deg arc lies in space other cones crossed, and stays free.
 
 Last, the pixels holding a camera position are free (`track_free`, D92): the robot stood there,
-whatever a half-trained field's scans or a stray measurement say.
+whatever a half-trained field's scans or a stray measurement say; so are those on the way between a
+stack's consecutive positions (D98: the frames a busy machine dropped while driving).
 
 Measured and not kept (docs/decisions.md D47, D89, D91): the VIRUS grid's probability above 0.5
 as obstacles, more scan positions and rays, a softer scan hit rule, every USS arc occupied, a
@@ -64,6 +65,11 @@ USS_FREE_MARGIN_M = 0.1  # a cone passed a point this much closer than its echo
 # lands in free space, moves with the robot and repeats only while it stands (office 81: the hits
 # 0.3 m or more from every surface had sensor positions a median 0.00 m apart, those on a surface
 # 1.0 m)
+# consecutive camera positions of one stack at most this far apart (m) mark the way between them free
+# (`track_free`): the recordings' frames lie 0.1 m apart, so up to four frames a busy machine dropped
+# in a row; a straight chord of 0.5 m cuts a turn of 0.5 m radius by 6 cm, about a pixel, inside the
+# 0.3 m robot's body
+TRACK_GAP_M = 0.5
 IRS_SCAN_NEAR_M = 0.1
 IRS_STEREO_NEAR_M = 0.2
 IRS_SEEN_APART_M = 0.2
@@ -175,20 +181,45 @@ def planner_image(image: np.ndarray, lo: np.ndarray, resolution: float, evidence
 
 
 def track_free(image: np.ndarray, lo: np.ndarray, resolution: float, positions: np.ndarray,
-               observed: np.ndarray | None = None) -> np.ndarray:
+               observed: np.ndarray | None = None, stack_ids: np.ndarray | None = None,
+               times: np.ndarray | None = None) -> np.ndarray:
     """The trinary map (H, W) (row 0 = largest y) with the pixels that hold a camera position
     (positions (N, 2+) m, world frame) free: the robot's own body stood there, so whatever a
-    rule or a half-trained field says, no obstacle does (D92). Only pixels a sensor looked at
-    (`observed`, (nx, ny) bool [ix, iy]; None: all): the map stays unknown wherever its observed
-    mask says so (maps/observed.py). The input is not changed."""
+    rule or a half-trained field says, no obstacle does (D92). With `stack_ids` (N,), the
+    pixels along the way between consecutive positions of one stack (in `times` (N,) s order;
+    row order without) at most TRACK_GAP_M apart are free too: the camera passed there, in the
+    frames the map was not given (a busy machine drops some while driving, D98). Only pixels a
+    sensor looked at (`observed`, (nx, ny) bool [ix, iy]; None: all): the map stays unknown
+    wherever its observed mask says so (maps/observed.py). The input is not changed."""
     out = np.array(image, copy=True)  # (H, W), row 0 = largest y
     xy = np.asarray(positions, dtype=np.float64)[..., :2].reshape(-1, 2)  # (N, 2)
+    if stack_ids is not None:
+        xy = np.concatenate([xy, track_points(xy, stack_ids, times, resolution / 2)])
     ij, inside = world_pixels(xy, np.asarray(lo, dtype=np.float64)[:2], resolution, out.shape[::-1])
     ij = ij[inside]  # (M, 2) [ix, iy]
     if observed is not None:
         ij = ij[np.asarray(observed, dtype=bool)[ij[:, 0], ij[:, 1]]]
     out[out.shape[0] - 1 - ij[:, 1], ij[:, 0]] = FREE
     return out
+
+
+def track_points(positions: np.ndarray, stack_ids: np.ndarray, times: np.ndarray | None, step: float,
+                 max_gap: float = TRACK_GAP_M) -> np.ndarray:
+    """(M, 2) points every `step` m or closer along the straight segments between consecutive
+    camera positions ((N, 2) m) of one stack (`stack_ids` (N,)), in `times` order ((N,) s; None:
+    row order), for segments at most `max_gap` m long; both ends are included."""
+    xy = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+    stacks = np.asarray(stack_ids).reshape(-1)
+    when = np.arange(len(xy)) if times is None else np.asarray(times, dtype=np.float64).reshape(-1)
+    order = np.lexsort((when, stacks))  # by stack, then in time
+    a, b = xy[order[:-1]], xy[order[1:]]  # (N - 1, 2) each segment's ends
+    length = np.linalg.norm(b - a, axis=1)
+    keep = (stacks[order[:-1]] == stacks[order[1:]]) & (length <= max_gap) & np.isfinite(length)
+    a, b, length = a[keep], b[keep], length[keep]
+    n = np.ceil(length / step).astype(np.int64) + 1  # (S,) points a segment, ends included
+    seg = np.repeat(np.arange(len(n)), n)
+    frac = (np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)) / np.maximum(np.repeat(n - 1, n), 1)
+    return a[seg] + (b[seg] - a[seg]) * frac[:, None]
 
 
 def corroborated_irs(occupied: np.ndarray, evidence: RangeEvidence, lo: np.ndarray, resolution: float) -> np.ndarray:
