@@ -82,6 +82,7 @@ def judge(run: Path, data: Path, scene: str) -> dict:
         out["planner_reach"] = block.get("planner_reach")
         if planner is not None:
             out["planner_crossing"], out["planner_paths"] = planner["crossing"], planner["paths"]
+            out["planner_unsafe_m2"] = planner["unsafe_m2"]
         return out
 
     after = mapper_safety(mapper, trainer.recording, cfg.evaluation.height_band_m).document
@@ -164,7 +165,8 @@ def judge_files(folder: Path, data: Path, scene: str) -> dict:
     planner = planner_check(image, origin, resolution, obstacles).block()
     out = {z: block["zones"][z]["free_share"] for z in ("1m", "2m", "all")}
     out.update(free_recall=block["free_recall"], free_recall_drivable=block["free_recall_drivable"],
-               planner_reach=block["planner_reach"], planner_crossing=planner["crossing"], planner_paths=planner["paths"])
+               planner_reach=block["planner_reach"], planner_crossing=planner["crossing"], planner_paths=planner["paths"],
+               planner_unsafe_m2=planner["unsafe_m2"])
     return out
 
 

@@ -122,7 +122,9 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     assert (run / "plots" / "map_safety.png").is_file()
     # issue 42 item 5: a planner on the map finds paths and none of them passes a real obstacle
     assert safety["planner"]["paths"] > 0 and safety["planner"]["crossing"] == 0, safety["planner"]
-    assert "paths between random free points pass a real obstacle" in out
+    # and nowhere may it put the robot's centre touching one, whatever the random ends (D99)
+    assert safety["planner"]["unsafe_m2"] == 0.0 and safety["planner"]["unsafe_share"] == 0.0
+    assert "paths between random free points pass a real obstacle; it may put the robot's centre where" in out
     # `evaluate` judges the same map: the same safety block
     code, out_eval, err = run_cli(["evaluate", "--run", run, "--out", tmp_path / "eval.json"])
     assert code == 0, err
@@ -207,6 +209,37 @@ def test_the_planner_check_finds_paths_and_counts_the_ones_through_a_wall_the_ma
     corridor[8:21, :] = FREE  # 1.3 m wide: passable, nothing to cross
     wide = planner_check(corridor, origin, res, np.zeros((0, 2)))
     assert wide.paths == 1000 and wide.crossing == 0
+
+
+def test_the_planner_checks_unsafe_space_is_where_its_robot_would_touch_a_lost_obstacle():
+    """A 2.5 m square room at 0.125 m (20 x 20 pixels, walls on the border rows and columns, every
+    other pixel free). A 0.3 m robot may put its centre 2.4 pixels or more from anything not free:
+    rows and columns 3-16, 14 x 14 = 196 pixels. A true obstacle the map lost at pixel (row 9,
+    column 9) endangers the pixels within radius - tolerance = 0.2 m = 1.6 pixels of it: itself,
+    its 4 sides and its 4 corners (sqrt 2 = 1.41), all 9 in that space; the walls' own danger
+    (rows and columns 0-1) lies outside it. The map that holds the obstacle keeps the robot's
+    centre 2.4 pixels from it: none."""
+    from virus_nerf.evaluation.safety import planner_check, safety_line
+
+    res, n = 0.125, 20
+    image = np.full((n, n), FREE, dtype=np.uint8)
+    image[[0, -1], :] = OCCUPIED
+    image[:, [0, -1]] = OCCUPIED
+    centres = (np.arange(n) + 0.5) * res
+    walls = np.concatenate([np.column_stack([centres, np.full(n, v)]) for v in (centres[0], centres[-1])]
+                           + [np.column_stack([np.full(n, v), centres]) for v in (centres[0], centres[-1])])
+    lost = np.array([[9.5 * res, (n - 1 - 9 + 0.5) * res]])  # image row 9, column 9
+    check = planner_check(image, (0.0, 0.0), res, np.concatenate([walls, lost]))
+    assert check.space_m2 == pytest.approx(196 * res * res) and check.unsafe_m2 == pytest.approx(9 * res * res)
+    assert check.block()["unsafe_m2"] == round(9 * res * res, 4) and check.unsafe_share == pytest.approx(9 / 196)
+    assert check.crossing > 0  # paths pass it: the space is on the way between the room's halves
+    assert planner_check(image, (0.0, 0.0), res, walls).unsafe_m2 == 0.0  # nothing lost
+    held = image.copy()
+    held[9, 9] = OCCUPIED
+    kept = planner_check(held, (0.0, 0.0), res, np.concatenate([walls, lost]))
+    assert kept.unsafe_m2 == 0.0 and kept.crossing == 0 and kept.space_m2 < check.space_m2
+    doc = {"gt": "map", "observed": 1.0, "zones": {"all": {"free_share": 0.0}}, "planner": check.block()}
+    assert "touches a real obstacle in 0.1406 m^2 (4.59% of where it may put it)" in safety_line(doc)
 
 
 def test_the_floor_and_what_the_body_meets_below_the_band_by_hand():

@@ -251,8 +251,17 @@ def safety_line(doc: dict) -> str:
     if "planner" in doc:
         p = doc["planner"]
         line += (f"\n  a planner (robot radius {p['radius_m']:g} m) on the map: {p['crossing']} of {p['paths']} "
-                 "paths between random free points pass a real obstacle")
+                 "paths between random free points pass a real obstacle" + unsafe_words(p))
     return line
+
+
+def unsafe_words(planner: dict) -> str:
+    """The planner block's unsafe space in words ("" for a block written before D99)."""
+    if planner.get("unsafe_m2") is None:
+        return ""
+    share = planner.get("unsafe_share")
+    return (f"; it may put the robot's centre where it touches a real obstacle in {planner['unsafe_m2']:.4g} m^2"
+            + ("" if share is None else f" ({share:.2%} of where it may put it)"))
 
 
 def safety_picture(image: np.ndarray, origin: tuple[float, float], resolution: float, obstacles_xy: np.ndarray,
@@ -351,9 +360,19 @@ class PlannerCheck:
     paths: int  # paths found (start and goal connected in the map's free space)
     crossing: int  # of them, paths passing closer than radius - tolerance to a ground-truth obstacle
     radius_m: float
+    # where the planner may put the robot's centre though a real obstacle lies closer than radius -
+    # tolerance (m^2; every path through it crosses one): the check's figure without its random ends
+    unsafe_m2: float = 0.0
+    space_m2: float = 0.0  # the whole configuration space (m^2)
+
+    @property
+    def unsafe_share(self) -> float | None:
+        return self.unsafe_m2 / self.space_m2 if self.space_m2 else None
 
     def block(self) -> dict:
-        return {"paths": self.paths, "crossing": self.crossing, "radius_m": self.radius_m}
+        share = self.unsafe_share
+        return {"paths": self.paths, "crossing": self.crossing, "radius_m": self.radius_m,
+                "unsafe_m2": round(self.unsafe_m2, 4), "unsafe_share": None if share is None else round(share, 6)}
 
 
 def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: float, obstacles_xy: np.ndarray,
@@ -364,7 +383,10 @@ def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: fl
     Shortest 8-connected paths (Dijkstra, scipy.sparse.csgraph) from PLANNER_STARTS random
     configuration-space pixels to PLANNER_GOALS random others each (seeded); a path crosses a
     ground-truth obstacle (points (K, 2) m) when one of its pixels lies within radius - tolerance
-    of an obstacle pixel (the tolerance forgives a wall drawn a pixel or two off, as `map_safety`)."""
+    of an obstacle pixel (the tolerance forgives a wall drawn a pixel or two off, as `map_safety`).
+    Beside the paths, the configuration space's pixels within that distance of an obstacle pixel,
+    as an area: a path crosses an obstacle only through them, and unlike the paths they do not
+    depend on where random ends fell (D99)."""
     from scipy.ndimage import distance_transform_edt
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
@@ -375,9 +397,11 @@ def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: fl
     obst = obstacle_pixels(obstacles_xy, origin, resolution, (h, w))
     danger = (distance_transform_edt(~obst) * resolution <= radius - tolerance) if obst.any() \
         else np.zeros((h, w), dtype=bool)
+    area = resolution * resolution
+    unsafe_m2, space_m2 = float((space & danger).sum()) * area, float(space.sum()) * area
     nodes = np.flatnonzero(space.ravel())
     if len(nodes) < 2:
-        return PlannerCheck(0, 0, radius)
+        return PlannerCheck(0, 0, radius, unsafe_m2, space_m2)
     index = np.full(h * w, -1, dtype=np.int64)
     index[nodes] = np.arange(len(nodes))
     r, c = np.divmod(nodes, w)
@@ -406,4 +430,4 @@ def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: fl
                 hit = bool(danger.flat[nodes[v]])
                 v = pred[k, v]
             crossing += hit
-    return PlannerCheck(paths, crossing, radius)
+    return PlannerCheck(paths, crossing, radius, unsafe_m2, space_m2)
