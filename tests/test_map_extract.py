@@ -44,11 +44,11 @@ def test_a_raster_too_large_or_not_positive_is_one_line_naming_the_argument():
 
 def test_a_raster_whose_working_memory_cannot_fit_is_refused_before_any_work():
     """The pixel cap alone let `export --resolution 0.001` compute for minutes and die in numpy:
-    the rasters' working memory (56 bytes a pixel, D48) is checked against half of memory."""
+    the rasters' working memory (64 bytes a pixel, D48, D101) is checked against half of memory."""
     lo, hi = np.array([0.0, 0.0]), np.array([10.0, 5.0])
-    # 0.001 m: 10000 x 5000 = 50 M px, under the 100 M px cap; 50e6 * 56 B = 2.61 GiB
+    # 0.001 m: 10000 x 5000 = 50 M px, under the 100 M px cap; 50e6 * 64 B = 2.98 GiB
     assert check_raster("--resolution", lo, hi, 0.001, limit=6 * 2**30) == (10000, 5000)  # 3 GiB allowed
-    with pytest.raises(UsageError, match=r"^--resolution 0.001: the 10000x5000 px map's rasters: would need 2.6 GiB "
+    with pytest.raises(UsageError, match=r"^--resolution 0.001: the 10000x5000 px map's rasters: would need 3.0 GiB "
                                          r"and this machine has 4.0 GiB; expected a coarser resolution$"):
         check_raster("--resolution", lo, hi, 0.001, limit=4 * 2**30)
 

@@ -173,6 +173,30 @@ def test_stereo_points_at_camera_height_mark_their_pixels_occupied():
     assert out[10, 0] == OCCUPIED and out[5, 3] == OCCUPIED and (out == OCCUPIED).sum() == 2
 
 
+def test_an_irs_hit_near_a_scan_end_at_a_fine_resolution_against_a_brute_force_search():
+    """At 1 cm, IRS_SCAN_NEAR_M is 10 pixels: the hits whose pixel has an occupied pixel within 10
+    pixels (centre to centre), found by looking at every occupied pixel, are the ones kept (the
+    hits are measured from one place, and no stereo point backs them)."""
+    from virus_nerf.maps.planner import IRS_SCAN_NEAR_M, corroborated_irs
+
+    rng = np.random.default_rng(5)
+    res, lo = 0.01, np.zeros(2)
+    occupied = rng.random((150, 120)) < 0.002  # [ix, iy], 1.5 x 1.2 m
+    hits = rng.uniform([-0.05, -0.05], [1.55, 1.25], (400, 2))  # some off the raster: left out
+    ev = RangeEvidence(hits, np.zeros((0, 2)), np.zeros(0), np.zeros(0), irs_origins=np.zeros((400, 2)))
+    kept = corroborated_irs(occupied, ev, lo, res)
+    occ = np.argwhere(occupied)
+    expected, far = np.zeros(occupied.shape, dtype=bool), 0
+    for ix, iy in np.floor(hits / res).astype(int):
+        if 0 <= ix < 150 and 0 <= iy < 120:
+            near = bool((((occ - [ix, iy]) ** 2).sum(axis=1) <= (IRS_SCAN_NEAR_M / res) ** 2).any())
+            expected[ix, iy] |= near
+            far += not near
+    assert expected.sum() > 20 and far > 20  # both kinds are there
+    assert (kept == expected).all()
+    assert not corroborated_irs(np.zeros_like(occupied), ev, lo, res).any()  # nothing occupied, nothing near
+
+
 def test_the_pixels_where_a_camera_stood_are_free_whatever_the_rules_said():
     grid = np.full((30, 10), OCCUPIED, dtype=np.uint8)  # [ix, iy], 3 x 1 m at 0.1 m from (-1, 2)
     grid[20:, :] = UNKNOWN

@@ -53,9 +53,10 @@ from virus_nerf.utils.memory import require_memory
 
 # working memory of the 2D rasters per pixel (scan counts, observed mask, planner votes, distance
 # transforms, the probability slice, the ESDF): the slope of `export --what map,prob,esdf`'s peak
-# RSS over pixels (office 81, D48): 19.0 M px 1.51 GB, 75.8 M px 4.45 GB, 53 bytes a pixel; the
-# scans' pass points and the view wedges go in chunks and do not grow with the raster
-RASTER_BYTES_PER_PIXEL = 56
+# RSS over pixels (office 81, D101): 4.7 M px 0.90 GB, 19.0 M px 1.75 GB, 75.8 M px 5.19 GB, 60
+# bytes a pixel (D48: 53); the scans' pass points and the view wedges go in chunks, and the IRS
+# hits' test for a scan end nearby is a distance transform, so nothing else grows with the raster
+RASTER_BYTES_PER_PIXEL = 64
 # the map's scan rays start at these heights (m) above the camera, in turn: the +-5 cm band that
 # the 2D map and its ground truth stand for (evaluation.height_band_m), sampled at the cost of one
 # plane (D56: office free recall 83.3 -> 85.7 %, warehouse obstacles marked free 16.7 -> 16.4 %)

@@ -227,8 +227,9 @@ def corroborated_irs(occupied: np.ndarray, evidence: RangeEvidence, lo: np.ndarr
     pixel of the scans (`occupied`, (nx, ny) bool) within IRS_SCAN_NEAR_M, a stereo point at camera
     height within IRS_STEREO_NEAR_M of the pixel's centre, or hits in the pixel and its 8
     neighbours measured from sensor positions IRS_SEEN_APART_M apart (`evidence.irs_origins`; every
-    hit pixel without them). Only the hits' own neighbourhoods are looked at (a snapshot's cost
-    does not grow with the raster)."""
+    hit pixel without them). The nearest occupied pixel comes from one distance transform of the
+    raster (its memory is the raster's at any resolution, D101); the rest looks at the hits' own
+    3 x 3 blocks."""
     out = np.zeros(occupied.shape, dtype=bool)
     ij, inside = world_pixels(evidence.irs_hits, lo, resolution, occupied.shape)
     if not inside.any():
@@ -249,8 +250,12 @@ def corroborated_irs(occupied: np.ndarray, evidence: RangeEvidence, lo: np.ndarr
         ok = ((q >= 0) & (q < shape)).all(axis=2)
         return np.clip(q, 0, shape - 1), ok
 
-    q, ok = around(IRS_SCAN_NEAR_M / resolution)
-    kept = (ok & occupied[q[..., 0], q[..., 1]]).any(axis=1)
+    kept = np.zeros(len(key), dtype=bool)
+    if occupied.any():  # an occupied pixel within IRS_SCAN_NEAR_M: a distance transform, whose memory is the
+        # raster's (a disk of pixels around each hit pixel took hits x (radius / resolution)^2, 10 GB at 2 mm)
+        from scipy.ndimage import distance_transform_edt
+
+        kept = distance_transform_edt(~occupied)[pix[:, 0], pix[:, 1]] ** 2 <= (IRS_SCAN_NEAR_M / resolution) ** 2 + 1e-9
     # the box around the sensor positions of each hit pixel, then of its 3 x 3 block
     origins = np.asarray(evidence.irs_origins, dtype=np.float64)[inside]  # (K', 2)
     order = np.argsort(which, kind="stable")
