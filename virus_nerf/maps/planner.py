@@ -57,6 +57,11 @@ USS_EXPLAINED_M = 0.05
 USS_ARC_STEP_DEG = 1.0  # points along an echo's arc
 USS_ARC_VOTE = 0.25  # an arc pixel is occupied when unexplained arcs >= this share of the cones that passed it
 USS_FREE_MARGIN_M = 0.1  # a cone passed a point this much closer than its echo
+# consecutive camera positions of one stack at most this far apart (m) mark the way between them free
+# (`track_free`): the recordings' frames lie 0.1 m apart, so up to four frames a busy machine dropped
+# in a row; a straight chord of 0.5 m cuts a turn of 0.5 m radius by 6 cm, about a pixel, inside the
+# 0.3 m robot's body
+TRACK_GAP_M = 0.5
 # an IRS hit marks its pixel occupied only when something corroborates it (D89): the NeRF's scans
 # hold an occupied pixel within IRS_SCAN_NEAR_M of its pixel, a stereo point at camera height lies
 # within IRS_STEREO_NEAR_M, or the hits in its pixel and the 8 around it were measured from sensor
@@ -65,11 +70,6 @@ USS_FREE_MARGIN_M = 0.1  # a cone passed a point this much closer than its echo
 # lands in free space, moves with the robot and repeats only while it stands (office 81: the hits
 # 0.3 m or more from every surface had sensor positions a median 0.00 m apart, those on a surface
 # 1.0 m)
-# consecutive camera positions of one stack at most this far apart (m) mark the way between them free
-# (`track_free`): the recordings' frames lie 0.1 m apart, so up to four frames a busy machine dropped
-# in a row; a straight chord of 0.5 m cuts a turn of 0.5 m radius by 6 cm, about a pixel, inside the
-# 0.3 m robot's body
-TRACK_GAP_M = 0.5
 IRS_SCAN_NEAR_M = 0.1
 IRS_STEREO_NEAR_M = 0.2
 IRS_SEEN_APART_M = 0.2
