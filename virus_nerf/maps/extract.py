@@ -215,9 +215,11 @@ def band_counts(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray,
     """The band's scans (`scan_rays` with MAP_SCAN_HEIGHTS_M: origins (N n_rays, 3), directions
     (N n_rays, 3), ranges (N n_rays,) m) -> passes and ends ((nx, ny) counts, all heights) and the
     occupied pixels ((nx, ny) bool): the scan rule height by height, occupied where the rays of any
-    one height ended at least half as often as they passed. A table top 4 cm thick at camera height
-    stops the rays of one height while those above and below it pass: counted together, their
-    passes outvoted its ends and a planner drove through its edge (D96, D97)."""
+    one height ended at least half as often as they passed. A thin obstacle stops the rays of one
+    height while the others pass: a table top 4 cm thick at camera height, or a 5 cm leg whose
+    one ray ends on it while the next rays, at the other heights, pass through its pixel beside
+    it. Counted together, their passes outvoted its ends and a planner drove through a desk's leg
+    (D96, D97; corrected in D99)."""
     heights = np.arange(len(ranges)) % n_rays % len(MAP_SCAN_HEIGHTS_M)  # ray i at heights[i % 3]
     passes = hits = occupied = None
     for h in range(len(MAP_SCAN_HEIGHTS_M)):
