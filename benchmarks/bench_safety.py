@@ -83,6 +83,7 @@ def judge(run: Path, data: Path, scene: str) -> dict:
         if planner is not None:
             out["planner_crossing"], out["planner_paths"] = planner["crossing"], planner["paths"]
             out["planner_unsafe_m2"] = planner["unsafe_m2"]
+            out["planner_unsafe_2m_m2"] = planner.get("unsafe_near_m2", {}).get("2m")
         return out
 
     after = mapper_safety(mapper, trainer.recording, cfg.evaluation.height_band_m).document
@@ -162,11 +163,11 @@ def judge_files(folder: Path, data: Path, scene: str) -> dict:
     box = fit_scene_box(rec)
     block = judge_map(image, origin, resolution, obstacles, poses[:, :2, 3], extent=(box.lo[:2], box.hi[:2]),
                       body_xy=body_slice(rec.lidar_map(), height, band)).block()
-    planner = planner_check(image, origin, resolution, obstacles).block()
+    planner = planner_check(image, origin, resolution, obstacles, path_xy=poses[:, :2, 3]).block()
     out = {z: block["zones"][z]["free_share"] for z in ("1m", "2m", "all")}
     out.update(free_recall=block["free_recall"], free_recall_drivable=block["free_recall_drivable"],
                planner_reach=block["planner_reach"], planner_crossing=planner["crossing"], planner_paths=planner["paths"],
-               planner_unsafe_m2=planner["unsafe_m2"])
+               planner_unsafe_m2=planner["unsafe_m2"], planner_unsafe_2m_m2=planner["unsafe_near_m2"]["2m"])
     return out
 
 

@@ -124,6 +124,7 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     assert safety["planner"]["paths"] > 0 and safety["planner"]["crossing"] == 0, safety["planner"]
     # and nowhere may it put the robot's centre touching one, whatever the random ends (D99)
     assert safety["planner"]["unsafe_m2"] == 0.0 and safety["planner"]["unsafe_share"] == 0.0
+    assert safety["planner"]["unsafe_near_m2"] == {"1m": 0.0, "2m": 0.0}
     assert "paths between random free points pass a real obstacle; it may put the robot's centre where" in out
     # `evaluate` judges the same map: the same safety block
     code, out_eval, err = run_cli(["evaluate", "--run", run, "--out", tmp_path / "eval.json"])
@@ -240,6 +241,14 @@ def test_the_planner_checks_unsafe_space_is_where_its_robot_would_touch_a_lost_o
     assert kept.unsafe_m2 == 0.0 and kept.crossing == 0 and kept.space_m2 < check.space_m2
     doc = {"gt": "map", "observed": 1.0, "zones": {"all": {"free_share": 0.0}}, "planner": check.block()}
     assert "touches a real obstacle in 0.1406 m^2 (4.59% of where it may put it)" in safety_line(doc)
+    # the robot drove by at (0.1875, 1.3125), pixel (row 9, column 1): of the 9 unsafe pixels (columns
+    # 8-10 at x 1.0625-1.3125 m, rows 8-10), column 8's three lie 0.875-0.884 m from it and column 9's
+    # middle one 1.0 m; the rest 1.008-1.132 m: 4 within 1 m, all 9 within 2 m
+    near = planner_check(image, (0.0, 0.0), res, np.concatenate([walls, lost]), path_xy=np.array([[0.1875, 1.3125]]))
+    assert near.unsafe_near_m2 == pytest.approx({"1m": 4 * res * res, "2m": 9 * res * res})
+    assert near.block()["unsafe_near_m2"] == {"1m": 0.0625, "2m": 0.1406} and "unsafe_near_m2" not in check.block()
+    doc["planner"] = near.block()
+    assert "(4.59% of where it may put it), 0.0625 m^2 within 1 m of the path, 0.1406 m^2 within 2 m" in safety_line(doc)
 
 
 def test_the_floor_and_what_the_body_meets_below_the_band_by_hand():

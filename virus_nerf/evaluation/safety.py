@@ -27,7 +27,7 @@ the space the robot can actually cross.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -259,9 +259,10 @@ def unsafe_words(planner: dict) -> str:
     """The planner block's unsafe space in words ("" for a block written before D99)."""
     if planner.get("unsafe_m2") is None:
         return ""
-    share = planner.get("unsafe_share")
+    share, near = planner.get("unsafe_share"), planner.get("unsafe_near_m2") or {}
     return (f"; it may put the robot's centre where it touches a real obstacle in {planner['unsafe_m2']:.4g} m^2"
-            + ("" if share is None else f" ({share:.2%} of where it may put it)"))
+            + ("" if share is None else f" ({share:.2%} of where it may put it)")
+            + "".join(f", {a:.4g} m^2 within {z[:-1]} m of the path" for z, a in near.items()))
 
 
 def safety_picture(image: np.ndarray, origin: tuple[float, float], resolution: float, obstacles_xy: np.ndarray,
@@ -344,7 +345,7 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
                                   body_xy=body)}
     doc = safety_document(judge_map(m.image, m.origin, resolution, obstacles, path, extent=extent, body_xy=body),
                           observed_share(seen), "map", resolution, anchors)
-    doc["planner"] = planner_check(m.image, m.origin, resolution, obstacles).block()
+    doc["planner"] = planner_check(m.image, m.origin, resolution, obstacles, path_xy=path).block()
     return RunSafety(doc, safety_picture(m.image, m.origin, resolution, obstacles, path))
 
 
@@ -364,6 +365,9 @@ class PlannerCheck:
     # tolerance (m^2; every path through it crosses one): the check's figure without its random ends
     unsafe_m2: float = 0.0
     space_m2: float = 0.0  # the whole configuration space (m^2)
+    # of unsafe_m2, the part within each of SAFETY_ZONES_M's finite distances of the path (m^2, by
+    # zone name; empty without the path): where the robot drives next, not across the room (D102)
+    unsafe_near_m2: dict[str, float] = field(default_factory=dict)
 
     @property
     def unsafe_share(self) -> float | None:
@@ -372,12 +376,14 @@ class PlannerCheck:
     def block(self) -> dict:
         share = self.unsafe_share
         return {"paths": self.paths, "crossing": self.crossing, "radius_m": self.radius_m,
-                "unsafe_m2": round(self.unsafe_m2, 4), "unsafe_share": None if share is None else round(share, 6)}
+                "unsafe_m2": round(self.unsafe_m2, 4), "unsafe_share": None if share is None else round(share, 6),
+                **({"unsafe_near_m2": {z: round(a, 4) for z, a in self.unsafe_near_m2.items()}}
+                   if self.unsafe_near_m2 else {})}
 
 
 def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: float, obstacles_xy: np.ndarray,
                   seed: int = 0, radius: float = PLANNER_RADIUS_M, tolerance: float = SAFETY_TOLERANCE_M,
-                  free_value: int = 254) -> PlannerCheck:
+                  free_value: int = 254, path_xy: np.ndarray | None = None) -> PlannerCheck:
     """Plan as a robot of `radius` m would on the map (H, W): its configuration space is the free
     pixels farther than `radius` from every pixel that is not free (occupied or unknown alike).
     Shortest 8-connected paths (Dijkstra, scipy.sparse.csgraph) from PLANNER_STARTS random
@@ -386,7 +392,8 @@ def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: fl
     of an obstacle pixel (the tolerance forgives a wall drawn a pixel or two off, as `map_safety`).
     Beside the paths, the configuration space's pixels within that distance of an obstacle pixel,
     as an area: a path crosses an obstacle only through them, and unlike the paths they do not
-    depend on where random ends fell (D99)."""
+    depend on where random ends fell (D99); with the robot's path (P, 2 m), also the part of that
+    area within 1 m and 2 m of it (D102)."""
     from scipy.ndimage import distance_transform_edt
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
@@ -399,9 +406,10 @@ def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: fl
         else np.zeros((h, w), dtype=bool)
     area = resolution * resolution
     unsafe_m2, space_m2 = float((space & danger).sum()) * area, float(space.sum()) * area
+    near = unsafe_near_path(space & danger, origin, resolution, path_xy) if path_xy is not None else {}
     nodes = np.flatnonzero(space.ravel())
     if len(nodes) < 2:
-        return PlannerCheck(0, 0, radius, unsafe_m2, space_m2)
+        return PlannerCheck(0, 0, radius, unsafe_m2, space_m2, near)
     index = np.full(h * w, -1, dtype=np.int64)
     index[nodes] = np.arange(len(nodes))
     r, c = np.divmod(nodes, w)
@@ -430,4 +438,19 @@ def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: fl
                 hit = bool(danger.flat[nodes[v]])
                 v = pred[k, v]
             crossing += hit
-    return PlannerCheck(paths, crossing, radius, unsafe_m2, space_m2)
+    return PlannerCheck(paths, crossing, radius, unsafe_m2, space_m2, near)
+
+
+def unsafe_near_path(unsafe: np.ndarray, origin: tuple[float, float], resolution: float,
+                     path_xy: np.ndarray) -> dict[str, float]:
+    """{zone name: m^2} of the unsafe pixels ((H, W) bool, the map's raster) whose centre lies
+    within each finite distance of SAFETY_ZONES_M of the path (P, 2 m)."""
+    from scipy.spatial import cKDTree
+
+    rows, cols = np.nonzero(unsafe)
+    h = unsafe.shape[0]
+    centres = np.column_stack([origin[0] + (cols + 0.5) * resolution, origin[1] + (h - rows - 0.5) * resolution])
+    path = np.asarray(path_xy, dtype=np.float64).reshape(-1, 2)
+    dist = cKDTree(path).query(centres)[0] if len(path) and len(centres) else np.full(len(centres), np.inf)
+    return {_zone_name(z): float((dist <= z).sum()) * resolution * resolution for z in SAFETY_ZONES_M
+            if math.isfinite(z)}
