@@ -83,7 +83,7 @@ def judge(run: Path, data: Path, scene: str) -> dict:
         if planner is not None:
             out["planner_crossing"], out["planner_paths"] = planner["crossing"], planner["paths"]
             out["planner_unsafe_m2"] = planner["unsafe_m2"]
-            out["planner_unsafe_2m_m2"] = planner.get("unsafe_near_m2", {}).get("2m")
+            out["planner_unsafe_2m_m2"] = planner["unsafe_near_m2"]["2m"]
         return out
 
     after = mapper_safety(mapper, trainer.recording, cfg.evaluation.height_band_m).document

@@ -122,16 +122,25 @@ def map_safety(image: np.ndarray, origin: tuple[float, float], resolution: float
     image (H, W) trinary map (maps.occupancy raster); obstacles_xy (K, 2) ground-truth points at
     camera height (m); path_xy (P, 2) the robot's camera positions (m).
     """
+    obst = obstacle_pixels(obstacles_xy, origin, resolution, np.asarray(image).shape)
+    rows, cols, dist = path_distances(obst, origin, resolution, path_xy)
+    missed = free_for_sure(image, free_value, resolution, tolerance)[rows, cols]
+    return [SafetyZone(float(z), int((dist <= z).sum()), int((missed & (dist <= z)).sum())) for z in zones]
+
+
+def path_distances(mask: np.ndarray, origin: tuple[float, float], resolution: float,
+                   path_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels of `mask` ((H, W) bool, the maps.occupancy raster) as rows (K,), cols (K,) and
+    the distance (K,) m from each one's centre to the nearest point of the path (P, 2 m; inf
+    without one)."""
     from scipy.spatial import cKDTree
 
-    h, w = np.asarray(image).shape
-    obst = obstacle_pixels(obstacles_xy, origin, resolution, (h, w))
-    rows, cols = np.nonzero(obst)
+    rows, cols = np.nonzero(mask)
+    h = mask.shape[0]
     centres = np.column_stack([origin[0] + (cols + 0.5) * resolution, origin[1] + (h - rows - 0.5) * resolution])
     path = np.asarray(path_xy, dtype=np.float64).reshape(-1, 2)
     dist = cKDTree(path).query(centres)[0] if len(path) and len(centres) else np.full(len(centres), np.inf)
-    missed = free_for_sure(image, free_value, resolution, tolerance)[rows, cols]
-    return [SafetyZone(float(z), int((dist <= z).sum()), int((missed & (dist <= z)).sum())) for z in zones]
+    return rows, cols, dist
 
 
 @dataclass(frozen=True)
@@ -445,12 +454,6 @@ def unsafe_near_path(unsafe: np.ndarray, origin: tuple[float, float], resolution
                      path_xy: np.ndarray) -> dict[str, float]:
     """{zone name: m^2} of the unsafe pixels ((H, W) bool, the map's raster) whose centre lies
     within each finite distance of SAFETY_ZONES_M of the path (P, 2 m)."""
-    from scipy.spatial import cKDTree
-
-    rows, cols = np.nonzero(unsafe)
-    h = unsafe.shape[0]
-    centres = np.column_stack([origin[0] + (cols + 0.5) * resolution, origin[1] + (h - rows - 0.5) * resolution])
-    path = np.asarray(path_xy, dtype=np.float64).reshape(-1, 2)
-    dist = cKDTree(path).query(centres)[0] if len(path) and len(centres) else np.full(len(centres), np.inf)
+    dist = path_distances(unsafe, origin, resolution, path_xy)[2]
     return {_zone_name(z): float((dist <= z).sum()) * resolution * resolution for z in SAFETY_ZONES_M
             if math.isfinite(z)}
