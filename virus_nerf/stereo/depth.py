@@ -188,10 +188,14 @@ class StereoBuilder:
             return StereoDepth.empty()
         ids, track = np.unique(track, return_inverse=True)
         n_tracks = len(ids)
-        poses = np.stack([self.frame_pose[int(f)] for f in frame])  # (V, 4, 4)
-        stacks = np.array([self.frame_stack[int(f)] for f in frame])
-        k = np.stack([self.intrinsics[int(s)].matrix for s in stacks])  # (V, 3, 3)
-        world_to_cam = np.linalg.inv(poses)
+        # each frame's pose, camera and inverse once, then gathered per view (a drive's flush has
+        # ~10^5 views over ~10^2 frames)
+        rows, at = np.unique(frame, return_inverse=True)  # (F,), (V,) the views' frames
+        row_poses = np.stack([self.frame_pose[int(f)] for f in rows])  # (F, 4, 4)
+        row_stacks = np.array([self.frame_stack[int(f)] for f in rows])  # (F,)
+        poses, stacks = row_poses[at], row_stacks[at]  # (V, 4, 4), (V,)
+        k = np.stack([self.intrinsics[int(s)].matrix for s in row_stacks])[at]  # (V, 3, 3)
+        world_to_cam = np.linalg.inv(row_poses)[at]
         centres = poses[:, :3, 3]
         d_cam = np.stack([(uv[:, 0] - k[:, 0, 2]) / k[:, 0, 0], (uv[:, 1] - k[:, 1, 2]) / k[:, 1, 1],
                           np.ones(len(uv))], axis=1)
@@ -225,7 +229,8 @@ class StereoBuilder:
         ok = track_ok[track]
         track, frame, uv, stacks, sigma, dist = (a[ok] for a in (track, frame, uv, stacks, sigma, dist))
         # each view -> a target along its own ray, in the training image's pixel coordinates
-        scale = np.array([self.train_intrinsics[int(st)].width / self.intrinsics[int(st)].width for st in stacks])
+        cams, cam_of = np.unique(stacks, return_inverse=True)
+        scale = np.array([self.train_intrinsics[int(c)].width / self.intrinsics[int(c)].width for c in cams])[cam_of]
         uv_train = (uv + 0.5) * scale[:, None] - 0.5
         order = np.argsort(frame, kind="stable")
         used = np.unique(track)
