@@ -13,7 +13,7 @@ from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.stereo import StereoBuilder, StereoConfig, StereoDepth
 from virus_nerf.stereo import triangulation as tri
 from virus_nerf.stereo.depth import _extend
-from virus_nerf.stereo.tracking import epipolar_distance, fundamental, rotation_homography
+from virus_nerf.stereo.tracking import corner_mask, epipolar_distance, fundamental, rotation_homography
 
 F_PX = 200.0
 INTR = Intrinsics(fx=F_PX, fy=F_PX, cx=159.5, cy=119.5, width=320, height=240)
@@ -191,6 +191,23 @@ def _phantom_share(tracker) -> float:
     depth, poses, _ = _wall_drive(tracker=tracker, pole_tex=_texture(1))
     assert len(depth) > 1000
     return float(np.mean(np.abs(depth.ranges - _truth(depth, poses, poles=True)) > 0.3))
+
+
+def test_corner_mask_is_opencvs_filled_circles():
+    """The mask where no new corner may start is the one a filled cv2.circle at each tracked pixel
+    draws, also for points at and beyond the image's edges."""
+    cv2 = pytest.importorskip("cv2")
+    rng = np.random.default_rng(3)
+    for radius in (1, 4, 7):
+        uv = rng.uniform([-6.0, -6.0], [326.0, 246.0], size=(300, 2))
+        expected = np.full((240, 320), 255, dtype=np.uint8)
+        for u, v in np.round(uv).astype(int):
+            cv2.circle(expected, (int(u), int(v)), radius, 0, -1)
+        np.testing.assert_array_equal(corner_mask((240, 320), uv, radius), expected)
+    # by hand: radius 1 around (2, 3) is the pixel and its four neighbours
+    mask = corner_mask((6, 6), np.array([[2.2, 2.9]]), 1)
+    assert sorted(zip(*np.nonzero(mask == 0), strict=True)) == [(2, 2), (3, 1), (3, 2), (3, 3), (4, 2)]
+    assert (corner_mask((6, 6), np.zeros((0, 2)), 4) == 255).all()
 
 
 def test_tracker_window_is_an_angle():
