@@ -13,7 +13,12 @@ from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.stereo import StereoBuilder, StereoConfig, StereoDepth
 from virus_nerf.stereo import triangulation as tri
 from virus_nerf.stereo.depth import _extend
-from virus_nerf.stereo.tracking import corner_mask, epipolar_distance, fundamental, rotation_homography
+from virus_nerf.stereo.tracking import (
+    corner_mask,
+    epipolar_distance,
+    fundamental,
+    rotation_homography,
+)
 
 F_PX = 200.0
 INTR = Intrinsics(fx=F_PX, fy=F_PX, cx=159.5, cy=119.5, width=320, height=240)
