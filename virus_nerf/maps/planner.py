@@ -242,14 +242,6 @@ def corroborated_irs(occupied: np.ndarray, evidence: RangeEvidence, lo: np.ndarr
         out[pix[:, 0], pix[:, 1]] = True
         return out
 
-    def around(radius_px: float) -> tuple[np.ndarray, np.ndarray]:
-        """(M, O, 2) the pixels within radius_px of each hit pixel (clipped), (M, O) inside the raster."""
-        r = int(np.floor(radius_px + 1e-9))
-        d = np.array([(x, y) for x in range(-r, r + 1) for y in range(-r, r + 1) if x * x + y * y <= radius_px ** 2 + 1e-9])
-        q = pix[:, None, :] + d[None]
-        ok = ((q >= 0) & (q < shape)).all(axis=2)
-        return np.clip(q, 0, shape - 1), ok
-
     kept = np.zeros(len(key), dtype=bool)
     if occupied.any():  # an occupied pixel within IRS_SCAN_NEAR_M: a distance transform, whose memory is the
         # raster's (a disk of pixels around each hit pixel took hits x (radius / resolution)^2, 10 GB at 2 mm)
@@ -262,7 +254,10 @@ def corroborated_irs(occupied: np.ndarray, evidence: RangeEvidence, lo: np.ndarr
     starts = np.searchsorted(which[order], np.arange(len(key)))  # each pixel's first hit in `order`
     low = np.minimum.reduceat(origins[order], starts)  # (M, 2)
     high = np.maximum.reduceat(origins[order], starts)
-    q, ok = around(np.sqrt(2))
+    block = np.array([(x, y) for x in (-1, 0, 1) for y in (-1, 0, 1)])  # (9, 2)
+    q = pix[:, None, :] + block[None]  # (M, 9, 2) each hit pixel's 3 x 3 block
+    ok = ((q >= 0) & (q < shape)).all(axis=2)  # (M, 9) inside the raster
+    q = np.clip(q, 0, shape - 1)
     at = np.clip(np.searchsorted(key, q[..., 0] * shape[1] + q[..., 1]), 0, len(key) - 1)  # (M, 9)
     ok &= key[at] == q[..., 0] * shape[1] + q[..., 1]  # a hit pixel
     block_low = np.where(ok[..., None], low[at], np.inf).min(axis=1)
