@@ -25,14 +25,15 @@ def run_cli(argv) -> tuple[int, str, str]:
 
 
 def tiny_train_config(**changes):
-    """A 5-step training of 128 rays on a coarse grid: enough to write every file of a run."""
+    """A 5-step training of 128 rays on a coarse grid: enough to write every file of a run but
+    plots/ (~5 s of matplotlib a run; the tests of the plots pass plots=True)."""
     from virus_nerf.engine.config import MarchConfig
     from virus_nerf.grid.ngp import NgpGridConfig
     from virus_nerf.grid.virus import VirusGridConfig
     from virus_nerf.trainer.config import TrainConfig
 
     base = TrainConfig(
-        max_steps=5, max_time=None, batch_size=128, image_scale=1.0, log_every=2,
+        max_steps=5, max_time=None, batch_size=128, image_scale=1.0, log_every=2, plots=False,
         march=MarchConfig(step_size=0.06, max_samples=32),
         virus_grid=VirusGridConfig(warmup_steps=16, update_interval=4, rays_per_update=64),
         ngp_grid=NgpGridConfig(warmup_steps=16, update_interval=4, max_resolution=32),

@@ -102,7 +102,7 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     from virus_nerf.config_io import to_dict
 
     cfg = tmp_path / "small.json"
-    cfg.write_text(json.dumps(to_dict(tiny_train_config())))
+    cfg.write_text(json.dumps(to_dict(tiny_train_config(plots=True))))  # the safety picture is in plots/
     run = tmp_path / "run"
     code, out, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", run, "--config", cfg,
                               "--quiet"])

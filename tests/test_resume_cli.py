@@ -40,7 +40,7 @@ def finished_run(tiny_office, tmp_path_factory) -> Path:
     """A 5-step run trained through the CLI (config file + flags), kept pristine for copying."""
     root = tmp_path_factory.mktemp("finished")
     cfg = root / "small.json"
-    cfg.write_text(json.dumps(to_dict(tiny_train_config())))
+    cfg.write_text(json.dumps(to_dict(tiny_train_config(plots=True))))  # resume replaces the plots: they are tested
     code, _, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", root / "run", "--config", cfg,
                          "--quiet"])
     assert code == 0, err
@@ -259,7 +259,7 @@ def test_plots_are_written_before_metrics(tiny_office, tmp_path, monkeypatch):
 
     monkeypatch.setattr(report, "write_run_plots", broken)
     with pytest.raises(RuntimeError, match="plotting failed"):
-        run_training(tiny_office, "office", tmp_path / "run", tiny_train_config(max_steps=2), quiet=True)
+        run_training(tiny_office, "office", tmp_path / "run", tiny_train_config(max_steps=2, plots=True), quiet=True)
     assert (tmp_path / "run" / "checkpoint.pt").is_file()
     assert not (tmp_path / "run" / "metrics.json").exists()
     monkeypatch.undo()

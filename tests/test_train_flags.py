@@ -81,6 +81,16 @@ def test_a_nested_flag_reaches_config_json(tiny_office, tmp_path):
     assert saved["virus_grid"]["warmup_steps"] == 16 and saved["batch_size"] == 128  # the file's
     assert saved["optim"]["lr_decay_to"] == 0.1 and saved["march"]["near"] == 0.05  # the defaults
     assert "step_size" not in saved["ngp_grid"]  # removed: the marcher's step sets the NGP threshold
+    # the file's plots off: a finished run (metrics.json) without plots/
+    assert saved["plots"] is False and (tmp_path / "run" / "metrics.json").is_file()
+    assert not (tmp_path / "run" / "plots").exists()
+
+
+def test_plots_must_be_a_bool():
+    from virus_nerf.trainer.config import TrainConfig
+
+    with pytest.raises(ValueError, match="plots 'no': expected a bool"):
+        TrainConfig(plots="no")
 
 
 @pytest.mark.parametrize("extra, line", [

@@ -25,6 +25,10 @@ class TrainConfig(MapperConfig):
     eval_interval: float = 0.0  # seconds of training between NeRF-scan evaluations (0 = end only)
     log_every: int = 25  # steps between log lines
     checkpoint_every: float = 60.0  # seconds of training between checkpoints
+    # RUN/plots/ at the end (scan maps, metric bars, the curve, the map's safety picture): ~5 s of
+    # matplotlib on a 2-core CPU, which a study of many runs or a test may not want; metrics.json,
+    # the map and the checkpoint are written either way
+    plots: bool = True
     evaluation: EvaluationConfig = dc_field(default_factory=EvaluationConfig)
 
     def __post_init__(self) -> None:
@@ -37,6 +41,7 @@ class TrainConfig(MapperConfig):
         integer, number, flag, bad = check.integer, check.number, check.flag, check.bad
         flag("online")
         flag("odometry_poses")
+        flag("plots")
         number("playback_speed", 0.0)
         number("eval_interval", 0.0, lo_open=False)
         integer("log_every", 1)

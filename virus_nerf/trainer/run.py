@@ -207,14 +207,16 @@ def _score(trainer, out: Path, cfg, eval_recording):
 
 def _write_results(trainer, out: Path, cfg, summary, result, run_safety, warnings, resume: bool) -> dict:
     """The run's final files: the map an interrupted online run left (replaced by this run's), the
-    plots, the config of a resumed run, then metrics.json last (it marks a finished run)."""
+    plots (unless the config's `plots` is off), the config of a resumed run, then metrics.json last
+    (it marks a finished run)."""
     from virus_nerf.trainer.report import write_run_plots
     from virus_nerf.trainer.run_folder import write_run_metrics
 
     if (out / MAP_DIR).is_dir():  # the map an interrupted online run left: this run's map now
         trainer.mapper.snapshot(out / MAP_DIR, replace=True)
-    write_run_plots(out, result, trainer.eval_history, replace=resume,  # plots first: metrics.json marks the end
-                    safety_picture=None if run_safety is None else run_safety.picture)
+    if cfg.plots:  # plots first: metrics.json marks the end
+        write_run_plots(out, result, trainer.eval_history, replace=resume,
+                        safety_picture=None if run_safety is None else run_safety.picture)
     _keep_resumed_config(out, cfg, resume)  # a finished run's resume: evaluated with it
     return write_run_metrics(out, result, cfg, summary, safety=None if run_safety is None else run_safety.document,
                              warnings=warnings)

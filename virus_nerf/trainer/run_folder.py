@@ -8,7 +8,7 @@ A run folder (`virus-nerf train --out RUN`) holds:
     checkpoint.pt        field, optimiser, grid, step, clock, RNG states, scene box, config
     metrics_vs_time.csv  one EvalPoint per evaluation during training (and the final one)
     metrics.json         the final evaluation (docs/method.md 7); its presence marks a finished run
-    plots/               figures of the final evaluation
+    plots/               figures of the final evaluation (none with the config's `plots` off)
     tensorboard/         optional TensorBoard logs
     run.lock             held (fcntl.flock) by the process training in the folder, which writes its
                          pid into it; the system drops the lock when that process dies, however
