@@ -149,6 +149,18 @@ def test_the_top_level_help_gives_one_line_per_command():
     assert code == 0 and "Writes OUT/camera_intrinsics.CSV" in out
 
 
+def test_the_help_and_a_misspelt_command_import_no_other_command():
+    """`virus-nerf --help`, a misspelt command and `simulate --help` import the chosen command's
+    module alone: no torch and no matplotlib (every command module at once took 6 s on a 2-core
+    machine before the first line of output)."""
+    code = ("import sys\nfrom virus_nerf.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+            "print('loaded:', *sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'matplotlib') "
+            "or m.endswith('.command')))")
+    for argv, loaded in ((["--help"], set()), (["trian"], set()), (["simulate", "--help"], {"virus_nerf.sim.command"})):
+        out = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, check=True)
+        assert set(out.stdout.rsplit("loaded:", 1)[1].split()) == loaded, argv
+
+
 def test_tyro_box_becomes_one_line():
     box = ("\u256d\u2500 Value error \u2500\u2500\u256e\n"
            "\u2502 Error parsing --batch-size: no type matching {None}|INT could be  \u2502\n"

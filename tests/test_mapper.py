@@ -314,8 +314,14 @@ def test_mapper_state_round_trip_continues_identically():
     c.load_state(torch.load(buffer, weights_only=False))
     c.add_frame(_frame(0.0))
     c.add_frame(_frame(1.0))
+    # a loaded mapper builds Adam at its first step (mapping or exporting a run never needs it),
+    # and until then hands its checkpoint's Adam state on unchanged
+    assert c._optimizer is None
+    moments = c.state()["optimizer"]["state"][0]["exp_avg"]
+    assert torch.equal(moments, a.optimizer.state_dict()["state"][0]["exp_avg"]) and moments.abs().sum() > 0
     for m in (a, c):
         m.train(600.0, steps=2)
+    assert c._optimizer is not None and c._optimizer_state is None
     assert c.state()["prior_frames"] == 2
     for x, y in zip(a.field.parameters(), c.field.parameters(), strict=True):
         assert np.array_equal(x.detach().numpy(), y.detach().numpy())

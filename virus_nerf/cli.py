@@ -12,44 +12,65 @@ from typing import NoReturn
 
 from virus_nerf.errors import one_line
 
+# subcommand name -> "module:function". Only the chosen command's module is imported: a mistake in
+# its flags, `virus-nerf --help` or `simulate` do not wait for torch, matplotlib and numba, which the
+# other commands' modules load (every module at once: 6 s on a 2-core machine before any output)
+COMMANDS = {
+    "simulate": "virus_nerf.sim.command:simulate",
+    "sensors": "virus_nerf.evaluation.command:sensors",
+    "train": "virus_nerf.trainer.command:train",
+    "evaluate": "virus_nerf.trainer.command:evaluate",
+    "demo": "virus_nerf.experiments.demo:demo",
+    "ablation": "virus_nerf.experiments.ablation:ablation",
+    "online": "virus_nerf.experiments.online:online",
+    "tune": "virus_nerf.experiments.tune:tune",
+    "export": "virus_nerf.exports.command:export",
+    "import-bag": "virus_nerf.data.bags.command:import_bag",
+    "map-bag": "virus_nerf.mapping.command:map_bag",
+    "ros2": "virus_nerf.ros2.command:ros2",
+    "ros2-play": "virus_nerf.ros2.command:ros2_play",
+}
+
+
+def _command(name: str):
+    """The function of subcommand `name` (its module imported)."""
+    import importlib
+
+    module, function = COMMANDS[name].split(":")
+    return getattr(importlib.import_module(module), function)
+
 
 def _commands() -> dict:
-    """Subcommand name -> function; imports are light (torch is imported inside the commands)."""
-    from virus_nerf.data.bags.command import import_bag
-    from virus_nerf.evaluation.command import sensors
-    from virus_nerf.experiments.ablation import ablation
-    from virus_nerf.experiments.demo import demo
-    from virus_nerf.experiments.online import online
-    from virus_nerf.experiments.tune import tune
-    from virus_nerf.exports.command import export
-    from virus_nerf.mapping.command import map_bag
-    from virus_nerf.ros2.command import ros2, ros2_play
-    from virus_nerf.sim.command import simulate
-    from virus_nerf.trainer.command import evaluate, train
-
-    return {
-        "simulate": simulate,
-        "sensors": sensors,
-        "train": train,
-        "evaluate": evaluate,
-        "demo": demo,
-        "ablation": ablation,
-        "online": online,
-        "tune": tune,
-        "export": export,
-        "import-bag": import_bag,
-        "map-bag": map_bag,
-        "ros2": ros2,
-        "ros2-play": ros2_play,
-    }
+    """Subcommand name -> function, every module imported."""
+    return {name: _command(name) for name in COMMANDS}
 
 
-def _short_help_commands() -> dict:
-    """Subcommand name -> the function its `--help` shows, where that is not the command itself
-    (`train --help` lists the product knobs; `--help-all` the command's every flag)."""
+def _listed_summary(name: str) -> str:
+    """A command's one-line description (`_summary`) read from its module's source, not imported."""
+    import ast
+    import importlib.util
+
+    module, function = COMMANDS[name].split(":")
+    origin = importlib.util.find_spec(module).origin
+    with open(origin, encoding="utf-8") as f:
+        tree = ast.parse(f.read(), filename=origin)
+    node = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == function)
+    return " ".join((ast.get_docstring(node) or "").split("\n\n")[0].split())
+
+
+def _not_chosen() -> None:
+    """A command listed but not chosen on this command line (never parsed or run)."""
+
+
+def _train_short_help():
+    """What `train --help` shows: the product knobs (`--help-all`: the command's every flag)."""
     from virus_nerf.trainer.command import train_short_help
 
-    return {"train": train_short_help()}
+    return train_short_help()
+
+
+# subcommand name -> the function its `--help` shows, where that is not the command itself
+_SHORT_HELP = {"train": _train_short_help}
 
 
 def _summary(fn) -> str:
@@ -168,18 +189,19 @@ def _parse(argv: list[str]):
     import tyro
 
     captured = io.StringIO()
-    commands = _commands()
     command = next((a for a in argv if not a.startswith("-")), None)
+    commands = {command: _command(command)} if command in COMMANDS else {}
     if command in commands and "--help-all" in argv:  # the command's every flag
         argv = ["--help" if a == "--help-all" else a for a in argv]
-    elif command in commands and ("--help" in argv or "-h" in argv):
-        commands = {**commands, **{k: v for k, v in _short_help_commands().items() if k == command}}
+    elif command in _SHORT_HELP and ("--help" in argv or "-h" in argv):
+        commands = {command: _SHORT_HELP[command]()}
     # `virus-nerf --help` lists one line per command; a command's own --help shows its whole docstring
     summaries = command not in commands
+    chosen = _deferred(commands)
     union = Union[tuple(  # type: ignore[misc]  # noqa: UP007  (a Union of a tuple, as tyro.extras.subcommand_cli_from_dict)
-        Annotated[Any, tyro.conf.subcommand(name=name, constructor=fn,
-                                            description=_summary(fn) if summaries else None)]
-        for name, fn in _deferred(commands).items()) + (Annotated[None, tyro.conf.Suppress],)]
+        Annotated[Any, tyro.conf.subcommand(name=name, constructor=chosen.get(name, _not_chosen),
+                                            description=_listed_summary(name) if summaries else None)]
+        for name in COMMANDS) + (Annotated[None, tyro.conf.Suppress],)]
     try:
         with contextlib.redirect_stderr(captured):
             return tyro.cli(union, prog="virus-nerf", args=argv)

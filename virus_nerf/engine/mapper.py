@@ -104,10 +104,8 @@ class Mapper(MapViews):
             self.field, self.grid, config.march.step_size, config.march.near, config.march.max_samples,
             config.min_opacity, config.march.backend, config.march.min_transmittance,
         )
-        fused = self.device.type == "cpu" or self.device.type == "cuda"
-        self.optimizer = torch.optim.Adam(
-            self.field.parameters(), lr=config.optim.lr, eps=config.optim.eps, betas=config.optim.betas, fused=fused
-        )
+        self._optimizer: torch.optim.Adam | None = None  # built by the first step (`optimizer`)
+        self._optimizer_state: dict | None = None  # a checkpoint's Adam state, until then
         self.rng = np.random.default_rng(config.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(config.seed + 1)
         self.step = 0
@@ -272,7 +270,22 @@ class Mapper(MapViews):
         warm = out.rgb.sum() + out.depth.sum()
         if warm.requires_grad:  # rays that march no occupied cell (a pruned grid on resume) have no graph
             warm.backward()
-        self.optimizer.zero_grad(set_to_none=True)
+        self.field.zero_grad(set_to_none=True)
+
+    @property
+    def optimizer(self) -> torch.optim.Adam:
+        """Adam on the field, built when first asked for (a training step, a checkpoint's state):
+        torch's optimisers import torch._dynamo (2 s of start-up on a 2-core machine), which
+        evaluating, exporting or mapping a trained run never needs."""
+        if self._optimizer is None:
+            optim = self.config.optim
+            fused = self.device.type == "cpu" or self.device.type == "cuda"
+            self._optimizer = torch.optim.Adam(self.field.parameters(), lr=optim.lr, eps=optim.eps,
+                                               betas=optim.betas, fused=fused)
+            if self._optimizer_state is not None:
+                self._optimizer.load_state_dict(self._optimizer_state)
+                self._optimizer_state = None
+        return self._optimizer
 
     def progress(self) -> float:
         """Share of the learning-rate horizon (`schedules.horizon`) used: drives the lr decay."""
@@ -282,25 +295,26 @@ class Mapper(MapViews):
         """The one training step, on the training clock: every frame added so far (the prior of
         new frames first); `progress` in [0, 1] of the budget sets the learning rate (the
         schedule's lr * lr_decay_to ** progress; default `self.progress()`)."""
+        optimizer = self.optimizer  # built before the clock starts: the first one imports torch._dynamo
         t_start = time.perf_counter()
-        terms = self._step(progress)
+        terms = self._step(progress, optimizer)
         self.seconds += time.perf_counter() - t_start
         self.last_loss = float(terms.total.detach())
         return terms
 
-    def _step(self, progress: float | None) -> LossTerms:
+    def _step(self, progress: float | None, optimizer: torch.optim.Adam) -> LossTerms:
         """`train_step` off the clock, as named steps: the step's start-up, the learning rate,
         a batch, the render, the loss (a pure assembly), Adam, the counters, the grid update."""
         self._begin_step()
         schedule = self.schedule
-        self._set_learning_rate(schedule, self.progress() if progress is None else progress)
+        self._set_learning_rate(optimizer, schedule, self.progress() if progress is None else progress)
         batch = self._sample(schedule)
         rgb_rays = colour_rays(self.config, batch)
         out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator, rgb_rays=rgb_rays,
                                        visible_share=self.visible_share)
         terms = step_loss(self.config, batch, out, stats.samples, rgb_rays,
                           stereo_line_of_sight(self.config, self.box, self.extent.growing, self.driving))
-        self._optimise(terms)
+        self._optimise(optimizer, terms)
         self._count(stats)
         self._update_grid(schedule, batch, stats)
         return terms
@@ -314,9 +328,10 @@ class Mapper(MapViews):
         if self._frames_at_start is None:
             self._frames_at_start = self.frames
 
-    def _set_learning_rate(self, schedule: StepSchedule, progress: float) -> None:
+    @staticmethod
+    def _set_learning_rate(optimizer: torch.optim.Adam, schedule: StepSchedule, progress: float) -> None:
         lr = schedule.learning_rate(progress)
-        for g in self.optimizer.param_groups:
+        for g in optimizer.param_groups:
             g["lr"] = lr
 
     def _sample(self, schedule: StepSchedule) -> RayBatch:
@@ -326,13 +341,14 @@ class Mapper(MapViews):
         batch = self.sampler.sample(self.rng, n_rays, np.arange(self.frames), self._frame_odds(schedule))
         return batch.to(self.device)
 
-    def _optimise(self, terms: LossTerms) -> None:
+    @staticmethod
+    def _optimise(optimizer: torch.optim.Adam, terms: LossTerms) -> None:
         """Adam on the field; a batch that marched no occupied cell (all rays out of the box)
         has no graph and changes nothing."""
-        self.optimizer.zero_grad(set_to_none=True)
+        optimizer.zero_grad(set_to_none=True)
         if terms.total.requires_grad:
             terms.total.backward()
-            self.optimizer.step()
+            optimizer.step()
 
     def _count(self, stats) -> None:
         if stats.visible_share is not None:
@@ -438,7 +454,7 @@ class Mapper(MapViews):
         (torch.save) before training on."""
         return {
             "field": self.field.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
+            "optimizer": self.optimizer.state_dict() if self._optimizer_state is None else self._optimizer_state,
             "grid": self.grid.state_dict(),
             "step": self.step,
             "seconds": self.seconds,
@@ -461,7 +477,10 @@ class Mapper(MapViews):
         if "box" in state:  # a grown box: the grid grows to it first
             self._grow(self.extent.restore(SceneBox.from_dict(state["box"])))
         self.field.load_state_dict(state["field"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        if self._optimizer is None:
+            self._optimizer_state = state["optimizer"]  # Adam takes it when first asked for (`optimizer`)
+        else:
+            self._optimizer.load_state_dict(state["optimizer"])
         self.grid.load_state_dict(state["grid"])
         self.step = int(state["step"])
         self.seconds = float(state["seconds"])
