@@ -127,9 +127,10 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     assert safety["planner"]["unsafe_near_m2"] == {"1m": 0.0, "2m": 0.0}
     assert "paths between random free points pass a real obstacle; it may put the robot's centre where" in out
     # `evaluate` judges the same map: the same safety block
-    code, out_eval, err = run_cli(["evaluate", "--run", run, "--out", tmp_path / "eval.json"])
+    code, out_eval, err = run_cli(["evaluate", "--run", run, "--out", tmp_path / "eval.json", "--no-plots"])
     assert code == 0, err
     assert json.loads((tmp_path / "eval.json").read_text())["safety"] == safety
+    assert not (tmp_path / "eval_plots").exists() and "eval_plots" not in out_eval  # --no-plots: the JSON alone
     assert "map safety (map ground truth)" in out_eval
     assert "map safety (map ground truth)" in out
     # export: the map, ESDF and probability map are unknown / NaN / 0.5 outside the observed wedges

@@ -25,7 +25,7 @@ METRIC_KEYS = {"acc_mean", "acc_median", "acc_inlier", "acc_too_close", "acc_too
 
 def small_config(**changes) -> TrainConfig:
     base = TrainConfig(
-        max_steps=30, max_time=None, batch_size=256, image_scale=1.0, log_every=5,
+        max_steps=30, max_time=None, batch_size=256, image_scale=1.0, log_every=5, plots=False,
         march=MarchConfig(step_size=0.06, max_samples=64),
         virus_grid=VirusGridConfig(warmup_steps=16, update_interval=4, rays_per_update=128),
         ngp_grid=NgpGridConfig(warmup_steps=16, update_interval=4, max_resolution=64),
@@ -91,7 +91,7 @@ def test_every_table_row_runs(tiny_office, tmp_path, grid, sensors, odometry):
 
 def test_run_folder_contents_schema_and_no_overwrite(tiny_office, tmp_path):
     out = tmp_path / "run"
-    run_training(tiny_office, "office", out, small_config(max_steps=8), quiet=True)
+    run_training(tiny_office, "office", out, small_config(max_steps=8, plots=True), quiet=True)
     for name in ("config.json", "run.json", "train_log.csv", "checkpoint.pt", "metrics.json"):
         assert (out / name).is_file(), name
     assert (out / "plots" / "metrics_bars.png").is_file()
@@ -116,15 +116,16 @@ def test_train_and_evaluate_under_several_ground_truths(tiny_office, tmp_path):
 
     from virus_nerf.trainer.command import evaluate as evaluate_command
 
-    cfg = small_config(max_steps=4)
+    cfg = small_config(max_steps=4, plots=True)
     cfg = dataclasses.replace(cfg, evaluation=dataclasses.replace(cfg.evaluation, gt=("exact", "map")))
     out = tmp_path / "run"
     doc = run_training(tiny_office, "office", out, cfg, quiet=True)
     assert doc["gt"] == "exact" and list(doc["by_gt"]) == ["exact", "map"]
     assert json.loads((out / "config.json").read_text())["evaluation"]["gt"] == ["exact", "map"]
     assert (out / "plots" / "metrics_bars_gt-map.png").is_file()
-    evaluate_command(out, out=tmp_path / "paper.json", gt="paper")
+    evaluate_command(out, out=tmp_path / "paper.json", gt="paper", no_plots=True)  # metrics.json alone
     again = json.loads((tmp_path / "paper.json").read_text())
+    assert not (tmp_path / "paper_plots").exists()
     assert again["gt"] == "paper" and "by_gt" not in again
     assert again["sensors"]["NeRF"]["zone3"]["n_gt"] != doc["sensors"]["NeRF"]["zone3"]["n_gt"]
 

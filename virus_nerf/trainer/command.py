@@ -190,7 +190,8 @@ def train_short_help():
     return with_annotation(train, "knobs", Annotated[TrainProductFlags, tyro.conf.arg(name="")])
 
 
-def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: str | None = None) -> None:
+def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: str | None = None,
+             no_plots: bool = False) -> None:
     """Evaluate a trained run's 2D scans against the ground truth, beside the LiDAR, USS and IRS scans.
 
     Args:
@@ -200,6 +201,8 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
         n_rays: Rays per 360 deg scan (default: the run's setting, 512).
         gt: Ground truth, one or more of map, exact (simulated recordings only), paper,
             comma-separated (default: the run's setting, map); the first is the document's own.
+        no_plots: Write metrics.json alone, not the plots beside it (scan maps and metric bars:
+            about 5 s of drawing on a 2-core CPU), as `train --no-plots`.
     """
     from virus_nerf.errors import OutputExistsError
     from virus_nerf.evaluation.evaluate import parse_gt_flag
@@ -223,12 +226,13 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     trainer, cfg, _ = load_trained(run, "--run")
     lock = RunLock(Path(run), "--run").acquire()  # not while a `train` (or another evaluate) works in it
     try:
-        _evaluate_run(run, out, trainer, cfg, n_rays, protocols, redo)
+        _evaluate_run(run, out, trainer, cfg, n_rays, protocols, redo, plots=not no_plots)
     finally:
         lock.release()
 
 
-def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protocols, redo: bool) -> None:
+def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protocols, redo: bool,
+                  plots: bool = True) -> None:
     """`evaluate`'s work, holding the run's lock."""
     from virus_nerf.errors import OutputExistsError
     from virus_nerf.evaluation.evaluate import check_ground_truth_inputs
@@ -253,7 +257,8 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
 
     trainer.prepare()  # the frames the run trained on and its stereo points (cached): the map `train` judged
     run_safety = mapper_safety(trainer.mapper, trainer.recording, cfg.evaluation.height_band_m)
-    write_plots(result, plots_dir_for(out), max_maps=RUN_SCAN_MAPS, replace=redo)
+    if plots:
+        write_plots(result, plots_dir_for(out), max_maps=RUN_SCAN_MAPS, replace=redo)
     if out.exists():  # another process finished the same evaluation meanwhile
         raise OutputExistsError(out)
     result.write_json(out, train=train_summary_block(cfg, summary),
@@ -261,5 +266,5 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
     print(result.table())
     if run_safety is not None:
         print(safety_line(run_safety.document))
-    print(f"wrote {out} and {plots_dir_for(out)}/")
+    print(f"wrote {out}" + (f" and {plots_dir_for(out)}/" if plots else ""))
 
