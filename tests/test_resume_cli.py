@@ -442,10 +442,15 @@ def test_a_torn_log_row_is_dropped_and_a_damaged_one_named_on_resume(run_copy):
     log = run_copy / "train_log.csv"
     good = log.read_bytes()
     log.write_bytes(good + b"8")  # the first character of a row, then the kill
-    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--quiet"])
+    plots = {k: v for k, v in snapshot(run_copy).items() if k.startswith("plots/")}
+    code, out, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "7", "--quiet", "--no-plots"])
     assert code == 0, err
     steps = [ln.split(",")[0] for ln in log.read_text().splitlines()[1:]]
     assert steps == ["2", "4", "5", "6", "7"]  # before: "890" ... fused rows
+    # --no-plots on resume: the earlier plots are kept as they were, and said not to be this run's
+    assert {k: v for k, v in snapshot(run_copy).items() if k.startswith("plots/")} == plots
+    said = f"{run_copy / 'plots'}/ is from the run's earlier evaluation: plots are off, so they were not drawn again"
+    assert said in json.loads((run_copy / "metrics.json").read_text())["warnings"][-1] and said in out
     (run_copy / "metrics.json").unlink()
     lines = good.decode().split("\r\n")
     lines[2] = "4,oops"

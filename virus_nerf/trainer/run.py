@@ -113,6 +113,9 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         trainer, summary = _resume(out, recording, cfg, quiet) if resume else \
             _start(data, room, out, recording, cfg, lock, quiet)
         warnings = map_warnings(trainer)
+        if resume and not cfg.plots and (out / PLOTS).is_dir():  # kept (never deleted), but not this run's
+            warnings.append(f"{out / PLOTS}/ is from the run's earlier evaluation: plots are off, so "
+                            "they were not drawn again; --plots draws this run's")
         if not cfg.evaluation.gt:
             _keep_resumed_config(out, cfg, resume)
             return _finish_without_ground_truth(trainer, out, cfg, summary, resume, warnings)
