@@ -308,6 +308,13 @@ def test_importing_the_mapper_loads_only_the_engine_and_below():
     assert [m for m in loaded if not _engine_may_load(m)] == []
 
 
+def test_matplotlib_is_imported_when_a_plot_is_drawn_not_before():
+    """`evaluate --no-plots`, `train --no-plots` and the plot folders' names import the plots
+    module; matplotlib (1.7 s of start-up on 2 cores) waits for the first plot."""
+    assert "matplotlib" not in _loaded_after("import virus_nerf.evaluation.plots")
+    assert "matplotlib.pyplot" in _loaded_after("from virus_nerf.evaluation.plots import pyplot\npyplot()")
+
+
 def test_public_api_resolves():
     """`from virus_nerf import Mapper, ...` (the README's robot example) works for every name."""
     import virus_nerf

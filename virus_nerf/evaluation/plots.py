@@ -11,23 +11,37 @@ Every title names the ground-truth protocol (docs/method.md 6.7).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from virus_nerf.evaluation.evaluate import spread_indices
+from virus_nerf.evaluation.metrics import DEFAULT_ZONES, SensorMetrics, Zone
+from virus_nerf.maps.scans import FieldOfView
+from virus_nerf.utils.io import atomic_path, new_output_dir
 
-from virus_nerf.evaluation.evaluate import spread_indices  # noqa: E402
-from virus_nerf.evaluation.metrics import DEFAULT_ZONES, SensorMetrics, Zone  # noqa: E402
-from virus_nerf.maps.scans import FieldOfView  # noqa: E402
-from virus_nerf.utils.io import atomic_path, new_output_dir  # noqa: E402
+if TYPE_CHECKING:
+    import matplotlib.pyplot as plt
 
 COLOURS = {"GT": "black", "LiDAR": "tab:blue", "USS": "tab:orange", "IRS": "tab:green", "NeRF": "tab:red"}
 GT_MARKERS = {"map": "o", "exact": "x", "paper": "+"}  # the further protocols' GT in the "all" panel
 EXTRA_COLOURS = ("tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
+
+
+@functools.cache
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (files, no display), imported when the first plot is
+    drawn: 1.7 s of start-up on a 2-core machine that `evaluate --no-plots`, `train --no-plots`
+    and `plots_dir_for` do not need."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def colour_of(name: str, order: Sequence[str] = ()) -> str:
@@ -45,7 +59,7 @@ def save_png(fig: plt.Figure, path: str | Path, dpi: int = 110, tight: bool = Tr
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight" if tight else None)
-    plt.close(fig)
+    pyplot().close(fig)
     return path
 
 
@@ -65,7 +79,7 @@ def plot_test_point(tps, path: str | Path, title: str = "", window_m: float | No
     panels = ["all"] + names
     ncol = min(len(panels), 2)
     nrow = int(np.ceil(len(panels) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(7.0 * ncol, 6.0 * nrow), squeeze=False)
+    fig, axes = pyplot().subplots(nrow, ncol, figsize=(7.0 * ncol, 6.0 * nrow), squeeze=False)
     fig.subplots_adjust(left=0.07, right=0.98, bottom=0.05, top=0.94, wspace=0.22, hspace=0.18)
     origin = gt.scan.origin
     # view window: around what was seen (GT and scans), with a margin
@@ -131,7 +145,7 @@ def plot_metric_bars(
     """Fig. 3 style: mean NND per zone and sensor, and inlier / too-close / too-far shares
     (coverage: of all in-view GT points, with gt_unseen). `gt` names the protocol in the title."""
     names = list(metrics)
-    fig, axes = plt.subplots(2, 2, figsize=(13, 8.5))
+    fig, axes = pyplot().subplots(2, 2, figsize=(13, 8.5))
     nz = len(zones)
     width = 0.8 / max(len(names), 1)
     x = np.arange(nz)
@@ -193,7 +207,7 @@ def plot_metric_vs_time(curves: Mapping[str, Sequence], path: Path, key: str = "
     curves = {k: v for k, v in curves.items() if v}
     if not curves:
         return None
-    fig, ax = plt.subplots(figsize=(6, 3.6))
+    fig, ax = pyplot().subplots(figsize=(6, 3.6))
     for label, hist in curves.items():
         ax.plot([e.seconds for e in hist], [getattr(e, key) for e in hist], marker="o", ms=3, label=label)
     ax.set_xlabel("training time [s]")
