@@ -149,6 +149,16 @@ def test_the_top_level_help_gives_one_line_per_command():
     assert code == 0 and "Writes OUT/camera_intrinsics.CSV" in out
 
 
+def test_the_top_level_help_without_the_sources_imports_the_commands(monkeypatch):
+    """An installation without the modules' sources (no spec origin to read) lists the same lines."""
+    import importlib.util
+
+    _, listed, _ = run_cli(["--help"])
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, package=None: None)
+    code, out, err = run_cli(["--help"])
+    assert code == 0 and err == "" and out == listed
+
+
 def test_the_help_and_a_misspelt_command_import_no_other_command():
     """`virus-nerf --help`, a misspelt command and `simulate --help` import the chosen command's
     module alone: no torch and no matplotlib (every command module at once took 6 s on a 2-core

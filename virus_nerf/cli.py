@@ -46,15 +46,19 @@ def _commands() -> dict:
 
 
 def _listed_summary(name: str) -> str:
-    """A command's one-line description (`_summary`) read from its module's source, not imported."""
+    """A command's one-line description (`_summary`) read from its module's source, not imported
+    (an installation without the sources imports it)."""
     import ast
     import importlib.util
 
     module, function = COMMANDS[name].split(":")
-    origin = importlib.util.find_spec(module).origin
-    with open(origin, encoding="utf-8") as f:
-        tree = ast.parse(f.read(), filename=origin)
-    node = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == function)
+    try:
+        origin = importlib.util.find_spec(module).origin
+        with open(origin, encoding="utf-8") as f:
+            tree = ast.parse(f.read(), filename=origin)
+        node = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == function)
+    except (AttributeError, OSError, SyntaxError, TypeError, ValueError, StopIteration):  # no source beside it
+        return _summary(_command(name))
     return " ".join((ast.get_docstring(node) or "").split("\n\n")[0].split())
 
 
