@@ -149,6 +149,14 @@ def test_the_top_level_help_gives_one_line_per_command():
     assert code == 0 and "Writes OUT/camera_intrinsics.CSV" in out
 
 
+def test_a_command_spelt_with_underscores_is_the_command():
+    """tyro takes `map_bag` for `map-bag`: so does the command table (only the chosen module is imported)."""
+    code, _, err = run_cli(["ros2_play"])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "ros2-play: missing required argument(s) PATH" in err
+    code, out, _ = run_cli(["import_bag", "--help"])
+    assert code == 0 and "--topics" in out
+
+
 def test_the_top_level_help_without_the_sources_imports_the_commands(monkeypatch):
     """An installation without the modules' sources (no spec origin to read) lists the same lines."""
     import importlib.util

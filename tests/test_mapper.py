@@ -319,6 +319,9 @@ def test_mapper_state_round_trip_continues_identically():
     assert c._optimizer is None
     moments = c.state()["optimizer"]["state"][0]["exp_avg"]
     assert torch.equal(moments, a.optimizer.state_dict()["state"][0]["exp_avg"]) and moments.abs().sum() > 0
+    d = _mapper(device="cpu")  # the still-pending state saved again reads as the first
+    d.load_state(c.state())
+    assert torch.equal(d.state()["optimizer"]["state"][0]["exp_avg"], moments)
     for m in (a, c):
         m.train(600.0, steps=2)
     assert c._optimizer is not None and c._optimizer_state is None
@@ -326,6 +329,28 @@ def test_mapper_state_round_trip_continues_identically():
     for x, y in zip(a.field.parameters(), c.field.parameters(), strict=True):
         assert np.array_equal(x.detach().numpy(), y.detach().numpy())
     assert np.array_equal(a.grid.logodds.numpy(), c.grid.logodds.numpy())
+
+
+def test_building_adam_is_not_on_the_training_clock(monkeypatch):
+    """Adam is built at the first training step, before the step's clock starts: its first
+    construction imports torch._dynamo (seconds), which a --max-time budget must not pay."""
+    import time
+
+    built = []
+
+    class SlowAdam(torch.optim.Adam):
+        def __init__(self, *args, **kwargs):
+            time.sleep(2.0)
+            built.append(1)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(torch.optim, "Adam", SlowAdam)
+    mapper = _mapper(device="cpu")
+    mapper.add_frame(_frame(0.0))
+    mapper.prepare()  # the kernels loaded (a first numba call may compile), off the clock as a Trainer does
+    assert not built  # adding frames and preparing build none
+    mapper.train(600.0, steps=2)
+    assert built == [1] and mapper.step == 2 and mapper.seconds < 2.0
 
 
 def test_a_resumed_mapper_keeps_the_restored_render_path_statistic():

@@ -133,6 +133,8 @@ DAMAGES = [
     ("no-run-json", "run.json: missing; "),
     ("bad-run-json", "run.json, field 'data': expected a non-empty string"),
     ("bad-config", "config.json, key 'batch_size': expected an integer, got string"),
+    # Adam is built at the first step, but its saved state is checked when the checkpoint is read
+    ("damaged-optimizer", "checkpoint.pt: does not fit this run's model (ValueError: optimizer: parameter 0's exp_avg"),
 ]
 
 
@@ -161,6 +163,10 @@ def test_damaged_run_folders_are_named(run_copy, tmp_path, command, damage, frag
         ckpt.write_bytes(ckpt.read_bytes()[:5000])
     elif damage == "foreign-checkpoint":
         torch.save({"weights": torch.zeros(3)}, ckpt)
+    elif damage == "damaged-optimizer":
+        state = torch.load(ckpt, weights_only=False)
+        state["optimizer"]["state"][0]["exp_avg"] = torch.zeros(3)
+        torch.save(state, ckpt)
     elif damage == "no-run-json":
         (run_copy / "run.json").unlink()
     elif damage == "bad-run-json":
@@ -572,6 +578,12 @@ def test_evaluate_and_sensors_killed_before_their_metrics_finish_on_the_next_run
     assert sorted(p.name for p in ev.iterdir()) == ["metrics.json", "metrics_plots"]
     code, _, err = run_cli(["evaluate", "--run", run_copy])
     one_line_error(code, err, "evaluation/metrics.json: output file already exists")
+    # --no-plots beside a killed attempt's plots: kept, and said not to be this evaluation's
+    (tmp_path / "again_plots").mkdir()
+    code, out, err = run_cli(["evaluate", "--run", run_copy, "--n-rays", "32", "--out", tmp_path / "again.json",
+                              "--no-plots"])
+    assert code == 0 and (tmp_path / "again.json").is_file() and list((tmp_path / "again_plots").iterdir()) == []
+    assert f"warning: {tmp_path / 'again_plots'}/ is from an earlier evaluation stopped before its metrics.json" in out
 
     out = tmp_path / "sensors" / "metrics.json"
     (tmp_path / "sensors" / "metrics_plots").mkdir(parents=True)

@@ -123,7 +123,7 @@ def test_train_and_evaluate_under_several_ground_truths(tiny_office, tmp_path):
     assert doc["gt"] == "exact" and list(doc["by_gt"]) == ["exact", "map"]
     assert json.loads((out / "config.json").read_text())["evaluation"]["gt"] == ["exact", "map"]
     assert (out / "plots" / "metrics_bars_gt-map.png").is_file()
-    evaluate_command(out, out=tmp_path / "paper.json", gt="paper", no_plots=True)  # metrics.json alone
+    evaluate_command(out, out=tmp_path / "paper.json", gt="paper", plots=False)  # metrics.json alone
     again = json.loads((tmp_path / "paper.json").read_text())
     assert not (tmp_path / "paper_plots").exists()
     assert again["gt"] == "paper" and "by_gt" not in again

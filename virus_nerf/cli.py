@@ -64,6 +64,7 @@ def _listed_summary(name: str) -> str:
 
 def _not_chosen() -> None:
     """A command listed but not chosen on this command line (never parsed or run)."""
+    raise RuntimeError("virus-nerf: a command that was not imported was chosen (a bug in cli._parse)")
 
 
 def _train_short_help():
@@ -194,7 +195,11 @@ def _parse(argv: list[str]):
 
     captured = io.StringIO()
     command = next((a for a in argv if not a.startswith("-")), None)
+    if command not in COMMANDS and command is not None and command.replace("_", "-") in COMMANDS:
+        command = command.replace("_", "-")  # tyro takes `map_bag` for `map-bag`
     commands = {command: _command(command)} if command in COMMANDS else {}
+    if any(a.startswith("--tyro-") for a in argv):  # tyro's own options (shell completion): every command
+        commands = _commands()
     if command in commands and "--help-all" in argv:  # the command's every flag
         argv = ["--help" if a == "--help-all" else a for a in argv]
     elif command in _SHORT_HELP and ("--help" in argv or "-h" in argv):

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -106,6 +107,7 @@ class Mapper(MapViews):
         )
         self._optimizer: torch.optim.Adam | None = None  # built by the first step (`optimizer`)
         self._optimizer_state: dict | None = None  # a checkpoint's Adam state, until then
+        self._optimizer_lock = threading.Lock()
         self.rng = np.random.default_rng(config.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(config.seed + 1)
         self.step = 0
@@ -277,15 +279,37 @@ class Mapper(MapViews):
         """Adam on the field, built when first asked for (a training step, a checkpoint's state):
         torch's optimisers import torch._dynamo (2 s of start-up on a 2-core machine), which
         evaluating, exporting or mapping a trained run never needs."""
-        if self._optimizer is None:
-            optim = self.config.optim
-            fused = self.device.type == "cpu" or self.device.type == "cuda"
-            self._optimizer = torch.optim.Adam(self.field.parameters(), lr=optim.lr, eps=optim.eps,
-                                               betas=optim.betas, fused=fused)
-            if self._optimizer_state is not None:
-                self._optimizer.load_state_dict(self._optimizer_state)
-                self._optimizer_state = None
-        return self._optimizer
+        with self._optimizer_lock:  # one Adam, and the pending state taken once, whichever thread asks
+            if self._optimizer is None:
+                optim = self.config.optim
+                fused = self.device.type == "cpu" or self.device.type == "cuda"
+                adam = torch.optim.Adam(self.field.parameters(), lr=optim.lr, eps=optim.eps, betas=optim.betas,
+                                        fused=fused)
+                if self._optimizer_state is not None:
+                    adam.load_state_dict(self._optimizer_state)
+                self._optimizer, self._optimizer_state = adam, None
+            return self._optimizer
+
+    def build_optimizer(self) -> None:
+        """Build Adam now, not at the first training step: for a caller whose own clock starts
+        before that step (a real-time replay of a recording)."""
+        _ = self.optimizer
+
+    def _check_optimizer_state(self, saved) -> None:
+        """A checkpoint's Adam state fits this field (one group of its parameters, moments of their
+        shapes): checked when read, though Adam takes it at the first step; a ValueError as Adam's
+        own loading would raise (a damaged checkpoint is named before any work)."""
+        params = list(self.field.parameters())
+        groups = saved.get("param_groups") if isinstance(saved, dict) else None
+        moments = saved.get("state") if isinstance(saved, dict) else None
+        if not isinstance(groups, list) or len(groups) != 1 or not isinstance(groups[0], dict) \
+                or len(groups[0].get("params", ())) != len(params) or not isinstance(moments, dict):
+            raise ValueError(f"optimizer: expected Adam's state of one group of {len(params)} parameters")
+        for i, one in moments.items():
+            for key in ("exp_avg", "exp_avg_sq"):
+                value = one.get(key) if isinstance(one, dict) and isinstance(i, int) and 0 <= i < len(params) else None
+                if not isinstance(value, torch.Tensor) or value.shape != params[i].shape:
+                    raise ValueError(f"optimizer: parameter {i}'s {key} does not fit the field")
 
     def progress(self) -> float:
         """Share of the learning-rate horizon (`schedules.horizon`) used: drives the lr decay."""
@@ -454,7 +478,7 @@ class Mapper(MapViews):
         (torch.save) before training on."""
         return {
             "field": self.field.state_dict(),
-            "optimizer": self.optimizer.state_dict() if self._optimizer_state is None else self._optimizer_state,
+            "optimizer": self._optimizer_state_dict(),
             "grid": self.grid.state_dict(),
             "step": self.step,
             "seconds": self.seconds,
@@ -471,16 +495,23 @@ class Mapper(MapViews):
             "visible_share": self.visible_share,  # picks the next step's render path
         }
 
+    def _optimizer_state_dict(self) -> dict:
+        """Adam's state: a checkpoint's still pending (Adam not built yet), else Adam's own."""
+        pending = self._optimizer_state  # read once: another thread may build Adam meanwhile
+        return pending if pending is not None else self.optimizer.state_dict()
+
     def load_state(self, state: dict) -> None:
         """Continue from `state()` (read on the CPU). The frames are not in it: add them again in
         the same order; the first `prior_frames` of them do not get the sensor prior again."""
         if "box" in state:  # a grown box: the grid grows to it first
             self._grow(self.extent.restore(SceneBox.from_dict(state["box"])))
         self.field.load_state_dict(state["field"])
-        if self._optimizer is None:
-            self._optimizer_state = state["optimizer"]  # Adam takes it when first asked for (`optimizer`)
-        else:
-            self._optimizer.load_state_dict(state["optimizer"])
+        self._check_optimizer_state(state["optimizer"])
+        with self._optimizer_lock:
+            if self._optimizer is None:
+                self._optimizer_state = state["optimizer"]  # Adam takes it when first asked for (`optimizer`)
+            else:
+                self._optimizer.load_state_dict(state["optimizer"])
         self.grid.load_state_dict(state["grid"])
         self.step = int(state["step"])
         self.seconds = float(state["seconds"])

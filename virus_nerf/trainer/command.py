@@ -191,7 +191,7 @@ def train_short_help():
 
 
 def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: str | None = None,
-             no_plots: bool = False) -> None:
+             plots: bool = True) -> None:
     """Evaluate a trained run's 2D scans against the ground truth, beside the LiDAR, USS and IRS scans.
 
     Args:
@@ -201,8 +201,8 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
         n_rays: Rays per 360 deg scan (default: the run's setting, 512).
         gt: Ground truth, one or more of map, exact (simulated recordings only), paper,
             comma-separated (default: the run's setting, map); the first is the document's own.
-        no_plots: Write metrics.json alone, not the plots beside it (scan maps and metric bars:
-            about 5 s of drawing on a 2-core CPU), as `train --no-plots`.
+        plots: The plots beside metrics.json (scan maps and metric bars: about 5 s of drawing on
+            a 2-core CPU); --no-plots writes metrics.json alone, as `train --no-plots`.
     """
     from virus_nerf.errors import OutputExistsError
     from virus_nerf.evaluation.evaluate import parse_gt_flag
@@ -226,7 +226,7 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     trainer, cfg, _ = load_trained(run, "--run")
     lock = RunLock(Path(run), "--run").acquire()  # not while a `train` (or another evaluate) works in it
     try:
-        _evaluate_run(run, out, trainer, cfg, n_rays, protocols, redo, plots=not no_plots)
+        _evaluate_run(run, out, trainer, cfg, n_rays, protocols, redo, plots=plots)
     finally:
         lock.release()
 
@@ -259,6 +259,9 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
     run_safety = mapper_safety(trainer.mapper, trainer.recording, cfg.evaluation.height_band_m)
     if plots:
         write_plots(result, plots_dir_for(out), max_maps=RUN_SCAN_MAPS, replace=redo)
+    elif redo:  # kept (never deleted), but not this evaluation's
+        print(f"warning: {plots_dir_for(out)}/ is from an earlier evaluation stopped before its metrics.json; "
+              "plots are off, so they were not drawn again")
     if out.exists():  # another process finished the same evaluation meanwhile
         raise OutputExistsError(out)
     result.write_json(out, train=train_summary_block(cfg, summary),
