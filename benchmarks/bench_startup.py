@@ -60,22 +60,19 @@ def main() -> None:
         (tmp / "tiny.json").write_text(json.dumps(TINY_CONFIG))
         cli(source, ["train", "--data", tmp / "office", "--room", "office", "--out", tmp / "run", "--config",
                      tmp / "tiny.json", "--quiet"])
-        commands = {
-            "--help": (["--help"], 0),
-            "simulate --help": (["simulate", "--help"], 0),
-            "train --help": (["train", "--help"], 0),
-            "train, a mistyped flag": (["train", "--data", tmp / "office", "--room", "office", "--out", tmp / "x",
-                                        "--batch-size", "many"], 2),
-            "evaluate (tiny run)": (["evaluate", "--run", tmp / "run", "--out", "{k}"], 0),
-            "export --what map (tiny run)": (["export", "--run", tmp / "run", "--what", "map", "--out", "{k}"], 0),
+        commands = {  # name -> (its arguments given a new output path, its exit code)
+            "--help": (lambda new: ["--help"], 0),
+            "simulate --help": (lambda new: ["simulate", "--help"], 0),
+            "train --help": (lambda new: ["train", "--help"], 0),
+            "train, a mistyped flag": (lambda new: ["train", "--data", tmp / "office", "--room", "office", "--out",
+                                                    new, "--batch-size", "many"], 2),
+            "evaluate (tiny run)": (lambda new: ["evaluate", "--run", tmp / "run", "--out", new / "metrics.json"], 0),
+            "export --what map (tiny run)": (lambda new: ["export", "--run", tmp / "run", "--what", "map", "--out",
+                                                          new], 0),
         }
         rows = {}
         for name, (argv, expect) in commands.items():
-            times = []
-            for k in range(args.repeats):
-                fresh = [str(tmp / f"out_{len(rows)}_{k}" / "m.json") if a == "{k}" and "evaluate" in name
-                         else str(tmp / f"out_{len(rows)}_{k}") if a == "{k}" else a for a in argv]
-                times.append(cli(source, fresh, expect))
+            times = [cli(source, argv(tmp / f"out_{len(rows)}_{k}"), expect) for k in range(args.repeats)]
             rows[name] = round(statistics.median(times), 2)
             print(f"{name:32s} {rows[name]:6.2f} s")
     doc = {"source": str(source), "commit": _commit(source), "repeats": args.repeats, "seconds": rows,

@@ -59,7 +59,7 @@ def _listed_summary(name: str) -> str:
         node = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == function)
     except (AttributeError, OSError, SyntaxError, TypeError, ValueError, StopIteration):  # no source beside it
         return _summary(_command(name))
-    return " ".join((ast.get_docstring(node) or "").split("\n\n")[0].split())
+    return _first_paragraph(ast.get_docstring(node))
 
 
 def _not_chosen() -> None:
@@ -80,7 +80,12 @@ _SHORT_HELP = {"train": _train_short_help}
 
 def _summary(fn) -> str:
     """A command's one-line description: the first paragraph of its docstring."""
-    return " ".join((fn.__doc__ or "").strip().split("\n\n")[0].split())
+    return _first_paragraph(fn.__doc__)
+
+
+def _first_paragraph(doc: str | None) -> str:
+    """The first paragraph of a docstring on one line."""
+    return " ".join((doc or "").strip().split("\n\n")[0].split())
 
 
 def _keep_large_allocations() -> None:

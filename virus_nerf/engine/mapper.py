@@ -291,8 +291,8 @@ class Mapper(MapViews):
             return self._optimizer
 
     def build_optimizer(self) -> None:
-        """Build Adam now, not at the first training step: for a caller whose own clock starts
-        before that step (a real-time replay of a recording)."""
+        """Build Adam now if it is not yet (`optimizer`): before a training step's clock starts, and
+        for a caller whose own clock starts before the first step (a real-time replay)."""
         _ = self.optimizer
 
     def _check_optimizer_state(self, saved) -> None:
@@ -319,26 +319,26 @@ class Mapper(MapViews):
         """The one training step, on the training clock: every frame added so far (the prior of
         new frames first); `progress` in [0, 1] of the budget sets the learning rate (the
         schedule's lr * lr_decay_to ** progress; default `self.progress()`)."""
-        optimizer = self.optimizer  # built before the clock starts: the first one imports torch._dynamo
+        self.build_optimizer()  # before the clock starts: the first one imports torch._dynamo
         t_start = time.perf_counter()
-        terms = self._step(progress, optimizer)
+        terms = self._step(progress)
         self.seconds += time.perf_counter() - t_start
         self.last_loss = float(terms.total.detach())
         return terms
 
-    def _step(self, progress: float | None, optimizer: torch.optim.Adam) -> LossTerms:
+    def _step(self, progress: float | None) -> LossTerms:
         """`train_step` off the clock, as named steps: the step's start-up, the learning rate,
         a batch, the render, the loss (a pure assembly), Adam, the counters, the grid update."""
         self._begin_step()
         schedule = self.schedule
-        self._set_learning_rate(optimizer, schedule, self.progress() if progress is None else progress)
+        self._set_learning_rate(schedule, self.progress() if progress is None else progress)
         batch = self._sample(schedule)
         rgb_rays = colour_rays(self.config, batch)
         out, stats = self.model.render(batch.origins, batch.directions, generator=self.generator, rgb_rays=rgb_rays,
                                        visible_share=self.visible_share)
         terms = step_loss(self.config, batch, out, stats.samples, rgb_rays,
                           stereo_line_of_sight(self.config, self.box, self.extent.growing, self.driving))
-        self._optimise(optimizer, terms)
+        self._optimise(terms)
         self._count(stats)
         self._update_grid(schedule, batch, stats)
         return terms
@@ -352,10 +352,9 @@ class Mapper(MapViews):
         if self._frames_at_start is None:
             self._frames_at_start = self.frames
 
-    @staticmethod
-    def _set_learning_rate(optimizer: torch.optim.Adam, schedule: StepSchedule, progress: float) -> None:
+    def _set_learning_rate(self, schedule: StepSchedule, progress: float) -> None:
         lr = schedule.learning_rate(progress)
-        for g in optimizer.param_groups:
+        for g in self.optimizer.param_groups:
             g["lr"] = lr
 
     def _sample(self, schedule: StepSchedule) -> RayBatch:
@@ -365,14 +364,13 @@ class Mapper(MapViews):
         batch = self.sampler.sample(self.rng, n_rays, np.arange(self.frames), self._frame_odds(schedule))
         return batch.to(self.device)
 
-    @staticmethod
-    def _optimise(optimizer: torch.optim.Adam, terms: LossTerms) -> None:
+    def _optimise(self, terms: LossTerms) -> None:
         """Adam on the field; a batch that marched no occupied cell (all rays out of the box)
         has no graph and changes nothing."""
-        optimizer.zero_grad(set_to_none=True)
+        self.optimizer.zero_grad(set_to_none=True)
         if terms.total.requires_grad:
             terms.total.backward()
-            optimizer.step()
+            self.optimizer.step()
 
     def _count(self, stats) -> None:
         if stats.visible_share is not None:
