@@ -17,15 +17,11 @@ import pytest
 from scipy.spatial import cKDTree
 
 from virus_nerf.errors import OutputExistsError
-from virus_nerf.evaluation import (
-    METRIC_KEYS,
-    EvaluationConfig,
-    build_ground_truth,
-    cast_rays,
-    evaluate,
-    make_test_points,
-    rasterise,
-)
+from virus_nerf.evaluation.config import EvaluationConfig
+from virus_nerf.evaluation.evaluate import build_ground_truth, evaluate
+from virus_nerf.evaluation.gt import cast_rays, rasterise
+from virus_nerf.evaluation.metrics import METRIC_KEYS
+from virus_nerf.evaluation.testpoints import make_test_points
 
 
 @pytest.fixture(scope="module")

@@ -10,12 +10,12 @@ from dataclasses import field as dc_field
 from typing import Literal
 
 from virus_nerf.checks import Checks
-from virus_nerf.field.field import FieldConfig
+from virus_nerf.field.config import FieldConfig
 from virus_nerf.grid.extent import ExtentConfig
-from virus_nerf.grid.ngp import NgpGridConfig
-from virus_nerf.grid.virus import VirusGridConfig
-from virus_nerf.losses import LossWeights
-from virus_nerf.sampler.batch import SENSORS, BatchShares
+from virus_nerf.grid.ngp_config import NgpGridConfig
+from virus_nerf.grid.virus_config import VirusGridConfig
+from virus_nerf.losses.weights import LossWeights
+from virus_nerf.sampler.shares import SENSORS, BatchShares
 from virus_nerf.stereo.depth import StereoConfig
 
 

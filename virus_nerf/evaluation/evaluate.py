@@ -16,12 +16,21 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 from virus_nerf.data.ethz import Recording
 from virus_nerf.errors import DataFormatError
+from virus_nerf.evaluation.config import (  # noqa: F401  (importable from here as before)
+    DEFAULT_ZONES,
+    INLIER_M,
+    SENSOR_NAMES,
+    EvaluationConfig,
+    GtProtocol,
+    Zone,
+    check_gt_protocols,
+)
 from virus_nerf.evaluation.gt import (
     GT_DESCRIPTIONS,
     GT_PROTOCOLS,
@@ -34,11 +43,8 @@ from virus_nerf.evaluation.gt import (
     paper_lidar_deg,
 )
 from virus_nerf.evaluation.metrics import (
-    DEFAULT_ZONES,
-    INLIER_M,
     NNDSamples,
     SensorMetrics,
-    Zone,
     format_table,
     metrics_document,
     nnd_samples,
@@ -50,18 +56,7 @@ from virus_nerf.evaluation.sensor_scans import irs_scan_2d, lidar_scan_2d, uss_s
 from virus_nerf.evaluation.testpoints import TestPoint, make_test_points
 from virus_nerf.maps.scans import RangeModel, Scan2D
 
-SENSOR_NAMES = ("LiDAR", "USS", "IRS")
-GtProtocol = Literal["map", "exact", "paper"]
 SCENE_FILE = "scene.json"  # the simulator's exact scene, in the room folder
-
-
-def check_gt_protocols(protocols: object, name: str = "evaluation.gt") -> tuple[str, ...]:
-    """A tuple of distinct known protocols, or a ValueError naming `name`. Empty = no ground
-    truth (`--gt none`: a robot without a LiDAR map trains and maps, nothing is scored)."""
-    ok = isinstance(protocols, tuple | list) and all(p in GT_PROTOCOLS for p in protocols)
-    if not ok or len(set(protocols)) != len(protocols):  # type: ignore[arg-type]
-        raise ValueError(f"{name} {protocols!r}: expected distinct protocols out of {', '.join(GT_PROTOCOLS)}")
-    return tuple(protocols)  # type: ignore[arg-type]
 
 
 def parse_gt_flag(text: str, flag: str = "--gt") -> tuple[str, ...]:
@@ -78,26 +73,6 @@ def parse_gt_flag(text: str, flag: str = "--gt") -> tuple[str, ...]:
         raise UsageError(f"{flag} {text!r}: {what}; expected one or more of {','.join(GT_PROTOCOLS)}, "
                          "comma-separated (e.g. map,exact), or none")
     return names
-
-
-@dataclass(frozen=True)
-class EvaluationConfig:
-    """Evaluation settings (metres, degrees where named)."""
-
-    n_rays: int = 512  # rays of the 360 deg GT and model scans
-    height_band_m: float = 0.05  # +- around the camera height for map slice, LiDAR and IRS
-    raster_res_m: float = 0.02  # GT occupancy raster cell (<= 0.02, docs/method.md 6.2)
-    map_voxel_m: float = 0.03  # footprint drawn for each map point (its voxel size)
-    lidar_angle_range_deg: float = 360.0  # LiDAR horizontal range centred on the robot heading
-    uss_arc_step_deg: float = 1.0  # spacing of the points on the USS arc
-    inlier_m: float = INLIER_M  # m: a scan point closer than this to the ground truth is an inlier
-    zones: tuple[Zone, ...] = DEFAULT_ZONES
-    sensors: tuple[str, ...] = SENSOR_NAMES  # which instantaneous sensors to score
-    gt: tuple[GtProtocol, ...] = ("map",)  # ground-truth protocols (docs/method.md 6.7); the first is the primary;
-    # () = none: nothing is scored (a recording without a LiDAR map)
-
-    def __post_init__(self) -> None:
-        check_gt_protocols(self.gt)
 
 
 @dataclass

@@ -36,11 +36,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from virus_nerf.evaluation.config import DEFAULT_ZONES, GT_PROTOCOLS, INLIER_M, Zone  # noqa: F401  (importable from here as before)
 from virus_nerf.utils.io import write_json_atomic
 
-GT_PROTOCOLS = ("map", "exact", "paper")  # ground-truth protocols (docs/method.md 6.7; evaluation.gt)
-
-INLIER_M = 0.1
 METRIC_KEYS = (
     "acc_mean", "acc_median", "acc_inlier", "acc_too_close", "acc_too_far",
     "cov_mean", "cov_median", "cov_inlier", "cov_too_close", "cov_too_far", "gt_unseen",
@@ -48,22 +46,6 @@ METRIC_KEYS = (
 )
 LEGACY_METRIC_KEYS = tuple(k for k in METRIC_KEYS if k != "gt_unseen")  # metrics.json before gt_unseen
 DEFAULT_GT = "map"  # the protocol of a metrics.json that names none
-
-
-@dataclass(frozen=True)
-class Zone:
-    """Distance zone [lo, hi] metres, both ends included."""
-
-    name: str
-    lo: float
-    hi: float
-
-    def contains(self, depth: np.ndarray) -> np.ndarray:
-        depth = np.asarray(depth, dtype=np.float64)
-        return (depth >= self.lo) & (depth <= self.hi)
-
-
-DEFAULT_ZONES: tuple[Zone, ...] = (Zone("zone1", 0.0, 1.0), Zone("zone2", 0.0, 2.0), Zone("zone3", 0.0, 100.0))
 
 
 @dataclass

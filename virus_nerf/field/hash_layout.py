@@ -7,9 +7,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:
+    import torch
 
 PRIMES = (1, 2654435761, 805459861)
 
@@ -97,6 +100,8 @@ class LayoutArrays:
 
 def prepare_coords(x: torch.Tensor) -> torch.Tensor:
     """(N, 3) -> contiguous float32 (N, 3) clamped to [0, 1], NaN -> 0, detached."""
+    import torch  # here, not above: the layout itself is checked by configs that need no torch
+
     if x.ndim != 2 or x.shape[1] != 3:
         raise ValueError(f"hash encoding expects points of shape (N, 3), got {tuple(x.shape)}")
     x = x.detach().to(torch.float32)

@@ -14,24 +14,12 @@ Before the first update every cell is occupied, so the untrained field is marche
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 
 from virus_nerf.grid.base import DensityFn, GridSpec, GridUpdateBatch, OccupancyGrid, pad_cells
+from virus_nerf.grid.ngp_config import NgpGridConfig
 from virus_nerf.scene_box import SceneBox
-
-
-@dataclass(frozen=True)
-class NgpGridConfig:
-    """Instant-NGP grid parameters (the ablation's baseline grid)."""
-
-    max_resolution: int = 128  # cells along the longest box axis (GridSpec.from_box)
-    decay: float = 0.95  # per update
-    warmup_steps: int = 256  # training steps during which every cell is evaluated
-    update_interval: int = 16  # training steps between updates (used by the trainer)
-    min_alpha: float = 0.01  # alpha of one marching step at sigma_max
-    chunk_size: int = 65536  # points per density_fn call
 
 
 class NgpGrid(OccupancyGrid):

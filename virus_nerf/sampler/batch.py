@@ -13,21 +13,10 @@ import numpy as np
 import torch
 
 from virus_nerf.sampler.frames import FrameStore
+from virus_nerf.sampler.shares import SENSORS, BatchShares
 from virus_nerf.sensors.camera import pixel_directions
 from virus_nerf.sensors.irs import IRS_ZONE_COUNT
 from virus_nerf.stereo.depth import StereoDepth
-
-SENSORS = ("camera", "uss", "irs", "rgbd", "stereo")
-
-
-@dataclass(frozen=True)
-class BatchShares:
-    """Shares of the batch drawn from IRS-zone pixels, USS-cone pixels and tracked pixels with a
-    triangulated depth (the `stereo` sensor); the rest are random pixels."""
-
-    irs: float = 0.4  # of the batch, from IRS-zone pixels
-    uss: float = 0.4  # from USS-cone pixels
-    stereo: float = 0.1  # from tracked pixels with a triangulated depth
 
 
 @dataclass

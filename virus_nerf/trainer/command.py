@@ -22,9 +22,8 @@ from virus_nerf.errors import (
     renamed_flag,
     require_int,
 )
-from virus_nerf.sampler.batch import SENSORS
+from virus_nerf.sampler.shares import SENSORS
 from virus_nerf.trainer.config import PRODUCT_KNOBS, TrainConfig
-from virus_nerf.trainer.run import final_evaluation, load_trained, run_training
 from virus_nerf.trainer.run_folder import (
     RunLock,
     open_run,
@@ -163,6 +162,10 @@ def train(
             raise UsageError(f"--room {room}: the run in {out} was trained on room {info.room!r}; "
                              "omit --data and --room with --resume")
         cfg = _resolve_config(config, given, flags, base=saved_cfg)
+        from virus_nerf.trainer.run import (
+            run_training,  # here: the flags, --help and their errors need no torch
+        )
+
         with _stops(cfg):
             run_training(Path(info.data), info.room, out, cfg, quiet=quiet or None, resume=True)
         return
@@ -170,6 +173,8 @@ def train(
         raise UsageError(f"{'--data' if data is None else '--room'} is required: give --data DIR --room NAME "
                          "(or --resume to continue the run in --out)")
     cfg = _resolve_config(config, given, flags)
+    from virus_nerf.trainer.run import run_training
+
     with _stops(cfg):
         run_training(data, room, out, cfg, quiet=True if quiet else None, auto_gt=gt is None)
 
@@ -223,6 +228,8 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     # a run a `train` still works in is said to be so (with or without a checkpoint yet), before
     # its files are read; nothing is written into a run that cannot be evaluated
     RunLock(Path(run), "--run").probe()
+    from virus_nerf.trainer.run import load_trained
+
     trainer, cfg, _ = load_trained(run, "--run")
     lock = RunLock(Path(run), "--run").acquire()  # not while a `train` (or another evaluate) works in it
     try:
@@ -239,6 +246,7 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
     from virus_nerf.evaluation.plots import plots_dir_for, write_plots
     from virus_nerf.trainer.loop import TrainSummary
     from virus_nerf.trainer.report import RUN_SCAN_MAPS
+    from virus_nerf.trainer.run import final_evaluation
     from virus_nerf.trainer.run_folder import train_summary_block
 
     if n_rays is not None or protocols is not None:

@@ -8,7 +8,7 @@ from dataclasses import field as dc_field
 
 from virus_nerf.engine.config import PRODUCT_KNOBS as MAPPER_PRODUCT_KNOBS
 from virus_nerf.engine.config import Checks, MapperConfig
-from virus_nerf.evaluation.evaluate import EvaluationConfig
+from virus_nerf.evaluation.config import EvaluationConfig
 
 # `train --help`'s knobs: the engine's product knobs and the run's own a user sets
 PRODUCT_KNOBS = MAPPER_PRODUCT_KNOBS + ("online", "playback_speed", "odometry_poses", "eval_interval",

@@ -7,9 +7,10 @@ otherwise (CUDA).
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
-import torch
+if TYPE_CHECKING:  # tensors are only read here; a config checks its backend knob without torch
+    import torch
 
 Backend = Literal["auto", "numba", "torch"]
 BACKENDS: tuple[str, ...] = ("auto", "numba", "torch")
