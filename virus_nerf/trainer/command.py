@@ -162,9 +162,8 @@ def train(
             raise UsageError(f"--room {room}: the run in {out} was trained on room {info.room!r}; "
                              "omit --data and --room with --resume")
         cfg = _resolve_config(config, given, flags, base=saved_cfg)
-        from virus_nerf.trainer.run import (
-            run_training,  # here: the flags, --help and their errors need no torch
-        )
+        # the training is imported here: the flags, --help and their errors need no torch
+        from virus_nerf.trainer.run import run_training
 
         with _stops(cfg):
             run_training(Path(info.data), info.room, out, cfg, quiet=quiet or None, resume=True)
