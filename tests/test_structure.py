@@ -317,12 +317,12 @@ def test_matplotlib_is_imported_when_a_plot_is_drawn_not_before():
     assert "matplotlib.pyplot" in _loaded_after("from virus_nerf.evaluation.plots import pyplot\npyplot()")
 
 
-def test_the_train_command_and_its_config_load_no_torch():
-    """`train --help` and a mistyped `train` flag (one line, exit 2) need the config dataclasses
-    and tyro only: torch, scipy, numba and OpenCV (4 s of start-up on 2 cores) load with the
-    training, not with the flags (D110)."""
-    loaded = _loaded_after("import virus_nerf.trainer.command\nfrom virus_nerf.trainer.config import TrainConfig\n"
-                           "TrainConfig()")
+def test_the_commands_and_the_config_load_no_torch():
+    """`train --help` and a mistyped flag of `train`, `export`, `map-bag` or `ros2` (one line,
+    exit 2) need the config dataclasses and tyro only: torch, scipy, numba and OpenCV (2-4 s of
+    start-up on 2 cores) load with the work, not with the flags (D110)."""
+    loaded = _loaded_after("import virus_nerf.trainer.command, virus_nerf.exports.command, virus_nerf.mapping.command, "
+                           "virus_nerf.ros2.command\nfrom virus_nerf.trainer.config import TrainConfig\nTrainConfig()")
     assert [m for m in loaded if m.split(".")[0] in ("torch", "scipy", "numba", "cv2", "matplotlib")] == []
 
 

@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.errors import UsageError
-from virus_nerf.maps.extract import check_raster
 
 KINDS = ("map", "prob", "grid3d", "esdf", "scans", "cloud", "images")
 DEFAULT_KINDS = ("map", "prob", "grid3d", "esdf", "scans")  # cloud and images render many camera rays
@@ -108,6 +107,7 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
     from virus_nerf.exports import clouds, grid3d, views
     from virus_nerf.maps import esdf, observed
     from virus_nerf.maps import occupancy as maps
+    from virus_nerf.maps.extract import check_raster
     from virus_nerf.utils.io import write_json_atomic, write_text_atomic
 
     mapper = trainer.mapper
