@@ -322,7 +322,8 @@ def test_the_commands_and_the_config_load_no_torch():
     exit 2) need the config dataclasses and tyro only: torch, scipy, numba and OpenCV (2-4 s of
     start-up on 2 cores) load with the work, not with the flags (D110)."""
     loaded = _loaded_after("import virus_nerf.trainer.command, virus_nerf.exports.command, virus_nerf.mapping.command, "
-                           "virus_nerf.ros2.command\nfrom virus_nerf.trainer.config import TrainConfig\nTrainConfig()")
+                           "virus_nerf.ros2.command\nfrom virus_nerf.trainer.config import TrainConfig\nTrainConfig()\n"
+                           "virus_nerf.trainer.command.train_flags({}, 'map,exact')")
     assert [m for m in loaded if m.split(".")[0] in ("torch", "scipy", "numba", "cv2", "matplotlib")] == []
 
 

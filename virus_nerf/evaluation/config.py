@@ -40,6 +40,22 @@ def check_gt_protocols(protocols: object, name: str = "evaluation.gt") -> tuple[
     return tuple(protocols)  # type: ignore[arg-type]
 
 
+def parse_gt_flag(text: str, flag: str = "--gt") -> tuple[str, ...]:
+    """`--gt map,exact` -> ("map", "exact"), `--gt none` -> (); a one-line UsageError naming the
+    flag otherwise."""
+    from virus_nerf.errors import UsageError
+
+    if str(text).strip() == "none":
+        return ()
+    names = tuple(s.strip() for s in str(text).split(","))
+    unknown = [s for s in names if s not in GT_PROTOCOLS]
+    if unknown or len(set(names)) != len(names):
+        what = f"unknown protocol {unknown[0]!r}" if unknown else "a protocol named twice"
+        raise UsageError(f"{flag} {text!r}: {what}; expected one or more of {','.join(GT_PROTOCOLS)}, "
+                         "comma-separated (e.g. map,exact), or none")
+    return names
+
+
 @dataclass(frozen=True)
 class EvaluationConfig:
     """Evaluation settings (metres, degrees where named)."""

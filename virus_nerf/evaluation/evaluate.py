@@ -30,6 +30,7 @@ from virus_nerf.evaluation.config import (  # noqa: F401  (importable from here 
     GtProtocol,
     Zone,
     check_gt_protocols,
+    parse_gt_flag,
 )
 from virus_nerf.evaluation.gt import (
     GT_DESCRIPTIONS,
@@ -57,22 +58,6 @@ from virus_nerf.evaluation.testpoints import TestPoint, make_test_points
 from virus_nerf.maps.scans import RangeModel, Scan2D
 
 SCENE_FILE = "scene.json"  # the simulator's exact scene, in the room folder
-
-
-def parse_gt_flag(text: str, flag: str = "--gt") -> tuple[str, ...]:
-    """`--gt map,exact` -> ("map", "exact"), `--gt none` -> (); a one-line UsageError naming the
-    flag otherwise."""
-    from virus_nerf.errors import UsageError
-
-    if str(text).strip() == "none":
-        return ()
-    names = tuple(s.strip() for s in str(text).split(","))
-    unknown = [s for s in names if s not in GT_PROTOCOLS]
-    if unknown or len(set(names)) != len(names):
-        what = f"unknown protocol {unknown[0]!r}" if unknown else "a protocol named twice"
-        raise UsageError(f"{flag} {text!r}: {what}; expected one or more of {','.join(GT_PROTOCOLS)}, "
-                         "comma-separated (e.g. map,exact), or none")
-    return names
 
 
 @dataclass

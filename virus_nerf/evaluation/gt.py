@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from virus_nerf.evaluation.metrics import GT_PROTOCOLS  # noqa: F401  (the names live beside the schema)
+from virus_nerf.evaluation.config import GT_PROTOCOLS  # noqa: F401  (importable from here as before)
 from virus_nerf.evaluation.testpoints import TestPoint
 from virus_nerf.maps.scans import FieldOfView, Scan2D, horizontal_directions, scan_angles
 

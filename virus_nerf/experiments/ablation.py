@@ -259,7 +259,7 @@ def ablation(
     import json
 
     from virus_nerf.errors import UsageError, require_int, require_number
-    from virus_nerf.evaluation.evaluate import parse_gt_flag
+    from virus_nerf.evaluation.config import parse_gt_flag
     from virus_nerf.experiments.online import refuse_existing
     from virus_nerf.sim.command import simulate
     from virus_nerf.utils.io import write_json_atomic, write_text_atomic

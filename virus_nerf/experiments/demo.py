@@ -31,7 +31,7 @@ def demo(
             per protocol in the report, the first one's in the plots and metrics.json's own.
     """
     from virus_nerf.errors import OutputExistsError, require_int, require_number
-    from virus_nerf.evaluation.evaluate import parse_gt_flag
+    from virus_nerf.evaluation.config import parse_gt_flag
     from virus_nerf.evaluation.metrics import RunMetrics
     from virus_nerf.experiments.report import metrics_markdown_by_gt, safety_markdown
     from virus_nerf.sim.command import simulate

@@ -89,7 +89,7 @@ def online(
     import matplotlib.pyplot as plt
 
     from virus_nerf.errors import renamed_flag, require_int, require_number
-    from virus_nerf.evaluation.evaluate import parse_gt_flag
+    from virus_nerf.evaluation.config import parse_gt_flag
     from virus_nerf.evaluation.plots import save_png
     from virus_nerf.sim.command import simulate
     from virus_nerf.utils.io import write_json_atomic, write_text_atomic

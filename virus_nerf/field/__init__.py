@@ -9,7 +9,7 @@ _LAZY = {
     "NerfField": "virus_nerf.field.field",
     "trunc_exp": "virus_nerf.field.field",
     "HashEncoding": "virus_nerf.field.hash_encoding",
-    "HashGridLayout": "virus_nerf.field.hash_encoding",
+    "HashGridLayout": "virus_nerf.field.hash_layout",
     "hash_encode": "virus_nerf.field.hash_encoding",
     "hash_encode_torch": "virus_nerf.field.hash_encoding",
     "SH_DIM": "virus_nerf.field.sh",
@@ -25,3 +25,7 @@ def __getattr__(name: str):
 
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *__all__])

@@ -65,7 +65,7 @@ def train_flags(knobs: dict, gt: str | None = None, playback_speed: float | None
     """The config fields the `train` flags give (a nested dict, a section a dict) and, for each
     dotted field, the flag that gave it (for error messages): the derived flags in `knobs`, --gt
     and the deprecated --playback-speed."""
-    from virus_nerf.evaluation.evaluate import parse_gt_flag
+    from virus_nerf.evaluation.config import parse_gt_flag
 
     given = copy.deepcopy(dict(knobs))
     flags = flag_names(given, TRAIN_FLAG_SPECS)
@@ -209,7 +209,7 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
             a 2-core CPU); --no-plots writes metrics.json alone, as `train --no-plots`.
     """
     from virus_nerf.errors import OutputExistsError
-    from virus_nerf.evaluation.evaluate import parse_gt_flag
+    from virus_nerf.evaluation.config import parse_gt_flag
     from virus_nerf.evaluation.plots import plots_dir_for
     from virus_nerf.utils.io import remove_stale_partials
 

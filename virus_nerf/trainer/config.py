@@ -8,7 +8,7 @@ from dataclasses import field as dc_field
 
 from virus_nerf.engine.config import PRODUCT_KNOBS as MAPPER_PRODUCT_KNOBS
 from virus_nerf.engine.config import Checks, MapperConfig
-from virus_nerf.evaluation.config import EvaluationConfig
+from virus_nerf.evaluation.config import SENSOR_NAMES, EvaluationConfig
 
 # `train --help`'s knobs: the engine's product knobs and the run's own a user sets
 PRODUCT_KNOBS = MAPPER_PRODUCT_KNOBS + ("online", "playback_speed", "odometry_poses", "eval_interval",
@@ -52,7 +52,7 @@ class TrainConfig(MapperConfig):
         number("evaluation.map_voxel_m", 0.0, lo_open=False)
         number("evaluation.lidar_angle_range_deg", 0.0, 360.0)
         ev = self.evaluation
-        known = ("LiDAR", "USS", "IRS")
+        known = SENSOR_NAMES
         if not all(isinstance(s, str) and s in known for s in ev.sensors):
             raise bad("evaluation.sensors", list(ev.sensors), f"a subset of {list(known)}")
         names = [getattr(z, "name", None) for z in ev.zones]
