@@ -198,6 +198,38 @@ def test_a_low_end_casts_its_shadow_only_near_a_surface_the_cameras_measured():
     assert list(row(_evidence())) == shadow  # no stereo point at all (a run without stereo): D64's rule
 
 
+class _PalletBeforeFarWall(_PalletBeforeWall):
+    """The same box from x = 2.1 m, its wall 1 m farther: at x = 4.1 m."""
+
+    def ranges(self, origins, directions):
+        o, d = np.asarray(origins), np.asarray(directions)[:, 0]
+        front = np.where(o[:, 2] < 0.9, 2.1, 4.1)
+        t = (front - o[:, 0]) / np.where(d > 1e-9, d, np.nan)
+        return np.where(d > 1e-9, t, np.nan)
+
+
+def test_the_shadow_reaches_half_a_metre_in_a_small_fitted_room():
+    from virus_nerf.maps.extract import low_shadow_depth, scan_map
+
+    camera = np.array([[0.25, 0.25, 1.0]])
+    lo, hi, res = np.array([0.0, -1.0]), np.array([4.5, 1.0]), 0.25  # 18 x 8 pixels
+
+    def row(shadow):
+        return list(scan_map(_PalletBeforeFarWall(), camera, lo, hi, res, 360, shadow=shadow).image[::-1].T[1:17, 5])
+
+    # the low rays end at the box's front (x 2.1, pixel [2.0, 2.25)); the band passes to x 3.625 and
+    # ends at the wall (x 4.1, pixel [4.0, 4.25)); the shadow covers the pixels its rays from the
+    # front pass: to x 3.1 (1 m) through pixel [3.0, 3.25), to x 2.6 (0.5 m) through [2.5, 2.75)
+    assert row(1.0) == [FREE] * 7 + [OCCUPIED] + [UNKNOWN] * 4 + [FREE, FREE, UNKNOWN, OCCUPIED]
+    assert row(0.5) == [FREE] * 7 + [OCCUPIED] + [UNKNOWN] * 2 + [FREE] * 4 + [UNKNOWN, OCCUPIED]
+    # an office's fitted box (9.2 x 8.2 m) and one of exactly 12 m: 0.5 m; a common area's 18.2 m
+    # box or a grown box of any size: 1 m (D111)
+    assert low_shadow_depth((-4.6, -4.1), (4.6, 4.1), growing=False) == 0.5
+    assert low_shadow_depth((0.0, 0.0), (12.0, 3.0), growing=False) == 0.5
+    assert low_shadow_depth((-9.1, -6.1), (9.1, 6.1), growing=False) == 1.0
+    assert low_shadow_depth((-4.6, -4.1), (4.6, 4.1), growing=True) == 1.0
+
+
 class _NothingStops:
     """A range model whose rays nothing stops (the grid emptied every wall): NaN everywhere."""
 

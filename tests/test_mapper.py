@@ -701,3 +701,20 @@ def test_the_mappers_map_ends_the_low_rays_at_d_over_a_until_the_field_has_train
     mapper.step = MAP_LOW_FRONT_FROM_STEP  # as after that many steps (the map reads only the count)
     mapper.update_map(0.1, n_rays=32, max_poses=4)
     assert asked == [None, MAP_LOW_FRONT_OPACITY]
+
+
+def test_the_mappers_shadow_is_half_a_metre_in_a_small_fitted_room_and_a_metre_in_a_grown_box(monkeypatch):
+    """D111: the shadow behind the low rays' ends reaches 0.5 m in a fitted box up to 12 m (this
+    6 x 6 m one) and 1 m in a grown box, whose room is not known while it grows."""
+    import virus_nerf.engine.views as views
+    from virus_nerf.grid.extent import ExtentConfig
+
+    asked = []
+    real = views.occupancy_map
+    monkeypatch.setattr(views, "occupancy_map", lambda *a, **k: asked.append(a[12]) or real(*a, **k))
+    for mode in ("fitted", "grow"):
+        mapper = _mapper(extent=ExtentConfig(mode=mode))
+        for t in range(4):
+            mapper.add_frame(_frame(float(t)))
+        mapper.update_map(0.1, n_rays=32, max_poses=4)
+    assert asked == [0.5, 1.0]

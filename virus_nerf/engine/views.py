@@ -23,6 +23,7 @@ from virus_nerf.maps.extract import (
     camera_height,
     check_raster,
     low_front_level,
+    low_shadow_depth,
     occupancy_map,
     probability_map,
 )
@@ -89,7 +90,8 @@ class MapViews:
             m = occupancy_map(self.model, self.store.cam_to_world[:, :3, 3], lo, hi, resolution, int(n_rays),
                               int(max_poses), self.observed(resolution), self.range_evidence(),
                               low_front_level(self.step),  # D / A while the field is haze (D94)
-                              self.store.stack_ids, self.store.times)
+                              self.store.stack_ids, self.store.times,
+                              low_shadow_depth(self.box.lo, self.box.hi, self.extent.growing))  # D111
         finally:
             self.field.train()
         self._map_cache = (key, dataclasses.replace(m, image=m.image.copy()))
