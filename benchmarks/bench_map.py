@@ -28,7 +28,7 @@ def time_run(run: Path, repeats: int) -> dict:
     if "stereo" in cfg.sensors:  # the stereo points the map's rules ask about, as while driving (cached pass)
         from virus_nerf.stereo.build import stereo_depth
 
-        mapper.set_stereo(stereo_depth(trainer.recording, trainer.store.frame_list(), cfg.stereo))
+        mapper.set_stereo(stereo_depth(trainer.recording, trainer.store.frame_list(), trainer.stereo_config()))
     mapper.update_map(0.05, max_poses=MAP_POSES)  # warm: the observed mask is cached as while driving
     maps, snaps = [], []
     with tempfile.TemporaryDirectory() as tmp:

@@ -74,7 +74,7 @@ def judge(run: Path, data: Path, scene: str) -> dict:
     if "stereo" in cfg.sensors:  # online too: the tracks the drive ended, as offline
         from virus_nerf.stereo.build import stereo_depth
 
-        mapper.set_stereo(stereo_depth(trainer.recording, trainer.store.frame_list(), cfg.stereo))  # cached
+        mapper.set_stereo(stereo_depth(trainer.recording, trainer.store.frame_list(), trainer.stereo_config()))  # cached
 
     def figures(block: dict, planner: dict | None = None) -> dict:
         out = {z: block["zones"][z]["free_share"] for z in ("1m", "2m", "all")}

@@ -60,6 +60,9 @@ ADDED_KEYS = {
     "extent.fitted_frame": "box",  # the field spanned the fitted box per axis before (docs/decisions.md D58)
     "weights.free_stereo": 0.0,  # no emptiness before the stereo targets before docs/decisions.md D77
     "virus_grid.stereo_point_increment": 0.0,  # stereo points not grid evidence before docs/decisions.md D84
+    # the small room's stereo filters were the others before docs/decisions.md D112
+    "stereo.small_room_min_views": 4,
+    "stereo.small_room_max_rel_sigma": 0.03,
 }
 
 

@@ -13,6 +13,7 @@ The pipeline, frame by frame in time order (`StereoBuilder.add`), then once (`re
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +38,13 @@ class StereoConfig:
     min_range: float = 0.3  # m from the camera
     max_range: float = 12.0  # m from the camera
     max_rel_sigma: float = 0.03  # range standard deviation / range
+    # offline in a fitted room small enough for the stereo targets' line-of-sight term
+    # (weights.free_stereo_room_m, engine/mapper.stereo_line_of_sight) these two filters instead
+    # (`small_room_config`): a fifth more points, and the term empties more of the density sheets
+    # the colour leaves beside the path (offices 81-86: free recall 89.31 -> 90.12 %, fewer
+    # obstacles marked free; docs/decisions.md D112); the larger rooms and every drive keep the above
+    small_room_min_views: int = 3
+    small_room_max_rel_sigma: float = 0.05
     # while driving (frames added one by one), the tracks that ended become targets every this
     # many frames (10: about one second of two cameras at 4.8 Hz)
     refresh_frames: int = 10
@@ -51,7 +59,16 @@ class StereoConfig:
         check.number("min_range", 0.0, lo_open=False)
         check.number("max_range", self.min_range)
         check.number("max_rel_sigma", 0.0)
+        check.integer("small_room_min_views", 2)
+        check.number("small_room_max_rel_sigma", 0.0)
         check.integer("refresh_frames", 1)
+
+
+def small_room_config(cfg: StereoConfig) -> StereoConfig:
+    """`cfg` with the small room's filters (`small_room_min_views`, `small_room_max_rel_sigma`) as
+    its `min_views` and `max_rel_sigma`: the stereo pass of an offline run in a fitted room where
+    the line-of-sight term trains (trainer/loop.py)."""
+    return dataclasses.replace(cfg, min_views=cfg.small_room_min_views, max_rel_sigma=cfg.small_room_max_rel_sigma)
 
 
 @dataclass

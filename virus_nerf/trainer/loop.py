@@ -26,7 +26,7 @@ import torch
 from virus_nerf.config_io import to_dict
 from virus_nerf.data.ethz import Recording
 from virus_nerf.data.playback import FrameFeeder, Playback
-from virus_nerf.engine.mapper import Mapper
+from virus_nerf.engine.mapper import Mapper, stereo_line_of_sight
 from virus_nerf.engine.model import start_box
 from virus_nerf.engine.schedule import Horizon, Schedules
 from virus_nerf.evaluation.evaluate import EvaluationResult, build_ground_truth, evaluate
@@ -34,6 +34,7 @@ from virus_nerf.losses import LossTerms
 from virus_nerf.sampler.batch import BatchSampler
 from virus_nerf.sampler.frames import MMAP_ABOVE_BYTES, FrameStore, build_frame_store, release_pages
 from virus_nerf.scene_box import SceneBox
+from virus_nerf.stereo.depth import StereoConfig, small_room_config
 from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.run_folder import (
     CHECKPOINT,
@@ -149,12 +150,23 @@ class Trainer:
         if "stereo" in self.config.sensors and not self.config.online:
             from virus_nerf.stereo.build import stereo_depth
 
-            self.mapper.set_stereo(stereo_depth(self.recording, self.store.frame_list(), self.config.stereo,
+            self.mapper.set_stereo(stereo_depth(self.recording, self.store.frame_list(), self.stereo_config(),
                                                 progress=not self.quiet))
         self.mapper.prepare()
         self.grid_init_s = self.mapper.prior_s
         self._prepared = True
         self.startup_s = since_process_start()
+
+    def stereo_config(self) -> StereoConfig:
+        """The stereo pass's settings: the run's, offline with the small room's filters where the
+        stereo targets' line-of-sight term trains (a fitted room up to weights.free_stereo_room_m,
+        engine/mapper.stereo_line_of_sight; docs/decisions.md D112). A drive's tracker keeps the
+        run's own (the term does not train while driving)."""
+        mapper = self.mapper
+        if not self.config.online and stereo_line_of_sight(self.config, mapper.box, mapper.extent.growing,
+                                                           driving=False):
+            return small_room_config(self.config.stereo)
+        return self.config.stereo
 
     @property
     def t0(self) -> float:
