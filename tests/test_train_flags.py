@@ -197,10 +197,13 @@ def test_a_run_saved_before_a_key_was_added_loads_at_the_value_it_was_made_with(
     del old["extent"]["fitted_frame"]
     for key in ("free_stereo", "free_stereo_short", "free_stereo_room_m"):  # before D77
         del old["weights"][key]
+    for key in ("small_room_min_views", "small_room_max_rel_sigma"):  # before D112
+        del old["stereo"][key]
     path = tmp_path / "config.json"
     path.write_text(json.dumps(old))
     loaded = load_json_config(TrainConfig, path, saved=True)
     assert loaded.extent.fitted_frame == "box" and loaded.weights.free_stereo == 0.0
+    assert (loaded.stereo.small_room_min_views, loaded.stereo.small_room_max_rel_sigma) == (4, 0.03)
     # a user's partial config file takes today's default
     path.write_text(json.dumps({"extent": {"mode": "fitted"}}))
     cfg = load_json_config(TrainConfig, path)

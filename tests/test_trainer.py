@@ -383,7 +383,8 @@ def test_start_up_is_not_on_the_training_clock(tiny_office, tmp_path, monkeypatc
 
 
 def test_the_offline_stereo_pass_keeps_the_small_rooms_filters_where_the_line_of_sight_term_trains(tiny_office,
-                                                                                                  tmp_path):
+                                                                                                  tmp_path,
+                                                                                                  monkeypatch):
     """D112: offline in a fitted box up to weights.free_stereo_room_m (the tiny office's), the
     stereo pass keeps tracks of 3 views and points up to 5 % range uncertainty; in a grown box, in
     a room above the limit, without the term or online it keeps the run's own filters (4 views, 3 %)."""
@@ -399,6 +400,13 @@ def test_the_offline_stereo_pass_keeps_the_small_rooms_filters_where_the_line_of
 
     small = pass_config()
     assert (small.min_views, small.max_rel_sigma) == (3, 0.05)
+    import virus_nerf.stereo.build as build
+
+    asked = []
+    real = build.stereo_depth
+    monkeypatch.setattr(build, "stereo_depth", lambda rec, frames, cfg, **k: asked.append(cfg) or real(rec, frames, cfg, **k))
+    Trainer(rec, small_config(), tmp_path, quiet=True).prepare()  # the pass `train`, `evaluate` and `export` run
+    assert asked == [small]
     for changes in ({"extent": ExtentConfig(mode="grow")}, {"weights": LossWeights(free_stereo_room_m=1.0)},
                     {"weights": LossWeights(free_stereo=0.0)}, {"online": True, "max_steps": None, "max_time": 5.0}):
         assert pass_config(**changes) == StereoConfig()

@@ -100,7 +100,8 @@ class MapViews:
     def _map_key(self, resolution, n_rays, max_poses) -> tuple:
         """The settings (n_rays and max_poses checked; a resolution no cached map has goes to
         `update_map`, which checks it) and what the map depends on: the training state (step and
-        clock: a loaded state changes both), the frames, the box and the stereo targets."""
+        clock: a loaded state changes both), the frames, the box (and with it the shadow's depth,
+        maps.extract.low_shadow_depth) and the stereo targets."""
         for name, v, lo in (("n_rays", n_rays, 0), ("max_poses", max_poses, 0)):
             if isinstance(v, bool) or not isinstance(v, int | float) or not v > lo or not math.isfinite(v):
                 raise UsageError(f"Mapper.map2d {name} {v!r}: expected a positive number")

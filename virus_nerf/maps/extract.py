@@ -78,7 +78,8 @@ MAP_LOW_SHADOW_M = 1.0
 # a metre deep. On rooms 81-86 offline the offices' free recall rose 88.41 -> 89.31 % with every
 # obstacle figure within 2 m the same; in the warehouses 0.5 m everywhere marked 1.24 / 2.13 /
 # 5.13 % of the obstacles free (D95, D111). 12 m is D77's boundary between the simulated offices'
-# 9.2 m boxes and the common areas' 18.2 m. A grown box's room is not known while it grows: 1 m
+# 9.2 m boxes and the common areas' 18.2 m, a constant of the map's own (weights.free_stereo_room_m, the
+# same 12 m, is the training's knob). A grown box's room is not known while it grows: 1 m
 MAP_LOW_SHADOW_SMALL_ROOM_M = 0.5
 MAP_SMALL_ROOM_M = 12.0
 # the low rays march over the grid's occupied cells grown by this many cells up and down: the
@@ -185,8 +186,8 @@ def scan_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resol
     `band_counts`, D97), then occupied where the band's
     rays said free and the low rays (MAP_LOW_HEIGHTS_M, half a band ray's angle apart from them)
     by the same rule said occupied (D60), and unknown where the band said free up to
-    `shadow` m (MAP_LOW_SHADOW_M; `low_shadow_depth`) behind the low rays' occupied ends and no low ray
-    passed (D64). The band's
+    `shadow` m (MAP_LOW_SHADOW_M; `low_shadow_depth`) behind the low rays' occupied ends and no
+    low ray passed (D64). The band's
     rays march the grid as trained, the low rays the grid grown in z (`low_ranges`, D66), those
     at MAP_LOW_AROUND_HEIGHTS_M the grid grown in x and y as well (D73). With the robot's
     `evidence` (maps/planner.py), only low ends near a measured surface cast the shadow, the

@@ -31,13 +31,13 @@ class StereoConfig:
 
     tracker: TrackerConfig = TrackerConfig()
     pair_max_dt: float = 0.1  # s: two cameras' frames closer than this are matched
-    min_views: int = 4  # views per track (frames it was seen in)
+    min_views: int = 4  # views per track (frames it was seen in); small_room_min_views where it applies
     sigma_px: float = 0.5  # pixel noise behind each point's covariance
     max_reproj_px: float = 0.5  # a view further than this from its point's projection is dropped
     min_parallax_deg: float = 1.0  # largest angle between a point's viewing rays
     min_range: float = 0.3  # m from the camera
     max_range: float = 12.0  # m from the camera
-    max_rel_sigma: float = 0.03  # range standard deviation / range
+    max_rel_sigma: float = 0.03  # range standard deviation / range; small_room_max_rel_sigma where it applies
     # offline in a fitted room small enough for the stereo targets' line-of-sight term
     # (weights.free_stereo_room_m, engine/mapper.stereo_line_of_sight) these two filters instead
     # (`small_room_config`): a fifth more points, and the term empties more of the density sheets
