@@ -142,9 +142,11 @@ class _PalletBeforeWall:
     """A range model: a wall at x = 3.1 m, and before it a box from x = 2.1 m whose top is 10 cm
     below the camera (z < 0.9 m): only rays starting below 0.9 m meet the box."""
 
+    wall_x = 3.1
+
     def ranges(self, origins, directions):
         o, d = np.asarray(origins), np.asarray(directions)[:, 0]
-        front = np.where(o[:, 2] < 0.9, 2.1, 3.1)
+        front = np.where(o[:, 2] < 0.9, 2.1, self.wall_x)
         t = (front - o[:, 0]) / np.where(d > 1e-9, d, np.nan)
         return np.where(d > 1e-9, t, np.nan)
 
@@ -201,11 +203,7 @@ def test_a_low_end_casts_its_shadow_only_near_a_surface_the_cameras_measured():
 class _PalletBeforeFarWall(_PalletBeforeWall):
     """The same box from x = 2.1 m, its wall 1 m farther: at x = 4.1 m."""
 
-    def ranges(self, origins, directions):
-        o, d = np.asarray(origins), np.asarray(directions)[:, 0]
-        front = np.where(o[:, 2] < 0.9, 2.1, 4.1)
-        t = (front - o[:, 0]) / np.where(d > 1e-9, d, np.nan)
-        return np.where(d > 1e-9, t, np.nan)
+    wall_x = 4.1
 
 
 def test_the_shadow_reaches_half_a_metre_in_a_small_fitted_room():
