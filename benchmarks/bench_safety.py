@@ -1,5 +1,6 @@
 """Can a planner drive on the map? (issue 42): per simulated room, the 2D map's obstacles marked
-free (within 1 m / 2 m of the path / all), its free recall and a planner's crossings, with the
+free (within 1 m / 2 m of the path / all), its free recall, what the body meets below the band
+that it marks free (`below_*`, D113) and a planner's crossings, with the
 range sensors' evidence (maps/planner.py, the default) and without it (the NeRF's scans alone),
 beside the anchors (the USS + IRS inverse-sensor map, a LiDAR's 2D map), all from
 evaluation/safety.py on the same raster against the `map` ground truth.
@@ -80,6 +81,7 @@ def judge(run: Path, data: Path, scene: str) -> dict:
         out = {z: block["zones"][z]["free_share"] for z in ("1m", "2m", "all")}
         out["free_recall"], out["free_recall_drivable"] = block["free_recall"], block.get("free_recall_drivable")
         out["planner_reach"] = block.get("planner_reach")
+        out.update(below_figures(block))
         if planner is not None:
             out["planner_crossing"], out["planner_paths"] = planner["crossing"], planner["paths"]
             out["planner_unsafe_m2"] = planner["unsafe_m2"]
@@ -168,7 +170,14 @@ def judge_files(folder: Path, data: Path, scene: str) -> dict:
     out.update(free_recall=block["free_recall"], free_recall_drivable=block["free_recall_drivable"],
                planner_reach=block["planner_reach"], planner_crossing=planner["crossing"], planner_paths=planner["paths"],
                planner_unsafe_m2=planner["unsafe_m2"], planner_unsafe_2m_m2=planner["unsafe_near_m2"]["2m"])
+    out.update(below_figures(block))
     return out
+
+
+def below_figures(block: dict) -> dict:
+    """What the body meets below the band marked free, by zone ("below_1m", ...; none without the
+    body's ground truth)."""
+    return {f"below_{z}": b["free_share"] for z, b in (block.get("below_band") or {}).items()}
 
 
 def judge_bag(run: Path, data: Path, scene: str) -> dict:

@@ -126,6 +126,8 @@ def test_demo_end_to_end(tmp_path: Path):
             f"{pct(safety['free_recall_drivable'])} |") in report
     lidar = safety["anchors"]["lidar"]
     assert f"| LiDAR 2D map | {' | '.join(pct(b['free_share']) for b in lidar['zones'].values())} |" in report
+    below = " / ".join(pct(b["free_share"]) for b in safety["below_band"].values())
+    assert f"marked free within 1 m / 2 m / all: the map (`map.pgm`) {below}; USS + IRS alone" in report
     assert "(run/plots/map_safety.png)" in report and (out / "run" / "plots" / "map_safety.png").is_file()
     assert all(f"**Warning:** {w}" in report for w in doc["warnings"]) and doc["warnings"]
     for image in ("metrics_bars.png",):

@@ -291,6 +291,33 @@ def test_the_drivable_free_recall_leaves_out_what_the_body_meets():
     assert judge_map(image, origin, res, wall, path).block()["free_recall_drivable"] is None  # no body truth
 
 
+def test_what_the_body_meets_below_the_band_marked_free_by_hand():
+    """The pallet of the test above (4 pixels 0.45-0.58 m from the path at (0.05, 0.05)) and a body
+    point inside the wall's band pixel (counted with the band's obstacles, not again): occupied in
+    the map, none of the 4 is marked free; a map that marks them free marks 4 of 4 within 1 m; with
+    one of them occupied only the pallet pixel diagonal to it stays free for sure (the 0.1 m
+    tolerance is one pixel here: the 4 neighbours)."""
+    from virus_nerf.evaluation.safety import judge_map
+
+    res, origin = 0.1, (0.0, 0.0)
+    wall = np.column_stack([np.full(10, 1.05), np.arange(10) * 0.1 + 0.05])
+    body = np.array([[0.25, 0.45], [0.35, 0.45], [0.25, 0.55], [0.35, 0.55], [1.05, 0.05]])
+    path = np.array([[0.05, 0.05]])
+    image = np.full((10, 20), UNKNOWN, dtype=np.uint8)
+    image[:, :9] = FREE
+    image[4:6, 2:4] = OCCUPIED
+    below = judge_map(image, origin, res, wall, path, body_xy=body).block()["below_band"]
+    assert below == {"1m": {"obstacles": 4, "marked_free": 0, "free_share": 0.0},
+                     "2m": {"obstacles": 4, "marked_free": 0, "free_share": 0.0},
+                     "all": {"obstacles": 4, "marked_free": 0, "free_share": 0.0}}
+    image[4:6, 2:4] = FREE
+    assert judge_map(image, origin, res, wall, path, body_xy=body).block()["below_band"]["1m"]["marked_free"] == 4
+    image[5, 2] = OCCUPIED  # y 0.4-0.5, x 0.2-0.3: the pallet pixel at (0.25, 0.45)
+    zones = judge_map(image, origin, res, wall, path, body_xy=body).below_band
+    assert [(z.obstacles, z.marked_free) for z in zones] == [(4, 1), (4, 1), (4, 1)]
+    assert judge_map(image, origin, res, wall, path).block()["below_band"] is None  # no body truth
+
+
 def test_planner_reach_is_what_a_planner_reaches_from_the_path_and_a_lone_speck_cuts_it():
     """A corridor at 4 cm (20 x 60 pixels, walls on rows 0 and 19), the path along row 10. A 0.3 m
     robot may stand on rows 8-11 (0.32 m or more from both walls; row 7 is 0.28 m): 4 x 60 = 240

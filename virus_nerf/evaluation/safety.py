@@ -21,7 +21,10 @@ The free recall's ground truth is the camera-height slice, so the space over a p
 shelf counts free there, though the robot's body would meet it and the map rightly keeps it out.
 Beside it stands the drivable free recall: the same share of the true free space less what the
 LiDAR map holds from 0.1 m above the floor up to the camera band (evaluation/gt.py `body_slice`),
-the space the robot can actually cross.
+the space the robot can actually cross. And the obstacles the band does not hold but the body
+meets (those same points: a pallet, a rack's lowest shelf, a chair's seat) stand beside the band's
+own, by the same zones (`below_band`): the band's ground truth does not count a map that marks
+them free, a robot does.
 """
 
 from __future__ import annotations
@@ -123,7 +126,14 @@ def map_safety(image: np.ndarray, origin: tuple[float, float], resolution: float
     camera height (m); path_xy (P, 2) the robot's camera positions (m).
     """
     obst = obstacle_pixels(obstacles_xy, origin, resolution, np.asarray(image).shape)
-    rows, cols, dist = path_distances(obst, origin, resolution, path_xy)
+    return pixels_marked_free(image, obst, origin, resolution, path_xy, free_value, zones, tolerance)
+
+
+def pixels_marked_free(image: np.ndarray, obstacles: np.ndarray, origin: tuple[float, float], resolution: float,
+                       path_xy: np.ndarray, free_value: int = 254, zones: tuple[float, ...] = SAFETY_ZONES_M,
+                       tolerance: float = SAFETY_TOLERANCE_M) -> list[SafetyZone]:
+    """`map_safety` of obstacle pixels given as a mask ((H, W) bool, the map's raster)."""
+    rows, cols, dist = path_distances(obstacles, origin, resolution, path_xy)
     missed = free_for_sure(image, free_value, resolution, tolerance)[rows, cols]
     return [SafetyZone(float(z), int((dist <= z).sum()), int((missed & (dist <= z)).sum())) for z in zones]
 
@@ -155,13 +165,21 @@ class MapJudgement:
     # the share of the drivable space a PLANNER_RADIUS_M robot can stand in (near the path) that a
     # planner on the map reaches from where the robot drove (`planner_reach`); None as above
     planner_reach: float | None = None
+    # `zones` for what the body meets below the band (gt.body_slice's pixels that hold no band
+    # obstacle): a pallet or a rack's lowest shelf the map marks free; None as above
+    below_band: list[SafetyZone] | None = None
 
     def block(self) -> dict:
-        return {"zones": {_zone_name(z.within_m): {
-            "obstacles": z.obstacles, "marked_free": z.marked_free,
-            "free_share": None if z.free_share is None else round(z.free_share, 4)} for z in self.zones},
-            "free_recall": _round(self.free_recall), "free_recall_drivable": _round(self.free_recall_drivable),
-            "planner_reach": _round(self.planner_reach)}
+        return {"zones": _zones_block(self.zones),
+                "free_recall": _round(self.free_recall), "free_recall_drivable": _round(self.free_recall_drivable),
+                "planner_reach": _round(self.planner_reach),
+                "below_band": None if self.below_band is None else _zones_block(self.below_band)}
+
+
+def _zones_block(zones: list[SafetyZone]) -> dict:
+    return {_zone_name(z.within_m): {"obstacles": z.obstacles, "marked_free": z.marked_free,
+                                     "free_share": None if z.free_share is None else round(z.free_share, 4)}
+            for z in zones}
 
 
 def _round(v: float | None) -> float | None:
@@ -179,19 +197,21 @@ def judge_map(image: np.ndarray, origin: tuple[float, float], resolution: float,
     obstacle points (K, 2) at camera height and the robot's path (P, 2), metres; the true free
     space lies inside `extent` ((x, y) lo, hi m, the ground truth's box; None: the raster). With
     `body_xy` (B, 2), the points the body meets below the band (gt.body_slice), the drivable free
-    recall too: the true free space taken as free of those as well."""
+    recall too: the true free space taken as free of those as well; and those points' own pixels
+    (the ones without a band obstacle) that the map marks free, by zone."""
     obst = obstacle_pixels(obstacles_xy, origin, resolution, np.asarray(image).shape)
     free = true_free_near_path(obst, origin, resolution, path_xy, extent=extent)
-    drivable = reach = None
+    drivable = reach = below = None
     if body_xy is not None:
         body = obstacle_pixels(body_xy, origin, resolution, obst.shape)
+        below = pixels_marked_free(image, body & ~obst, origin, resolution, path_xy, free_value)
         drivable = free_recall(image, free_value, true_free_near_path(obst | body, origin, resolution, path_xy,
                                                                       extent=extent))
         stand = true_free_near_path(obst | body, origin, resolution, path_xy, clearance=PLANNER_RADIUS_M,
                                     extent=extent)  # where the robot's centre may truly be
         reach = planner_reach(image, origin, resolution, stand, path_xy, free_value=free_value)
-    return MapJudgement(map_safety(image, origin, resolution, obstacles_xy, path_xy, free_value),
-                        free_recall(image, free_value, free), drivable, reach)
+    return MapJudgement(pixels_marked_free(image, obst, origin, resolution, path_xy, free_value),
+                        free_recall(image, free_value, free), drivable, reach, below)
 
 
 def configuration_space(image: np.ndarray, resolution: float, radius: float, free_value: int = 254) -> np.ndarray:

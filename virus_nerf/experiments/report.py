@@ -74,6 +74,14 @@ def safety_markdown(doc: Mapping[str, Any], picture: str | None = None) -> list[
         lines += [f"| {name} | " + " | ".join(pct(b["zones"][z]["free_share"]) for z in zones)
                   + f" | {pct(b.get('free_recall'))} | {pct(b.get('free_recall_drivable'))} |" for name, b in rows]
         lines.append("")
+        below = [(name, b["below_band"]) for name, b in rows if b.get("below_band")]
+        if below:  # what the band's ground truth does not hold but the robot's body meets
+            within = " / ".join(z if z == "all" else z[:-1] + " m" for z in zones)
+            shares = "; ".join(f"{name} " + " / ".join(pct(z["free_share"]) for z in block.values())
+                               for name, block in below)
+            lines += ["What the body meets below the band (the LiDAR map's points from "
+                      f"{safety.get('drivable_from_floor_m', 0.1):g} m above the floor up to the band: a pallet, a low "
+                      f"shelf, a seat), marked free within {within}: {shares}.", ""]
         if "planner" in safety:
             p = safety["planner"]
             reach = safety.get("planner_reach")
