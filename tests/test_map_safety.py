@@ -316,6 +316,8 @@ def test_what_the_body_meets_below_the_band_marked_free_by_hand():
     zones = judge_map(image, origin, res, wall, path, body_xy=body).below_band
     assert [(z.obstacles, z.marked_free) for z in zones] == [(4, 1), (4, 1), (4, 1)]
     assert judge_map(image, origin, res, wall, path).block()["below_band"] is None  # no body truth
+    doc = safety_document(judge_map(image, origin, res, wall, path, body_xy=body), 1.0, "map", res)
+    assert "what the body meets below the band marked free: 1m 25.0%, 2m 25.0%, all 25.0%" in safety_line(doc)
 
 
 def test_planner_reach_is_what_a_planner_reaches_from_the_path_and_a_lone_speck_cuts_it():

@@ -266,8 +266,11 @@ def _figures(block: dict) -> str:
     parts = [f"{name} " + ("-" if b["free_share"] is None else f"{b['free_share']:.1%}")
              for name, b in block["zones"].items()]
     recall, drivable = block.get("free_recall"), block.get("free_recall_drivable")
+    below = [f"{name} " + ("-" if b["free_share"] is None else f"{b['free_share']:.1%}")
+             for name, b in (block.get("below_band") or {}).items()]
     return (", ".join(parts) + "; free space kept " + ("-" if recall is None else f"{recall:.1%}")
-            + ("" if drivable is None else f" ({drivable:.1%} of the drivable)"))
+            + ("" if drivable is None else f" ({drivable:.1%} of the drivable)")
+            + (f"; what the body meets below the band marked free: {', '.join(below)}" if below else ""))
 
 
 def safety_line(doc: dict) -> str:
