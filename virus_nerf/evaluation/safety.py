@@ -263,14 +263,16 @@ ANCHOR_LABELS = {"sensors": "USS + IRS alone", "lidar": "LiDAR 2D map"}
 
 
 def _figures(block: dict) -> str:
-    parts = [f"{name} " + ("-" if b["free_share"] is None else f"{b['free_share']:.1%}")
-             for name, b in block["zones"].items()]
-    recall, drivable = block.get("free_recall"), block.get("free_recall_drivable")
-    below = [f"{name} " + ("-" if b["free_share"] is None else f"{b['free_share']:.1%}")
-             for name, b in (block.get("below_band") or {}).items()]
-    return (", ".join(parts) + "; free space kept " + ("-" if recall is None else f"{recall:.1%}")
+    recall, drivable, below = block.get("free_recall"), block.get("free_recall_drivable"), block.get("below_band")
+    return (_shares(block["zones"]) + "; free space kept " + ("-" if recall is None else f"{recall:.1%}")
             + ("" if drivable is None else f" ({drivable:.1%} of the drivable)")
-            + (f"; what the body meets below the band marked free: {', '.join(below)}" if below else ""))
+            + (f"; what the body meets below the band marked free: {_shares(below)}" if below else ""))
+
+
+def _shares(zones: dict) -> str:
+    """A zones block in words: "1m 0.5%, 2m -, all 1.0%"."""
+    return ", ".join(f"{name} " + ("-" if b["free_share"] is None else f"{b['free_share']:.1%}")
+                     for name, b in zones.items())
 
 
 def safety_line(doc: dict) -> str:
