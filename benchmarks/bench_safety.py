@@ -1,6 +1,7 @@
 """Can a planner drive on the map? (issue 42): per simulated room, the 2D map's obstacles marked
 free (within 1 m / 2 m of the path / all), its free recall, what the body meets below the band
-that it marks free (`below_*`, D113) and a planner's crossings, with the
+that it marks free (`below_*`, D113) and a planner's crossings (of the band's obstacles, and
+`planner_crossing_below`, of those alone the body meets below the band: D114), with the
 range sensors' evidence (maps/planner.py, the default) and without it (the NeRF's scans alone),
 beside the anchors (the USS + IRS inverse-sensor map, a LiDAR's 2D map), all from
 evaluation/safety.py on the same raster against the `map` ground truth.
@@ -86,6 +87,7 @@ def judge(run: Path, data: Path, scene: str) -> dict:
             out["planner_crossing"], out["planner_paths"] = planner["crossing"], planner["paths"]
             out["planner_unsafe_m2"] = planner["unsafe_m2"]
             out["planner_unsafe_2m_m2"] = planner["unsafe_near_m2"]["2m"]
+            out.update(planner_below(planner))
         return out
 
     after = mapper_safety(mapper, trainer.recording, cfg.evaluation.height_band_m).document
@@ -163,14 +165,16 @@ def judge_files(folder: Path, data: Path, scene: str) -> dict:
     height, band = camera_height(poses, stack_ids), EvaluationConfig().height_band_m
     obstacles = height_slice(rec.lidar_map(), height, band)
     box = fit_scene_box(rec)
+    body = body_slice(rec.lidar_map(), height, band)  # (B, 2) what the body meets below the band
     block = judge_map(image, origin, resolution, obstacles, poses[:, :2, 3], extent=(box.lo[:2], box.hi[:2]),
-                      body_xy=body_slice(rec.lidar_map(), height, band)).block()
-    planner = planner_check(image, origin, resolution, obstacles, path_xy=poses[:, :2, 3]).block()
+                      body_xy=body).block()
+    planner = planner_check(image, origin, resolution, obstacles, path_xy=poses[:, :2, 3], body_xy=body).block()
     out = {z: block["zones"][z]["free_share"] for z in ("1m", "2m", "all")}
     out.update(free_recall=block["free_recall"], free_recall_drivable=block["free_recall_drivable"],
                planner_reach=block["planner_reach"], planner_crossing=planner["crossing"], planner_paths=planner["paths"],
                planner_unsafe_m2=planner["unsafe_m2"], planner_unsafe_2m_m2=planner["unsafe_near_m2"]["2m"])
     out.update(below_figures(block))
+    out.update(planner_below(planner))
     return out
 
 
@@ -230,3 +234,11 @@ def main() -> None:
 
 if __name__ == "__main__":
     main()
+
+
+def planner_below(planner: dict) -> dict:
+    """The planner's paths that pass only what the body meets below the band, and where its centre
+    may touch that (m^2); none for a block written without the body's ground truth."""
+    if planner.get("crossing_below") is None:
+        return {}
+    return {"planner_crossing_below": planner["crossing_below"], "planner_unsafe_below_m2": planner["unsafe_below_m2"]}

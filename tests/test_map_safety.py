@@ -125,7 +125,10 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     # and nowhere may it put the robot's centre touching one, whatever the random ends (D99)
     assert safety["planner"]["unsafe_m2"] == 0.0 and safety["planner"]["unsafe_share"] == 0.0
     assert safety["planner"]["unsafe_near_m2"] == {"1m": 0.0, "2m": 0.0}
-    assert "paths between random free points pass a real obstacle; it may put the robot's centre where" in out
+    assert safety["planner"]["crossing_below"] >= 0 and safety["planner"]["unsafe_below_m2"] >= 0.0
+    assert (f"paths between random free points pass a real obstacle, {safety['planner']['crossing_below']} more pass "
+            "only what the body meets below the band") in out
+    assert "m^2 where its centre may touch that); it may put the robot's centre where" in out
     # `evaluate` judges the same map: the same safety block
     code, out_eval, err = run_cli(["evaluate", "--run", run, "--out", tmp_path / "eval.json", "--no-plots"])
     assert code == 0, err
@@ -250,6 +253,35 @@ def test_the_planner_checks_unsafe_space_is_where_its_robot_would_touch_a_lost_o
     assert near.block()["unsafe_near_m2"] == {"1m": 0.0625, "2m": 0.1406} and "unsafe_near_m2" not in check.block()
     doc["planner"] = near.block()
     assert "(4.59% of where it may put it), 0.0625 m^2 within 1 m of the path, 0.1406 m^2 within 2 m" in safety_line(doc)
+
+
+def test_the_planner_check_counts_paths_past_what_the_body_meets_below_the_band_apart():
+    """The room of the test above, its lost obstacle at pixel (row 9, column 9) now a pallet below the
+    band (gt.body_slice): no band obstacle is lost, so no path crosses one, and the same 9 pixels and
+    the same paths (the same seed) as before count for the body instead. A body point on a wall's
+    pixel (a wall reaches below the band too) and a pallet under a band obstacle add nothing: the
+    band's count has them."""
+    from virus_nerf.evaluation.safety import planner_check, safety_line
+
+    res, n = 0.125, 20
+    image = np.full((n, n), FREE, dtype=np.uint8)
+    image[[0, -1], :] = OCCUPIED
+    image[:, [0, -1]] = OCCUPIED
+    centres = (np.arange(n) + 0.5) * res
+    walls = np.concatenate([np.column_stack([centres, np.full(n, v)]) for v in (centres[0], centres[-1])]
+                           + [np.column_stack([np.full(n, v), centres]) for v in (centres[0], centres[-1])])
+    pallet = np.array([[9.5 * res, (n - 1 - 9 + 0.5) * res]])
+    as_band = planner_check(image, (0.0, 0.0), res, np.concatenate([walls, pallet]))
+    below = planner_check(image, (0.0, 0.0), res, walls, body_xy=np.concatenate([walls, pallet]))
+    assert below.crossing == 0 and below.unsafe_m2 == 0.0 and below.paths == as_band.paths
+    assert below.crossing_below == as_band.crossing > 0 and below.unsafe_below_m2 == pytest.approx(9 * res * res)
+    assert below.block()["crossing_below"] == as_band.crossing and below.block()["unsafe_below_m2"] == 0.1406
+    both = planner_check(image, (0.0, 0.0), res, np.concatenate([walls, pallet]), body_xy=np.concatenate([walls, pallet]))
+    assert both.crossing == as_band.crossing and both.crossing_below == 0 and both.unsafe_below_m2 == 0.0
+    assert as_band.crossing_below is None and "crossing_below" not in as_band.block()  # no body's ground truth
+    doc = {"gt": "map", "observed": 1.0, "zones": {"all": {"free_share": 0.0}}, "planner": below.block()}
+    assert (f"0 of {below.paths} paths between random free points pass a real obstacle, {as_band.crossing} more "
+            "pass only what the body meets below the band (0.1406 m^2 where its centre may touch that)") in safety_line(doc)
 
 
 def test_the_floor_and_what_the_body_meets_below_the_band_by_hand():

@@ -285,8 +285,16 @@ def safety_line(doc: dict) -> str:
     if "planner" in doc:
         p = doc["planner"]
         line += (f"\n  a planner (robot radius {p['radius_m']:g} m) on the map: {p['crossing']} of {p['paths']} "
-                 "paths between random free points pass a real obstacle" + unsafe_words(p))
+                 "paths between random free points pass a real obstacle" + below_words(p) + unsafe_words(p))
     return line
+
+
+def below_words(planner: dict) -> str:
+    """The planner block's paths past what the body meets below the band, in words ("" without them)."""
+    if planner.get("crossing_below") is None:
+        return ""
+    return (f", {planner['crossing_below']} more pass only what the body meets below the band "
+            f"({planner['unsafe_below_m2']:.4g} m^2 where its centre may touch that)")
 
 
 def unsafe_words(planner: dict) -> str:
@@ -379,7 +387,7 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
                                   body_xy=body)}
     doc = safety_document(judge_map(m.image, m.origin, resolution, obstacles, path, extent=extent, body_xy=body),
                           observed_share(seen), "map", resolution, anchors)
-    doc["planner"] = planner_check(m.image, m.origin, resolution, obstacles, path_xy=path).block()
+    doc["planner"] = planner_check(m.image, m.origin, resolution, obstacles, path_xy=path, body_xy=body).block()
     return RunSafety(doc, safety_picture(m.image, m.origin, resolution, obstacles, path))
 
 
@@ -402,6 +410,11 @@ class PlannerCheck:
     # of unsafe_m2, the part within each of SAFETY_ZONES_M's finite distances of the path (m^2, by
     # zone name; empty without the path): where the robot drives next, not across the room (D102)
     unsafe_near_m2: dict[str, float] = field(default_factory=dict)
+    # with the body's ground truth (gt.body_slice): the paths that pass no band obstacle but come
+    # as close to one the body meets below the band (a pallet, a rack's lowest shelf, a seat), and
+    # the configuration space's area where that may happen (m^2); None without it
+    crossing_below: int | None = None
+    unsafe_below_m2: float | None = None
 
     @property
     def unsafe_share(self) -> float | None:
@@ -412,12 +425,15 @@ class PlannerCheck:
         return {"paths": self.paths, "crossing": self.crossing, "radius_m": self.radius_m,
                 "unsafe_m2": round(self.unsafe_m2, 4), "unsafe_share": None if share is None else round(share, 6),
                 **({"unsafe_near_m2": {z: round(a, 4) for z, a in self.unsafe_near_m2.items()}}
-                   if self.unsafe_near_m2 else {})}
+                   if self.unsafe_near_m2 else {}),
+                **({} if self.crossing_below is None else
+                   {"crossing_below": self.crossing_below, "unsafe_below_m2": round(self.unsafe_below_m2, 4)})}
 
 
 def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: float, obstacles_xy: np.ndarray,
                   seed: int = 0, radius: float = PLANNER_RADIUS_M, tolerance: float = SAFETY_TOLERANCE_M,
-                  free_value: int = 254, path_xy: np.ndarray | None = None) -> PlannerCheck:
+                  free_value: int = 254, path_xy: np.ndarray | None = None,
+                  body_xy: np.ndarray | None = None) -> PlannerCheck:
     """Plan as a robot of `radius` m would on the map (H, W): its configuration space is the free
     pixels farther than `radius` from every pixel that is not free (occupied or unknown alike).
     Shortest 8-connected paths (Dijkstra, scipy.sparse.csgraph) from PLANNER_STARTS random
@@ -427,8 +443,9 @@ def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: fl
     Beside the paths, the configuration space's pixels within that distance of an obstacle pixel,
     as an area: a path crosses an obstacle only through them, and unlike the paths they do not
     depend on where random ends fell (D99); with the robot's path (P, 2 m), also the part of that
-    area within 1 m and 2 m of it (D102)."""
-    from scipy.ndimage import distance_transform_edt
+    area within 1 m and 2 m of it (D102). With the points the body meets below the band (B, 2 m,
+    gt.body_slice), the same count and area for them where no band obstacle is that close: the band's
+    ground truth does not see a pallet, the robot's body meets it."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
 
@@ -436,14 +453,16 @@ def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: fl
     h, w = image.shape
     space = configuration_space(image, resolution, radius, free_value)  # (H, W) robot centre may be here
     obst = obstacle_pixels(obstacles_xy, origin, resolution, (h, w))
-    danger = (distance_transform_edt(~obst) * resolution <= radius - tolerance) if obst.any() \
-        else np.zeros((h, w), dtype=bool)
+    danger = within(obst, resolution, radius - tolerance)  # (H, W) a centre here touches a band obstacle
+    below = None if body_xy is None else \
+        within(obstacle_pixels(body_xy, origin, resolution, (h, w)) & ~obst, resolution, radius - tolerance) & ~danger
     area = resolution * resolution
     unsafe_m2, space_m2 = float((space & danger).sum()) * area, float(space.sum()) * area
     near = unsafe_near_path(space & danger, origin, resolution, path_xy) if path_xy is not None else {}
+    unsafe_below = None if below is None else float((space & below).sum()) * area
     nodes = np.flatnonzero(space.ravel())
     if len(nodes) < 2:
-        return PlannerCheck(0, 0, radius, unsafe_m2, space_m2, near)
+        return PlannerCheck(0, 0, radius, unsafe_m2, space_m2, near, None if below is None else 0, unsafe_below)
     index = np.full(h * w, -1, dtype=np.int64)
     index[nodes] = np.arange(len(nodes))
     r, c = np.divmod(nodes, w)
@@ -460,19 +479,31 @@ def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: fl
     rng = np.random.default_rng(seed)
     starts = rng.choice(n, size=min(PLANNER_STARTS, n), replace=False)
     dist, pred = dijkstra(graph, directed=False, indices=starts, return_predecessors=True)
-    paths = crossing = 0
+    paths = crossing = crossing_below = 0
     for k in range(len(starts)):
         goals = rng.choice(n - 1, size=min(PLANNER_GOALS, n - 1), replace=False)
         for goal in goals + (goals >= starts[k]):  # any node but the start
             if not np.isfinite(dist[k, goal]):
                 continue
             paths += 1
-            v, hit = goal, False
+            v, hit, hit_below = goal, False, False
             while v >= 0 and not hit:
                 hit = bool(danger.flat[nodes[v]])
+                hit_below |= below is not None and bool(below.flat[nodes[v]])
                 v = pred[k, v]
             crossing += hit
-    return PlannerCheck(paths, crossing, radius, unsafe_m2, space_m2, near)
+            crossing_below += hit_below and not hit
+    return PlannerCheck(paths, crossing, radius, unsafe_m2, space_m2, near,
+                        None if below is None else crossing_below, unsafe_below)
+
+
+def within(mask: np.ndarray, resolution: float, distance: float) -> np.ndarray:
+    """(H, W) bool: the pixels whose centre lies within `distance` m of a pixel of `mask` (H, W)."""
+    from scipy.ndimage import distance_transform_edt
+
+    if not mask.any():
+        return np.zeros(mask.shape, dtype=bool)
+    return distance_transform_edt(~mask) * resolution <= distance
 
 
 def unsafe_near_path(unsafe: np.ndarray, origin: tuple[float, float], resolution: float,

@@ -50,7 +50,7 @@ def safety_markdown(doc: Mapping[str, Any], picture: str | None = None) -> list[
     lines: list[str] = []
     safety = doc.get("safety")
     if safety:
-        from virus_nerf.evaluation.safety import ANCHOR_LABELS, unsafe_words
+        from virus_nerf.evaluation.safety import ANCHOR_LABELS, below_words, unsafe_words
 
         def pct(v: Any) -> str:
             return "-" if v is None else f"{100 * v:.1f} %"
@@ -87,7 +87,7 @@ def safety_markdown(doc: Mapping[str, Any], picture: str | None = None) -> list[
             reach = safety.get("planner_reach")
             lines += [f"A planner on the map (robot radius {p['radius_m']:g} m, shortest paths between random free "
                       f"points): {p['crossing']} of {p['paths']} paths pass a real obstacle"
-                      + unsafe_words(p) + "."
+                      + below_words(p) + unsafe_words(p) + "."
                       + ("" if reach is None else f" From where the robot drove it reaches {pct(reach)} of the drivable "
                          "space near the path where such a robot may stand (a lone occupied pixel in an aisle cuts it)."),
                       ""]
