@@ -9,6 +9,11 @@ of training pixels, error percentiles by true range, the share within 3 sigma, g
     .venv/bin/python benchmarks/bench_stereo.py --rooms common61,common62,common63,office61 \
         --out benchmarks/results/stereo_quality.json
 
+--filters picks the pass's track filters: `defaults` (StereoConfig's own: 4 views, 3 % range
+uncertainty; what a drive and an offline run in a room larger than 12 m use), `small-room` (3 views,
+5 %: `stereo.depth.small_room_config`) or `offline` (the ones `virus-nerf train` with the defaults
+picks for the room offline, trainer/loop.py `stereo_config`, D112).
+
 A room is SCENE+SEED (simulated on first use into benchmarks/.data, as bench_time_to_map does).
 """
 
@@ -58,18 +63,34 @@ def _errors(depth, truth: np.ndarray) -> dict:
     return out
 
 
-def measure(data: Path, room: str, labels: tuple[str, ...], reference: str) -> dict:
+def filters_for(rec, filters: str):
+    """(StereoConfig, its name) for `--filters` and the recording `rec`."""
+    from virus_nerf.engine.config import MapperConfig
+    from virus_nerf.engine.mapper import stereo_line_of_sight
+    from virus_nerf.engine.model import start_box
+    from virus_nerf.stereo.depth import StereoConfig, small_room_config
+
+    cfg = StereoConfig()
+    if filters == "offline":
+        config = MapperConfig()
+        filters = "small-room" if stereo_line_of_sight(config, start_box(rec, config), False, False) else "defaults"
+    return (small_room_config(cfg) if filters == "small-room" else cfg), filters
+
+
+def measure(data: Path, room: str, labels: tuple[str, ...], reference: str, filters: str = "defaults") -> dict:
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.sampler.frames import build_frame_store
     from virus_nerf.stereo.build import stereo_depth
 
     rec = load_recording(data, room)
     store = build_frame_store(rec, labels, 0.5, with_depth=reference == "depth camera", use_cache=False)
+    cfg, used = filters_for(rec, filters)
     t0 = time.perf_counter()
-    depth = stereo_depth(rec, store.frame_list(), use_cache=False)
+    depth = stereo_depth(rec, store.frame_list(), cfg, use_cache=False)
     seconds = time.perf_counter() - t0
     per_frame = np.bincount(depth.frames, minlength=len(store))
-    row = {"frames": len(store), "image_size": list(rec.stacks[min(rec.stacks)].image(0).shape[1::-1]),
+    row = {"filters": used, "min_views": cfg.min_views, "max_rel_sigma": cfg.max_rel_sigma,
+           "frames": len(store), "image_size": list(rec.stacks[min(rec.stacks)].image(0).shape[1::-1]),
            "seconds": round(seconds, 2), "points": len(depth.points), "targets": len(depth),
            "targets_per_frame_median": float(np.median(per_frame)),
            "share_of_training_pixels": round(len(depth) / (len(store) * store.width * store.height), 4),
@@ -99,20 +120,22 @@ def main() -> None:
     ap.add_argument("--rooms", default="common61,common62,common63,office61,office62,office63")
     ap.add_argument("--data", type=Path, default=HERE / ".data")
     ap.add_argument("--sample", type=Path, default=HERE.parent.parent / "shared" / "data" / "sample_dataset")
+    ap.add_argument("--filters", choices=("defaults", "small-room", "offline"), default="defaults",
+                    help="the pass's track filters (the module's docstring)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     sys.path.insert(0, str(HERE))
     from bench_time_to_map import ensure_data
 
-    doc = {"benchmark": "stereo_quality", "settings": "StereoConfig defaults; training image scale 0.5",
+    doc = {"benchmark": "stereo_quality", "settings": f"filters {args.filters}; training image scale 0.5",
            "rooms": {}}
     for name in args.rooms.split(","):
         scene, seed = re.fullmatch(r"([a-z]+)(\d+)", name).groups()
         data = ensure_data(args.data, scene, int(seed))
-        doc["rooms"][name] = measure(data, scene, ("train",), "exact scene")
+        doc["rooms"][name] = measure(data, scene, ("train",), "exact scene", args.filters)
         print(name, json.dumps({k: v for k, v in doc["rooms"][name].items() if k != "by_range"}), file=sys.stderr)
     if (args.sample / "office").is_dir():
-        doc["rooms"]["real_sample"] = measure(args.sample, "office", ("train", "test"), "depth camera")
+        doc["rooms"]["real_sample"] = measure(args.sample, "office", ("train", "test"), "depth camera", args.filters)
         print("real_sample", json.dumps({k: v for k, v in doc["rooms"]["real_sample"].items() if k != "by_range"}),
               file=sys.stderr)
     text = json.dumps(doc, indent=2)
