@@ -216,6 +216,18 @@ def test_the_planner_check_finds_paths_and_counts_the_ones_through_a_wall_the_ma
     assert wide.paths == 1000 and wide.crossing == 0
 
 
+def _walled_room(res: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """An n x n pixel room at `res` m: the map (walls on the border rows and columns occupied, the
+    rest free) and the walls' true points (the border pixels' centres, (4n, 2) m)."""
+    image = np.full((n, n), FREE, dtype=np.uint8)
+    image[[0, -1], :] = OCCUPIED
+    image[:, [0, -1]] = OCCUPIED
+    centres = (np.arange(n) + 0.5) * res
+    walls = np.concatenate([np.column_stack([centres, np.full(n, v)]) for v in (centres[0], centres[-1])]
+                           + [np.column_stack([np.full(n, v), centres]) for v in (centres[0], centres[-1])])
+    return image, walls
+
+
 def test_the_planner_checks_unsafe_space_is_where_its_robot_would_touch_a_lost_obstacle():
     """A 2.5 m square room at 0.125 m (20 x 20 pixels, walls on the border rows and columns, every
     other pixel free). A 0.3 m robot may put its centre 2.4 pixels or more from anything not free:
@@ -227,12 +239,7 @@ def test_the_planner_checks_unsafe_space_is_where_its_robot_would_touch_a_lost_o
     from virus_nerf.evaluation.safety import planner_check, safety_line
 
     res, n = 0.125, 20
-    image = np.full((n, n), FREE, dtype=np.uint8)
-    image[[0, -1], :] = OCCUPIED
-    image[:, [0, -1]] = OCCUPIED
-    centres = (np.arange(n) + 0.5) * res
-    walls = np.concatenate([np.column_stack([centres, np.full(n, v)]) for v in (centres[0], centres[-1])]
-                           + [np.column_stack([np.full(n, v), centres]) for v in (centres[0], centres[-1])])
+    image, walls = _walled_room(res, n)
     lost = np.array([[9.5 * res, (n - 1 - 9 + 0.5) * res]])  # image row 9, column 9
     check = planner_check(image, (0.0, 0.0), res, np.concatenate([walls, lost]))
     assert check.space_m2 == pytest.approx(196 * res * res) and check.unsafe_m2 == pytest.approx(9 * res * res)
@@ -264,12 +271,7 @@ def test_the_planner_check_counts_paths_past_what_the_body_meets_below_the_band_
     from virus_nerf.evaluation.safety import planner_check, safety_line
 
     res, n = 0.125, 20
-    image = np.full((n, n), FREE, dtype=np.uint8)
-    image[[0, -1], :] = OCCUPIED
-    image[:, [0, -1]] = OCCUPIED
-    centres = (np.arange(n) + 0.5) * res
-    walls = np.concatenate([np.column_stack([centres, np.full(n, v)]) for v in (centres[0], centres[-1])]
-                           + [np.column_stack([np.full(n, v), centres]) for v in (centres[0], centres[-1])])
+    image, walls = _walled_room(res, n)
     pallet = np.array([[9.5 * res, (n - 1 - 9 + 0.5) * res]])
     as_band = planner_check(image, (0.0, 0.0), res, np.concatenate([walls, pallet]))
     below = planner_check(image, (0.0, 0.0), res, walls, body_xy=np.concatenate([walls, pallet]))
