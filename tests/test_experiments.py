@@ -129,6 +129,7 @@ def test_demo_end_to_end(tmp_path: Path):
     below = " / ".join(pct(b["free_share"]) for b in safety["below_band"].values())
     assert f"marked free within 1 m / 2 m / all: the map (`map.pgm`) {below}; USS + IRS alone" in report
     assert "(run/plots/map_safety.png)" in report and (out / "run" / "plots" / "map_safety.png").is_file()
+    assert "brown: what the body meets below the band; orange: the part of it the map marks free." in report
     assert all(f"**Warning:** {w}" in report for w in doc["warnings"]) and doc["warnings"]
     for image in ("metrics_bars.png",):
         assert (out / "run" / "plots" / image).is_file()

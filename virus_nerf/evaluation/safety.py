@@ -39,6 +39,8 @@ SAFETY_TOLERANCE_M = 0.1  # the paper's inlier distance
 FREE_NEAR_PATH_M = 3.0  # free recall: true free space this close to the path ...
 FREE_CLEARANCE_M = 0.15  # ... and at least this far from every obstacle
 PLANNER_RADIUS_M = 0.3  # the robot's radius for the planner's check
+# `safety_picture`'s colours for what the body meets below the band: held (or unknown), marked free
+BODY_RGB, BODY_MISSED_RGB = (150, 110, 60), (255, 150, 0)
 
 
 @dataclass(frozen=True)
@@ -308,9 +310,12 @@ def unsafe_words(planner: dict) -> str:
 
 
 def safety_picture(image: np.ndarray, origin: tuple[float, float], resolution: float, obstacles_xy: np.ndarray,
-                   path_xy: np.ndarray, tolerance: float = SAFETY_TOLERANCE_M) -> np.ndarray:
+                   path_xy: np.ndarray, tolerance: float = SAFETY_TOLERANCE_M,
+                   body_xy: np.ndarray | None = None) -> np.ndarray:
     """(H, W, 3) uint8 RGB: the map (free white, unknown grey, occupied black), the ground-truth
-    obstacles over it in blue, the ones it marks free in red, the path in green."""
+    obstacles over it in blue, the ones it marks free in red, the path in green; with the points
+    the body meets below the band (B, 2 m, gt.body_slice), their pixels that hold no band obstacle
+    in brown, the ones the map marks free in orange (`below_band`'s pixels)."""
     from virus_nerf.maps.occupancy import FREE, OCCUPIED
 
     image = np.asarray(image)
@@ -318,7 +323,12 @@ def safety_picture(image: np.ndarray, origin: tuple[float, float], resolution: f
     rgb[image == FREE] = 255
     rgb[image == OCCUPIED] = 0
     obst = obstacle_pixels(obstacles_xy, origin, resolution, image.shape)
-    missed = obst & free_for_sure(image, FREE, resolution, tolerance)
+    sure_free = free_for_sure(image, FREE, resolution, tolerance)
+    missed = obst & sure_free
+    if body_xy is not None:
+        body = obstacle_pixels(body_xy, origin, resolution, image.shape) & ~obst
+        rgb[body] = BODY_RGB
+        rgb[body & sure_free] = BODY_MISSED_RGB
     rgb[obst] = (40, 80, 255)
     rgb[missed] = (255, 0, 0)
     rgb[obstacle_pixels(path_xy, origin, resolution, image.shape)] = (0, 160, 0)
@@ -388,7 +398,7 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
     doc = safety_document(judge_map(m.image, m.origin, resolution, obstacles, path, extent=extent, body_xy=body),
                           observed_share(seen), "map", resolution, anchors)
     doc["planner"] = planner_check(m.image, m.origin, resolution, obstacles, path_xy=path, body_xy=body).block()
-    return RunSafety(doc, safety_picture(m.image, m.origin, resolution, obstacles, path))
+    return RunSafety(doc, safety_picture(m.image, m.origin, resolution, obstacles, path, body_xy=body))
 
 
 # 100 starts, 10 goals each: up to 1000 paths. A thin obstacle the map lost lies on a few paths
