@@ -184,6 +184,13 @@ def below_figures(block: dict) -> dict:
     return {f"below_{z}": b["free_share"] for z, b in (block.get("below_band") or {}).items()}
 
 
+def planner_below(planner: dict) -> dict:
+    """The planner's paths that pass only what the body meets below the band, and where its centre
+    may touch that (m^2); none for a block written without the body's ground truth."""
+    if planner.get("crossing_below") is None:
+        return {}
+    return {"planner_crossing_below": planner["crossing_below"], "planner_unsafe_below_m2": planner["unsafe_below_m2"]}
+
 def judge_bag(run: Path, data: Path, scene: str) -> dict:
     report = json.loads((run / "stream.json").read_text())
     return {"run": str(run), "frames": report["frames"], "dropped": int(sum(report["dropped"].values())),
@@ -234,11 +241,3 @@ def main() -> None:
 
 if __name__ == "__main__":
     main()
-
-
-def planner_below(planner: dict) -> dict:
-    """The planner's paths that pass only what the body meets below the band, and where its centre
-    may touch that (m^2); none for a block written without the body's ground truth."""
-    if planner.get("crossing_below") is None:
-        return {}
-    return {"planner_crossing_below": planner["crossing_below"], "planner_unsafe_below_m2": planner["unsafe_below_m2"]}
