@@ -25,7 +25,9 @@ file a planner reads, is judged as it lies on disk against the recording's LiDAR
     .venv/bin/python benchmarks/bench_safety.py --bag --out bag.json
 
 Runs are kept under --runs (a run folder that exists is judged again, not retrained). Training
-runs one at a time: two trainings on 2 cores run ~20x slower each (measured).
+runs one at a time: two trainings on 2 cores run ~20x slower each (measured). The JSON holds each
+room's figures, their means by room kind (`mean`) and the planner's paths summed over the rooms
+(`total`: "N of M paths").
 """
 
 from __future__ import annotations
@@ -197,6 +199,14 @@ def judge_bag(run: Path, data: Path, scene: str) -> dict:
             "steps": report["steps"], "map": judge_files(run / "map", data, scene)}
 
 
+COUNTS = ("planner_paths", "planner_crossing", "planner_crossing_below")  # summed over rooms as well
+
+
+def totals(rows: list[dict]) -> dict:
+    """The planner's counts summed over rooms ("N of M paths"), where the rows hold them."""
+    return {k: sum(r[k] for r in rows if r.get(k) is not None) for k in COUNTS if any(k in r for r in rows)}
+
+
 def mean(rows: list[dict]) -> dict:
     keys = rows[0].keys()
     return {k: round(sum(r[k] for r in rows if r[k] is not None) / max(1, sum(r[k] is not None for r in rows)), 4)
@@ -218,7 +228,7 @@ def main() -> None:
         sys.exit(f"--out {args.out}: exists; choose a new file (nothing is overwritten)")
     mode = "bag" if args.bag else "online" if args.online else "offline"
     doc: dict = {"mode": mode, "online": args.online, "steps": STEPS if mode == "offline" else None, "gt": "map",
-                 "rooms": {}, "mean": {}}
+                 "rooms": {}, "mean": {}, "total": {}}
     for scene in args.scenes.split(","):
         rows = []
         for seed in (int(s) for s in args.seeds.split(",")):
@@ -235,8 +245,9 @@ def main() -> None:
             print(json.dumps({f"{scene}{seed}": rows[-1]}), file=sys.stderr)
         kinds = ("map",) if args.bag else ("map", "export", "nerf_scans_alone", "sensors_alone", "lidar")
         doc["mean"][scene] = {k: mean([r[k] for r in rows]) for k in kinds}
+        doc["total"][scene] = {k: totals([r[k] for r in rows]) for k in kinds if totals([r[k] for r in rows])}
     args.out.write_text(json.dumps(doc, indent=1) + "\n")
-    print(json.dumps(doc["mean"], indent=1))
+    print(json.dumps({"mean": doc["mean"], "total": doc["total"]}, indent=1))
 
 
 if __name__ == "__main__":
