@@ -463,9 +463,11 @@ def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: fl
     h, w = image.shape
     space = configuration_space(image, resolution, radius, free_value)  # (H, W) robot centre may be here
     obst = obstacle_pixels(obstacles_xy, origin, resolution, (h, w))
-    danger = within(obst, resolution, radius - tolerance)  # (H, W) a centre here touches a band obstacle
-    below = None if body_xy is None else \
-        within(obstacle_pixels(body_xy, origin, resolution, (h, w)) & ~obst, resolution, radius - tolerance) & ~danger
+    danger = pixels_within(obst, resolution, radius - tolerance)  # (H, W) a centre here touches a band obstacle
+    below = None  # (H, W) a centre here touches only what the body meets below the band
+    if body_xy is not None:
+        body = obstacle_pixels(body_xy, origin, resolution, (h, w)) & ~obst
+        below = pixels_within(body, resolution, radius - tolerance) & ~danger
     area = resolution * resolution
     unsafe_m2, space_m2 = float((space & danger).sum()) * area, float(space.sum()) * area
     near = unsafe_near_path(space & danger, origin, resolution, path_xy) if path_xy is not None else {}
@@ -507,7 +509,7 @@ def planner_check(image: np.ndarray, origin: tuple[float, float], resolution: fl
                         None if below is None else crossing_below, unsafe_below)
 
 
-def within(mask: np.ndarray, resolution: float, distance: float) -> np.ndarray:
+def pixels_within(mask: np.ndarray, resolution: float, distance: float) -> np.ndarray:
     """(H, W) bool: the pixels whose centre lies within `distance` m of a pixel of `mask` (H, W)."""
     from scipy.ndimage import distance_transform_edt
 
