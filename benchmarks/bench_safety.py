@@ -193,6 +193,7 @@ def planner_below(planner: dict) -> dict:
         return {}
     return {"planner_crossing_below": planner["crossing_below"], "planner_unsafe_below_m2": planner["unsafe_below_m2"]}
 
+
 def judge_bag(run: Path, data: Path, scene: str) -> dict:
     report = json.loads((run / "stream.json").read_text())
     return {"run": str(run), "frames": report["frames"], "dropped": int(sum(report["dropped"].values())),
@@ -203,8 +204,9 @@ COUNTS = ("planner_paths", "planner_crossing", "planner_crossing_below")  # summ
 
 
 def totals(rows: list[dict]) -> dict:
-    """The planner's counts summed over rooms ("N of M paths"), where the rows hold them."""
-    return {k: sum(r[k] for r in rows if r.get(k) is not None) for k in COUNTS if any(k in r for r in rows)}
+    """The planner's counts summed over rooms ("N of M paths"): each count that every row holds
+    (a room without a floor has no `planner_crossing_below`, and then no room's is summed)."""
+    return {k: sum(r[k] for r in rows) for k in COUNTS if all(r.get(k) is not None for r in rows)}
 
 
 def mean(rows: list[dict]) -> dict:
@@ -245,7 +247,7 @@ def main() -> None:
             print(json.dumps({f"{scene}{seed}": rows[-1]}), file=sys.stderr)
         kinds = ("map",) if args.bag else ("map", "export", "nerf_scans_alone", "sensors_alone", "lidar")
         doc["mean"][scene] = {k: mean([r[k] for r in rows]) for k in kinds}
-        doc["total"][scene] = {k: totals([r[k] for r in rows]) for k in kinds if totals([r[k] for r in rows])}
+        doc["total"][scene] = {k: t for k in kinds if (t := totals([r[k] for r in rows]))}
     args.out.write_text(json.dumps(doc, indent=1) + "\n")
     print(json.dumps({"mean": doc["mean"], "total": doc["total"]}, indent=1))
 

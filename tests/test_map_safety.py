@@ -381,18 +381,20 @@ def test_planner_reach_is_what_a_planner_reaches_from_the_path_and_a_lone_speck_
 
 def test_the_safety_picture_shows_what_the_body_meets_below_the_band():
     """A 5 x 5 map at 1 m (the 0.1 m tolerance is within a pixel: each pixel judged alone), free but
-    for pixel (row 4, column 4). A band obstacle at (2, 2) is red; the body's points at (0, 0) (free:
-    orange), at (4, 4) (occupied: brown) and at (2, 2) (a band obstacle's pixel: red, the band's)."""
+    for pixel (row 4, column 4), occupied, and (4, 0), unknown. A band obstacle at (2, 2) is red; the
+    body's points at (0, 0) (free: orange), at (4, 4) and (4, 0) (held: brown) and at (2, 2) (a band
+    obstacle's pixel: red, the band's)."""
     from virus_nerf.evaluation.safety import BODY_MISSED_RGB, BODY_RGB, safety_picture
 
     image = np.full((5, 5), FREE, dtype=np.uint8)
     image[4, 4] = OCCUPIED
+    image[4, 0] = UNKNOWN
     centre = lambda row, col: [col + 0.5, 5 - row - 0.5]  # noqa: E731 - pixel centre (m), row 0 = largest y
     band = np.array([centre(2, 2)])
-    body = np.array([centre(0, 0), centre(4, 4), centre(2, 2)])
+    body = np.array([centre(0, 0), centre(4, 4), centre(2, 2), centre(4, 0)])
     path = np.array([centre(0, 4)])
     rgb = safety_picture(image, (0.0, 0.0), 1.0, band, path, body_xy=body)
-    assert tuple(rgb[0, 0]) == BODY_MISSED_RGB and tuple(rgb[4, 4]) == BODY_RGB
+    assert tuple(rgb[0, 0]) == BODY_MISSED_RGB and tuple(rgb[4, 4]) == BODY_RGB and tuple(rgb[4, 0]) == BODY_RGB
     assert tuple(rgb[2, 2]) == (255, 0, 0) and tuple(rgb[0, 4]) == (0, 160, 0) and tuple(rgb[1, 1]) == (255, 255, 255)
     plain = safety_picture(image, (0.0, 0.0), 1.0, band, path)  # without the body's truth: as before
     assert tuple(plain[0, 0]) == (255, 255, 255) and tuple(plain[4, 4]) == (0, 0, 0)

@@ -95,7 +95,7 @@ def safety_markdown(doc: Mapping[str, Any], picture: str | None = None) -> list[
             lines += [f"![ground-truth obstacles over the map, the ones it marks free in red]({picture})", "",
                       "Blue: ground-truth obstacles; red: the ones the map marks free; green: the path"
                       + ("; brown: what the body meets below the band; orange: the part of it the map marks free"
-                         if safety.get("below_band") else "") + ".", ""]
+                         if (safety.get("planner") or {}).get("crossing_below") is not None else "") + ".", ""]
     for w in doc.get("warnings", []):
         lines += [f"**Warning:** {w}", ""]
     return lines
