@@ -210,8 +210,9 @@ def totals(rows: list[dict]) -> dict:
 
 
 def mean(rows: list[dict]) -> dict:
-    keys = rows[0].keys()
-    return {k: round(sum(r[k] for r in rows if r[k] is not None) / max(1, sum(r[k] is not None for r in rows)), 4)
+    """Each figure's mean over the rooms that have it (a room without a floor has no `below_*`)."""
+    keys = dict.fromkeys(k for r in rows for k in r)  # every row's keys, in order
+    return {k: round(sum(v) / len(v), 4) if (v := [r[k] for r in rows if r.get(k) is not None]) else None
             for k in keys}
 
 
