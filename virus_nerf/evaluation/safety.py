@@ -91,16 +91,15 @@ def true_free_near_path(obstacles: np.ndarray, origin: tuple[float, float], reso
     space beyond the ground truth, which a wall's slice does not close where furniture hid it
     from the LiDAR.
     """
-    from scipy.ndimage import distance_transform_edt, label
+    from scipy.ndimage import label
 
     h, w = obstacles.shape
-    clear = distance_transform_edt(~obstacles) * resolution > clearance if obstacles.any() \
-        else np.ones((h, w), dtype=bool)
+    clear = ~pixels_within(obstacles, resolution, clearance)
     path = np.asarray(path_xy, dtype=np.float64).reshape(-1, 2)
     on_path = obstacle_pixels(path, origin, resolution, (h, w))  # pixels the path passes through
     if not on_path.any():
         return np.zeros((h, w), dtype=bool)
-    near = distance_transform_edt(~on_path) * resolution <= within
+    near = pixels_within(on_path, resolution, within)
     labels, _ = label(clear)
     keep = np.unique(labels[on_path & clear])
     keep = keep[keep > 0]
