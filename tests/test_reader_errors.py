@@ -104,6 +104,16 @@ def test_stack_files_disagree_in_row_count(sample_copy):
         load_recording(sample_copy, "office")
 
 
+@pytest.mark.parametrize("name", ["USS1.csv", "TOF3.csv", "CAM1_color_image_raw"])
+def test_a_stack_with_a_missing_file_is_refused_not_left_out(sample_copy, name):
+    """Any of a stack's files names the stack: without its USS table it fails on that file instead
+    of training silently on the other stack alone."""
+    target = sample_copy / "office" / "measurements" / name
+    shutil.rmtree(target) if target.is_dir() else target.unlink()
+    with pytest.raises(DataFormatError, match=rf"{name}: (file|folder) not found"):
+        load_recording(sample_copy, "office")
+
+
 def test_image_size_must_match_intrinsics(sample_copy):
     from PIL import Image
 

@@ -334,13 +334,22 @@ def resolve_pose_source(room_dir: Path, wanted: PoseSource) -> tuple[PoseSource,
     return wanted, None
 
 
+# the files of one sensor stack <id> in ROOM/measurements: any of them names a stack, so a stack
+# whose USS, IRS table or image folder is missing fails on that file, not silently left out
+STACK_FILE_PATTERNS = (r"USS(\d+)\.csv", r"TOF(\d+)\.csv", r"CAM(\d+)_color_image_raw")
+
+
 def available_stacks(room_dir: Path) -> list[int]:
+    """The sensor stack ids of a room: every <id> that one of its stack files (STACK_FILE_PATTERNS)
+    carries in ROOM/measurements."""
     meas = room_dir / "measurements"
     if not meas.is_dir():
         raise DataFormatError(meas, "measurements folder not found")
-    ids = sorted(int(m.group(1)) for p in meas.iterdir() if (m := re.fullmatch(r"USS(\d+)\.csv", p.name)))
+    ids = sorted({int(m.group(1)) for p in meas.iterdir() for pattern in STACK_FILE_PATTERNS
+                  if (m := re.fullmatch(pattern, p.name))})
     if not ids:
-        raise DataFormatError(meas, "no USS<id>.csv found; expected one per sensor stack (USS1.csv, USS3.csv)")
+        raise DataFormatError(meas, "no sensor stack found; expected USS<id>.csv, TOF<id>.csv and "
+                                    "CAM<id>_color_image_raw/ for each stack (USS1.csv, TOF1.csv, ...)")
     return ids
 
 
