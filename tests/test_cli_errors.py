@@ -122,6 +122,18 @@ def test_existing_output_refused_before_any_work(tmp_path):
     assert_one_line_error(code, err, f"{tmp_path / 'map'}: output folder already exists")
 
 
+@pytest.mark.parametrize("flag, name", [("--out-bag", "maps_bag"), ("--rerun-save", "live.rrd")])
+def test_an_existing_sink_names_its_own_flag(tmp_path, flag, name):
+    """map-bag's other outputs: an existing one is refused naming the flag to change, not --out."""
+    bag = tmp_path / "in.bag"
+    bag.write_bytes(b"not read: refused before")
+    (tmp_path / name).write_text("an earlier output")
+    code, _, err = run_cli(["map-bag", str(bag), "--out", str(tmp_path / "out"), flag, str(tmp_path / name)])
+    assert_one_line_error(code, err, f"{tmp_path / name}: output file already exists; choose a new {flag} "
+                                     "(nothing was overwritten)")
+    assert not (tmp_path / "out").exists() and (tmp_path / name).read_text() == "an earlier output"
+
+
 def test_real_process_prints_one_line_and_exits_2(tmp_path):
     """The console entry point itself: exit status 2 and a single stderr line (no tyro box)."""
     for extra in (("--batch-size", "0"), ("--batch-size", "x")):

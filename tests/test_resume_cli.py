@@ -376,6 +376,61 @@ def test_experiments_refuse_to_overwrite_their_summaries(tmp_path, monkeypatch, 
     assert snapshot(out) == before
 
 
+@pytest.mark.parametrize("experiment", ["ablation", "online"])
+@pytest.mark.parametrize("what", ["unrelated", "other experiment"])
+def test_experiments_refuse_a_folder_that_is_not_their_own_unfinished_one(tmp_path, monkeypatch, experiment, what):
+    """An existing --out is continued only if it is the same command's unfinished experiment: a
+    folder of notes (or a training run) and the other experiment's folder are refused in one line
+    naming --out, before anything is written in them."""
+    import virus_nerf.sim.command as sim_command
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("work started in a folder that is not this experiment's")
+
+    monkeypatch.setattr(sim_command, "simulate", no_work)
+    monkeypatch.setattr(f"virus_nerf.experiments.{experiment}.run_all", no_work)
+    out = tmp_path / "exp"
+    out.mkdir()
+    if what == "unrelated":
+        (out / "notes.txt").write_text("my notes")
+        expected = f"--out {out}: holds notes.txt, so it is not an unfinished {experiment}"
+    else:
+        other = "online" if experiment == "ablation" else "ablation"
+        (out / "runs").mkdir()
+        (out / "experiment.json").write_text(json.dumps({"command": other}))
+        expected = f"--out {out}: holds another experiment (experiment.json says '{other}'), not an unfinished"
+    before = snapshot(out)
+    code, _, err = run_cli([experiment, "--out", out, "--quick"])
+    one_line_error(code, err, expected)
+    assert snapshot(out) == before
+
+
+def test_an_experiment_folder_is_taken_new_or_continued(tmp_path):
+    """A new folder gets the command's mark; one begun before the mark existed (only data/ and
+    runs/) is continued and marked; a marked one is continued by the same command, and a finished
+    one (a summary present) is refused."""
+    from virus_nerf.errors import OutputExistsError
+    from virus_nerf.experiments.folder import marked_command, take_experiment_folder
+
+    new = tmp_path / "new"
+    take_experiment_folder(new, "online", [new / "online.json"])
+    assert marked_command(new) == "online" and [p.name for p in new.iterdir()] == ["experiment.json"]
+    take_experiment_folder(new, "online", [new / "online.json"])  # continued: unchanged
+    assert marked_command(new) == "online"
+    old = tmp_path / "old"
+    (old / "runs" / "office").mkdir(parents=True)
+    (old / "data").mkdir()
+    take_experiment_folder(old, "ablation", [old / "ablation.md"])
+    assert marked_command(old) == "ablation" and (old / "runs" / "office").is_dir()
+    (old / "ablation.md").write_text("done")
+    with pytest.raises(OutputExistsError, match="ablation.md: output file already exists"):
+        take_experiment_folder(old, "ablation", [old / "ablation.md"])
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    with pytest.raises(OutputExistsError, match="a_file: output file already exists"):
+        take_experiment_folder(a_file, "online", [a_file / "online.json"])
+
+
 # ------------------------------------------------------------------------------ issue 30: run folders
 def _dead_pid() -> int:
     import subprocess

@@ -35,10 +35,11 @@ class DataFormatError(ValueError):
 class OutputExistsError(FileExistsError):
     """Refusal to touch an output file or folder that already exists (nothing is overwritten)."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, flag: str = "--out") -> None:
+        """flag: the argument that named `path`, the one to change."""
         kind = "folder" if Path(path).is_dir() else "file"
         super().__init__(
-            f"{path}: output {kind} already exists; choose a new --out (nothing was overwritten)"
+            f"{path}: output {kind} already exists; choose a new {flag} (nothing was overwritten)"
         )
         self.path = Path(path)
 

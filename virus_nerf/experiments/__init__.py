@@ -2,5 +2,5 @@
 
 # its public modules; none is imported here, so `import virus_nerf.experiments` loads nothing else
 __all__ = [
-    "ablation", "demo", "executors", "online", "report", "runs", "search_space", "study", "tune",
+    "ablation", "demo", "executors", "folder", "online", "report", "runs", "search_space", "study", "tune",
 ]

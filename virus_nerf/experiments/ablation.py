@@ -237,7 +237,8 @@ def ablation(
     Each summary file is written atomically.
 
     Args:
-        out: Experiment folder (created, or continued if it holds an unfinished ablation).
+        out: Experiment folder (created, or continued if it holds an unfinished ablation; any other
+            existing folder is refused).
         quick: Smoke profile: office only, 1 seed, 15 s per run.
         seeds: Training seeds per row and scene (default 3; quick 1).
         workers: Trainings in parallel (local: each gets cores / workers threads; with
@@ -260,7 +261,7 @@ def ablation(
 
     from virus_nerf.errors import UsageError, require_int, require_number
     from virus_nerf.evaluation.config import parse_gt_flag
-    from virus_nerf.experiments.online import refuse_existing
+    from virus_nerf.experiments.folder import refuse_existing, take_experiment_folder
     from virus_nerf.sim.command import simulate
     from virus_nerf.utils.io import write_json_atomic, write_text_atomic
 
@@ -286,8 +287,6 @@ def ablation(
 
         load_json_config(TrainConfig, config)  # a bad file fails now, not in every run
         config = Path(config).absolute()
-    summaries = [out / f"ablation.{ext}" for ext in ("md", "csv", "json", "png")]
-    refuse_existing(summaries)
     prof = PROFILES["quick" if quick else "full"]
     scenes = tuple(dict.fromkeys(scenes)) if scenes else prof.scenes
     n_seeds = seeds or prof.seeds
@@ -297,7 +296,8 @@ def ablation(
     budget_text = " and ".join(([f"{max_steps} steps"] if max_steps is not None else []) +
                                ([f"{t_train:.0f} s"] if t_train is not None else []))
     out = Path(out).absolute()  # Dask workers may run in other folders
-    out.mkdir(parents=True, exist_ok=True)
+    summaries = [out / f"ablation.{ext}" for ext in ("md", "csv", "json", "png")]
+    take_experiment_folder(out, "ablation", summaries)  # new, or this command's unfinished ablation
     for scene in scenes:
         data = out / "data" / scene
         duration = WAREHOUSE_DRIVE_S if scene == "warehouse" else prof.duration

@@ -15,17 +15,9 @@ import numpy as np
 
 from virus_nerf.evaluation.metrics import mean_std
 from virus_nerf.experiments.executors import run_all
+from virus_nerf.experiments.folder import refuse_existing, take_experiment_folder
 from virus_nerf.experiments.runs import RunSpec
 from virus_nerf.trainer.run_folder import METRICS_VS_TIME, EvalPoint, read_eval_history
-
-
-def refuse_existing(paths: list[Path]) -> None:
-    """OutputExistsError for the first of `paths` that exists (summary files are never overwritten)."""
-    from virus_nerf.errors import OutputExistsError
-
-    for p in paths:
-        if p.exists():
-            raise OutputExistsError(p)
 
 
 def band(histories: list[list[EvalPoint]], key: str, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -62,14 +54,15 @@ def online(
 ) -> None:
     """Offline vs online training on a simulated office; writes OUT/online.{png,json,md}.
 
-    OUT may be new or hold an unfinished experiment: finished runs in OUT/runs are kept and
-    interrupted ones resume. A finished experiment (any of OUT/online.{json,md,png} present)
+    OUT may be new or hold an unfinished experiment of this command (experiments/folder.py; any
+    other folder is refused): finished runs in OUT/runs are kept and interrupted ones resume. A finished experiment (any of OUT/online.{json,md,png} present)
     is refused before anything runs: the summaries are never overwritten; choose a new --out
     (or move the summary files away to aggregate OUT's runs again). The summaries are written
     atomically.
 
     Args:
-        out: Experiment folder (created, or continued; refused if it holds summaries).
+        out: Experiment folder (created, or continued if it holds an unfinished online experiment;
+            refused if it holds summaries or anything else).
         quick: Smoke profile: 1 seed, a 10 s drive.
         seeds: Training seeds (default 3; quick 1).
         duration: Seconds of simulated drive (default 40; quick 10).
@@ -106,12 +99,11 @@ def online(
     require_int("--workers", workers, 1, 64)
     protocols = parse_gt_flag(gt)
     summaries = [out / "online.json", out / "online.md", out / "online.png"]
-    refuse_existing(summaries)
     n_seeds = seeds or (1 if quick else 3)
     duration = duration or (10.0 if quick else 40.0)
     t_train = duration / playback_speed
     interval = eval_interval or t_train / 10
-    out.mkdir(parents=True, exist_ok=True)
+    take_experiment_folder(out, "online", summaries)  # new, or this command's unfinished experiment
     data = out / "data"
     if not (data / "office").is_dir():
         simulate(scene="office", out=data, seed=0, duration=duration, resolution_scale=0.5)

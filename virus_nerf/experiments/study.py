@@ -179,7 +179,7 @@ def export_config(study, objective: Objective, base: dict, path: Path) -> Any:
     from virus_nerf.utils.io import write_json_atomic
 
     if Path(path).exists():
-        raise OutputExistsError(path)
+        raise OutputExistsError(path, "--export-config")
     trial = best_trial(study, objective)
     if trial is None:
         raise UsageError(f"--export-config {path}: study {study.study_name!r} has no finished trial yet")

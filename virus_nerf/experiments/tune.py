@@ -276,7 +276,7 @@ def tune(
     if not (Path(data) / room).is_dir():
         raise UsageError(f"--data {data} --room {room}: {Path(data) / room} is not a room folder")
     if export_config is not None and Path(export_config).exists():
-        raise OutputExistsError(export_config)
+        raise OutputExistsError(export_config, "--export-config")
     require_extra("optuna", "tune", "virus-nerf tune")
     if scheduler is not None:
         require_extra("distributed", "dask", f"--scheduler {scheduler}")

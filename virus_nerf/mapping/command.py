@@ -132,7 +132,7 @@ def map_bag(
     if out.exists():
         raise OutputExistsError(out)
     if out_bag is not None and Path(out_bag).exists():
-        raise OutputExistsError(out_bag)
+        raise OutputExistsError(out_bag, "--out-bag")
     view.check()
     sinks = Sinks(view, out_bag)
     pose_args = dict(poses=poses, poses_file=poses_file, tf_parent=tf_parent, tf_child=tf_child)

@@ -147,7 +147,7 @@ class LiveView:
             if save.suffix != ".rrd":
                 raise UsageError(f"LiveView save {save}: expected a .rrd file name")
             if save.exists():
-                raise OutputExistsError(save)
+                raise OutputExistsError(save, "save path")
         rr = self.rr = _rerun()
         self.start_time, self.image_scale, self.jpeg_quality = float(start_time), image_scale, jpeg_quality
         self.camera_in_base = {int(k): np.asarray(v, dtype=np.float64) for k, v in (camera_in_base or {}).items()}

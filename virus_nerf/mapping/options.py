@@ -57,7 +57,7 @@ class RerunSinks:
             if Path(self.rerun_save).suffix != ".rrd":
                 raise UsageError(f"--rerun-save {self.rerun_save}: expected a .rrd file name")
             if Path(self.rerun_save).exists():
-                raise OutputExistsError(self.rerun_save)
+                raise OutputExistsError(self.rerun_save, "--rerun-save")
         if self.wanted:
             from virus_nerf.mapping.live_view import _rerun
 

@@ -150,12 +150,12 @@ class RosMapBag:
             from rosbags.rosbag2 import StoragePlugin, Writer
             from rosbags.typesys import Stores, get_typestore
         except ImportError:
-            raise UsageError("--ros-maps needs the ros extra: pip install 'virus-nerf[ros]'") from None
+            raise UsageError("--out-bag needs the ros extra: pip install 'virus-nerf[ros]'") from None
         if distro not in DISTROS:
             raise UsageError(f"distro {distro!r}: expected one of {DISTROS}")
         self.path = Path(path)
         if self.path.exists():
-            raise OutputExistsError(self.path)
+            raise OutputExistsError(self.path, "--out-bag")
         self.map_frame, self.base_frame = map_frame, base_frame
         self.camera_in_base = {int(k): np.asarray(v, dtype=np.float64) for k, v in (camera_in_base or {}).items()}
         self.typestore = get_typestore(Stores.ROS2_HUMBLE if distro == "humble" else Stores.ROS2_JAZZY)

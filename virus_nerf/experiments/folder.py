@@ -1,0 +1,63 @@
+"""An experiment's --out folder (`ablation`, `online`): new, or one the same command left unfinished.
+
+Both commands continue an unfinished experiment where it stopped, so an existing --out is not
+refused outright as every other command's is. It is continued only when it is the same command's:
+it holds that command's mark (EXPERIMENT_MARK, written when the folder is first taken), or, for a
+folder begun before the mark existed, nothing but what the command writes (`data/`, `runs/`).
+Anything else (an unrelated folder, a training run, the other experiment's folder) is refused
+before anything is written in it, and a finished experiment (its summaries present) too.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from virus_nerf.errors import OutputExistsError, UsageError
+
+EXPERIMENT_MARK = "experiment.json"  # {"command": "ablation" | "online"}
+EXPERIMENT_ENTRIES = frozenset({"data", "runs", EXPERIMENT_MARK})  # what the commands write besides summaries
+
+
+def refuse_existing(paths: list[Path]) -> None:
+    """OutputExistsError for the first of `paths` that exists (summary files are never overwritten)."""
+    for p in paths:
+        if p.exists():
+            raise OutputExistsError(p)
+
+
+def marked_command(out: Path) -> str | None:
+    """The command named by OUT's mark; None without one, '?' for a mark that cannot be read."""
+    mark = out / EXPERIMENT_MARK
+    if not mark.is_file():
+        return None
+    try:
+        command = json.loads(mark.read_text(encoding="utf-8")).get("command")
+    except (OSError, ValueError, AttributeError):
+        return "?"
+    return command if isinstance(command, str) else "?"
+
+
+def take_experiment_folder(out: Path, command: str, summaries: list[Path]) -> None:
+    """Create OUT for `command` or check that it holds an unfinished experiment of that command,
+    then leave the command's mark in it; a one-line error naming OUT before anything is written
+    otherwise (a finished experiment: OutputExistsError for its first summary)."""
+    from virus_nerf.utils.io import write_json_atomic
+
+    refuse_existing(summaries)
+    if out.exists() and not out.is_dir():
+        raise OutputExistsError(out)
+    if out.is_dir():
+        marked = marked_command(out)
+        if marked is not None and marked != command:
+            raise UsageError(f"--out {out}: holds another experiment ({EXPERIMENT_MARK} says {marked!r}), not an "
+                             f"unfinished {command}; choose a new --out (nothing was changed)")
+        if marked is None:
+            foreign = sorted(p.name for p in out.iterdir() if p.name not in EXPERIMENT_ENTRIES)
+            if foreign:
+                shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+                raise UsageError(f"--out {out}: holds {shown}, so it is not an unfinished {command}; choose a new "
+                                 f"--out (nothing was changed)")
+    out.mkdir(parents=True, exist_ok=True)
+    if marked_command(out) is None:
+        write_json_atomic(out / EXPERIMENT_MARK, {"command": command})
