@@ -564,13 +564,19 @@ def _check_map_bag_sinks(rrd, bag_dir, out, n_snapshots: int, n_frames: int) -> 
             rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
     assert rows["/map/trinary"] == n_snapshots + 1 and rows["/map/probability"] == n_snapshots + 1
     assert rows["/world/camera_1/image"] + rows.get("/world/camera_3/image", 0) == n_frames
-    maps, tfs = [], 0
+    maps, tfs = [], []
     with open(bag_dir / f"{bag_dir.name}.mcap", "rb") as f:
         for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
             if channel.topic == "/map":
                 maps.append(msg)
-            tfs += channel.topic == "/tf"
-    assert len(maps) == n_snapshots + 1 and tfs == n_frames
+            if channel.topic == "/tf":
+                v = msg.transforms[0].transform.translation
+                tfs.append((v.x, v.y))
+    # base_link is one camera's (the first stack seen): one /tf per frame of that stack, and it never
+    # jumps to the other camera (0.28 m across the rig) between two frames
+    per_stack = {rows.get(f"/world/camera_{s}/image", 0) for s in (1, 3)}
+    assert len(maps) == n_snapshots + 1 and len(tfs) in per_stack and len(tfs) > 0
+    assert np.linalg.norm(np.diff(np.asarray(tfs), axis=0), axis=1).max() < 0.2
     final = np.asarray(Image.open(out / "map" / "map.pgm"))
     expected = np.where(final == 0, 100, np.where(final == 254, 0, -1))[::-1]  # OccupancyGrid row 0 = smallest y
     last = maps[-1]

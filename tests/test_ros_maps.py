@@ -160,6 +160,27 @@ def test_base_pose_levels_pitched_and_upside_down_cameras():
     np.testing.assert_allclose(base_pose(cam, mount) @ mount, cam, atol=1e-12)
 
 
+def test_base_link_follows_one_camera_without_mounts_and_both_with_them(tmp_path):
+    """The rig's two stacks 0.28 m apart, looking 15 deg to either side: without their mounts
+    base_link is the first stack's levelled camera alone (taken in turn, the two would make it jump
+    between them at the camera rate); with both mounts both frames give the same body pose."""
+    yaw = math.radians(15)
+    body = np.eye(4)
+    body[:3, 3] = (2.0, 1.0, 0.0)  # the robot at (2, 1), heading along world x
+    mounts = {1: _upright_camera((0.35, -0.14, 0.57), -yaw), 3: _upright_camera((0.35, 0.14, 0.57), yaw)}
+    cams = {s: body @ m for s, m in mounts.items()}  # camera-to-world = body @ camera-to-body
+    with RosMapBag(tmp_path / "levelled") as b:
+        written = [b.write_pose(0.1 * k, cams[s], stack_id=s) for k, s in enumerate((1, 3, 1, 3))]
+    assert [w is None for w in written] == [False, True, False, True] and b.counts["/tf"] == 2
+    tfs = [dec.transforms[0].transform.translation for t, _, dec in _messages(b) if t == "/tf"]
+    assert [(round(v.x, 9), round(v.y, 9)) for v in tfs] == [(2.35, 0.86), (2.35, 0.86)]  # stack 1's camera
+    with RosMapBag(tmp_path / "mounted", camera_in_base=mounts) as b:
+        written = [b.write_pose(0.1 * k, cams[s], stack_id=s) for k, s in enumerate((1, 3, 1, 3))]
+    assert b.counts["/tf"] == 4
+    for pose in written:
+        np.testing.assert_allclose(pose, body, atol=1e-12)
+
+
 def test_mount_per_stack_and_refusals(tmp_path):
     mount = _upright_camera((0.3, 0.0, 0.0), 0.0)  # camera 0.3 m ahead of base_link, looking forward
     with RosMapBag(tmp_path / "b", camera_in_base={3: mount}) as b:

@@ -45,7 +45,7 @@ import numpy as np
 
 from virus_nerf.data.frame import SyncFrame
 from virus_nerf.errors import OutputExistsError, UsageError
-from virus_nerf.mapping.ros_maps import base_pose
+from virus_nerf.mapping.ros_maps import RobotStacks, base_pose
 from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS, OccupancyMap2D
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.sensors.irs import IRS_MAX_RANGE_M, zone_directions
@@ -164,7 +164,7 @@ class LiveView:
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.rec.send_blueprint(layout([]))
         self._pinholes: set[int] = set()
-        self._robot_stack: int | None = None
+        self.robot_stacks = RobotStacks(self.camera_in_base)
         self._trajectory: list[np.ndarray] = []  # (3,) robot positions, metres
         self._robot_xyz: np.ndarray | None = None
         self._camera_z: float | None = None
@@ -175,14 +175,6 @@ class LiveView:
         if self._closed:
             raise UsageError("LiveView: already closed")
         self.rec.set_time(TIMELINE, duration=float(time_s) - self.start_time)
-
-    def _drives_robot(self, stack: int) -> bool:
-        """Whether this stack's camera gives the robot pose (mounted stacks, else the first seen)."""
-        if self.camera_in_base:
-            return stack in self.camera_in_base
-        if self._robot_stack is None:
-            self._robot_stack = stack
-        return stack == self._robot_stack
 
     def _log_robot(self, pose: np.ndarray) -> None:
         rr = self.rr
@@ -243,7 +235,7 @@ class LiveView:
         cam = f"world/camera_{frame.stack_id}"
         pose = np.asarray(frame.cam_to_world, dtype=np.float64)
         self._camera_z = float(pose[2, 3])
-        if self._drives_robot(frame.stack_id):
+        if self.robot_stacks.drives(frame.stack_id):
             self._log_robot(base_pose(pose, self.camera_in_base.get(frame.stack_id)))
         self._log_camera(cam, frame, intr)
         self._log_ranges(cam, frame)

@@ -10,7 +10,8 @@ PATH/ holding metadata.yaml and PATH/<folder name>.mcap (`RosMapBag.mcap_path`) 
 - `/map_probability` (nav_msgs/msg/OccupancyGrid): the VIRUS grid's occupancy probability
   (`Mapper.probability_map`) as round(100 p), 0..100; -1 never occurs (cells outside the grid's
   box are p = 0.5, i.e. 50);
-- `/tf` (tf2_msgs/msg/TFMessage): map -> base_link, one per pose written.
+- `/tf` (tf2_msgs/msg/TFMessage): map -> base_link, one per frame of the stack(s) that give the
+  robot's pose (`RobotStacks`: the mounted ones, else the first seen).
 
 Both grids are in frame "map"; info.origin is the world (x, y, 0) of the lower-left corner of
 the lower-left cell with identity orientation, info.resolution metres per cell. Cell data is
@@ -49,6 +50,27 @@ TF_TOPIC = "/tf"
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 DISTROS = ("humble", "jazzy")
+
+
+class RobotStacks:
+    """Which stacks' cameras give the robot's pose (base_link): with mounts, every mounted stack
+    (each mount puts its camera on the same body); without, the first stack seen alone. The rig's
+    two cameras stand 0.28 m apart and look 15 deg to either side, so their levelled poses taken
+    in turn would make base_link jump back and forth between them at the camera rate."""
+
+    def __init__(self, mounted: Mapping[int, np.ndarray] | None = None) -> None:
+        self.mounted = frozenset(int(k) for k in (mounted or {}))
+        self.first: int | None = None
+
+    def drives(self, stack_id: int | None) -> bool:
+        """Whether a frame of `stack_id` gives the robot pose (None: a caller of one camera, yes)."""
+        if stack_id is None:
+            return True
+        if self.mounted:
+            return int(stack_id) in self.mounted
+        if self.first is None:
+            self.first = int(stack_id)
+        return int(stack_id) == self.first
 
 
 def base_pose(cam_to_world: np.ndarray, camera_in_base: np.ndarray | None = None) -> np.ndarray:
@@ -158,6 +180,7 @@ class RosMapBag:
             raise OutputExistsError(self.path, "--out-bag")
         self.map_frame, self.base_frame = map_frame, base_frame
         self.camera_in_base = {int(k): np.asarray(v, dtype=np.float64) for k, v in (camera_in_base or {}).items()}
+        self.robot_stacks = RobotStacks(self.camera_in_base)
         self.typestore = get_typestore(Stores.ROS2_HUMBLE if distro == "humble" else Stores.ROS2_JAZZY)
         self.counts = {MAP_TOPIC: 0, PROB_TOPIC: 0, TF_TOPIC: 0}
         zero = QosTime(0, 0)
@@ -196,11 +219,14 @@ class RosMapBag:
         self.counts[topic] += 1
 
     # ------------------------------------------------------------------ public
-    def write_pose(self, time_s: float, cam_to_world: np.ndarray, stack_id: int | None = None) -> np.ndarray:
-        """One /tf message map -> base_link at `time_s` from a camera pose (OpenCV axes, (4, 4));
-        the camera's mount is camera_in_base[stack_id] where given. Returns the (4, 4)
-        base_link-to-map pose written."""
+    def write_pose(self, time_s: float, cam_to_world: np.ndarray, stack_id: int | None = None) -> np.ndarray | None:
+        """One /tf message map -> base_link at `time_s` from a camera pose (OpenCV axes, (4, 4))
+        of a stack that gives the robot's pose (`RobotStacks`; the others write nothing); the
+        camera's mount is camera_in_base[stack_id] where given. Returns the (4, 4)
+        base_link-to-map pose written, None for a stack that does not give it."""
         ns = stamp_ns(time_s)
+        if not self.robot_stacks.drives(stack_id):
+            return None
         pose = base_pose(cam_to_world, self.camera_in_base.get(stack_id) if stack_id is not None else None)
         t = self.typestore.types
         q = matrix_to_quat(pose[:3, :3])  # (x, y, z, w)

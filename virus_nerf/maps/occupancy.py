@@ -9,7 +9,9 @@ Two maps are written beside each other on the same raster:
   free (254), end cells occupied (0), the rest unknown (205);
 - scale (`mode: scale`): the Bayesian VIRUS grid's occupancy probability p stored as
   value = round(255 * (1 - p)); map_server (negate 0) reads p = (255 - value) / 255 back, 100 above
-  occupied_thresh, 0 below free_thresh and 99 * (p - free) / (occ - free) in between.
+  occupied_thresh, 0 below free_thresh and linear in between (ROS 1: 99 * (p - free) / (occ -
+  free)). A PGM has no alpha channel, scale mode's only mark of unknown, so map_server serves the
+  p = 0.5 of cells no sensor looked at as a probability: the planner's map is the trinary one.
 """
 
 from __future__ import annotations
