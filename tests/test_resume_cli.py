@@ -67,7 +67,9 @@ def test_resume_of_a_finished_run_is_refused_and_touches_nothing(run_copy, tiny_
 
 def test_resume_after_a_crash_before_the_metrics_only_evaluates(run_copy):
     """Budget reached, metrics.json never written (killed during the final evaluation, plots
-    already there): resume evaluates without training and replaces the plots whole."""
+    already there): resume evaluates without training and replaces the plots whole, with the
+    frames the run trained on: the same figures, the map's safety block among them."""
+    before = json.loads((run_copy / "metrics.json").read_text())
     (run_copy / "metrics.json").unlink()
     (run_copy / "plots" / "metrics_bars.png").unlink()  # a stale, incomplete plots folder
     ckpt = snapshot(run_copy)["checkpoint.pt"]
@@ -76,6 +78,8 @@ def test_resume_after_a_crash_before_the_metrics_only_evaluates(run_copy):
     assert code == 0, err
     doc = json.loads((run_copy / "metrics.json").read_text())
     assert doc["train"]["steps"] == 5
+    assert doc["safety"] == before["safety"] and doc["safety"]["planner"]["paths"] > 0
+    assert doc["sensors"] == before["sensors"] and doc.get("warnings") == before.get("warnings")
     assert snapshot(run_copy)["checkpoint.pt"] == ckpt  # no training step, not even a rewrite
     assert (run_copy / "train_log.csv").read_bytes() == log
     assert (run_copy / "plots" / "metrics_bars.png").is_file()
@@ -429,6 +433,28 @@ def test_an_experiment_folder_is_taken_new_or_continued(tmp_path):
     a_file.write_text("x")
     with pytest.raises(OutputExistsError, match="a_file: output file already exists"):
         take_experiment_folder(a_file, "online", [a_file / "online.json"])
+
+
+def test_a_run_without_ground_truth_killed_writing_its_map_resumes_to_the_same_map(tiny_office, tmp_path):
+    """--gt none, killed while writing map/ after its last step (the budget reached, no metrics.json,
+    a `.map.partial-*` left): the resume writes the same map from the frames it trained on (before:
+    an empty mapper's map, 0 % known, and the run marked finished) and removes the partial folder."""
+    cfg = tmp_path / "small.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config())))
+    run = tmp_path / "run"
+    code, _, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", run, "--config", cfg,
+                            "--gt", "none", "--quiet"])
+    assert code == 0, err
+    first = json.loads((run / "map" / "snapshot.json").read_text())
+    pgm = (run / "map" / "map.pgm").read_bytes()
+    (run / "metrics.json").unlink()
+    (run / "map").rename(run / ".map.partial-999999-killed")  # the map's folder as a killed writer leaves it
+    code, _, err = run_cli(["train", "--out", run, "--resume", "--quiet"])
+    assert code == 0, err
+    again = json.loads((run / "map" / "snapshot.json").read_text())
+    assert first["frames"] > 0 and again["frames"] == first["frames"] and again["map_known"] == first["map_known"] > 0
+    assert (run / "map" / "map.pgm").read_bytes() == pgm
+    assert not list(run.glob(".map.partial-*"))
 
 
 # ------------------------------------------------------------------------------ issue 30: run folders

@@ -308,7 +308,8 @@ def _resume(out: Path, recording, cfg, quiet):
 
     for name in (CHECKPOINT, METRICS, METRICS_VS_TIME, CONFIG, RUN_INFO, TRAIN_LOG):
         remove_stale_temps(out / name)  # left by a process killed while writing (the lock proves it)
-    remove_stale_partials(out / PLOTS, owned=True)
+    for folder in (PLOTS, MAP_DIR):  # a folder's `.NAME.partial-*` left by a process killed while writing it
+        remove_stale_partials(out / folder, owned=True)
     trainer = Trainer(recording, cfg, out, quiet=quiet)
     if (out / CHECKPOINT).is_file():
         header = read_checkpoint_header(out / CHECKPOINT, cfg)
@@ -325,7 +326,8 @@ def _resume(out: Path, recording, cfg, quiet):
         if (out / TRAIN_LOG).is_file():
             truncate_log(out / TRAIN_LOG, 0)
         finished = False
-    if finished:  # budget reached before the metrics were written: evaluate only (no step, no file rewritten)
+    if finished:  # budget reached before the metrics were written: evaluate only (no step, no file rewritten),
+        trainer.prepare()  # on the frames and stereo points (cached) it trained on, as `evaluate` and `export` do
         return trainer, TrainSummary(trainer.mapper.step, trainer.mapper.seconds, trainer.mapper.samples)
 
     def started() -> None:  # the first step worked: from now on the run is one of this config
