@@ -134,6 +134,16 @@ def test_an_existing_sink_names_its_own_flag(tmp_path, flag, name):
     assert not (tmp_path / "out").exists() and (tmp_path / name).read_text() == "an earlier output"
 
 
+def test_help_into_a_closed_pipe_ends_quietly():
+    """`virus-nerf train --help | head`: the reader is gone before the help is written; the
+    command ends with 141 (as SIGPIPE ends a Unix tool), no BrokenPipeError traceback."""
+    proc = subprocess.Popen([sys.executable, "-m", "virus_nerf.cli", "train", "--help-all"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    proc.stdout.close()  # before the interpreter has started: every write of the help meets a closed pipe
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141 and err == ""
+
+
 def test_real_process_prints_one_line_and_exits_2(tmp_path):
     """The console entry point itself: exit status 2 and a single stderr line (no tyro box)."""
     for extra in (("--batch-size", "0"), ("--batch-size", "x")):

@@ -322,6 +322,24 @@ def test_grid_exports_need_a_virus_run(trained_run, tmp_path):
     assert parse_what("esdf,map", "virus") == ("map", "esdf")
 
 
+def test_a_full_disk_under_numpy_is_one_line_and_leaves_no_export(trained_run, tmp_path, monkeypatch):
+    """numpy's short write on a full disk carries no errno and no file name ("N requested and M
+    written"); it is the file being written and a full disk, in one line, not a traceback."""
+    import virus_nerf.exports.grid3d as grid3d
+
+    def short_write(fh, arr):
+        fh.write(b"\x93NUMPY")
+        raise OSError(f"{arr.nbytes} requested and 6 written")
+
+    monkeypatch.setattr(grid3d.np, "save", short_write)
+    out = tmp_path / "export"
+    code, _, err = run_cli(["export", "--run", trained_run, "--out", out, "--what", "grid3d"])
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"virus-nerf: error: {out}") and "grid_probability.npy: could not be written (no space "\
+        "left on device (" in err and "requested and 6 written)); nothing was lost" in err, err
+    assert not out.exists() and not list(tmp_path.glob(".export*"))
+
+
 def test_export_sizes_that_cannot_be_made_are_one_line(trained_run, tmp_path):
     """Issue 30: a resolution so fine its pixel count overflows, and images scaled to 0 x 0 px."""
     for argv, fragment in ((["--resolution", "1e-300"], "would be a 1000000000000x1000000000000 px map"),

@@ -457,6 +457,28 @@ def test_a_run_without_ground_truth_killed_writing_its_map_resumes_to_the_same_m
     assert not list(run.glob(".map.partial-*"))
 
 
+def test_a_full_disk_before_the_first_checkpoint_says_the_run_is_gone(tiny_office, tmp_path, monkeypatch):
+    """A new run whose first checkpoint does not fit is removed (nothing to resume): the one line
+    says so and to run the command again, not "nothing was lost ... --resume"."""
+    import errno
+
+    from virus_nerf.trainer.loop import Trainer
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self.run_dir / "checkpoint.pt"))
+
+    monkeypatch.setattr(Trainer, "save_checkpoint", full)
+    cfg = tmp_path / "small.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config())))
+    out = tmp_path / "run"
+    code, _, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", out, "--config", cfg,
+                            "--quiet"])
+    one_line_error(code, err, f"{out / 'checkpoint.pt'}: could not be written (No space left on device) before the "
+                              f"run's first checkpoint, so {out} was removed (nothing to resume); free some space and "
+                              "run the same `virus-nerf train` command again")
+    assert not out.exists() and "--resume" not in err
+
+
 # ------------------------------------------------------------------------------ issue 30: run folders
 def _dead_pid() -> int:
     import subprocess

@@ -217,6 +217,13 @@ def test_map_bag_killed_then_resume_writes_the_final_map(drive, tmp_path):
     code, _, stderr = run_cli(["map-bag", "--resume", "--out", out])
     assert code == 2 and stderr == (f"virus-nerf: error: --resume --out {out}: the stream ended (final map in "
                                     f"{out / 'map'}, {out / 'stream.json'}); nothing to finish\n")
+    # a second signal stopped the final mapper.pt's write half-way: its temporary goes, the message says so
+    (out / "map" / "mapper.pt").unlink(missing_ok=True)
+    (out / "map" / ".mapper.pt.k1ll3d.tmp").write_bytes(b"half a state")
+    code, _, stderr = run_cli(["map-bag", "--resume", "--out", out])
+    assert code == 2 and stderr.endswith(f"nothing to finish; its mapper state was not saved (stopped while writing "
+                                         f"{out / 'map' / 'mapper.pt'})\n") and stderr.count("\n") == 1
+    assert not list((out / "map").glob(".mapper.pt.*"))
     early = tmp_path / "early"
     (early / "snapshots").mkdir(parents=True)
     (early / "snapshots" / "config.json").write_text("{}")

@@ -234,7 +234,18 @@ def _fail(message: str) -> NoReturn:
 def main(argv: list[str] | None = None) -> None:
     """Run one subcommand. Every user mistake (bad argument, bad config, bad input file,
     existing output, missing run) exits 2 with one line `virus-nerf: error: ...`; tracebacks
-    are left for bugs."""
+    are left for bugs. A reader of stdout that goes away (`virus-nerf train --help | head`)
+    ends the command quietly with 141, as SIGPIPE ends a Unix tool."""
+    try:
+        _main(argv)
+    except BrokenPipeError:
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        raise SystemExit(141) from None
+
+
+def _main(argv: list[str] | None) -> None:
     _keep_large_allocations()
 
     from virus_nerf.errors import DataFormatError, NotWrittenError, OutputExistsError, UsageError

@@ -442,12 +442,14 @@ def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport
         doc = json.loads(report_path.read_text()) if report_path.is_file() else None
     except (OSError, ValueError):
         doc = None  # cannot be: written atomically; then the snapshots alone say what was made
-    if doc is not None and not doc.get("running", False) and (out / FINAL).is_dir():
-        raise UsageError(f"--resume --out {out}: the stream ended (final map in {out / FINAL}, {report_path}); "
-                         "nothing to finish")
-    for name in (REPORT, f"{SNAPSHOTS}/{STATE}", f"{FINAL}/{STATE}"):
-        remove_stale_temps(out / name)  # left by the killed process (the lock proves it is gone)
+    half = {name: remove_stale_temps(out / name)  # left by the killed process (the lock proves it is gone)
+            for name in (REPORT, f"{SNAPSHOTS}/{STATE}", f"{FINAL}/{STATE}")}
     remove_stale_partials(out / FINAL, owned=True)
+    if doc is not None and not doc.get("running", False) and (out / FINAL).is_dir():
+        lost = f"; its mapper state was not saved (stopped while writing {out / FINAL / STATE})" \
+            if half[f"{FINAL}/{STATE}"] and not (out / FINAL / STATE).is_file() else ""
+        raise UsageError(f"--resume --out {out}: the stream ended (final map in {out / FINAL}, {report_path}); "
+                         f"nothing to finish{lost}")
     snaps = sorted(p for p in (out / SNAPSHOTS).glob("[0-9]*") if p.is_dir()) if (out / SNAPSHOTS).is_dir() else []
     if not snaps:
         raise UsageError(f"--resume --out {out}: the stream was stopped before its first snapshot; there is no map "

@@ -6,13 +6,14 @@ command line around these, and the demo and the experiments call them directly.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import shutil
 import sys
 from pathlib import Path
 
 from virus_nerf.engine.memory import check_batch_memory
-from virus_nerf.errors import DataFormatError, UsageError
+from virus_nerf.errors import DataFormatError, NotWrittenError, UsageError
 from virus_nerf.trainer.config import check_device
 from virus_nerf.trainer.run_folder import (
     CHECKPOINT,
@@ -182,9 +183,15 @@ def _start(data: Path, room: str, out: Path, recording, cfg, lock, quiet):
     try:
         trainer = Trainer(recording, cfg, out, quiet=quiet)
         return trainer, _fit(trainer)
-    except BaseException:
+    except BaseException as exc:
         if not (out / CHECKPOINT).is_file() and not (out / MAP_DIR).is_dir():
             shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
+            if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)):
+                # not the command line's "nothing was lost ... --resume": there is no run left to resume
+                raise NotWrittenError(
+                    f"{exc.filename or out}: could not be written ({exc.strerror or exc}) before the run's first "
+                    f"checkpoint, so {out} was removed (nothing to resume); free some space and run the same "
+                    "`virus-nerf train` command again", exc.errno) from exc
         raise
 
 
@@ -285,8 +292,6 @@ def keep_stopped_run(trainer, exc) -> None:
 def _check_final_checkpoint(trainer, kept) -> None:
     """An online run whose final checkpoint did not fit (Trainer.fit kept going): named now that
     the map and the results are written."""
-    from virus_nerf.errors import NotWrittenError
-
     exc = trainer.checkpoint_error
     if exc is None:
         return

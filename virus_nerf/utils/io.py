@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
@@ -13,6 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from virus_nerf.errors import OutputExistsError
+
+_SHORT_WRITE = re.compile(r"\d+ requested and \d+ written")  # numpy's message for a short write
 
 
 @contextmanager
@@ -39,6 +42,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         if exc.filename in (None, str(tmp_path), tmp_path) and exc.errno is not None:
             # name the file being written, not its temporary (e.g. a full disk: ENOSPC)
             raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
+        if exc.errno is None and exc.filename is None and _SHORT_WRITE.fullmatch(str(exc)):
+            # numpy's tofile on a full disk says only "N requested and M written": no errno, no file
+            raise OSError(errno.ENOSPC, f"no space left on device ({exc})", str(path)) from exc
         raise
     finally:
         try:
