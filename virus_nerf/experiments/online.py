@@ -55,8 +55,9 @@ def online(
     """Offline vs online training on a simulated office; writes OUT/online.{png,json,md}.
 
     OUT may be new or hold an unfinished experiment of this command (experiments/folder.py; any
-    other folder is refused): finished runs in OUT/runs are kept and interrupted ones resume. A finished experiment (any of OUT/online.{json,md,png} present)
-    is refused before anything runs: the summaries are never overwritten; choose a new --out
+    other folder is refused): finished runs in OUT/runs are kept and interrupted ones resume. A
+    finished experiment (any of OUT/online.{json,md,png} present) is refused before anything
+    runs: the summaries are never overwritten; choose a new --out
     (or move the summary files away to aggregate OUT's runs again). The summaries are written
     atomically.
 

@@ -331,8 +331,8 @@ def _resume(out: Path, recording, cfg, quiet):
         if (out / TRAIN_LOG).is_file():
             truncate_log(out / TRAIN_LOG, 0)
         finished = False
-    if finished:  # budget reached before the metrics were written: evaluate only (no step, no file rewritten),
-        trainer.prepare()  # on the frames and stereo points (cached) it trained on, as `evaluate` and `export` do
+    if finished:  # budget reached before the metrics were written: evaluate only (no step, no file rewritten)
+        trainer.prepare()  # on the frames and stereo points (cached) it trained on, as `export` does
         return trainer, TrainSummary(trainer.mapper.step, trainer.mapper.seconds, trainer.mapper.samples)
 
     def started() -> None:  # the first step worked: from now on the run is one of this config
