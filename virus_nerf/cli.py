@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import errno
 import functools
 import io
 import re
@@ -248,7 +247,13 @@ def main(argv: list[str] | None = None) -> None:
 def _main(argv: list[str] | None) -> None:
     _keep_large_allocations()
 
-    from virus_nerf.errors import DataFormatError, NotWrittenError, OutputExistsError, UsageError
+    from virus_nerf.errors import (
+        DISK_FULL_ERRNOS,
+        DataFormatError,
+        NotWrittenError,
+        OutputExistsError,
+        UsageError,
+    )
 
     argv = sys.argv[1:] if argv is None else list(argv)
     run = _parse(argv)
@@ -264,7 +269,7 @@ def _main(argv: list[str] | None) -> None:
         # a path the user named cannot be read or written (permissions, a file where a folder
         # belongs, ...): the system's reason and the path, not a traceback
         where = f"{exc.filename}" + (f" -> {exc.filename2}" if exc.filename2 else "")
-        if exc.errno in _DISK_FULL:
+        if exc.errno in DISK_FULL_ERRNOS:
             # every output is written to a temporary name and renamed whole: what was there is intact
             _fail(f"{where}: could not be written ({exc.strerror or 'no space left on device'}); nothing was lost "
                   "(outputs are written whole under a temporary name, so every file written before is intact); "
@@ -284,7 +289,6 @@ def _interrupted(exc: KeyboardInterrupt) -> NoReturn:
     raise SystemExit(exit_code_of(exc))
 
 
-_DISK_FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 
@@ -42,6 +43,10 @@ class OutputExistsError(FileExistsError):
             f"{path}: output {kind} already exists; choose a new {flag} (nothing was overwritten)"
         )
         self.path = Path(path)
+
+
+# the errnos of a disk that cannot take more: full (ENOSPC) or over the user's quota (EDQUOT)
+DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)})
 
 
 class NotWrittenError(OSError):

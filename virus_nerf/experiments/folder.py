@@ -47,17 +47,15 @@ def take_experiment_folder(out: Path, command: str, summaries: list[Path]) -> No
     refuse_existing(summaries)
     if out.exists() and not out.is_dir():
         raise OutputExistsError(out)
-    if out.is_dir():
-        marked = marked_command(out)
-        if marked is not None and marked != command:
-            raise UsageError(f"--out {out}: holds another experiment ({EXPERIMENT_MARK} says {marked!r}), not an "
-                             f"unfinished {command}; choose a new --out (nothing was changed)")
-        if marked is None:
-            foreign = sorted(p.name for p in out.iterdir() if p.name not in EXPERIMENT_ENTRIES)
-            if foreign:
-                shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
-                raise UsageError(f"--out {out}: holds {shown}, so it is not an unfinished {command}; choose a new "
-                                 f"--out (nothing was changed)")
+    marked = marked_command(out)  # None for a new folder too
+    if marked is not None and marked != command:
+        raise UsageError(f"--out {out}: holds another experiment ({EXPERIMENT_MARK} says {marked!r}), not an "
+                         f"unfinished {command}; choose a new --out (nothing was changed)")
+    foreign = sorted(p.name for p in out.iterdir() if p.name not in EXPERIMENT_ENTRIES) if out.is_dir() else []
+    if marked is None and foreign:
+        shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+        raise UsageError(f"--out {out}: holds {shown}, so it is not an unfinished {command}; choose a new --out "
+                         "(nothing was changed)")
     out.mkdir(parents=True, exist_ok=True)
-    if marked_command(out) is None:
+    if marked is None:
         write_json_atomic(out / EXPERIMENT_MARK, {"command": command})

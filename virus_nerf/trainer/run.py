@@ -6,14 +6,13 @@ command line around these, and the demo and the experiments call them directly.
 from __future__ import annotations
 
 import dataclasses
-import errno
 import json
 import shutil
 import sys
 from pathlib import Path
 
 from virus_nerf.engine.memory import check_batch_memory
-from virus_nerf.errors import DataFormatError, NotWrittenError, UsageError
+from virus_nerf.errors import DISK_FULL_ERRNOS, DataFormatError, NotWrittenError, UsageError
 from virus_nerf.trainer.config import check_device
 from virus_nerf.trainer.run_folder import (
     CHECKPOINT,
@@ -186,7 +185,7 @@ def _start(data: Path, room: str, out: Path, recording, cfg, lock, quiet):
     except BaseException as exc:
         if not (out / CHECKPOINT).is_file() and not (out / MAP_DIR).is_dir():
             shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
-            if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)):
+            if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
                 # not the command line's "nothing was lost ... --resume": there is no run left to resume
                 raise NotWrittenError(
                     f"{exc.filename or out}: could not be written ({exc.strerror or exc}) before the run's first "
