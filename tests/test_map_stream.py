@@ -408,3 +408,43 @@ def test_live_mode_says_each_problem_once_and_goes_on(bags, tmp_path):
 
 def messages_by(messages, topic: str, index: int):
     return next(msg for t, msg in messages if t == topic and msg.index == index)
+
+
+def test_live_a_silent_tof_leaves_its_camera_mapping(bags):
+    """Live, a ToF topic that never sends is said once and its stack's frames go on without it
+    (IRS all NaN: no measurement, as for a stack without a ToF), counted in `without`; only the
+    frames before its silence was noticed wait in vain. The other stack keeps its ToF."""
+    cfg = default_topics()
+    with BagReader(bags["ros1"]) as reader:
+        lines: list[str] = []
+        source = make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"])
+        sync = LiveSync(cfg, source, bags["ros1"], max_silence_s=0.5, on_problem=lines.append)
+        frames = []
+        for topic, msg in reader.iter_topics(sync.topics()):
+            if topic != "/TOF3":
+                frames += sync.push(topic, msg)
+        frames += sync.finish()
+    by_stack = _by_stack(frames)
+    assert any("topic /TOF3 sent nothing" in ln and "mapping goes on without it" in ln for ln in lines), lines
+    waited = sum(n for why, n in sync.dropped[3].items() if why.startswith("no tof"))
+    assert len(by_stack[3]) >= 10 and all(np.isnan(f.irs_range).all() for f in by_stack[3])
+    assert sync.without_total() == {"tof": len(by_stack[3])} and 1 <= waited <= len(by_stack[3])
+    whole = _by_stack(_stream(bags["ros1"], "csv", poses_file=bags["csv"])[0])[1]  # every topic, not live
+    assert [f.time for f in by_stack[1]] == [f.time for f in whole]
+    assert all(np.array_equal(a.irs_range, b.irs_range, equal_nan=True) for a, b in zip(by_stack[1], whole, strict=True))
+    assert any(np.isfinite(f.irs_range).any() for f in by_stack[1])
+
+
+def test_an_out_that_keeps_nothing_leaves_no_parent_behind(tmp_path):
+    """map-bag and the ROS 2 node make --out with its missing parents; a run that keeps nothing
+    removes what it made, and only that."""
+    from virus_nerf.mapping.command import make_out
+
+    made = make_out(tmp_path / "a" / "b" / "out")
+    (made.out / "stream.json").write_text("{}")
+    made.remove()
+    assert not (tmp_path / "a").exists() and tmp_path.is_dir()
+    made = make_out(tmp_path / "a" / "b" / "out")
+    (tmp_path / "a" / "notes.txt").write_text("another's")  # written beside it meanwhile: stays
+    made.remove()
+    assert not (tmp_path / "a" / "b").exists() and (tmp_path / "a" / "notes.txt").read_text() == "another's"

@@ -166,7 +166,8 @@ def test_play_map_and_a_late_reader_get_the_map_over_loopback_dds(office_bag, ti
 
 def test_the_node_stopped_by_sigterm_keeps_its_final_map_in_one_line(office_bag, tiny_office, tmp_path):
     """Issue 39: `systemctl stop` / `docker stop` (SIGTERM) while the node maps: the final map and
-    stream.json on disk, one line saying where, exit 143, no traceback."""
+    stream.json on disk, one line saying where, exit 143, no traceback. The input runs at twice the
+    wall clock's rate (`ros2-play --rate 2`): the lag stays the robot's."""
     import signal
 
     domain, out = _domain(), tmp_path / "node"
@@ -177,7 +178,7 @@ def test_the_node_stopped_by_sigterm_keeps_its_final_map_in_one_line(office_bag,
         try:
             from virus_nerf.ros2.play import play
 
-            play(office_bag, player, delay_s=1.5, log=lambda line: None)
+            play(office_bag, player, rate=2.0, delay_s=1.5, log=lambda line: None)  # the robot's clock runs fast
         finally:
             player.close()
         start = time.monotonic()
@@ -194,6 +195,8 @@ def test_the_node_stopped_by_sigterm_keeps_its_final_map_in_one_line(office_bag,
     assert (out / "map" / "map.pgm").is_file() and (out / "map" / "map.yaml").is_file()
     report = json.loads((out / "stream.json").read_text())
     assert report["stopped"] == "interrupted (SIGTERM)" and report["final"] == str(out / "map")
+    # the lag is the robot's clock's, whatever its rate: never ahead of the newest message
+    assert report["lag_s"] and min(report["lag_s"]) >= 0.0, report["lag_s"]
 
 
 def test_ros2_flags_are_refused_in_one_line(tmp_path):
@@ -228,3 +231,71 @@ def test_names_resolve_as_ros_2_resolves_them():
     assert dds.dds_topic("/robot1/map") == "rt/robot1/map"
     assert dds.is_tf_static("/tf_static") and dds.is_tf_static("/robot1/tf_static") and not dds.is_tf_static("/tf")
     assert types.dds_type_name(GRID) == "nav_msgs::msg::dds_::OccupancyGrid_"
+    # ROS 2's rules for a fully qualified name (rmw's validate_full_topic_name)
+    for good in ("/map", "/robot_1/map", "/a/B9_c"):
+        assert dds.name_problem(good) is None
+    assert dds.name_problem("/", "namespace") is None and dds.name_problem("/") == "expected a name after '/'"
+    assert dds.name_problem("map") == "expected a name starting with '/'"
+    assert dds.name_problem("/a//b") == "expected no repeated '/'"
+    assert dds.name_problem("/a/") == "expected no '/' at the end"
+    assert dds.name_problem("/robot1/2d_map") == "token '2d_map' starts with a digit"
+    assert dds.name_problem("/bad topic!") == "' !' is not allowed: expected letters, digits, '_' and '/'"
+    assert dds.name_problem("/a" * 124) == "expected at most 247 characters"
+
+
+def test_ros_names_and_frames_are_refused_before_anything_is_made(tmp_path):
+    """What rmw or tf2 would refuse later (a DDS error, a frame RViz drops) is one line now, naming
+    the flag; an input topic is absolute, as the topics file's."""
+    for argv, says in (
+            (["--map-topic", "bad topic!"], "--map-topic 'bad topic!' ('/bad topic!'): not a ROS 2 topic name; ' !' is not"),
+            (["--namespace", "robot 1"], "--namespace 'robot 1' ('/robot 1'): not a ROS 2 namespace name"),
+            (["--map-topic", ""], "--map-topic '': expected a topic name, e.g. map"),
+            (["--probability-topic", "2d"], "--probability-topic '2d' ('/2d'): not a ROS 2 topic name; token '2d'"),
+            (["--map-frame", ""], "--map-frame '': not a tf2 frame id"),
+            (["--tf-parent", "/odom"], "--tf-parent '/odom': not a tf2 frame id"),
+            (["--poses", "odometry", "--odometry-topic", "odom"],
+             "--odometry-topic 'odom': not a ROS 2 topic name; expected a name starting with '/'")):
+        code, _, err = run_cli(["ros2", "--out", tmp_path / "o", "--tf-child", "rslidar", *argv])
+        assert code == 2 and says in err and len(err.strip().splitlines()) == 1, (argv, err)
+    assert not (tmp_path / "o").exists()
+    code, _, err = run_cli(["ros2-play", tmp_path / "drive.bag", "--topic"])
+    assert code == 2 and "--topic: expected one or more topic names" in err and "Traceback" not in err
+
+
+@pytest.mark.skipif(not hasattr(__import__("signal"), "SIGSTOP"), reason="needs SIGSTOP (POSIX)")
+def test_a_reader_that_stops_acknowledging_is_a_timeout_not_a_crash():
+    """The node's last act waits for its /map readers' acknowledgements; a reader that left (or
+    hangs: SIGSTOP here, a killed `ros2 topic echo --once` before its lease ends) makes the wait
+    time out, which is False (the map stays latched), not a traceback (cyclonedds 11.0.1's own
+    DataWriter.wait_for_acks raises AttributeError then)."""
+    import signal
+
+    from virus_nerf.mapping.ros_maps import grid_message
+    from virus_nerf.maps.occupancy import OccupancyMap2D
+
+    domain, store = _domain(), types.typestore("jazzy")
+    payload = types.serialize(grid_message(store, 0, OccupancyMap2D(np.full((4, 5), 254, np.uint8), 0.05, (0.0, 0.0))),
+                              GRID, store)
+    script = (f"import time\nfrom virus_nerf.ros2 import dds\np = dds.Participant('jazzy', {domain}, loopback=True)\n"
+              f"r = p.reader('/acks', {GRID!r}, dds.LATCHED)\nt0 = time.monotonic()\n"
+              "while not r.take() and time.monotonic() - t0 < 60:\n    time.sleep(0.02)\n"
+              "print('got', flush=True)\ntime.sleep(60)\n")
+    participant = dds.Participant("jazzy", domain, loopback=True)
+    reader = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        writer = participant.writer("/acks", GRID, dds.LATCHED)
+        writer.write(payload)  # latched: the reader gets it whenever it matches
+        assert reader.stdout.readline().strip() == "got"
+        assert writer.wait_for_acks(10.0) is True
+        os.kill(reader.pid, signal.SIGSTOP)  # matched, and no longer acknowledging
+        stat, t0 = Path(f"/proc/{reader.pid}/stat"), time.monotonic()
+        while stat.exists() and stat.read_text().rsplit(")", 1)[-1].split()[0] != "T" and time.monotonic() - t0 < 10:
+            time.sleep(0.01)  # stopped for sure: a receive thread still running might acknowledge the next sample
+        writer.write(payload)
+        start = time.monotonic()
+        assert writer.wait_for_acks(0.5) is False
+        assert time.monotonic() - start < 5.0
+    finally:
+        reader.kill()
+        reader.wait(timeout=30)
+        participant.close()

@@ -160,13 +160,32 @@ def _finish(out: Path) -> None:
         finish_killed(out)
 
 
-def make_out(out: Path) -> None:
+@dataclass(frozen=True)
+class MadeOut:
+    """OUT and the parent folders this process made for it (deepest first): a run that keeps
+    nothing removes them all, so "nothing was kept" leaves nothing behind."""
+
+    out: Path
+    parents: tuple[Path, ...] = ()
+
+    def remove(self) -> None:
+        shutil.rmtree(self.out, ignore_errors=True)
+        for folder in self.parents:
+            try:
+                folder.rmdir()  # empty unless something else wrote there meanwhile: then it stays
+            except OSError:
+                break
+
+
+def make_out(out: Path) -> MadeOut:
     """OUT, made by this process alone: another map-bag that made it meanwhile (both passed the
     check before their start-up) is a one-line refusal naming --out, not the OS's "File exists"."""
+    missing = tuple(p for p in Path(out).absolute().parents if not p.exists())
     try:
         out.mkdir(parents=True)
     except FileExistsError:
         raise OutputExistsError(out) from None
+    return MadeOut(out, missing)
 
 
 @dataclass(frozen=True)
@@ -203,11 +222,11 @@ def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: f
     from virus_nerf.utils.stop import Stopped
 
     import_bag = _importer()
-    make_out(out)
+    made = make_out(out)
     try:
         imported = import_bag(bag, out / "recording", topics=topics, **pose_args)
     except BaseException:
-        shutil.rmtree(out, ignore_errors=True)  # nothing written yet but the partial import
+        made.remove()  # nothing written yet but the partial import
         raise
     try:
         with ExitStack() as stack:
@@ -257,7 +276,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
                         max_silence_s=max_silence)
         first, last = reader.span_s
         warm_step_s = warm_up(cfg)
-        make_out(out)
+        made = make_out(out)
         owned.enter_context(RunLock(out, "--out"))  # map-bag --resume waits for this process to end
         run = None
         try:
@@ -270,7 +289,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
         except BaseException as exc:
             nothing = run_made_nothing(out)
             if nothing:
-                shutil.rmtree(out, ignore_errors=True)
+                made.remove()
             if isinstance(exc, Stopped):
                 exc.reported = True
                 if nothing or run is None or run.report.final is None:
@@ -285,7 +304,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
                       f"{summary(run.report)}; final map of what was made in {out / 'map'}")
             raise
     if report.final is None:
-        shutil.rmtree(out, ignore_errors=True)
+        made.remove()
         raise DataFormatError(bag, f"no frame could be made ({summary(report)}); check the topics file's sync "
                               "tolerances and the pose source")
     print(f"map-bag: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s; "

@@ -73,6 +73,7 @@ class StreamReport:
     wall_s: float = 0.0  # from the first message to the final map
     first_snapshot_s: float | None = None  # wall seconds from the first message to the first snapshot
     dropped: dict[str, int] = field(default_factory=dict)  # reason -> colour frames
+    without: dict[str, int] = field(default_factory=dict)  # live: silent sensor (uss, tof, depth) -> frames made without it
     lag_s: list[float] = field(default_factory=list)  # at each snapshot
     stopped: str | None = None  # the error (or signal) that stopped the stream
     stopped_at_s: float | None = None  # bag seconds since the first message
@@ -131,6 +132,7 @@ class StreamRun:
         # the frame feeder on the receive clock (releases messages) and on the stamps (the lag)
         self.released = self.stamped = Playback(0.0, playback)  # from 0 until the first message
         self.behind = 0.0  # recording seconds the newest message was released after it was due
+        self.latest = -math.inf  # the stamp of the newest message (not a static transform's)
         self.anchored, self.restarts = False, 0  # the lag's clock (`_anchor`)
         # a live source (ros2/node.py): messages arrive stamped with the wall clock (time.time)
         self.live_source = getattr(sync, "on_problem", None) is not None
@@ -142,9 +144,14 @@ class StreamRun:
         return time.monotonic() - self.start
 
     def lag(self, now: float) -> float:
-        """Recording seconds between the scaled wall clock and the newest frame (the first message
-        stands in before the first frame)."""
-        return self.stamped.recording_time(now) - (self.newest if self.newest is not None else self.t0)
+        """Recording seconds between the robot's present and the newest frame (the first message
+        stands in before the first frame). From a bag, the present is the scaled wall clock. Live,
+        the input's rate is not ours to know (a bag played at --rate 2 runs twice as fast as the
+        wall clock): the present is the newest message's stamp plus how late it was read."""
+        newest = self.newest if self.newest is not None else self.t0
+        if self.live_source:
+            return max(self.latest - newest, 0.0) + max(self.behind, 0.0)
+        return self.stamped.recording_time(now) - newest
 
     # ------------------------------------------------------------------ the loop
     def run(self, messages) -> StreamReport:
@@ -157,8 +164,10 @@ class StreamRun:
                     continue
                 topic, msg = item
                 due = self._due(msg)
-                if "static" not in topic and (not self.anchored or self.sync.restarts != self.restarts):
-                    self._anchor(msg)
+                if "static" not in topic:
+                    self.latest = msg.time_s
+                    if not self.anchored or self.sync.restarts != self.restarts:
+                        self._anchor(msg)
                 self._wait(due)
                 self._train_owed(due)
                 self.behind = (self.now() - due) * self.playback
@@ -180,20 +189,18 @@ class StreamRun:
         return self.report
 
     def _anchor(self, msg) -> None:
-        """The lag's clock: the first message's stamp now, not a static transform's (a late
-        joiner's are old), and again after the live clock went back (LiveSync.restart). Live, the
-        message's age (it may have waited in the queue while the mapper started) is added: its
-        stamp was the robot's clock when it arrived."""
+        """The lag's first message: not a static transform (a late joiner's are old); from a bag
+        the lag's clock starts at its stamp. Live, again after the clock went back
+        (LiveSync.restart): the frames from there on are the newest."""
         self.restarts = self.sync.restarts
-        if not self.anchored:
-            self.anchored = True
-            if msg.time_s == self.t0 and not self.live_source:  # the first message: `_due` anchored it
-                return
-            self.t0 = msg.time_s
-        else:  # a restart: the frames from here on are the newest
+        if self.anchored:  # live, a restart
             self.newest = None
-        age = max(time.time() - msg.received_s, 0.0) if self.live_source and msg.received_s is not None else 0.0
-        self.stamped = Playback(msg.time_s + age * self.playback - self.now() * self.playback, self.playback)
+            return
+        self.anchored = True
+        if msg.time_s == self.t0 and not self.live_source:  # the first message: `_due` anchored it
+            return
+        self.t0 = msg.time_s
+        self.stamped = Playback(msg.time_s - self.now() * self.playback, self.playback)
 
     def _due(self, msg) -> float:
         """Wall seconds (from the first message) at which `msg` is released."""
@@ -365,7 +372,7 @@ class StreamRun:
         from virus_nerf.utils.io import save_torch_atomic, write_json_atomic
 
         r = self.report
-        r.dropped = dict(self.sync.dropped_total())
+        r.dropped, r.without = dict(self.sync.dropped_total()), dict(self.sync.without_total())
         r.frames, r.steps, r.train_s, r.wall_s = self.mapper.frames, self.mapper.step, self.mapper.seconds, self.now()
         r.running = True
         try:
@@ -386,7 +393,7 @@ class StreamRun:
         if self.mapper is None and self.held:  # the bag ended (or stopped) during the start-up wait
             frames, self.held = self.held, []
             self._make_mapper(frames)
-        r.dropped = dict(self.sync.dropped_total())
+        r.dropped, r.without = dict(self.sync.dropped_total()), dict(self.sync.without_total())
         outputs = Outputs()
         if self.mapper is not None:
             now = self.now()
@@ -412,7 +419,8 @@ def summary(report: StreamReport) -> str:
     reasons = ", ".join(f"{n} {why}" for why, n in sorted(report.dropped.items(), key=lambda kv: -kv[1]))
     lag = (f"; lag at snapshots median {statistics.median(report.lag_s):.2f} s, max {max(report.lag_s):.2f} s"
            if report.lag_s else "")
-    return f"{report.frames} frames, {dropped} dropped{f' ({reasons})' if reasons else ''}{lag}"
+    without = "".join(f", {n} without {role}" for role, n in sorted(report.without.items()))
+    return f"{report.frames} frames{without}, {dropped} dropped{f' ({reasons})' if reasons else ''}{lag}"
 
 
 def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport:

@@ -95,7 +95,7 @@ def ros2(
         exit_when_idle: Stop when no message came for this many seconds after the first one.
         view: The live view (--rerun, --rerun-connect, --rerun-save; as map-bag's).
     """
-    from virus_nerf.ros2.dds import require_dds, resolve
+    from virus_nerf.ros2.dds import require_dds, require_frame, require_name, resolve
 
     if out is None:
         raise UsageError("--out is required: give --out DIR (a new folder for the snapshots and the final map)")
@@ -104,6 +104,17 @@ def ros2(
     if poses == "tf" and tf_child is None:
         raise UsageError("--poses tf needs --tf-child FRAME: the frame the topics file's camera mounting is "
                          "given in (the LiDAR's, e.g. rslidar)")
+    namespace = require_name("--namespace", namespace, "/" + namespace.strip("/"), "namespace")
+    names = {}
+    for key, flag, value, example in (("map", "--map-topic", map_topic, "map"),
+                                      ("probability", "--probability-topic", probability_topic, "map_probability")):
+        if not value:
+            raise UsageError(f"{flag} '': expected a topic name, e.g. {example}")
+        names[key] = require_name(flag, value, resolve(value, namespace))
+    require_name("--odometry-topic", odometry_topic, odometry_topic)  # an input, as the topics file's: absolute
+    for flag, value in (("--tf-parent", tf_parent), ("--tf-child", tf_child), ("--map-frame", map_frame)):
+        if value is not None:
+            require_frame(flag, value)
     for flag, value, low in (("--publish-every", publish_every, 0.0), ("--first-map", first_map, 0.0),
                              ("--drive", drive, 0.0), ("--max-lag", max_lag, 0.0),
                              ("--max-silence", max_silence, 0.0)):
@@ -125,7 +136,6 @@ def ros2(
     cfg = load_stream_config(config)
     from virus_nerf.utils.stop import stop_on_signals
 
-    names = dict(map=resolve(map_topic, namespace), probability=resolve(probability_topic, namespace))
     with stop_on_signals():
         run_node(out, topics, poses, tf_parent, tf_child, odometry_topic, cfg, distro=distro, domain=domain_id,
                  loopback=_localhost_only(localhost_only), names=names, map_frame=map_frame or tf_parent,
@@ -168,7 +178,7 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
         publisher = MapPublisher(participant, names["map"], names["probability"], map_frame, log=log)
         owned.callback(publisher.flush)  # the final map reaches the readers before the node leaves
         warm_step_s = warm_up(cfg)
-        make_out(out)
+        made = make_out(out)
         owned.enter_context(RunLock(out, "--out"))
         started = time.monotonic()
 
@@ -195,9 +205,7 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
         except BaseException as exc:
             nothing = run_made_nothing(out)
             if nothing:
-                import shutil
-
-                shutil.rmtree(out, ignore_errors=True)  # made by this run, and nothing in it
+                made.remove()  # made by this run, and nothing in it
             if isinstance(exc, Stopped):
                 exc.reported = True
                 if nothing or run is None or run.report.final is None:
@@ -207,9 +215,7 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
                         f"(published on {names['map']}), report in {out / 'stream.json'}")
             raise
     if report.final is None:
-        import shutil
-
-        shutil.rmtree(out, ignore_errors=True)  # made by this run, and nothing in it
+        made.remove()  # made by this run, and nothing in it
         log(f"ros2: no frame was mapped ({summary(report)}); nothing was kept")
         return
     log(f"ros2: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s; {publisher.published} maps "
@@ -246,6 +252,9 @@ def ros2_play(
     from virus_nerf.utils.stop import stop_on_signals
 
     require_number("--rate", rate, 0.0)
+    if topic is not None and not topic:
+        raise UsageError("--topic: expected one or more topic names (--topic /tf /CAM1/color/image_raw); "
+                         "leave --topic out to play every topic")
     require_number("--delay", delay, 0.0, lo_open=False)
     if not Path(bag).exists():
         raise UsageError(f"BAG {bag}: no such file or folder; expected a ROS bag")

@@ -78,6 +78,49 @@ def dds_topic(name: str) -> str:
     return ROS_TOPIC_PREFIX + name
 
 
+MAX_TOPIC_CHARS = 247  # rmw: a DDS name is at most 255 characters, 8 kept for the prefixes
+
+
+def name_problem(name: str, what: str = "topic") -> str | None:
+    """Why `name` (a fully qualified ROS 2 name, '/a/b') is not one, or None: ROS 2's rules (rmw's
+    validate_full_topic_name): '/'-separated tokens of letters, digits and '_', none empty and none
+    starting with a digit, no '/' at the end (a namespace may be '/' alone)."""
+    if not name.startswith("/"):
+        return "expected a name starting with '/'"
+    if name == "/":
+        return None if what == "namespace" else "expected a name after '/'"
+    if name.endswith("/"):
+        return "expected no '/' at the end"
+    if len(name) > MAX_TOPIC_CHARS:
+        return f"expected at most {MAX_TOPIC_CHARS} characters"
+    for token in name[1:].split("/"):
+        if not token:
+            return "expected no repeated '/'"
+        bad = sorted({c for c in token if not (c.isascii() and (c.isalnum() or c == "_"))})
+        if bad:
+            return f"{''.join(bad)!r} is not allowed: expected letters, digits, '_' and '/'"
+        if token[0].isdigit():
+            return f"token {token!r} starts with a digit"
+    return None
+
+
+def require_name(flag: str, value: str, resolved: str, what: str = "topic") -> str:
+    """`resolved` (the fully qualified form of `value`), or the one-line refusal naming `flag`."""
+    problem = name_problem(resolved, what)
+    if problem is not None:
+        shown = f"{value!r}" if value == resolved else f"{value!r} ({resolved!r})"
+        raise UsageError(f"{flag} {shown}: not a ROS 2 {what} name; {problem}")
+    return resolved
+
+
+def require_frame(flag: str, value: str) -> str:
+    """A tf2 frame id: not empty, no whitespace, no leading '/' (tf2 refuses or strips it)."""
+    if not value or any(c.isspace() for c in value) or value.startswith("/"):
+        raise UsageError(f"{flag} {value!r}: not a tf2 frame id; expected a name without spaces or a "
+                         "leading '/', e.g. map or odom")
+    return value
+
+
 def resolve(name: str, namespace: str = "/") -> str:
     """A ROS name resolved in `namespace`: '/x' stays, 'x' -> '<namespace>/x', '~/x' as 'x'."""
     if name.startswith("/"):
@@ -160,10 +203,14 @@ class Writer:
         """True when every matched reliable reader acknowledged what was written (within timeout_s)."""
         from cyclonedds.core import DDSException
 
-        try:
-            return bool(self._writer.wait_for_acks(int(timeout_s * 1e9)))
-        except DDSException:  # a timeout: a reader that left or lags; the map stays latched meanwhile
+        # dds_wait_for_acks itself: cyclonedds 11.0.1's DataWriter.wait_for_acks raises AttributeError
+        # on a timeout (it compares against a constant its base Exception does not have)
+        ret = self._writer._wait_for_acks(self._writer._ref, int(timeout_s * 1e9))
+        if ret == DDSException.DDS_RETCODE_TIMEOUT:  # a reader that left or lags; the map stays latched
             return False
+        if ret < 0:
+            raise DDSException(ret, f"waiting for the readers of {self.topic}")
+        return True
 
 
 class Reader:

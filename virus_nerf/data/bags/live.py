@@ -31,8 +31,10 @@ said) and the stream goes on: a malformed message is skipped; a message older th
 previous one is skipped, or, more than RESTART_BACK_S back (a bag played again, a robot's clock
 reset), starts the synchronisation again (the waiting images, sensor buffers and poses are
 forgotten; the map keeps every frame made); a silent topic or pose source is said once and said
-again when it is back (its images are dropped for want of a partner or a pose meanwhile); a frame
-whose pose jumps is dropped and the next frames are compared with it.
+again when it is back. Meanwhile a silent USS, ToF or depth topic's frames are made without it
+(NaN: no measurement, as for a stack without that sensor; counted in `without`), while a silent
+pose source drops the frames (no pose); a frame whose pose jumps is dropped and the next frames
+are compared with it.
 """
 
 from __future__ import annotations
@@ -144,6 +146,7 @@ class LiveSync:
         self.t0: float | None = None  # the first stamp: bag times in messages count from here
         self.clock = -math.inf  # the newest stamp seen
         self.dropped: dict[int, Counter] = {s: Counter() for s in cfg.stacks}
+        self.without: dict[int, Counter] = {s: Counter() for s in cfg.stacks}  # live: role -> frames made without it
         self.made = 0
         self.last_frame: tuple[float, np.ndarray] | None = None  # (time, robot pose) for the jump check
         self.error: StreamError | None = None  # met while releasing frames: raised at the next message
@@ -372,8 +375,12 @@ class LiveSync:
         partner = {}
         for r in PARTNERS:
             if r in roles:
-                partner[r] = self.buffers[(s, r)].nearest(t, self.tolerance[r])
-                if partner[r] is None:
+                near = self.buffers[(s, r)].nearest(t, self.tolerance[r])
+                if near is not None:
+                    partner[r] = near
+                elif roles[r] in self.silent:  # live: the sensor stopped; the frame goes on without it (NaN)
+                    self.without[s][r] += 1
+                else:
                     self.dropped[s][f"no {r} within {self.tolerance[r]:g} s"] += 1
                     return None
         robot = self.poses.at(t, self.cfg.sync.pose_tolerance_s)
@@ -417,7 +424,8 @@ class LiveSync:
 
     # ------------------------------------------------------------------ report
     def dropped_total(self) -> Counter:
-        total: Counter = Counter()
-        for c in self.dropped.values():
-            total.update(c)
-        return total
+        return sum(self.dropped.values(), Counter())
+
+    def without_total(self) -> Counter:
+        """Live: sensor role -> frames made without it while its topic was silent."""
+        return sum(self.without.values(), Counter())
