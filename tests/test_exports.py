@@ -384,3 +384,19 @@ def test_default_map_is_the_snapshots_map_and_scans_stay_fine(trained_run, tmp_p
     pos = np.array([float(v) for v in rows[0][2:5]])
     r = trainer.mapper.model.ranges(np.tile(pos, (720, 1)), horizontal_directions(720))
     assert len(read_ply(default / "scans" / "scan_0000.ply")) == int((np.isfinite(r) & (r > 0)).sum())
+
+
+def test_poses_csv_keeps_epoch_times_and_reads_back(tmp_path):
+    """A robot's stamps are seconds since 1970 (1.7e9): poses.csv keeps them to the microsecond,
+    so two frames 0.1 s apart stay apart and the file goes back in as --poses."""
+    from virus_nerf.exports.views import PoseSet, read_pose_csv
+
+    times = np.array([1702374040.1003, 1702374040.2007, 1702374041.0])
+    poses = np.repeat(np.eye(4)[None], 3, axis=0)
+    poses[:, 0, 3] = [0.5, 1.25, -2.0]
+    path = tmp_path / "poses.csv"
+    path.write_text(PoseSet(times, poses, "test").csv())
+    assert path.read_text().splitlines()[1].startswith("0,1702374040.100300,0.5,0,0,")
+    back = read_pose_csv(path)
+    np.testing.assert_allclose(back.times, times, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(back.cam_to_world, poses, atol=1e-9)

@@ -52,6 +52,19 @@ def test_the_mask_is_the_wedge_of_the_camera_up_to_its_reach():
     np.testing.assert_array_equal(both, expected | expected[::-1, :])
 
 
+def test_the_pixel_a_camera_stood_in_is_observed():
+    """A view wedge starts at the lens: the camera's own pixel centre may lie behind it. The robot
+    stood there, so that pixel counts as observed (by hand: cameras in pixels (1, 0) and, on a
+    corner, (2, 1); one outside the raster changes nothing)."""
+    from virus_nerf.maps.observed import with_camera_pixels
+
+    mask = np.zeros((3, 2), dtype=bool)  # [ix, iy], 0.5 m pixels from (-1, 0)
+    cams = np.array([[-0.4, 0.2, 0.3], [0.0, 0.5, 0.3], [5.0, 0.2, 0.3]])
+    out = with_camera_pixels(mask, cams, np.array([-1.0, 0.0]), 0.5)
+    np.testing.assert_array_equal(out, [[False, False], [True, False], [False, True]])
+    assert not mask.any()  # the input is untouched
+
+
 def test_unobserved_pixels_become_unknown_whatever_the_map_said():
     mask = np.zeros((3, 2), dtype=bool)  # [ix, iy]: 3 columns, 2 rows
     mask[0, 1] = mask[2, 0] = True
@@ -133,7 +146,11 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     # `evaluate` judges the same map: the same safety block
     code, out_eval, err = run_cli(["evaluate", "--run", run, "--out", tmp_path / "eval.json", "--no-plots"])
     assert code == 0, err
-    assert json.loads((tmp_path / "eval.json").read_text())["safety"] == safety
+    evaluated, trained = json.loads((tmp_path / "eval.json").read_text()), json.loads((run / "metrics.json").read_text())
+    assert evaluated["safety"] == safety
+    # and says the run's warnings (a run this short ends inside the grid's warm-up)
+    assert evaluated["warnings"] == trained["warnings"] and any("warm-up" in w for w in trained["warnings"])
+    assert all(f"warning: {w}" in out_eval for w in trained["warnings"])
     assert not (tmp_path / "eval_plots").exists() and "eval_plots" not in out_eval  # --no-plots: the JSON alone
     assert "map safety (map ground truth)" in out_eval
     assert "map safety (map ground truth)" in out
@@ -149,6 +166,17 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     unseen = np.isnan(esdf)
     assert summary["observed"] == pytest.approx(1.0 - unseen.mean(), abs=1e-4)
     assert (image[unseen] == UNKNOWN).all() and (prob[unseen] == 128).all()  # p = 0.5 -> round(127.5)
+    # free wherever a camera stood (usage.md), the drive's first frames too: the view wedges start at
+    # the lens, and the robot standing still at the start would leave its own pixel unknown
+    from virus_nerf.trainer.run import load_trained
+
+    trainer, _, _ = load_trained(run, "--run")
+    trainer.prepare()
+    cams = trainer.mapper.store.cam_to_world[:, :2, 3]  # (N, 2) the frames the map was made from
+    origin = np.array([float(v) for v in next(ln for ln in (tmp_path / "export" / "map.yaml").read_text().splitlines()
+                                               if ln.startswith("origin:")).split("[")[1].split(",")[:2]])
+    ix, iy = np.floor((cams - origin) / 0.05).astype(int).T
+    assert len(cams) > 10 and (image[image.shape[0] - 1 - iy, ix] == FREE).all()
 
 
 def test_true_free_space_near_the_path_keeps_clear_of_obstacles_and_stays_on_the_path_side():

@@ -79,7 +79,10 @@ def test_a_recording_without_lidar_trains_maps_and_says_nothing_was_scored(no_li
     assert code == 2 and "nothing to resume" in err
     # evaluate without a ground truth to score against: one line
     code, _, err = run_cli(["evaluate", "--run", run])
-    assert code == 2 and len(err.strip().splitlines()) == 1 and "no ground truth" in err
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "the run was trained without ground truth (evaluation.gt none)" in err and "--gt names" not in err
+    code, _, err = run_cli(["evaluate", "--run", run, "--gt", "none"])
+    assert code == 2 and "--gt none: nothing to score" in err and len(err.strip().splitlines()) == 1
 
 
 def test_asking_for_the_lidar_map_on_a_recording_without_one_is_one_line(no_lidar, small_config, tmp_path):

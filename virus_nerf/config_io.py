@@ -126,8 +126,10 @@ def _join(key: str, name: str) -> str:
 
 def _describe(value: Any) -> str:
     """A short description of a JSON value for error messages: its JSON type and its text."""
-    kind = {bool: "bool", int: "int", float: "float", str: "string", list: "list", dict: "object",
-            type(None): "null"}.get(type(value), type(value).__name__)
+    if value is None:
+        return "null"
+    kind = {bool: "bool", int: "int", float: "float", str: "string", list: "list", dict: "object"}.get(
+        type(value), type(value).__name__)
     text = json.dumps(value) if isinstance(value, bool | int | float | str | type(None)) else None
     if text is None:
         try:
@@ -163,7 +165,10 @@ def _build(cls: type[T], data: Any, ctx: _Ctx, key: str) -> T:
     except ConfigError:
         raise
     except (ValueError, TypeError) as exc:  # the dataclass's own range checks (__post_init__)
-        raise ctx.error(key, one_line(exc)) from None
+        problem = one_line(exc)
+        # "log2_table_size must be in [4, 30], got 40" or "virus_grid.update_interval 0: ...": that key's
+        named = problem.split(" ", 1)[0].rsplit(".", 1)[-1]
+        raise ctx.error(_join(key, named) if named in names else key, problem) from None
 
 
 def _expected(tp: Any) -> str:

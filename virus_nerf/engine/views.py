@@ -27,7 +27,7 @@ from virus_nerf.maps.extract import (
     occupancy_map,
     probability_map,
 )
-from virus_nerf.maps.observed import frames_observed
+from virus_nerf.maps.observed import frames_observed, with_camera_pixels
 from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS, raster_shape
 from virus_nerf.maps.planner import RangeEvidence
 from virus_nerf.maps.scans import FieldOfView, Scan2D, points_from_ranges, scan_ranges
@@ -153,13 +153,13 @@ class MapViews:
 
     def observed(self, resolution: float = 0.05) -> np.ndarray:
         """(nx, ny) bool [ix, iy] over the box's x, y raster: pixels inside some frame's camera
-        view wedge (maps/observed.py); outside it every map is unknown."""
+        view wedge or holding a camera (maps/observed.py); outside it every map is unknown."""
         key = (self.frames, float(resolution), self.box)  # a grown box is another raster
         if getattr(self, "_observed_cache", (None,))[0] != key:
             lo, hi = np.asarray(self.box.lo[:2]), np.asarray(self.box.hi[:2])
-            self._observed_cache = (key, frames_observed(self.store.cam_to_world, self.store.stack_ids,
-                                                         self.intrinsics, lo, raster_shape(lo, hi, resolution),
-                                                         resolution))
+            seen = frames_observed(self.store.cam_to_world, self.store.stack_ids, self.intrinsics, lo,
+                                   raster_shape(lo, hi, resolution), resolution)
+            self._observed_cache = (key, with_camera_pixels(seen, self.store.cam_to_world[:, :2, 3], lo, resolution))
         return self._observed_cache[1]
 
     def probability_map(self, resolution: float = 0.05, band: float = 0.1):

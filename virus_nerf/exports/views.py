@@ -41,8 +41,8 @@ class PoseSet:
         q = Rotation.from_matrix(self.cam_to_world[:, :3, :3]).as_quat() if len(self) else np.zeros((0, 4))
         rows = ["index,time,x,y,z,qx,qy,qz,qw"]
         for i, (t, m) in enumerate(zip(self.times, self.cam_to_world, strict=True)):
-            vals = [t, *m[:3, 3], *q[i]]
-            rows.append(f"{i}," + ",".join(f"{v:.9g}" for v in vals))
+            # time to the microsecond (a float64 epoch stamp holds no finer): 9 significant digits kept whole seconds only
+            rows.append(f"{i},{t:.6f}," + ",".join(f"{v:.9g}" for v in (*m[:3, 3], *q[i])))
         return "\n".join(rows) + "\n"
 
 

@@ -12,7 +12,8 @@ as observed only if some frame's sensors looked at it:
   farthest triangulated point (stereo/depth.py `max_range`): beyond it no sensor of the robot
   gives metric evidence, only the NeRF's guess.
 
-Every map pixel outside the mask is written unknown (trinary map), 0.5 (probability map: never
+The pixels that hold a camera position count as observed as well (`with_camera_pixels`, the
+maps' mask, not the grid's warm-up): the robot stood there. Every map pixel outside the mask is written unknown (trinary map), 0.5 (probability map: never
 free for a planner), NaN (ESDF). The share of the map's pixels inside the mask is reported as
 the map's `observed` figure in snapshot.json and export.json.
 
@@ -85,6 +86,21 @@ def frames_observed(cam_to_world: np.ndarray, stack_ids: np.ndarray, intrinsics,
     resolution: the field of view is W / fx)."""
     half = np.array([camera_half_fov(intrinsics[int(s)].width, intrinsics[int(s)].fx) for s in stack_ids])
     return observed_mask(cam_to_world, half, lo, shape, resolution, reach)
+
+
+def with_camera_pixels(mask_xy: np.ndarray, positions: np.ndarray, lo: np.ndarray, resolution: float) -> np.ndarray:
+    """`mask_xy` (nx, ny) [ix, iy] with the pixels that hold a camera position ((N, 2+) m, world)
+    observed too: the robot's body stood there, while a view wedge starts at the lens, so the
+    centre of the camera's own pixel may lie just behind it (at a drive's start, before the robot
+    moves, no wedge covers it and the planner's own start pixel would be unknown). The input is
+    not changed."""
+    from virus_nerf.maps.occupancy import world_pixels
+
+    out = np.array(mask_xy, dtype=bool, copy=True)
+    xy = np.asarray(positions, dtype=np.float64)[..., :2].reshape(-1, 2)
+    ij, inside = world_pixels(xy, np.asarray(lo, dtype=np.float64)[:2], resolution, out.shape)
+    out[ij[inside, 0], ij[inside, 1]] = True
+    return out
 
 
 def apply_mask(image: np.ndarray, mask_xy: np.ndarray, unobserved_value: int) -> np.ndarray:

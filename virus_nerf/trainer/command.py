@@ -254,8 +254,10 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
                                  gt=protocols if protocols is not None else ev.gt)
         cfg = dataclasses.replace(cfg, evaluation=ev)
         trainer.config = cfg
+    if protocols is not None and not protocols:
+        raise UsageError("--gt none: nothing to score; give --gt map, exact or paper (comma-separated)")
     if not cfg.evaluation.gt:
-        raise UsageError(f"--run {run}: the run has no ground truth (evaluation.gt none) and --gt names none; "
+        raise UsageError(f"--run {run}: the run was trained without ground truth (evaluation.gt none); "
                          "give --gt map, exact or paper to score it")
     check_ground_truth_inputs(trainer.recording, cfg.evaluation.gt)
     result = final_evaluation(trainer, run)
@@ -264,6 +266,9 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
 
     trainer.prepare()  # the frames the run trained on and its stereo points (cached): the map `train` judged
     run_safety = mapper_safety(trainer.mapper, trainer.recording, cfg.evaluation.height_band_m)
+    from virus_nerf.trainer.trust import map_warnings
+
+    warnings = map_warnings(trainer)  # the run's own (metrics.json's): this document stands alone
     if plots:
         write_plots(result, plots_dir_for(out), max_maps=RUN_SCAN_MAPS, replace=redo)
     elif redo:  # kept (never deleted), but not this evaluation's
@@ -272,8 +277,10 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
     if out.exists():  # another process finished the same evaluation meanwhile
         raise OutputExistsError(out)
     result.write_json(out, train=train_summary_block(cfg, summary),
-                      safety=None if run_safety is None else run_safety.document)
+                      safety=None if run_safety is None else run_safety.document, warnings=warnings)
     print(result.table())
+    for w in warnings:
+        print(f"warning: {w}")
     if run_safety is not None:
         print(safety_line(run_safety.document))
     print(f"wrote {out}" + (f" and {plots_dir_for(out)}/" if plots else ""))
