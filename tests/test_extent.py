@@ -204,4 +204,4 @@ def test_a_mapper_in_grow_mode_grows_as_it_drives_and_refuses_a_frame_outside_it
     pose = far.cam_to_world.copy()
     pose[0, 3] += 100.0
     with pytest.raises(UsageError, match="outside the map's frame"):
-        mapper.add_frame(dataclasses.replace(far, cam_to_world=pose))
+        mapper.add_frame(dataclasses.replace(far, cam_to_world=pose, time=float(mapper.store.times.max()) + 1.0))

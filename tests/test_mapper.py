@@ -149,6 +149,15 @@ def test_bad_frames_and_arguments_give_one_line_errors(tmp_path):
         (dict(uss_range=-1.0), r"SyncFrame.uss_range \(stack 1\) -1.0: expected a range >= 0 m or NaN"),
         (dict(depth=np.zeros((3, 3))), r"SyncFrame.depth \(stack 1\): shape \(3, 3\); expected \(24, 32\)"),
         (dict(time=float("nan")), r"SyncFrame.time nan: expected a finite number"),
+        (dict(time=True), r"SyncFrame.time True: expected a finite number of seconds"),
+        (dict(time=1.7e18), r"SyncFrame.time 1.7e\+18: beyond 1e\+11 s .*expected seconds, not milli-, micro- or nano"),
+        (dict(depth=np.full((24, 32), 2500, np.uint16)),
+         r"SyncFrame.depth \(stack 1\): uint16 values; expected floating-point metres .*divided by 1000"),
+        (dict(depth=np.full((24, 32), 2500.0)), r"SyncFrame.depth \(stack 1\): 2500 is beyond 100 m; expected metres"),
+        (dict(irs_range=np.full((8, 8), 2582.0)), r"SyncFrame.irs_range \(stack 1\): 2582 is beyond 100 m; expected metres"),
+        (dict(irs_range=np.full((8, 8), "x")), r"SyncFrame.irs_range \(stack 1\): not numbers; expected \(8, 8\)"),
+        (dict(uss_range=1500.0), r"SyncFrame.uss_range \(stack 1\) 1500.0: beyond 100 m; expected metres"),
+        (dict(uss_range=True), r"SyncFrame.uss_range \(stack 1\) True: expected a range >= 0 m"),
     ]
     for changes, message in cases:
         with pytest.raises(UsageError, match=message) as exc:
@@ -156,6 +165,13 @@ def test_bad_frames_and_arguments_give_one_line_errors(tmp_path):
         assert "\n" not in str(exc.value)
     assert mapper.frames == 0, "a refused frame is not added"
     mapper.add_frame(_frame(uss_range=float("nan")))  # no echo is fine
+    mapper.add_frame(_frame(np.float32(0.5), uss_range=np.float32(1.5)))  # numpy scalars are numbers too
+    mapper.add_frame(_frame(np.int64(1)))
+    for t in (1.0, 0.5):  # the same time again, an earlier one
+        with pytest.raises(UsageError, match=rf"SyncFrame.time {t} \(stack 1\): not after the stack's previous "
+                                             r"frame at 1.0 s; expected each stack's frames in time order"):
+            mapper.add_frame(_frame(t))
+    mapper.add_frame(_frame(0.5, stack=3))  # the order is per stack
     for seconds in (-1.0, float("inf"), "1"):
         with pytest.raises(UsageError, match=r"Mapper.train seconds .*: expected a finite number >= 0"):
             mapper.train(seconds)
@@ -163,8 +179,42 @@ def test_bad_frames_and_arguments_give_one_line_errors(tmp_path):
         mapper.scans(np.zeros((2, 2)))
     with pytest.raises(UsageError, match=r"Mapper.map2d resolution 0: expected a positive number"):
         mapper.map2d(resolution=0)
+    for call, message in ((lambda: mapper.map2d(n_rays=2.5), r"Mapper.map2d n_rays 2.5: expected a whole number >= 1"),
+                          (lambda: mapper.map2d(max_poses=0), r"Mapper.map2d max_poses 0: expected a whole number"),
+                          (lambda: mapper.scans(np.zeros((1, 3)), n_rays=0), r"Mapper.scans n_rays 0: expected a whole"),
+                          (lambda: mapper.probability_map(band=-1.0), r"Mapper.probability_map band -1.0: expected"),
+                          (lambda: mapper.probability_map(band=float("nan")), r"Mapper.probability_map band nan")):
+        with pytest.raises(UsageError, match=message):
+            call()
     with pytest.raises(UsageError, match=r"Mapper intrinsics"):
         Mapper(tiny_train_config(), {}, BOX)
+    for changes, message in ((dict(fx=float("nan")), r"intrinsics\[1\].fx nan: expected a finite number of pixels"),
+                             (dict(fx=-20.0), r"intrinsics\[1\].fx: focal length -20 px"),
+                             (dict(width=0), r"intrinsics\[1\].width: image width 0 px; expected a size from 1"),
+                             (dict(width=32.5), r"intrinsics\[1\].width: image width 32.5 px is not a whole number"),
+                             (dict(cx=99.0), r"intrinsics\[1\].cx: principal point 99 px lies outside the image")):
+        with pytest.raises(UsageError, match=r"Mapper " + message):
+            Mapper(tiny_train_config(), {1: dataclasses.replace(INTR, **changes)}, BOX)
+    half = Intrinsics(fx=10.0, fy=10.0, cx=8.0, cy=6.0, width=16, height=12)
+    with pytest.raises(UsageError, match=r"the stacks' images differ in size \(stack 1 32x24, stack 3 16x12\)"):
+        Mapper(tiny_train_config(), {1: INTR, 3: half}, BOX)
+    with pytest.raises(UsageError, match=r"Mapper box: got a tuple; expected a virus_nerf.scene_box.SceneBox"):
+        Mapper(tiny_train_config(), {1: INTR}, ((-3.0, -3.0, -1.0), (3.0, 3.0, 2.0)))
+
+
+def test_a_restarted_clock_continues_after_the_newest_frame():
+    """Mapper.restart_clock: the next frames (stamped from 0 again) follow the newest frame in the
+    store, 1 s on, each stack in time order; without it an earlier stamp is refused."""
+    mapper = _mapper()
+    for t in (10.0, 10.5):
+        mapper.add_frame(_frame(t))
+    mapper.add_frame(_frame(10.2, stack=3))
+    with pytest.raises(UsageError, match=r"call Mapper.restart_clock\(\) first"):
+        mapper.add_frame(_frame(0.0, stack=3))
+    mapper.restart_clock()
+    for t, stack in ((0.0, 3), (0.1, 1), (0.5, 3)):
+        mapper.add_frame(_frame(t, stack=stack))
+    np.testing.assert_allclose(mapper.store.times, [10.0, 10.5, 10.2, 11.5, 11.6, 12.0])
 
 
 def test_snapshots_are_written_whole_and_never_overwritten(tmp_path, monkeypatch):

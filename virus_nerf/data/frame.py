@@ -9,13 +9,18 @@ recording.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from virus_nerf.errors import UsageError
-from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.sensors.camera import Intrinsics, image_side_problem, intrinsics_problem
+from virus_nerf.sensors.irs import IRS_MAX_PLAUSIBLE_MM
+
+MAX_TIME_S = 1e11  # seconds since 1970 reach 1e11 in the year 5138: a larger stamp is in ms, us or ns
+MAX_RANGE_M = IRS_MAX_PLAUSIBLE_MM / 1000  # no USS, IRS or depth camera of a robot reads 100 m: millimetres
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,22 +45,26 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
         raise UsageError(f"SyncFrame.stack_id {sid!r}: unknown stack; expected one of {sorted(intrinsics)} "
                          "(the stacks whose intrinsics the Mapper was given)")
     intr = intrinsics[sid]
-    if not isinstance(frame.time, int | float) or not math.isfinite(frame.time):
-        raise UsageError(f"SyncFrame.time {frame.time!r}: expected a finite number of seconds")
+    t = frame.time
+    if isinstance(t, bool) or not isinstance(t, numbers.Real) or not math.isfinite(t):
+        raise UsageError(f"SyncFrame.time {t!r}: expected a finite number of seconds")
+    if abs(t) > MAX_TIME_S:
+        raise UsageError(f"SyncFrame.time {t!r}: beyond {MAX_TIME_S:g} s (the year 5138); expected seconds, "
+                         "not milli-, micro- or nanoseconds")
     rgb = frame.rgb
     want = (intr.height, intr.width, 3)
     if not isinstance(rgb, np.ndarray) or rgb.shape != want or rgb.dtype != np.uint8:
         got = f"{rgb.dtype} array of shape {rgb.shape}" if isinstance(rgb, np.ndarray) else type(rgb).__name__
         raise UsageError(f"SyncFrame.rgb (stack {sid}): got a {got}; expected uint8 of shape {want} "
                          "(RGB at the intrinsics' height x width)")
-    if frame.depth is not None and np.shape(frame.depth) != want[:2]:
-        raise UsageError(f"SyncFrame.depth (stack {sid}): shape {np.shape(frame.depth)}; expected {want[:2]} "
-                         "metres (NaN = invalid) or None")
     if frame.depth is not None:
-        d = np.asarray(frame.depth, dtype=np.float64)
-        if (d[np.isfinite(d)] < 0).any() or np.isinf(d).any():
-            raise UsageError(f"SyncFrame.depth (stack {sid}): holds negative or infinite values (min "
-                             f"{np.nanmin(d):g}); expected z-depths >= 0 m, NaN where invalid")
+        if np.shape(frame.depth) != want[:2]:
+            raise UsageError(f"SyncFrame.depth (stack {sid}): shape {np.shape(frame.depth)}; expected {want[:2]} "
+                             "metres (NaN = invalid) or None")
+        if not np.issubdtype(np.asarray(frame.depth).dtype, np.floating):
+            raise UsageError(f"SyncFrame.depth (stack {sid}): {np.asarray(frame.depth).dtype} values; expected "
+                             "floating-point metres (NaN = invalid): a 16UC1 image in millimetres divided by 1000")
+        _check_ranges(f"SyncFrame.depth (stack {sid})", np.asarray(frame.depth, dtype=np.float64), "z-depths")
     pose = np.asarray(frame.cam_to_world, dtype=np.float64)
     if pose.shape != (4, 4) or not np.isfinite(pose).all() or not np.allclose(pose[3], (0, 0, 0, 1)) \
             or not np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-3) \
@@ -65,9 +74,50 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
     if np.shape(frame.irs_range) != (8, 8):
         raise UsageError(f"SyncFrame.irs_range (stack {sid}): shape {np.shape(frame.irs_range)}; expected (8, 8) "
                          "zone depths in metres in image zone order (NaN = invalid)")
-    irs = np.asarray(frame.irs_range, dtype=np.float64)
-    if (irs[np.isfinite(irs)] < 0).any() or np.isinf(irs).any():
-        raise UsageError(f"SyncFrame.irs_range (stack {sid}): expected ranges >= 0 m or NaN")
+    try:
+        irs = np.asarray(frame.irs_range, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise UsageError(f"SyncFrame.irs_range (stack {sid}): not numbers; expected (8, 8) zone depths in "
+                         "metres (NaN = invalid)") from None
+    _check_ranges(f"SyncFrame.irs_range (stack {sid})", irs, "ranges")
     uss = frame.uss_range
-    if not isinstance(uss, int | float | np.floating) or np.isinf(uss) or uss < 0:
+    if isinstance(uss, bool) or not isinstance(uss, numbers.Real) or np.isinf(uss) or uss < 0:
         raise UsageError(f"SyncFrame.uss_range (stack {sid}) {uss!r}: expected a range >= 0 m or NaN (no echo)")
+    if uss > MAX_RANGE_M:
+        raise UsageError(f"SyncFrame.uss_range (stack {sid}) {uss!r}: beyond {MAX_RANGE_M:g} m; expected metres")
+
+
+def _check_ranges(what: str, values: np.ndarray, kind: str) -> None:
+    """Ranges in metres: >= 0, NaN where invalid, none beyond MAX_RANGE_M (millimetres given)."""
+    finite = values[np.isfinite(values)]
+    if (finite < 0).any() or np.isinf(values).any():
+        low = float(np.nanmin(values)) if not np.isnan(values).all() else math.nan
+        raise UsageError(f"{what}: holds negative or infinite values (min {low:g}); expected {kind} >= 0 m, "
+                         "NaN where invalid")
+    if finite.size and finite.max() > MAX_RANGE_M:
+        raise UsageError(f"{what}: {finite.max():g} is beyond {MAX_RANGE_M:g} m; expected metres, not millimetres")
+
+
+def check_intrinsics(intrinsics: Mapping[int, Intrinsics]) -> None:
+    """Stacks' intrinsics the mapper can use (as the readers check a file's), all of one image size
+    (one training batch holds every camera's pixels), or a one-line UsageError naming the field."""
+    for sid, intr in intrinsics.items():
+        where = f"Mapper intrinsics[{sid!r}]"
+        if not isinstance(intr, Intrinsics):
+            raise UsageError(f"{where}: got a {type(intr).__name__}; expected a virus_nerf.sensors.camera.Intrinsics")
+        for name in ("fx", "fy", "cx", "cy", "width", "height"):
+            v = getattr(intr, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+                raise UsageError(f"{where}.{name} {v!r}: expected a finite number of pixels")
+        for name in ("width", "height"):
+            problem = image_side_problem(getattr(intr, name), name)
+            if problem:
+                raise UsageError(f"{where}.{name}: {problem}")
+        bad = intrinsics_problem(intr.fx, intr.fy, intr.cx, intr.cy, int(intr.width), int(intr.height))
+        if bad:
+            raise UsageError(f"{where}.{bad[0]}: {bad[1]}")
+    sizes = {(int(i.width), int(i.height)) for i in intrinsics.values()}
+    if len(sizes) > 1:
+        shown = ", ".join(f"stack {s} {int(i.width)}x{int(i.height)}" for s, i in intrinsics.items())
+        raise UsageError(f"Mapper intrinsics: the stacks' images differ in size ({shown}); expected one size for "
+                         "every camera (resize the images and scale the intrinsics alike)")

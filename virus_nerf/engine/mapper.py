@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from virus_nerf.data.frame import SyncFrame, check_frame
+from virus_nerf.data.frame import SyncFrame, check_frame, check_intrinsics
 from virus_nerf.engine.config import MapperConfig
 from virus_nerf.engine.extent import MapExtent
 from virus_nerf.engine.model import SceneModel, build_grid, resolve_device, start_box
@@ -69,6 +69,8 @@ class TrainSlice:
     total_steps: int  # steps since the mapper was made
     total_seconds: float  # training clock since the mapper was made
 
+RESTART_GAP_S = 1.0  # s between the newest frame and the first after `Mapper.restart_clock`
+
 
 class Mapper(MapViews):
     """A VIRUS-NeRF (or Instant-NGP) map trained on frames as they arrive.
@@ -88,6 +90,10 @@ class Mapper(MapViews):
                  schedules: Schedules | None = None):
         if not intrinsics:
             raise UsageError("Mapper intrinsics {}: expected at least one stack id -> Intrinsics")
+        check_intrinsics(intrinsics)
+        if not isinstance(box, SceneBox):
+            raise UsageError(f"Mapper box: got a {type(box).__name__}; expected a virus_nerf.scene_box.SceneBox "
+                             "(lo, hi corners in metres)")
         config = config.engine()  # the engine's knobs alone (a TrainConfig's run knobs stay with the run)
         self.config = config
         self.schedules = schedules or Schedules.of(config)
@@ -124,6 +130,8 @@ class Mapper(MapViews):
         self._warm = False
         self._frames_at_start: int | None = None  # frames present at the first step
         self._viewed_frames = 0  # frames whose camera views the grid was given (warmup_restart)
+        self._time_shift = 0.0  # s added to the frames' times since a `restart_clock` (their order kept)
+        self._restarted = False  # `restart_clock` called: the next frame sets `_time_shift`
         self._seen_at_start = 0  # frames that count as seen at step 0 besides those at the first step
         self.stereo: StereoDepth | None = None  # triangulated depth targets of the store's rows
         self._stereo_feed: StereoFeed | None = None  # fed by track_image (mapping while driving)
@@ -171,20 +179,44 @@ class Mapper(MapViews):
         self.store.spill_to(folder, above_bytes)
 
     def add_frame(self, frame: SyncFrame) -> int:
-        """Add one synchronised frame (checked: stack, image shapes, pose, ranges); returns its row."""
+        """Add one synchronised frame (checked: stack, image shapes, pose, ranges, and its time after
+        the stack's previous frame: the newest frames' share of each batch and the stereo tracker
+        go by time); returns its row."""
         check_frame(frame, self.intrinsics)
+        time_s = self._frame_time(frame)
         small = self.store.intrinsics[frame.stack_id]
         size = (small.width, small.height)
         depth = None
         if self.store.depths_mm is not None and frame.depth is not None:
             depth = resize_depth_mm(np.asarray(frame.depth, dtype=np.float32), size)
         self.extent.check_inside(np.asarray(frame.cam_to_world, dtype=np.float64)[None, :3, 3], np.array([frame.time]))
-        row = self.store.append(frame.stack_id, self.frames, float(frame.time), np.asarray(frame.cam_to_world),
+        row = self.store.append(frame.stack_id, self.frames, time_s, np.asarray(frame.cam_to_world),
                                 resize_rgb(frame.rgb, size), depth, float(frame.uss_range),
                                 np.asarray(frame.irs_range, dtype=np.float64))
         self._grow(self.extent.add_frames(self.store, np.array([row])))
         self.track_image(row, frame.rgb)
         return row
+
+    def restart_clock(self) -> None:
+        """The robot's clock restarted (a bag played again, a clock reset): the next frames may be
+        stamped before those already added. Their times then continue after the newest frame's
+        (RESTART_GAP_S on), so the order of arrival stays the order in time."""
+        self._restarted = True
+
+    def _frame_time(self, frame: SyncFrame) -> float:
+        """The frame's time in the store: its own plus `_time_shift`; refused when not after its
+        stack's previous frame."""
+        mine = self.store.times[self.store.stack_ids == frame.stack_id]
+        if self._restarted and self.frames:
+            self._time_shift = float(self.store.times.max()) + RESTART_GAP_S - float(frame.time)
+            self._restarted = False
+        t = float(frame.time) + self._time_shift
+        if len(mine) and t <= mine.max():
+            prev = float(mine.max()) - self._time_shift
+            raise UsageError(f"SyncFrame.time {frame.time!r} (stack {frame.stack_id}): not after the stack's "
+                             f"previous frame at {prev!r} s; expected each stack's frames in time order, once each "
+                             "(after a clock reset, call Mapper.restart_clock() first)")
+        return t
 
     def _grow(self, box: SceneBox | None) -> None:
         """The grid grown to the extent's new box (None: it stayed)."""

@@ -8,7 +8,7 @@ A mixin so that the training engine and the queries read apart; it uses the mapp
 from __future__ import annotations
 
 import dataclasses
-import math
+import numbers
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from virus_nerf.errors import UsageError
+from virus_nerf.errors import UsageError, require_number
 from virus_nerf.grid.virus import VirusGrid
 from virus_nerf.maps.evidence import stereo_sight_lines
 from virus_nerf.maps.extract import (
@@ -55,6 +55,7 @@ class MapViews:
         """NeRF 360 deg horizontal scans (maps.scans.Scan2D, world x, y in metres) from each
         pose's position: poses (N, 4, 4) camera-to-world, (4, 4), or positions (N, 3)."""
         positions = _positions(poses)
+        _require_count("Mapper.scans n_rays", n_rays)
         out = []
         self.field.eval()
         try:
@@ -102,9 +103,8 @@ class MapViews:
         `update_map`, which checks it) and what the map depends on: the training state (step and
         clock: a loaded state changes both), the frames, the box (and with it the shadow's depth,
         maps.extract.low_shadow_depth) and the stereo targets."""
-        for name, v, lo in (("n_rays", n_rays, 0), ("max_poses", max_poses, 0)):
-            if isinstance(v, bool) or not isinstance(v, int | float) or not v > lo or not math.isfinite(v):
-                raise UsageError(f"Mapper.map2d {name} {v!r}: expected a positive number")
+        _require_count("Mapper.map2d n_rays", n_rays)
+        _require_count("Mapper.map2d max_poses", max_poses)
         stereo = getattr(self, "stereo", None)
         return (self.step, self.seconds, self.frames, self.box, resolution, int(n_rays), int(max_poses),
                 id(stereo), None if stereo is None else (len(stereo.points), len(stereo)))
@@ -166,6 +166,7 @@ class MapViews:
         """The VIRUS grid's occupancy probability at camera height (`mode: scale` OccupancyMap2D;
         maps.extract.probability_map); None for the Instant-NGP grid."""
         lo, hi = self._raster_box("Mapper.probability_map resolution", resolution)
+        require_number("Mapper.probability_map band", band, 0.0, 10.0, lo_open=False)  # as export --band
         if not isinstance(self.grid, VirusGrid):
             return None
         return probability_map(self.grid.probability.numpy(), self.box.lo, self.box.hi, self.camera_height(), band,
@@ -220,3 +221,9 @@ def _positions(poses) -> np.ndarray:
         raise UsageError(f"Mapper.scans poses of shape {np.shape(poses)}: expected finite (N, 4, 4) camera-to-world "
                          "poses or (N, 3) positions in metres")
     return p
+
+
+def _require_count(name: str, value: object) -> None:
+    """A whole number >= 1 (numpy's too), or the one-line UsageError naming it."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+        raise UsageError(f"{name} {value!r}: expected a whole number >= 1")

@@ -166,13 +166,16 @@ class StreamRun:
                 due = self._due(msg)
                 if "static" not in topic:
                     self.latest = msg.time_s
-                    if not self.anchored or self.sync.restarts != self.restarts:
+                    if not self.anchored:
                         self._anchor(msg)
                 self._wait(due)
                 self._train_owed(due)
                 self.behind = (self.now() - due) * self.playback
                 late = self.sync.is_color(topic) and self.behind > self.max_lag
-                self._add(self.sync.push(topic, msg, late=late))
+                frames = self.sync.push(topic, msg, late=late)
+                if self.sync.restarts != self.restarts:
+                    self._restarted()
+                self._add(frames)
                 self._maybe_snapshot()
             self._add(self.sync.finish())
         except DataFormatError as exc:
@@ -190,17 +193,23 @@ class StreamRun:
 
     def _anchor(self, msg) -> None:
         """The lag's first message: not a static transform (a late joiner's are old); from a bag
-        the lag's clock starts at its stamp. Live, again after the clock went back
-        (LiveSync.restart): the frames from there on are the newest."""
-        self.restarts = self.sync.restarts
-        if self.anchored:  # live, a restart
-            self.newest = None
-            return
+        the lag's clock starts at its stamp."""
         self.anchored = True
         if msg.time_s == self.t0 and not self.live_source:  # the first message: `_due` anchored it
             return
         self.t0 = msg.time_s
         self.stamped = Playback(msg.time_s - self.now() * self.playback, self.playback)
+
+    def _restarted(self) -> None:
+        """Live, the clock went back (LiveSync.restart): the frames from here on are the newest,
+        stamped before those mapped; the mapper keeps its frames in time order (`restart_clock`).
+        Frames held for a mapper not made yet belong to the old clock: dropped (counted)."""
+        self.restarts, self.newest = self.sync.restarts, None
+        if self.mapper is not None:
+            self.mapper.restart_clock()
+        for f in self.held:
+            self.sync.dropped[f.frame.stack_id]["before a clock restart"] += 1
+        self.held = []
 
     def _due(self, msg) -> float:
         """Wall seconds (from the first message) at which `msg` is released."""
