@@ -206,6 +206,7 @@ def test_a_restarted_clock_continues_after_the_newest_frame():
     """Mapper.restart_clock: the next frames (stamped from 0 again) follow the newest frame in the
     store, 1 s on, each stack in time order; without it an earlier stamp is refused."""
     mapper = _mapper()
+    mapper.restart_clock()  # before any frame: nothing to follow, no gap
     for t in (10.0, 10.5):
         mapper.add_frame(_frame(t))
     mapper.add_frame(_frame(10.2, stack=3))

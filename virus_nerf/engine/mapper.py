@@ -207,8 +207,9 @@ class Mapper(MapViews):
         """The frame's time in the store: its own plus `_time_shift`; refused when not after its
         stack's previous frame."""
         mine = self.store.times[self.store.stack_ids == frame.stack_id]
-        if self._restarted and self.frames:
-            self._time_shift = float(self.store.times.max()) + RESTART_GAP_S - float(frame.time)
+        if self._restarted:
+            if self.frames:  # before the first frame there is nothing to follow
+                self._time_shift = float(self.store.times.max()) + RESTART_GAP_S - float(frame.time)
             self._restarted = False
         t = float(frame.time) + self._time_shift
         if len(mine) and t <= mine.max():
