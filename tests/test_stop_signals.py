@@ -308,6 +308,37 @@ def test_train_online_stopped_keeps_map_and_checkpoint_and_evaluate_says_it_trai
     _none_survive(children, proc.pid)
 
 
+def test_train_offline_stopped_resumes_exactly_as_the_run_never_stopped(tiny_office, tmp_path):
+    """`systemctl stop` (SIGTERM; Ctrl-C alike) ends an offline run after the step in progress:
+    map/ and a checkpoint of that step, one line, exit 143; `--resume` trains on to the budget and
+    scores exactly as the run that was never stopped (bounded by steps: bit-reproducible on a CPU)."""
+    sig = signal.SIGTERM
+    from virus_nerf.config_io import to_dict
+
+    cfg = tmp_path / "offline.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config(sensors=("camera", "uss", "irs"), max_steps=120,
+                                                        checkpoint_every=1000.0))))
+    args = ["train", "--data", tiny_office, "--room", "office", "--config", cfg, "--quiet"]
+    code, _, err = run_cli([*args, "--out", tmp_path / "whole"])
+    assert code == 0, err
+    out = tmp_path / "run"
+    proc = _start([*args, "--out", out], tmp_path)
+    log = out / "train_log.csv"
+    _wait_for(lambda: log.is_file() and len(log.read_text().splitlines()) >= 4, proc)
+    proc.send_signal(sig)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + sig and stderr == "", stderr
+    assert stdout.startswith(f"train: stopped by {signal.Signals(sig).name} at step ") and stdout.count("\n") == 1
+    step = int(stdout.split(" at step ")[1].split()[0])
+    assert 6 <= step < 120, stdout
+    assert MAP_FILES == {p.name for p in (out / "map").iterdir()} and not (out / "metrics.json").exists()
+    code, _, err = run_cli(["train", "--resume", "--out", out, "--quiet"])
+    assert code == 0, err
+    resumed, whole = (json.loads((d / "metrics.json").read_text()) for d in (out, tmp_path / "whole"))
+    assert resumed["train"]["steps"] == whole["train"]["steps"] == 120
+    assert resumed["sensors"] == whole["sensors"] and resumed["safety"] == whole["safety"]
+
+
 # ------------------------------------------------------------------------------ two map-bag, one --out
 def test_a_second_map_bag_into_the_same_out_is_one_line(drive, tmp_path, monkeypatch):
     """Both passed the check before their start-up; the other one made OUT during this one's warm-up:

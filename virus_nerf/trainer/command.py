@@ -164,8 +164,9 @@ def train(
         cfg = _resolve_config(config, given, flags, base=saved_cfg)
         # the training is imported here: the flags, --help and their errors need no torch
         from virus_nerf.trainer.run import run_training
+        from virus_nerf.utils.stop import stop_on_signals
 
-        with _stops(cfg):
+        with stop_on_signals():  # Ctrl-C, `systemctl stop`: kept after the step in progress (run.py)
             run_training(Path(info.data), info.room, out, cfg, quiet=quiet or None, resume=True)
         return
     if data is None or room is None:
@@ -173,20 +174,10 @@ def train(
                          "(or --resume to continue the run in --out)")
     cfg = _resolve_config(config, given, flags)
     from virus_nerf.trainer.run import run_training
-
-    with _stops(cfg):
-        run_training(data, room, out, cfg, quiet=True if quiet else None, auto_gt=gt is None)
-
-
-def _stops(cfg):
-    """Online (mapping while driving, a robot's process): SIGINT and SIGTERM keep the map and the
-    checkpoint (keep_stopped_run) and exit 130 / 143; offline runs keep the old behaviour."""
-    import contextlib
-
     from virus_nerf.utils.stop import stop_on_signals
 
-    return stop_on_signals() if cfg.online else contextlib.nullcontext()
-
+    with stop_on_signals():
+        run_training(data, room, out, cfg, quiet=True if quiet else None, auto_gt=gt is None)
 
 
 def train_short_help():

@@ -250,8 +250,8 @@ def _print_results(trainer, out: Path, summary, result, run_safety, warnings) ->
 
 
 def _fit(trainer, started=None):
-    """trainer.fit(); stopped by SIGINT/SIGTERM (online runs, utils/stop.py): the map and the
-    checkpoint are kept first (`keep_stopped_run`)."""
+    """trainer.fit(); stopped by SIGINT/SIGTERM (utils/stop.py, after the step in progress): the
+    map and the checkpoint are kept first (`keep_stopped_run`)."""
     from virus_nerf.utils.stop import Stopped
 
     try:
@@ -262,9 +262,9 @@ def _fit(trainer, started=None):
 
 
 def keep_stopped_run(trainer, exc) -> None:
-    """An online run stopped by a signal: OUT/map/ (map.pgm/.yaml/.png, prob.*, snapshot.json;
-    small, written first), then checkpoint.pt (large), then one line saying where they are and how
-    to continue. No metrics.json: the run stays resumable (`train --resume` trains on and scores
+    """A run stopped by a signal (after its step in progress): OUT/map/ (map.pgm/.yaml/.png,
+    prob.*, snapshot.json; small, written first), then checkpoint.pt (large), then one line saying
+    where they are and how to continue. No metrics.json: the run stays resumable (`train --resume` trains on and scores
     it). What does not fit (a full disk) is named in one NotWrittenError instead (exit 2)."""
     from virus_nerf.utils.io import Outputs
 

@@ -54,10 +54,32 @@ def _at_once(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signat
     os._exit(128 + signum)
 
 
+_STEP = {"depth": 0, "pending": None}  # `atomic_step`: how deep inside one, the signal it deferred
+
+
 def _first(signum, frame) -> None:  # noqa: ARG001
     for s in SIGNALS:
         signal.signal(s, _at_once)
+    if _STEP["depth"]:  # inside a training step: it ends first (`atomic_step`)
+        _STEP["pending"] = signum
+        return
     raise Stopped(signum)
+
+
+@contextmanager
+def atomic_step() -> Iterator[None]:
+    """A training step the first signal must not cut in half (the optimiser stepped, the grid not
+    yet updated: a checkpoint of that would not continue as the run would have): its `Stopped`
+    rises when the step is done, so the checkpoint written then resumes exactly."""
+    _STEP["depth"] += 1
+    try:
+        yield
+    finally:
+        _STEP["depth"] -= 1
+    pending = _STEP["pending"]
+    if pending is not None and not _STEP["depth"]:
+        _STEP["pending"] = None
+        raise Stopped(pending)
 
 
 @contextmanager
@@ -74,5 +96,6 @@ def stop_on_signals() -> Iterator[None]:
     try:
         yield
     finally:
+        _STEP["pending"] = None
         for s, handler in old.items():
             signal.signal(s, handler if handler is not None else signal.SIG_DFL)
