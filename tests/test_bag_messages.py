@@ -37,6 +37,38 @@ def test_depth_16uc1_big_endian_and_32fc1_metres():
         m.decode_depth(NS(encoding="rgb8"), m.IMAGE, WHERE)
 
 
+def _png16(values) -> bytes:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.asarray(values, dtype=np.uint16)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def test_image_transport_compressed_depth_16uc1_and_32fc1():
+    """compressedDepth (a RealSense's /.../image_raw/compressedDepth): a 12-byte header
+    (format, depthQuantA, depthQuantB) before a 16-bit PNG; 16UC1 holds mm, 32FC1 the quantised
+    inverse depth A / d + B (0 = invalid). By hand: A = 100, B = 0: 50 -> 2 m, 40 -> 2.5 m."""
+    import struct
+
+    def message(fmt, quant_a, quant_b, values):
+        data = struct.pack("<iff", 0, quant_a, quant_b) + _png16(values)
+        return NS(format=fmt, data=np.frombuffer(data, dtype=np.uint8))
+
+    mm = m.decode_depth(message("16UC1; compressedDepth png", 0.0, 0.0, [[1000, 0, 2500]]), m.COMPRESSED, WHERE).mm
+    assert mm.tolist() == [[1000, 0, 2500]]
+    mm = m.decode_depth(message("32FC1; compressedDepth png", 100.0, 0.0, [[50, 40, 0]]), m.COMPRESSED, WHERE).mm
+    assert mm.tolist() == [[2000, 2500, 0]]
+    with pytest.raises(DataFormatError, match="the RVL codec is not read"):
+        m.decode_depth(message("16UC1; compressedDepth rvl", 0.0, 0.0, [[1]]), m.COMPRESSED, WHERE)
+    junk = NS(format="png", data=np.frombuffer(b"not an image at all", dtype=np.uint8))
+    with pytest.raises(DataFormatError, match=r"cannot be decoded: not an image format PIL reads \(PNG, JPEG") as exc:
+        m.decode_depth(junk, m.COMPRESSED, WHERE)
+    assert "BytesIO" not in str(exc.value)
+
+
 def test_pointcloud2_with_intensity_field_and_nan_points():
     rec = np.zeros(3, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("i", "<f4"), ("ring", "<u2"), ("pad", "u1", 2)])
     rec["x"], rec["y"], rec["z"] = [1, np.nan, 3], [2, 0, 4], [3, 0, 5]
@@ -50,6 +82,12 @@ def test_uss_range_and_custom_fields():
     assert m.decode_uss(NS(meas=3752), m.USS_TYPE, WHERE).range_m == pytest.approx(0.7504)
     assert m.decode_uss(NS(range=0.75, max_range=4.0), m.RANGE, WHERE).echo_us == pytest.approx(3750.0)
     assert m.decode_uss(NS(range=0.75, max_range=4.0), m.RANGE, WHERE).range_m == pytest.approx(0.75)
+    # REP 117: -Inf is a detection nearer than min_range (an echo there), +Inf and NaN none
+    near = m.decode_uss(NS(range=-float("inf"), min_range=0.04, max_range=4.0), m.RANGE, WHERE)
+    assert near.range_m == pytest.approx(0.04) and near.echo_us == pytest.approx(200.0)
+    assert m.decode_uss(NS(range=-float("inf"), min_range=0.0, max_range=4.0), m.RANGE, WHERE).range_m == \
+        pytest.approx(0.02)  # no min_range: the URM37's datasheet nearest, 2 cm
+    assert np.isnan(m.decode_uss(NS(range=float("nan"), min_range=0.04, max_range=4.0), m.RANGE, WHERE).range_m)
     no_echo = m.decode_uss(NS(range=float("inf"), max_range=4.0), m.RANGE, WHERE)
     assert no_echo.echo_us == 50000.0 and np.isnan(no_echo.range_m)
     with pytest.raises(DataFormatError, match="no field 'meas'"):

@@ -90,6 +90,22 @@ def test_ablation_aggregates_mean_and_std(tmp_path):
         assert im.width > 300 and im.height > 200 and len(im.convert("L").getcolors(1 << 16) or []) > 10
 
 
+def test_the_runs_warnings_reach_the_experiment_summary(tmp_path):
+    """ablation.md/json and online.md/json list the runs' own warnings (a --quick budget ends inside
+    the grid's warm-up), run by run; runs without any are left out."""
+    from virus_nerf.experiments.report import runs_warnings, warnings_markdown
+
+    warned, fine = tmp_path / "runs" / "office" / "row8_seed0", tmp_path / "runs" / "office" / "row8_seed1"
+    for run, warnings in ((warned, ["the run ended inside the occupancy grid's warm-up (step 6)"]), (fine, [])):
+        run.mkdir(parents=True)
+        (run / "metrics.json").write_text(json.dumps({**fake_metrics(0.2, 0.3, 1.0), "warnings": warnings}))
+    found = runs_warnings([warned, fine, tmp_path / "runs" / "never_ran"], tmp_path)
+    assert found == {"runs/office/row8_seed0": ["the run ended inside the occupancy grid's warm-up (step 6)"]}
+    md = warnings_markdown(found)
+    assert md.startswith("## Warnings\n") and "- `runs/office/row8_seed0`: the run ended inside" in md
+    assert warnings_markdown({}) == ""
+
+
 def test_online_band_interpolates_and_spreads():
     grid = np.array([0.0, 5.0, 10.0, 20.0])
     def point(t: float, acc: float) -> EvalPoint:
@@ -115,6 +131,7 @@ def test_demo_end_to_end(tmp_path: Path):
     doc = json.loads((out / "metrics.json").read_text())
     assert f"s of training on the {doc['train']['device']} device: {doc['train']['steps']} steps" in report
     assert doc["train"]["grid"] == "virus" and doc["train"]["sensors"] == ["camera", "uss", "irs", "stereo"]
+    assert "VIRUS-NeRF trained on the cameras' colour, their triangulated depth, USS and IRS with" in report
     # the planner-safety figure and the warnings (a 4 s run ends in the grid's warm-up) in the report too
     def pct(v):
         return "-" if v is None else f"{100 * v:.1f} %"

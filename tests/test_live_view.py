@@ -167,9 +167,31 @@ def test_refusals(tmp_path, monkeypatch):
     (tmp_path / "old.rrd").write_bytes(b"")
     with pytest.raises(OutputExistsError):
         LiveView(save=tmp_path / "old.rrd")
+    from virus_nerf.mapping.options import RerunSinks
+
+    with pytest.raises(UsageError, match=r"--rerun-save .*nodir/x.rrd: no folder .*nodir; expected a .rrd file in an "):
+        RerunSinks(rerun_save=tmp_path / "nodir" / "x.rrd").check()
+    with pytest.raises(UsageError, match=r"--rerun-connect http://127.0.0.1:9876/proxy: invalid endpoint .*scheme"):
+        RerunSinks(rerun_connect="http://127.0.0.1:9876/proxy").check()
+    with pytest.raises(UsageError, match=r"LiveView sinks \['http://x/proxy'\]: invalid endpoint"):
+        LiveView(connect="http://x/proxy")
     monkeypatch.setitem(sys.modules, "rerun", None)  # as if the live extra were not installed
     with pytest.raises(UsageError, match=r"pip install 'virus-nerf\[live\]'"):
         LiveView(save=tmp_path / "y.rrd")
+
+
+def test_a_viewer_that_is_not_there_is_a_warning_at_close_not_a_failure(tmp_path, capsys):
+    """--rerun-connect to a port nobody listens on (loopback): the mapping went on, and at the end
+    the sinks cannot take the last data; that is one warning, the .rrd beside it is whole."""
+    pytest.importorskip("rerun")
+    from virus_nerf.mapping.live_view import LiveView
+
+    view = LiveView(connect="rerun+http://127.0.0.1:1/proxy", save=tmp_path / "v.rrd")
+    view.flush_timeout_s = 1.0
+    view.log_frame(_frame(0.0, 1, 0.0, 1.5), {1: INTR})
+    view.close()
+    assert "warning: the live view did not take its last data" in capsys.readouterr().err
+    assert (tmp_path / "v.rrd").stat().st_size > 0
 
 
 class _FakeMapper:

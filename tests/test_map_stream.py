@@ -108,6 +108,20 @@ def test_streamed_frames_are_the_importers(bags, tmp_path, poses):
             assert np.array_equal(got[i].rgb, st.image(i))
 
 
+def test_a_ros1_bag_with_tf_gives_the_ros2_bags_frames(bags, tiny_office, tmp_path):
+    """write_bag(ros_version=1, tf=True): rosbags' Noetic types lack tf2_msgs, registered for /tf;
+    its frames and poses streamed from /tf are the ROS 2 bag's."""
+    from virus_nerf.data.bags.writer import write_bag
+
+    ros1 = write_bag(tiny_office, tmp_path / "drive_tf.bag", ros_version=1, tf=True)
+    got, _ = _stream(ros1, "tf", tf_child="rslidar")
+    want, _ = _stream(bags["tf"], "tf", tf_child="rslidar")
+    assert len(got) == len(want) > 10
+    np.testing.assert_allclose([f.frame.time for f in got], [f.frame.time for f in want], atol=1e-6)
+    np.testing.assert_allclose(np.stack([f.frame.cam_to_world for f in got]),
+                               np.stack([f.frame.cam_to_world for f in want]), atol=1e-8)
+
+
 def test_kiss_icp_in_its_worker_process_gives_the_in_process_poses(bags):
     """The registration moved to a worker process (it holds the GIL): the same frames, the same
     poses to the last bit, and the worker ends with the stream."""

@@ -196,6 +196,11 @@ def test_map_bag_killed_then_resume_writes_the_final_map(drive, tmp_path):
     state = torch.load(out / "snapshots" / "mapper.pt", map_location="cpu", weights_only=False)
     snaps = _snapshots(out)
     assert state["snapshot"] in {p.name for p in snaps}
+    # a flag the snapshot's map cannot honour is refused, not ignored, and nothing is written
+    for extra, flag in ((["--out-bag", tmp_path / "maps_bag"], "--out-bag"), (["--resolution", "0.1"], "--resolution")):
+        code, _, stderr = run_cli(["map-bag", "--resume", "--out", out, *extra])
+        assert code == 2 and f"{flag}" in stderr and "cannot apply to it: drop it" in stderr, stderr
+    assert not (out / "map").exists() and not (tmp_path / "maps_bag").exists()
 
     code, stdout, stderr = run_cli(["map-bag", "--resume", "--out", out])
     assert code == 0, stderr

@@ -327,10 +327,14 @@ def ablation(
     md = "\n\n".join(f"Ground truth: **{p}** ({GT_DESCRIPTIONS[p]})\n\n{table_markdown(r)}" for p, r in by_gt.items())
     speed = grid_speed(records)
     speed_md = ", ".join(f"{k}: {v:.2f}x" if v else f"{k}: -" for k, v in speed.items())
+    from virus_nerf.experiments.report import runs_warnings, warnings_markdown
+
+    warnings = runs_warnings([s.out for s in specs], out)
     write_text_atomic(
         out / "ablation.md",
         f"# Table I ablation ({n_seeds} seed(s), {budget_text} of training per run)\n\n{md}\n\n"
-        f"Grid speed, VIRUS / Instant-NGP steps/s (row 8 vs row 2): {speed_md} (paper: 1.46x)\n",
+        f"Grid speed, VIRUS / Instant-NGP steps/s (row 8 vs row 2): {speed_md} (paper: 1.46x)\n"
+        + ("\n" + warnings_markdown(warnings) if warnings else ""),
     )
     buf = io.StringIO()
     all_records = [r for recs in by_gt.values() for r in recs]
@@ -340,7 +344,7 @@ def ablation(
     write_text_atomic(out / "ablation.csv", buf.getvalue())
     write_json_atomic(out / "ablation.json", {"gt": protocols[0], "records": records, "grid_speed_ratio": speed,
                                               "seeds": n_seeds, "train_time": t_train, "max_steps": max_steps,
-                                              "failed": [s.name for s in failed],
+                                              "failed": [s.name for s in failed], "warnings": warnings,
                                               **({"by_gt": by_gt} if len(by_gt) > 1 else {})})
     plot_rows(records, out / "ablation.png")
     print(md)

@@ -1,6 +1,6 @@
 """`virus-nerf demo`: the main job on an embedded default (docs/method.md 1, issue 'main job').
 
-Simulate an office (fixed seed), train VIRUS-NeRF (camera + USS + IRS, VIRUS grid) on a CPU
+Simulate an office (fixed seed), train VIRUS-NeRF (the default sensors, VIRUS grid) on a CPU
 time budget, evaluate it beside the instantaneous LiDAR, USS and IRS scans, write a report.
 """
 
@@ -9,6 +9,16 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
+
+SENSOR_WORDS = {"camera": "the cameras' colour", "stereo": "their triangulated depth", "rgbd": "depth images",
+                "uss": "USS", "irs": "IRS"}
+
+
+def sensor_words(sensors) -> str:
+    """('camera', 'uss', 'irs', 'stereo') -> "the cameras' colour, their triangulated depth, USS and IRS"."""
+    order = [k for k in SENSOR_WORDS if k in sensors] + [k for k in sensors if k not in SENSOR_WORDS]
+    words = [SENSOR_WORDS.get(k, k) for k in order]
+    return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " and " + words[-1]
 
 
 def demo(
@@ -57,7 +67,7 @@ def demo(
         base, seed=seed, max_time=train_time, image_scale=1.0, eval_interval=max(10.0, train_time / 8),
         evaluation=dataclasses.replace(base.evaluation, gt=protocols),
     )
-    print(f"[2/3] training VIRUS-NeRF (cameras with their triangulated depth, USS, IRS; VIRUS grid) for {train_time:.0f} s")
+    print(f"[2/3] training VIRUS-NeRF ({sensor_words(cfg.sensors)}; VIRUS grid) for {train_time:.0f} s")
     doc = run_training(data, "office", out / "run", cfg, quiet=True if quiet else None)
     print("[3/3] writing the report")
     copy_file_atomic(out / "run" / "metrics.json", out / "metrics.json")
@@ -67,7 +77,7 @@ def demo(
     lines = [
         "# VIRUS-NeRF demo",
         "",
-        f"Simulated office (seed {seed}, {duration:.0f} s drive), VIRUS-NeRF trained on camera, USS and IRS "
+        f"Simulated office (seed {seed}, {duration:.0f} s drive), VIRUS-NeRF trained on {sensor_words(train['sensors'])} "
         f"with the Bayesian VIRUS occupancy grid for {train['seconds']:.0f} s of training{on_device(train)}: "
         f"{train['steps']} steps, {train['steps_per_s']:.2f} steps/s, {train['samples_per_s'] / 1e6:.3f} M samples/s.",
         "",

@@ -135,11 +135,20 @@ def online(
     ax.legend()
     refuse_existing(summaries)  # again: another process may have finished the same folder meanwhile
     save_png(fig, out / "online.png")
+    from virus_nerf.experiments.report import runs_warnings, warnings_markdown
+
+    warnings = runs_warnings([s.out for s in specs], out)
     write_json_atomic(out / "online.json", {"gt": protocols[0], "summary": summary, "train_time": t_train,
-                                            "seeds": n_seeds, "playback_speed": playback_speed})
+                                            "seeds": n_seeds, "playback_speed": playback_speed, "warnings": warnings})
     write_text_atomic(out / "online.md", f"# Offline vs online\n\nGround truth: {protocols[0]}\n\n" + "\n".join(
-        f"- {m}: final zone 3 accuracy {v['final_acc_mean']} ± {v['final_acc_std']} m over {v['runs']} run(s)"
-        for m, v in summary.items()) + "\n\n![accuracy vs time](online.png)\n(paper: 0.148 m offline, 0.161 m online)\n")
+        f"- {m}: final zone 3 accuracy {_metres(v['final_acc_mean'])} ± {_metres(v['final_acc_std'])} m over "
+        f"{v['runs']} run(s)" for m, v in summary.items())
+        + "\n\n![accuracy vs time](online.png)\n(paper: 0.148 m offline, 0.161 m online)\n"
+        + ("\n" + warnings_markdown(warnings) if warnings else ""))
     print(json.dumps(summary, indent=2))
     if failed:
         raise SystemExit(f"{len(failed)} run(s) failed")
+
+
+def _metres(v: float | None) -> str:
+    return "-" if v is None else f"{v:.3f}"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 from virus_nerf.evaluation.metrics import RunMetrics
@@ -99,3 +100,28 @@ def safety_markdown(doc: Mapping[str, Any], picture: str | None = None) -> list[
     for w in doc.get("warnings", []):
         lines += [f"**Warning:** {w}", ""]
     return lines
+
+
+def runs_warnings(runs: Sequence[Path], root: Path) -> dict[str, list[str]]:
+    """Each finished run's metrics.json warnings (why its figures may not be trusted: a run that
+    ended inside the grid's warm-up, ...), by run folder relative to `root`; runs without any left out."""
+    import json
+
+    out: dict[str, list[str]] = {}
+    for run in runs:
+        path = Path(run) / "metrics.json"
+        if path.is_file():
+            warnings = json.loads(path.read_text()).get("warnings") or []
+            if warnings:
+                out[str(Path(run).relative_to(root))] = list(warnings)
+    return out
+
+
+def warnings_markdown(warnings: Mapping[str, list[str]]) -> str:
+    """A '## Warnings' section (one line a run and warning), or "" without any."""
+    if not warnings:
+        return ""
+    lines = ["## Warnings", "", "The runs' own (their metrics.json): figures of a run warned about may not be "
+             "what the method gives with a longer budget.", ""]
+    lines += [f"- `{run}`: {w}" for run, ws in warnings.items() for w in ws]
+    return "\n".join(lines) + "\n"

@@ -107,6 +107,12 @@ def map_bag(
     if out is None:
         raise UsageError("--out is required: give --out DIR (a new folder; with --resume the killed run's folder)")
     if resume:
+        # the final map is the last snapshot as it was made: a flag that asks for more is refused, not ignored
+        unused = [flag for flag, given in (("--out-bag", out_bag is not None), ("--rerun*", view.wanted),
+                                           ("--resolution/--n-rays/--max-poses", maps != DEFAULT_RASTER)) if given]
+        if unused:
+            raise UsageError(f"--resume writes the final map from the last snapshot as it was made; {unused[0]} "
+                             "cannot apply to it: drop it")
         _finish(Path(out))
         return
     if bag is None:

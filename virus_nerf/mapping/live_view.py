@@ -38,13 +38,14 @@ opens at its end.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
 from virus_nerf.data.frame import SyncFrame
-from virus_nerf.errors import OutputExistsError, UsageError
+from virus_nerf.errors import OutputExistsError, UsageError, one_line
 from virus_nerf.mapping.ros_maps import RobotStacks, base_pose
 from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS, OccupancyMap2D
 from virus_nerf.sensors.camera import Intrinsics
@@ -159,8 +160,12 @@ class LiveView:
             urls.append(f"rerun+http://127.0.0.1:{port}/proxy")
         if connect and connect not in urls:
             urls.append(connect)
-        sinks = [rr.GrpcSink(u) for u in urls] + ([rr.FileSink(str(save))] if save is not None else [])
-        self.rec.set_sinks(*sinks)
+        try:
+            sinks = [rr.GrpcSink(u) for u in urls] + ([rr.FileSink(str(save))] if save is not None else [])
+            self.rec.set_sinks(*sinks)
+        except RuntimeError as exc:  # a URL rerun does not take, a .rrd it cannot create
+            raise UsageError(f"LiveView sinks {urls + ([str(save)] if save is not None else [])}: "
+                             f"{one_line(exc, 200)}") from None
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.rec.send_blueprint(layout([]))
         self._pinholes: set[int] = set()
@@ -169,6 +174,7 @@ class LiveView:
         self._robot_xyz: np.ndarray | None = None
         self._camera_z: float | None = None
         self._closed = False
+        self.flush_timeout_s = 10.0  # at close: how long the sinks may take the last data
 
     # ------------------------------------------------------------------ frames
     def _set_time(self, time_s: float) -> None:
@@ -267,7 +273,11 @@ class LiveView:
         """Flush everything to the sinks and finish the .rrd; a second call does nothing."""
         if not self._closed:
             self._closed = True
-            self.rec.flush(timeout_sec=10.0)  # a viewer gone away must not hang the mapper
+            try:
+                self.rec.flush(timeout_sec=self.flush_timeout_s)  # a viewer gone away must not hang the mapper
+            except RuntimeError as exc:  # nor fail it: the maps are written by then
+                print(f"warning: the live view did not take its last data ({one_line(exc, 120)}); a viewer that "
+                      "went away or was never there? The maps are not affected", file=sys.stderr)
             self.rec.disconnect()
 
     def __enter__(self) -> LiveView:

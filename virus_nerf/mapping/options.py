@@ -51,17 +51,29 @@ class RerunSinks:
         return bool(self.rerun or self.rerun_connect or self.rerun_save)
 
     def check(self) -> None:
-        """A .rrd name that does not exist yet, and the live extra installed (its one-line
-        message now, not after the start-up)."""
+        """A .rrd name that does not exist yet in a folder that does, a viewer URL rerun takes,
+        and the live extra installed (their one-line messages now, not after the start-up)."""
         if self.rerun_save is not None:
-            if Path(self.rerun_save).suffix != ".rrd":
-                raise UsageError(f"--rerun-save {self.rerun_save}: expected a .rrd file name")
-            if Path(self.rerun_save).exists():
-                raise OutputExistsError(self.rerun_save, "--rerun-save")
+            save = Path(self.rerun_save)
+            if save.suffix != ".rrd":
+                raise UsageError(f"--rerun-save {save}: expected a .rrd file name")
+            if save.exists():
+                raise OutputExistsError(save, "--rerun-save")
+            if not save.absolute().parent.is_dir():
+                raise UsageError(f"--rerun-save {save}: no folder {save.absolute().parent}; expected a .rrd file "
+                                 "in an existing folder")
         if self.wanted:
             from virus_nerf.mapping.live_view import _rerun
 
-            _rerun()
+            rr = _rerun()
+            if self.rerun_connect:
+                from virus_nerf.errors import one_line
+
+                try:
+                    rr.GrpcSink(self.rerun_connect)  # parses the URL, connects nothing
+                except RuntimeError as exc:
+                    raise UsageError(f"--rerun-connect {self.rerun_connect}: {one_line(exc, 200)}; expected e.g. "
+                                     "rerun+http://127.0.0.1:9876/proxy") from None
 
 
 NO_VIEW = RerunSinks()

@@ -12,6 +12,7 @@ USS_FOV_H_DEG = 55.0
 USS_FOV_V_DEG = 35.0
 USS_NO_ECHO_RAW = 50000.0  # raw echo time (us) at or above which there was no echo
 USS_RAW_PER_M = 5000.0  # raw microseconds per metre of range (docs/method.md 4)
+USS_MIN_RANGE_M = 0.02  # the URM37 V5.0's nearest range (datasheet: 2-800 cm)
 USS_MAX_RANGE_M = 8.0  # the URM37 V5.0's range (datasheet, docs/uss-range.md); bounds the box when there is no map
 
 

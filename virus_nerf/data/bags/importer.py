@@ -92,7 +92,7 @@ def _plan(reader: BagReader, cfg: TopicsConfig, poses: str, odometry_topic: str 
         roles[(None, "lidar")] = cfg.lidar.topic
     elif poses == "lidar-odometry":
         raise DataFormatError(reader.path, f"--poses lidar-odometry needs a LiDAR: no topic {cfg.lidar.topic} "
-                              f"(lidar.topic of the {where}); name it in a topics file or use --poses tf or csv")
+                              f"(lidar.topic of the {where}); name it in a topics file or use --poses tf, odometry or csv")
     if poses == "odometry":
         if odometry_topic not in bag_topics:
             raise DataFormatError(reader.path, f"--poses odometry: no topic {odometry_topic} in the bag; name the "

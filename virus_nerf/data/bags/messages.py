@@ -18,6 +18,7 @@ and field, and what was expected.
 from __future__ import annotations
 
 import io
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,6 +73,10 @@ def make_typestore(ros_version: int):
 
     store = get_typestore(Stores.ROS1_NOETIC if ros_version == 1 else Stores.ROS2_HUMBLE)
     store.register(custom_types())
+    if TF not in store.fielddefs:  # rosbags' Noetic store lacks tf2_msgs, which ROS 1's /tf carries
+        from rosbags.typesys import get_types_from_msg
+
+        store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", TF))
     return store
 
 
@@ -161,12 +166,16 @@ class DepthImage:
 
 
 def decode_depth(msg, msgtype: str, where: Where, size: tuple[int, int] | None = None) -> DepthImage:
-    """Aligned depth: 16UC1/mono16 (mm) as is, 32FC1 from metres (non-finite or <= 0 -> 0), or a
-    16-bit PNG CompressedImage; size (width, height): the colour image's, refused when it differs."""
-    if msgtype == COMPRESSED:
+    """Aligned depth: 16UC1/mono16 (mm) as is, 32FC1 from metres (non-finite or <= 0 -> 0), a
+    16-bit PNG CompressedImage, or image_transport's compressedDepth (16UC1 or 32FC1 inside); size
+    (width, height): the colour image's, refused when it differs."""
+    if msgtype == COMPRESSED and "compresseddepth" in msg.format.lower().replace(" ", ""):
+        mm = _compressed_depth_mm(msg, where)
+    elif msgtype == COMPRESSED:
         mm = _decompress(msg, where)
         if mm.ndim != 2 or mm.dtype != np.uint16:
-            raise where.error("compressed depth must be a 16-bit single-channel PNG (mm)", field="format")
+            raise where.error("compressed depth must be a 16-bit single-channel PNG (mm) or image_transport's "
+                              "compressedDepth", field="format")
     else:
         enc = msg.encoding.lower()
         if enc in ("16uc1", "mono16"):
@@ -194,16 +203,49 @@ def _pixels(msg, dtype, channels: int, where: Where) -> np.ndarray:
     return np.ascontiguousarray(rows).view(dt).reshape(h, w, channels).astype(dtype)
 
 
-def _decompress(msg, where: Where) -> np.ndarray:
+def _decompress(msg, where: Where, skip: int = 0) -> np.ndarray:
+    """A CompressedImage's data (after `skip` header bytes) decoded by PIL: (H, W) uint16 for a
+    16-bit image, (H, W) or (H, W, 3) uint8 otherwise."""
     from PIL import Image, UnidentifiedImageError
 
     try:
-        with Image.open(io.BytesIO(bytes(np.asarray(msg.data, dtype=np.uint8)))) as im:
+        with Image.open(io.BytesIO(bytes(np.asarray(msg.data, dtype=np.uint8))[skip:])) as im:
             if im.mode in ("I;16", "I;16B", "I"):
                 return np.asarray(im, dtype=np.uint16)
             return np.asarray(im.convert("RGB") if im.mode not in ("L", "RGB") else im)
-    except (UnidentifiedImageError, OSError) as exc:
+    except UnidentifiedImageError:
+        raise where.error(f"compressed image ({msg.format!r}) cannot be decoded: not an image format PIL reads "
+                          "(PNG, JPEG, ...)", field="data") from None
+    except OSError as exc:
         raise where.error(f"compressed image ({msg.format!r}) cannot be decoded: {exc}", field="data") from None
+
+
+# image_transport's compressedDepth: a 12-byte header (int32 format, float32 depthQuantA, depthQuantB)
+# before the PNG; 16UC1 keeps millimetres, 32FC1 stores quantised inverse depth (0 = invalid)
+COMPRESSED_DEPTH_HEADER = struct.Struct("<iff")
+
+
+def _compressed_depth_mm(msg, where: Where) -> np.ndarray:
+    """(H, W) uint16 mm of an image_transport compressedDepth message ('16UC1; compressedDepth png'
+    or '32FC1; compressedDepth png')."""
+    fmt = msg.format.lower()
+    if "rvl" in fmt:
+        raise where.error(f"compressed depth {msg.format!r}: the RVL codec is not read; expected compressedDepth png "
+                          "(image_transport's default) or a 16-bit PNG", field="format")
+    data = bytes(np.asarray(msg.data, dtype=np.uint8))
+    if len(data) <= COMPRESSED_DEPTH_HEADER.size:
+        raise where.error(f"compressed depth holds {len(data)} bytes; expected a 12-byte header and a PNG", field="data")
+    _, quant_a, quant_b = COMPRESSED_DEPTH_HEADER.unpack_from(data)
+    raw = _decompress(msg, where, skip=COMPRESSED_DEPTH_HEADER.size)
+    if raw.ndim != 2 or raw.dtype != np.uint16:
+        raise where.error(f"compressed depth {msg.format!r} holds no 16-bit single-channel PNG", field="data")
+    if not fmt.startswith("32fc1"):
+        return raw  # 16UC1: millimetres as they were
+    v = raw.astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        metres = np.where(v > 0, quant_a / (v - quant_b), np.nan)
+    ok = np.isfinite(metres) & (metres > 0)
+    return np.clip(np.where(ok, np.round(metres * 1000.0), 0.0), 0, 65534).astype(np.uint16)
 
 
 @dataclass(frozen=True)
@@ -257,11 +299,15 @@ class UssReading:
 
 
 def decode_uss(msg, msgtype: str, where: Where) -> UssReading:
-    """sensors/msg/USS (echo time in us, as is) or sensor_msgs/Range (m * 5000; a non-finite, <= 0
-    or beyond max_range reading is no echo)."""
+    """sensors/msg/USS (echo time in us, as is) or sensor_msgs/Range (m * 5000). REP 117: -Inf is
+    something nearer than min_range, an echo there (the datasheet's 2 cm without a min_range);
+    +Inf (nothing within max_range), NaN, <= 0 or beyond max_range is no echo."""
     if msgtype == USS_TYPE:
         return UssReading(float(_field(msg, "meas", where)))
     r = float(msg.range)
+    if r == -np.inf:
+        near = float(msg.min_range)
+        return UssReading((near if np.isfinite(near) and near > 0 else uss.USS_MIN_RANGE_M) * uss.USS_RAW_PER_M)
     if not np.isfinite(r) or r <= 0 or (msg.max_range > 0 and r > float(msg.max_range)):
         return UssReading(uss.USS_NO_ECHO_RAW)
     return UssReading(r * uss.USS_RAW_PER_M)
