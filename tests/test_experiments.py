@@ -27,8 +27,16 @@ def test_scan_occupancy_marks_path_free_and_end_occupied(tmp_path):
     assert np.count_nonzero(img == OCCUPIED) == 4
     pgm, yaml = write_map_server(m, tmp_path)
     assert pgm.read_bytes().startswith(b"P5\n30 30\n255\n") and len(pgm.read_bytes()) == 13 + 900
-    assert "origin: [0.000000, 0.000000, 0.0]" in yaml.read_text() and "resolution: 0.1\n" in yaml.read_text()
+    assert "origin: [0.0, 0.0, 0.0]" in yaml.read_text() and "resolution: 0.1\n" in yaml.read_text()
     assert "mode: trinary" in yaml.read_text()
+    # a box corner in float32 (-2.995 is -2.99499998...): map.yaml keeps it to the bit, so a point on
+    # a pixel edge falls in the same pixel for a map_server reader as for the safety figures
+    import dataclasses
+
+    odd = dataclasses.replace(m, origin=(float(np.float32(-2.995)), float(np.float32(1.1))))
+    _, yaml = write_map_server(odd, tmp_path / "odd")
+    got = [float(v) for v in yaml.read_text().split("origin: [")[1].split("]")[0].split(",")]
+    assert got[:2] == list(odd.origin) and got[2] == 0.0
 
 
 def test_a_grown_box_gets_one_raster_size_everywhere():

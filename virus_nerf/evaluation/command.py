@@ -69,7 +69,7 @@ def sensors(
     warnings = [LIDAR_OWN_MAP] if "LiDAR" in config.sensors and protocols and lidar_scored_against_own_map(recording) \
         else []
     result.write_json(out, warnings=warnings)
-    print(f"{result.n_points} test points of {Path(data) / room}; NND in metres, shares in [0, 1]")
+    print(f"{result.n_points} test points of {Path(data) / room}")
     print(result.table())
     for w in warnings:
         print(f"warning: {w}")

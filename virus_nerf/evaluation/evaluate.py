@@ -141,7 +141,8 @@ class EvaluationResult:
     def table(self) -> str:
         """The metrics table of every protocol, each under a line naming its ground truth."""
         by_gt = self.by_gt or {self.gt: self.metrics}
-        return "\n".join(f"ground truth: {p} ({GT_DESCRIPTIONS[p]})\n" + format_table(m, self.config.zones)
+        return "\n".join(f"ground truth: {p} ({GT_DESCRIPTIONS[p]}); distances in metres, shares in [0, 1]\n"
+                         + format_table(m, self.config.zones)
                          for p, m in by_gt.items())
 
 

@@ -212,9 +212,12 @@ def write_pgm(path: Path, image: np.ndarray) -> None:
 
 
 def map_yaml(image_name: str, resolution: float, origin: tuple[float, float], mode: str = "trinary") -> str:
-    """The map_server YAML (written by hand: a flat document of scalars and one list)."""
+    """The map_server YAML (written by hand: a flat document of scalars and one list). The origin
+    is written to the last bit (the shortest text that reads back as the same float): a LiDAR
+    point on a pixel edge then falls in the same pixel for a reader of map.yaml as for the safety
+    figures that judged the map."""
     return (f"image: {image_name}\nmode: {mode}\nresolution: {resolution!r}\n"
-            f"origin: [{origin[0]:.6f}, {origin[1]:.6f}, 0.0]\nnegate: 0\n"
+            f"origin: [{float(origin[0])!r}, {float(origin[1])!r}, 0.0]\nnegate: 0\n"
             f"occupied_thresh: {OCCUPIED_THRESH}\nfree_thresh: {FREE_THRESH}\n")
 
 
