@@ -29,6 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_out import new_out, write_out
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
@@ -89,6 +91,7 @@ def main() -> None:
                     help='JSON object merged into the grow runs\' config, e.g. \'{"extent": {"margin_m": 0.2}}\'')
     ap.add_argument("--keep", type=Path, help="keep each run's output folder under this folder")
     args = ap.parse_args()
+    new_out(args.out)  # before the run: a result is never overwritten
     modes = args.modes.split(",")
     if set(modes) - set(MODES):
         raise SystemExit(f"--modes {args.modes!r}: expected a subset of {','.join(MODES)}")
@@ -121,7 +124,7 @@ def main() -> None:
            "mean": summary}
     print(json.dumps(summary, indent=1))
     if args.out:
-        args.out.write_text(json.dumps(doc, indent=1) + "\n")
+        write_out(args.out, json.dumps(doc, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -82,6 +82,19 @@ def benchmark_update(
     return UpdateTiming(depth_ms, nerf_ms, update_ms, n_depth, n_nerf, grid.spec.resolution)
 
 
+def main() -> None:
+    import argparse
+    import dataclasses
+    import json
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--rays", default="256,1024,4096", help="rays per update to time, comma-separated")
+    ap.add_argument("--repeats", type=int, default=20, help="calls per figure (the median is reported)")
+    args = ap.parse_args()
+    rows = [dataclasses.asdict(benchmark_update(n_rays=int(n), repeats=args.repeats)) for n in args.rays.split(",")]
+    print(json.dumps({"benchmark": "virus_grid_update", "torch_threads": torch.get_num_threads(), "runs": rows},
+                     indent=1))
+
+
 if __name__ == "__main__":
-    for n in (256, 1024, 4096):
-        print(benchmark_update(n_rays=n))
+    main()

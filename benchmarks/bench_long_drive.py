@@ -22,6 +22,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_out import new_out, write_out
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
@@ -72,6 +74,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
+    new_out(args.out)  # before the run: a result is never overwritten
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for minutes in (float(m) for m in args.minutes.split(",")):
@@ -102,7 +105,7 @@ def main() -> None:
             rows.append(row)
             print(json.dumps(row), flush=True)
     if args.out:
-        args.out.write_text(json.dumps({"command": "benchmarks/bench_long_drive.py " + " ".join(sys.argv[1:]),
+        write_out(args.out, json.dumps({"command": "benchmarks/bench_long_drive.py " + " ".join(sys.argv[1:]),
                                         "scene": args.scene, "drives": rows}, indent=1) + "\n")
 
 

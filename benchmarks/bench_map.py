@@ -12,10 +12,11 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
+
+from bench_out import new_out, write_out
 
 
 def time_run(run: Path, repeats: int) -> dict:
@@ -51,8 +52,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, help="torch threads (default: torch's own)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
-    if args.out is not None and args.out.exists():
-        sys.exit(f"--out {args.out}: exists; choose a new file (nothing is overwritten)")
+    new_out(args.out)  # before the run: a result is never overwritten
     import torch
 
     if args.threads:
@@ -61,7 +61,7 @@ def main() -> None:
     for r in rows:
         print(json.dumps(r))
     if args.out is not None:
-        args.out.write_text(json.dumps({"threads": torch.get_num_threads(), "repeats": args.repeats, "runs": rows}, indent=1) + "\n")
+        write_out(args.out, json.dumps({"threads": torch.get_num_threads(), "repeats": args.repeats, "runs": rows}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -22,6 +22,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from bench_out import new_out, write_out
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
@@ -62,6 +64,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
+    new_out(args.out)  # before the run: a result is never overwritten
     variants = {}
     for spec in args.variant:
         name, _, patch = spec.partition("=")
@@ -105,7 +108,7 @@ def main() -> None:
            "variants": {k: json.loads(v) for k, v in variants.items()}, "drives": rows, "mean": mean}
     print(json.dumps(mean, indent=1))
     if args.out:
-        args.out.write_text(json.dumps(doc, indent=1) + "\n")
+        write_out(args.out, json.dumps(doc, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -192,6 +192,9 @@ def bench_ngp_grid() -> dict:
 
 
 def main() -> None:
+    import argparse
+
+    argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0]).parse_args()  # --help, and no stray flag
     t = time.perf_counter()
     result: dict = {
         "threads": {"torch": torch.get_num_threads(), "numba": numba.get_num_threads()},

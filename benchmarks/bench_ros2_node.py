@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_out import new_out, write_out
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -143,6 +144,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
+    new_out(args.out)  # before the run: a result is never overwritten
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in (int(s) for s in args.sim_seeds.split(",")):
@@ -160,7 +162,7 @@ def main() -> None:
     if args.out:
         doc = {"command": "benchmarks/bench_ros2_node.py " + " ".join(sys.argv[1:]), "scene": args.scene,
                "seconds": args.seconds, "drives": rows}
-        args.out.write_text(json.dumps(doc, indent=1) + "\n")
+        write_out(args.out, json.dumps(doc, indent=1) + "\n")
 
 
 if __name__ == "__main__":

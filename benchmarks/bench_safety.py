@@ -39,6 +39,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from bench_out import new_out, write_out
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -227,8 +228,7 @@ def main() -> None:
     ap.add_argument("--train-seed", type=int, default=0)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
-    if args.out.exists():
-        sys.exit(f"--out {args.out}: exists; choose a new file (nothing is overwritten)")
+    new_out(args.out)  # before the run: a result is never overwritten
     mode = "bag" if args.bag else "online" if args.online else "offline"
     doc: dict = {"mode": mode, "online": args.online, "steps": STEPS if mode == "offline" else None, "gt": "map",
                  "rooms": {}, "mean": {}, "total": {}}
@@ -249,7 +249,7 @@ def main() -> None:
         kinds = ("map",) if args.bag else ("map", "export", "nerf_scans_alone", "sensors_alone", "lidar")
         doc["mean"][scene] = {k: mean([r[k] for r in rows]) for k in kinds}
         doc["total"][scene] = {k: t for k in kinds if (t := totals([r[k] for r in rows]))}
-    args.out.write_text(json.dumps(doc, indent=1) + "\n")
+    write_out(args.out, json.dumps(doc, indent=1) + "\n")
     print(json.dumps({"mean": doc["mean"], "total": doc["total"]}, indent=1))
 
 

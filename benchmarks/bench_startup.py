@@ -21,6 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_out import new_out, write_out
+
 TINY_CONFIG = {  # a 5-step training of 128 rays on a coarse grid (the tests' tiny run)
     "max_steps": 5, "max_time": None, "batch_size": 128, "log_every": 2, "plots": False,
     "march": {"step_size": 0.06, "max_samples": 32},
@@ -50,8 +52,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
-    if args.out is not None and args.out.exists():
-        sys.exit(f"--out {args.out}: exists; choose a new file (nothing is overwritten)")
+    new_out(args.out)  # before the run: a result is never overwritten
     source = args.source.resolve()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -78,7 +79,7 @@ def main() -> None:
     doc = {"source": str(source), "commit": _commit(source), "repeats": args.repeats, "seconds": rows,
            "cpu_count": os.cpu_count()}
     if args.out is not None:
-        args.out.write_text(json.dumps(doc, indent=1) + "\n")
+        write_out(args.out, json.dumps(doc, indent=1) + "\n")
 
 
 def _commit(source: Path) -> str | None:

@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_out import new_out, write_out
 
 HERE = Path(__file__).resolve().parent
 BANDS = ((0, 2), (2, 4), (4, 6), (6, 8), (8, 10), (10, 15))
@@ -124,6 +125,7 @@ def main() -> None:
                     help="the pass's track filters (the module's docstring)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
+    new_out(args.out)  # before the run: a result is never overwritten
     sys.path.insert(0, str(HERE))
     from bench_time_to_map import ensure_data
 
@@ -140,7 +142,7 @@ def main() -> None:
               file=sys.stderr)
     text = json.dumps(doc, indent=2)
     if args.out:
-        args.out.write_text(text + "\n")
+        write_out(args.out, text + "\n")
     else:
         print(text)
 

@@ -26,6 +26,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_out import new_out, write_out
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
@@ -92,6 +94,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
+    new_out(args.out)  # before the run: a result is never overwritten
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for sim_seed in (int(s) for s in args.sim_seeds.split(",")):
@@ -112,7 +115,7 @@ def main() -> None:
     if args.out:
         doc = {"command": "benchmarks/bench_stream.py " + " ".join(sys.argv[1:]), "scene": args.scene,
                "seconds": args.seconds, "poses": args.poses, "args": args.args, "drives": rows, "mean": mean}
-        args.out.write_text(json.dumps(doc, indent=1) + "\n")
+        write_out(args.out, json.dumps(doc, indent=1) + "\n")
 
 
 if __name__ == "__main__":

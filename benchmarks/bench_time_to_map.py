@@ -37,6 +37,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from bench_out import new_out, write_out
+
 HERE = Path(__file__).resolve().parent
 DEFAULT_DATA = HERE / ".data"
 SCENES = {"office": 41, "common": 41, "warehouse": 41}  # scene -> the single-seed default (--sim-seed)
@@ -225,6 +227,7 @@ def main() -> None:
     ap.add_argument("--room", help=argparse.SUPPRESS)
     ap.add_argument("--config", default="{}", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    new_out(args.out)  # before the run: a result is never overwritten
     if args.child:
         child(args)
         return
@@ -276,8 +279,7 @@ def main() -> None:
                       f"cov {last['cov_mean']:.3f} +- {last['cov_std']:.3f} m", file=sys.stderr, flush=True)
     text = json.dumps(doc, indent=2)
     if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+        write_out(args.out, text + "\n")
     else:
         print(text)
     if args.plot:

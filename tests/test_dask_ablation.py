@@ -55,3 +55,85 @@ def test_a_finished_ablation_run_is_never_rerun(tmp_path):
     before = (run / "metrics.json").stat().st_mtime_ns
     assert run_all([RunSpec("r", tmp_path / "no-data", "office", run)], workers=1) == []
     assert (run / "metrics.json").stat().st_mtime_ns == before and not (tmp_path / "runs" / "r.log").exists()
+
+
+def _hold_lock(out: Path, seconds: float, then_checkpoint: bool):
+    """A training's stand-in in another process: holds OUT's run lock for `seconds`, then (as a
+    stopped training does) leaves its checkpoint and exits."""
+    import subprocess
+    import sys
+
+    script = (f"import time, pathlib\nfrom virus_nerf.trainer.run_folder import RunLock\n"
+              f"out = pathlib.Path({str(out)!r})\nRunLock(out).acquire()\nprint('locked', flush=True)\n"
+              f"time.sleep({seconds})\n" + ("(out / 'checkpoint.pt').write_bytes(b'x')\n" if then_checkpoint else ""))
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "locked"
+    return proc
+
+
+def test_an_attempt_waits_for_a_training_still_stopping_in_its_folder(tmp_path):
+    """A training stopped a moment ago (its Dask worker lost, the same ablation run again at once)
+    ends its step and keeps its checkpoint before it lets go of the lock; the next attempt waits
+    for that instead of setting the live folder aside (it then resumes it). Still held after the
+    wait: not started, said in the run's log."""
+    import time
+
+    from virus_nerf.experiments import runs
+
+    out = tmp_path / "runs" / "office" / "row8_seed0"
+    out.mkdir(parents=True)
+    spec = runs.RunSpec("row 8", tmp_path / "data", "office", out)
+    holder = _hold_lock(out, 1.5, then_checkpoint=True)
+    t0 = time.monotonic()
+    assert runs._wait_for_the_holder(spec) is True
+    assert time.monotonic() - t0 >= 1.0 and (out / "checkpoint.pt").is_file()  # so the attempt resumes it
+    holder.wait(timeout=30)
+    holder = _hold_lock(out, 30.0, then_checkpoint=False)
+    try:
+        assert runs._wait_for_the_holder(spec, wait_s=0.5) is False
+        assert "is still locked by another training after 0.5 s; not started" in runs.log_file(out).read_text()
+    finally:
+        holder.kill()
+        holder.wait(timeout=30)
+
+
+def test_a_failed_new_run_removes_only_its_own_folder(tmp_path):
+    """RunLock.holds: the folder renamed aside by another process is still ours, the new folder
+    that took its name is not (train's clean-up must not delete another run)."""
+    from virus_nerf.trainer.run_folder import RunLock
+
+    out = tmp_path / "row8_seed0"
+    out.mkdir()
+    lock = RunLock(out).acquire()
+    aside = out.rename(tmp_path / "row8_seed0.incomplete-1")
+    out.mkdir()
+    (out / "run.lock").write_text("")
+    assert not lock.holds(out) and lock.holds(aside)
+
+
+def test_a_port_that_is_no_scheduler_is_one_line_before_anything_is_written(tmp_path, monkeypatch):
+    """--scheduler at a port that accepts and never answers (a dashboard's, any other service's):
+    distributed's own timeout does not end it; ours does, in one line naming the flag, before the
+    ablation or the study writes anything (loopback only; the listener stops with the test)."""
+    import socket
+
+    pytest.importorskip("distributed")
+    from helpers import run_cli
+
+    from virus_nerf.experiments import executors
+
+    monkeypatch.setattr(executors, "CONNECT_TIMEOUT_S", 2.0)
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(8)  # accepts (the kernel does), never answers
+    try:
+        address = f"tcp://127.0.0.1:{listener.getsockname()[1]}"
+        for argv, out in ((["ablation", "--out", tmp_path / "abl", "--quick"], tmp_path / "abl"),
+                          (["tune", "--data", tmp_path, "--room", ".", "--study", "s", "--trials", "1",
+                            "--out", tmp_path / "study"], tmp_path / "study")):
+            code, _, err = run_cli([*argv, "--scheduler", address])
+            assert code == 2 and err.count("\n") == 1, err
+            assert f"--scheduler {address}: nothing answered as a Dask scheduler within 2 s" in err
+            assert not out.exists()
+    finally:
+        listener.close()

@@ -297,6 +297,9 @@ def ablation(
                                ([f"{t_train:.0f} s"] if t_train is not None else []))
     out = Path(out).absolute()  # Dask workers may run in other folders
     summaries = [out / f"ablation.{ext}" for ext in ("md", "csv", "json", "png")]
+    from virus_nerf.experiments.executors import check_scheduler
+
+    check_scheduler(scheduler)  # the extra and a scheduler that answers, before anything is written
     take_experiment_folder(out, "ablation", summaries)  # new, or this command's unfinished ablation
     for scene in scenes:
         data = out / "data" / scene

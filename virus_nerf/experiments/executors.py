@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import os
+import threading
 from collections.abc import Iterable, Iterator
 from typing import Any
 
@@ -66,21 +67,17 @@ class DaskExecutor:
     length of its training (start workers with `--nthreads 1`, one per training at a time)."""
 
     def __init__(self, scheduler: str, workers: int = 2, threads: int | None = None) -> None:
-        from virus_nerf.errors import UsageError
 
         self._distributed = require_extra("distributed", "dask", f"--scheduler {scheduler}")
         self.threads = threads or 1
         self._cluster = None
         if scheduler == "local":
+            # the dashboard on a free loopback port: 8787 may be another scheduler's (no warning then)
             self._cluster = self._distributed.LocalCluster(n_workers=max(1, workers), threads_per_worker=1,
-                                                           processes=True, dashboard_address=None)
+                                                           processes=True, dashboard_address="127.0.0.1:0")
             self.client = self._distributed.Client(self._cluster)
         else:
-            try:
-                self.client = self._distributed.Client(scheduler, timeout="20s")
-            except (OSError, TimeoutError, ValueError) as exc:
-                raise UsageError(f"--scheduler {scheduler}: cannot connect to a Dask scheduler there "
-                                 f"({type(exc).__name__}); expected e.g. tcp://HOST:8786 or 'local'") from None
+            self.client = _connect(self._distributed, scheduler)
         self.scheduler = scheduler
 
     @property
@@ -106,6 +103,46 @@ class DaskExecutor:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+CONNECT_TIMEOUT_S = 30.0  # a scheduler address that does not answer as a scheduler (a dashboard port)
+
+
+def _connect(distributed, scheduler: str):
+    """A Client of the scheduler at `scheduler`, or the one-line UsageError naming --scheduler.
+    distributed's own timeout does not cover a port that accepts and never answers (a dashboard,
+    any other service): the connection runs in a daemon thread with its own deadline."""
+    from virus_nerf.errors import UsageError
+
+    box: dict = {}
+
+    def connect() -> None:
+        try:
+            box["client"] = distributed.Client(scheduler, timeout="20s")
+        except Exception as exc:  # noqa: BLE001 - reported below, in one line
+            box["error"] = exc
+
+    thread = threading.Thread(target=connect, daemon=True)
+    thread.start()
+    thread.join(CONNECT_TIMEOUT_S)
+    expected = "expected e.g. tcp://HOST:8786 (the scheduler's port, not its dashboard's) or 'local'"
+    if thread.is_alive():
+        raise UsageError(f"--scheduler {scheduler}: nothing answered as a Dask scheduler within "
+                         f"{CONNECT_TIMEOUT_S:g} s; {expected}")
+    if "error" in box:
+        raise UsageError(f"--scheduler {scheduler}: cannot connect to a Dask scheduler there "
+                         f"({type(box['error']).__name__}); {expected}")
+    return box["client"]
+
+
+def check_scheduler(scheduler: str | None) -> None:
+    """Before a command writes anything: the dask extra for --scheduler, and a scheduler that
+    answers at its address (connected once and closed; 'local' starts nothing yet)."""
+    if scheduler is None:
+        return
+    distributed = require_extra("distributed", "dask", f"--scheduler {scheduler}")
+    if scheduler != "local":
+        _connect(distributed, scheduler).close()
 
 
 def make_executor(scheduler: str | None, workers: int, threads: int | None = None):

@@ -84,17 +84,42 @@ def _worker_env(threads: int, shared_cpu: bool = False) -> dict[str, str]:
     env = dict(os.environ)
     env.update({"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
                 "NUMBA_NUM_THREADS": str(threads), "PYTHONUNBUFFERED": "1",
-                # the child dies with this process (utils.parent.watch_parent): a killed
-                # ablation, tune, online or demo leaves no training running; its folders resume
+                # the child dies with this process (utils.parent.watch_parent): a killed local
+                # ablation, tune, online or demo (or Dask worker) leaves no training running
                 PARENT_ENV: str(os.getpid())})
     if shared_cpu:
         env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     return env
 
 
+HOLDER_WAIT_S = 600.0  # how long an attempt waits for a training still stopping in its folder
+
+
+def _wait_for_the_holder(spec: RunSpec, wait_s: float = HOLDER_WAIT_S) -> bool:
+    """Wait until no process holds the run's lock: a training stopped a moment ago (its parent
+    killed, a Dask worker lost, the same command run again at once) first ends its step and keeps
+    its map and checkpoint; deciding before would set a live folder aside. False (said in the
+    run's log) when it is still held after `wait_s`."""
+    from virus_nerf.trainer.run_folder import RunLock
+
+    if not spec.out.is_dir():
+        return True
+    lock, t0 = RunLock(spec.out, "--out"), time.monotonic()
+    while lock.held_by_another():
+        if time.monotonic() - t0 > wait_s:
+            with log_file(spec.out).open("a") as fh:
+                fh.write(f"# {socket.gethostname()} pid {os.getpid()}: {spec.out} is still locked by another "
+                         f"training after {wait_s:g} s; not started\n")
+            return False
+        time.sleep(0.25)
+    return True
+
+
 def _attempt(spec: RunSpec, threads: int, poll_s: float, shared_cpu: bool) -> tuple[int, bool]:
     """One train process for `spec`; returns (exit code, stopped on request)."""
     cmd = spec.command()
+    if not _wait_for_the_holder(spec):
+        return USAGE_EXIT, False
     if spec.out.exists() and (spec.out / "checkpoint.pt").is_file():
         cmd = cmd + ["--resume"]  # an interrupted run continues from its checkpoint
     elif spec.out.exists():
@@ -111,7 +136,7 @@ def _attempt(spec: RunSpec, threads: int, poll_s: float, shared_cpu: bool) -> tu
             except subprocess.TimeoutExpired:
                 if not stop_file(spec.out).exists():
                     continue
-            proc.terminate()  # SIGTERM: the run folder stays as it is (no clean-up handler runs)
+            proc.terminate()  # SIGTERM: the run ends its step and keeps its map and checkpoint
             try:
                 proc.wait(timeout=30)
             except subprocess.TimeoutExpired:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -32,6 +32,9 @@ class _Context:
     eval_interval: float
     prune: bool
     poll_s: float = 1.0
+    # one trial asked at a time: the seeded sampler's draws then go to the trials in number order
+    # (threads asking at once interleaved them: parallel studies were not reproducible)
+    ask_lock: threading.Lock = field(default_factory=threading.Lock)
 
 
 def _eval_index(point, eval_interval: float) -> int:
@@ -76,7 +79,8 @@ def run_trial(ctx: _Context) -> str:
     from virus_nerf.utils.io import write_json_atomic
 
     study = ctx.study
-    trial = study.ask(distributions())
+    with ctx.ask_lock:
+        trial = study.ask(distributions())
     n = trial.number
     run = ctx.trials_dir / f"{n:04d}"
     try:
@@ -278,10 +282,11 @@ def tune(
     if export_config is not None and Path(export_config).exists():
         raise OutputExistsError(export_config, "--export-config")
     require_extra("optuna", "tune", "virus-nerf tune")
-    if scheduler is not None:
-        require_extra("distributed", "dask", f"--scheduler {scheduler}")
     base = _base_config(config, max_steps, max_time, eval_interval)
     out = Path(out if out is not None else Path("studies") / study).absolute()
+    from virus_nerf.experiments.executors import check_scheduler
+
+    check_scheduler(scheduler)  # the extra and a scheduler that answers, before the study is opened
     _claim_folder(out, study)
     obj = Objective(objective, acc_weight)
     handle, base = studies.open_study(study, studies.storage_for(storage, out), obj, base, seed, pruner,

@@ -183,8 +183,10 @@ def _start(data: Path, room: str, out: Path, recording, cfg, lock, quiet):
         trainer = Trainer(recording, cfg, out, quiet=quiet)
         return trainer, _fit(trainer)
     except BaseException as exc:
-        if not (out / CHECKPOINT).is_file() and not (out / MAP_DIR).is_dir():
-            shutil.rmtree(out, ignore_errors=True)  # nothing to resume: leave no half-made run behind
+        if lock.holds(out) and not (out / CHECKPOINT).is_file() and not (out / MAP_DIR).is_dir():
+            # nothing to resume: leave no half-made run behind (only our own folder: one renamed
+            # aside by another process, and what took its name, are not ours)
+            shutil.rmtree(out, ignore_errors=True)
             if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
                 # not the command line's "nothing was lost ... --resume": there is no run left to resume
                 raise NotWrittenError(

@@ -277,6 +277,33 @@ class RunLock:
         self._fd = fd
         return self
 
+    def holds(self, folder: Path) -> bool:
+        """Whether `folder` is the folder this process locked (its run.lock is the file we hold):
+        a folder renamed away meanwhile by another process, and whatever now has its name, are not
+        ours to remove. True where flock does not exist (no lock, nothing to compare)."""
+        import os
+
+        if self._fd is None:
+            try:
+                import fcntl  # noqa: F401
+            except ImportError:  # pragma: no cover - not POSIX
+                return True
+            return False
+        try:
+            here = os.stat(Path(folder) / LOCK)
+        except OSError:
+            return False
+        mine = os.fstat(self._fd)
+        return (here.st_dev, here.st_ino) == (mine.st_dev, mine.st_ino)
+
+    def held_by_another(self) -> bool:
+        """Whether another process holds the lock now (`probe` would refuse)."""
+        try:
+            self.probe()
+        except UsageError:
+            return True
+        return False
+
     def probe(self) -> None:
         """Refuse as `acquire` would while another process holds the lock, but take nothing and
         write nothing (a command that only reads the run checks this before it reads)."""
