@@ -376,7 +376,8 @@ def test_experiments_refuse_to_overwrite_their_summaries(tmp_path, monkeypatch, 
     (out / summary).write_text("the earlier result")
     before = snapshot(out)
     code, _, err = run_cli([experiment, "--out", out, "--quick"])
-    one_line_error(code, err, f"{out / summary}: output file already exists")
+    one_line_error(code, err, f"{out / summary}: output file already exists: this {experiment} is finished; to run "
+                   "its failed runs (or more seeds) again, move")
     assert snapshot(out) == before
 
 

@@ -19,6 +19,18 @@ EXPERIMENT_MARK = "experiment.json"  # {"command": "ablation" | "online"}
 EXPERIMENT_ENTRIES = frozenset({"data", "runs", EXPERIMENT_MARK})  # what the commands write besides summaries
 
 
+class FinishedExperimentError(OutputExistsError):
+    """A finished experiment's summary exists: it is not overwritten, and the message says how to
+    run the experiment's failed runs (or more seeds) again."""
+
+    def __init__(self, summary: Path, command: str, summaries: list[Path]) -> None:
+        names = ", ".join(p.name for p in summaries)
+        FileExistsError.__init__(self, f"{summary}: output file already exists: this {command} is finished; to run "
+                                 f"its failed runs (or more seeds) again, move {names} away first (the finished "
+                                 "runs are reused), or choose a new --out (nothing was overwritten)")
+        self.path = Path(summary)
+
+
 def refuse_existing(paths: list[Path]) -> None:
     """OutputExistsError for the first of `paths` that exists (summary files are never overwritten)."""
     for p in paths:
@@ -44,7 +56,9 @@ def take_experiment_folder(out: Path, command: str, summaries: list[Path]) -> No
     otherwise (a finished experiment: OutputExistsError for its first summary)."""
     from virus_nerf.utils.io import write_json_atomic
 
-    refuse_existing(summaries)
+    done = next((p for p in summaries if p.exists()), None)
+    if done is not None:
+        raise FinishedExperimentError(done, command, summaries)
     if out.exists() and not out.is_dir():
         raise OutputExistsError(out)
     marked = marked_command(out)  # None for a new folder too
