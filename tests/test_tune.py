@@ -132,6 +132,19 @@ def test_a_crashing_trial_is_failed_and_the_study_goes_on(tmp_path):
     assert json.loads((tmp_path / "trials" / "0001.json").read_text())["optim"]["lr"] == ctx.study.trials[1].params["optim.lr"]
 
 
+def test_parallel_trials_get_the_configurations_sequential_ones_get(tmp_path):
+    """The seeded sampler is asked one trial at a time, so trial n has the same configuration with
+    --parallel 3 as one after another (the threads' asks interleaved its draws before)."""
+    from virus_nerf.experiments.tune import run_trials
+
+    params = []
+    for parallel in (1, 3, 3):
+        ctx = _context(tmp_path / f"p{parallel}_{len(params)}", lambda s: RunResult(s, 1, attempts=1))
+        run_trials(ctx, 9, parallel=parallel)
+        params.append({t.number: t.params for t in ctx.study.trials})
+    assert len(params[0]) == 9 and params[1] == params[0] and params[2] == params[0]
+
+
 def test_a_trial_worse_than_the_median_is_pruned_and_its_run_kept(tmp_path):
     from virus_nerf.experiments.tune import run_trial
 
