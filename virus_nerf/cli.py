@@ -289,7 +289,5 @@ def _interrupted(exc: KeyboardInterrupt) -> NoReturn:
     raise SystemExit(exit_code_of(exc))
 
 
-
-
 if __name__ == "__main__":
     main()

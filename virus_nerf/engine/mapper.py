@@ -207,16 +207,16 @@ class Mapper(MapViews):
         """The frame's time in the store: its own plus `_time_shift`; refused when not after its
         stack's previous frame."""
         mine = self.store.times[self.store.stack_ids == frame.stack_id]
+        newest = float(mine.max()) if len(mine) else -math.inf  # the stack's previous frame, in the store
         if self._restarted:
             if self.frames:  # before the first frame there is nothing to follow
                 self._time_shift = float(self.store.times.max()) + RESTART_GAP_S - float(frame.time)
             self._restarted = False
         t = float(frame.time) + self._time_shift
-        if len(mine) and t <= mine.max():
-            prev = float(mine.max()) - self._time_shift
+        if t <= newest:
             raise UsageError(f"SyncFrame.time {frame.time!r} (stack {frame.stack_id}): not after the stack's "
-                             f"previous frame at {prev!r} s; expected each stack's frames in time order, once each "
-                             "(after a clock reset, call Mapper.restart_clock() first)")
+                             f"previous frame at {newest - self._time_shift!r} s; expected each stack's frames in "
+                             "time order, once each (after a clock reset, call Mapper.restart_clock() first)")
         return t
 
     def _grow(self, box: SceneBox | None) -> None:

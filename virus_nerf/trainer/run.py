@@ -266,8 +266,9 @@ def _fit(trainer, started=None):
 def keep_stopped_run(trainer, exc) -> None:
     """A run stopped by a signal (after its step in progress): OUT/map/ (map.pgm/.yaml/.png,
     prob.*, snapshot.json; small, written first), then checkpoint.pt (large), then one line saying
-    where they are and how to continue. No metrics.json: the run stays resumable (`train --resume` trains on and scores
-    it). What does not fit (a full disk) is named in one NotWrittenError instead (exit 2)."""
+    where they are and how to continue. No metrics.json: the run stays resumable (`train --resume`
+    trains on and scores it). What does not fit (a full disk) is named in one NotWrittenError
+    instead (exit 2)."""
     from virus_nerf.utils.io import Outputs
 
     out, mapper = trainer.run_dir, trainer.mapper
