@@ -107,7 +107,7 @@ def child(args: argparse.Namespace) -> None:
             rays = trainer.mapper.rays  # a step may take fewer rays than the batch
             d_rays = rays - last_rays
             points.append({
-                "checkpoint_s": cp, "wall_s": round(wall, 2), "steps": trainer.mapper.step,
+                ("checkpoint_steps" if by_steps else "checkpoint_s"): int(cp) if by_steps else cp, "wall_s": round(wall, 2), "steps": trainer.mapper.step,
                 "train_s": round(trainer.mapper.seconds, 2),
                 "steps_per_s": round(trainer.mapper.step / trainer.mapper.seconds, 3) if trainer.mapper.seconds else None,
                 "samples_per_s": round(trainer.mapper.samples / trainer.mapper.seconds) if trainer.mapper.seconds else None,
@@ -160,7 +160,7 @@ def seed_summary(per_seed: dict[int, dict], patch: str) -> dict:
     runs = list(per_seed.values())
     points = []
     for i, first in enumerate(runs[0]["points"]):
-        row = {"checkpoint_s": first["checkpoint_s"]}
+        row = {key: first[key] for key in ("checkpoint_s", "checkpoint_steps") if key in first}
         for key in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier", "wall_s", "steps", "steps_per_s"):
             vals = np.array([r["points"][i][key] for r in runs], dtype=float)
             row[key] = round(float(vals.mean()), 4)

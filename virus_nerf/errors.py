@@ -95,8 +95,10 @@ def one_line(text: object, limit: int = 400) -> str:
 
 
 def require_int(name: str, value: object, lo: int, hi: int | None = None) -> None:
-    """`value` of argument `name` must be an integer in [lo, hi]; else a one-line UsageError."""
-    ok = isinstance(value, int) and not isinstance(value, bool) and value >= lo and (hi is None or value <= hi)
+    """`value` of argument `name` must be an integer (numpy's too) in [lo, hi]; else a one-line UsageError."""
+    import numbers
+
+    ok = isinstance(value, numbers.Integral) and not isinstance(value, bool) and value >= lo and (hi is None or value <= hi)
     if not ok:
         expected = f"an integer >= {lo}" if hi is None else f"an integer in [{lo}, {hi}]"
         raise UsageError(f"{name} {value}: expected {expected}")

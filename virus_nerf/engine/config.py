@@ -89,7 +89,7 @@ class MapperConfig:
     # from the cameras' own tracks, docs/method.md 3.7) is on by default (docs/decisions.md D31)
     sensors: tuple[str, ...] = ("camera", "uss", "irs", "stereo")
     max_steps: int | None = None  # stop after this many steps (None: no step limit)
-    max_time: float | None = 120.0  # seconds of training, evaluation excluded (None: no limit)
+    max_time: float | None = 120.0  # seconds of training, evaluation excluded, checked after each step (None: no limit)
     batch_size: int = 2048  # rays per step (at most, with max_samples_per_step)
     # cap on a step's samples, like Instant-NGP's fixed sample budget per step. While rays are
     # long (the grid's warm-up, a large room, the first frames online) a step takes fewer rays,

@@ -8,7 +8,6 @@ A mixin so that the training engine and the queries read apart; it uses the mapp
 from __future__ import annotations
 
 import dataclasses
-import numbers
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from virus_nerf.errors import UsageError, require_number
+from virus_nerf.errors import UsageError, require_int, require_number
 from virus_nerf.grid.virus import VirusGrid
 from virus_nerf.maps.evidence import stereo_sight_lines
 from virus_nerf.maps.extract import (
@@ -55,7 +54,7 @@ class MapViews:
         """NeRF 360 deg horizontal scans (maps.scans.Scan2D, world x, y in metres) from each
         pose's position: poses (N, 4, 4) camera-to-world, (4, 4), or positions (N, 3)."""
         positions = _positions(poses)
-        _require_count("Mapper.scans n_rays", n_rays)
+        require_int("Mapper.scans n_rays", n_rays, 1)
         out = []
         self.field.eval()
         try:
@@ -103,8 +102,8 @@ class MapViews:
         `update_map`, which checks it) and what the map depends on: the training state (step and
         clock: a loaded state changes both), the frames, the box (and with it the shadow's depth,
         maps.extract.low_shadow_depth) and the stereo targets."""
-        _require_count("Mapper.map2d n_rays", n_rays)
-        _require_count("Mapper.map2d max_poses", max_poses)
+        require_int("Mapper.map2d n_rays", n_rays, 1)
+        require_int("Mapper.map2d max_poses", max_poses, 1)
         stereo = getattr(self, "stereo", None)
         return (self.step, self.seconds, self.frames, self.box, resolution, int(n_rays), int(max_poses),
                 id(stereo), None if stereo is None else (len(stereo.points), len(stereo)))
@@ -222,8 +221,3 @@ def _positions(poses) -> np.ndarray:
                          "poses or (N, 3) positions in metres")
     return p
 
-
-def _require_count(name: str, value: object) -> None:
-    """A whole number >= 1 (numpy's too), or the one-line UsageError naming it."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
-        raise UsageError(f"{name} {value!r}: expected a whole number >= 1")

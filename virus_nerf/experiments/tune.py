@@ -311,7 +311,8 @@ def tune(
     best = studies.best_trial(handle, obj)
     states = [t.state.name for t in handle.trials]
     counts = ", ".join(f"{states.count(s)} {s.lower()}" for s in sorted(set(states)))
-    print(f"study {study!r}: {len(states)} trial(s) ({counts}); table in {out / 'trials.csv'}")
+    print(f"study {study!r}: {len(states)} trial(s) ({counts}); table in {out / 'trials.csv'}" if states
+          else f"study {study!r}: no trials yet (run more with --trials N); empty table in {out / 'trials.csv'}")
     if best is not None:
         print(f"best: trial {best.number}, values {best.values}, params {best.params}")
     if export_config is not None:
