@@ -287,6 +287,15 @@ def test_user_poses_csv_drives_scans(trained_run, tmp_path):
         ply = read_ply(out / "scans" / f"scan_{k:04d}.ply")
         assert np.allclose(ply["z"], z, atol=1e-6)
     assert json.loads((out / "export.json").read_text())["poses"] == {"source": str(csv), "count": 2}
+    # the same poses in millimetres lie hundreds of metres outside the run's box: refused, not an
+    # export of empty scans
+    mm = tmp_path / "poses_mm.csv"
+    mm.write_text("time,x,y,z,qx,qy,qz,qw\n0.0,1.0,0.5,-0.1,0,0,0,1\n1.5,2000.0,0.0,100.0,0,0,0,1\n")
+    code, _, err = run_cli(["export", "--run", trained_run, "--out", tmp_path / "exp_mm", "--what", "scans",
+                            "--poses", mm])
+    assert code == 2 and err.count("\n") == 1, err
+    assert "poses_mm.csv, row 3, field 'x/y/z': camera at (2e+03, 0, 100) m lies outside the run's scene box" in err
+    assert "expected poses in the run's world frame, in metres" in err and not (tmp_path / "exp_mm").exists()
 
 
 @pytest.mark.parametrize(

@@ -138,7 +138,7 @@ def test_csv_and_tum_poses(tiny_office, tmp_path):
         assert code == 0, err
         _poses_close(ref, load_recording(tmp_path / f"d{i}", "office"))
     csvp.write_text("time,x,y,z,qx,qy,qz,qw\n1,0,0,0,0,0,0,2\n")
-    _fails([bag, "--out", tmp_path / "e", "--poses", "csv", "--poses-file", csvp], "poses.csv, row 2", "unit norm")
+    _fails([bag, "--out", tmp_path / "e", "--poses", "csv", "--poses-file", csvp], "poses.csv, row 2", "expected a unit quaternion")
 
 
 # ------------------------------------------------------------------------------- broken input

@@ -577,3 +577,72 @@ def test_a_camera_pose_that_jumps_is_refused_with_its_row(sample_copy):
     with pytest.raises(DataFormatError, match=r"poses_cam_balm_sync3.csv, row 4, field 'x': the camera jumps "
                                               r"\d+\.\d+ m in 0.208 s"):
         load_recording(sample_copy, "office")
+
+
+def test_timestamps_in_nanoseconds_are_refused_with_file_row_and_field(sample_copy, tmp_path):
+    """A recording whose tables hold nanoseconds (1.7e18) would load and score garbage (its
+    LiDAR scans, named in seconds, match no frame): refused as the Mapper refuses a frame's time."""
+    from virus_nerf.data.bags.odometry import csv_track
+
+    p = write(tmp_path, "poses.csv", POSE_HEADER + "1702374040,0,0,0,0,0,0,1\n1702374040500000000,0,0,0,0,0,0,1\n")
+    with pytest.raises(DataFormatError, match=r"poses.csv, row 3, field 'time': timestamp 1.7023740405e\+18 beyond "
+                                              r"1e\+11 s \(the year 5138\); expected seconds, not milli-, micro- or "
+                                              r"nanoseconds"):
+        read_poses(p)
+    uss = sample_copy / "office" / "measurements" / "USS1.csv"
+    lines = uss.read_text().splitlines()
+    t, rest = lines[1].split(",", 1)
+    lines[1] = f"{int(float(t) * 1e9)},{rest}"
+    uss.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataFormatError, match=r"USS1.csv, row 2, field 'time': timestamp .* expected seconds"):
+        load_recording(sample_copy, "office")
+    track = write(tmp_path, "track.txt", "# TUM\n1702374040000 0 0 0 0 0 0 1\n")
+    with pytest.raises(DataFormatError, match=r"track.txt, row 2, field 'time': timestamp 1702374040000.0 beyond"):
+        csv_track(track)
+
+
+def test_a_pose_track_names_the_field_that_is_wrong(tmp_path):
+    """--poses csv / a TUM file: a NaN names its field, a quaternion off unit norm says its norm."""
+    from virus_nerf.data.bags.odometry import csv_track
+
+    p = write(tmp_path, "p.csv", POSE_HEADER + "1,0,0,0,0,0,0,1\n2,0,nan,0,0,0,0,1\n")
+    with pytest.raises(DataFormatError, match=r"p.csv, row 3, field 'y': nan is not a finite number"):
+        csv_track(p)
+    p = write(tmp_path, "q.csv", POSE_HEADER + "1,0,0,0,0,0,0,1\n2,0,0,0,0,0,0,2\n")
+    with pytest.raises(DataFormatError, match=r"q.csv, row 3, field 'qx/qy/qz/qw': quaternion \(0.0, 0.0, 0.0, 2.0\) "
+                                              r"has norm 2; expected a unit quaternion"):
+        csv_track(p)
+    (tmp_path / "dir.csv").mkdir()
+    with pytest.raises(DataFormatError, match=r"dir.csv: is a directory; expected a pose file"):
+        csv_track(tmp_path / "dir.csv")
+
+
+def test_a_folder_where_a_table_should_be_is_named_as_a_folder(sample_copy):
+    uss = sample_copy / "office" / "measurements" / "USS1.csv"
+    uss.unlink()
+    uss.mkdir()
+    with pytest.raises(DataFormatError, match=r"USS1.csv: is a directory; expected a CSV file"):
+        load_recording(sample_copy, "office")
+
+
+def test_a_tof_table_in_metres_is_refused(tmp_path):
+    """Every target reading below 10 mm (no VL53L5CX reads under 20 mm) is a table in metres: its
+    zones would all read as invalid and training would go on without the IRS."""
+    header = "time," + ",".join(f"meas_{k}" for k in range(64)) + "\n"
+    metres = header + "".join(f"{t}," + ",".join(["1.523"] * 62 + ["0", "3.9"]) + "\n" for t in (1, 2))
+    with pytest.raises(DataFormatError, match=r"TOF1.csv: every reading is below 10 mm \(the largest 3.9\); expected "
+                                              r"millimetres \(the file holds metres\?\)"):
+        read_tof(write(tmp_path, "TOF1.csv", metres))
+    mm = header + "1," + ",".join(["0"] * 62 + ["25", "250"]) + "\n"  # targets at 25 and 250 mm: millimetres
+    assert np.nanmax(read_tof(write(tmp_path, "TOF3.csv", mm))[1]) == 0.25  # 25 mm is under the 0.1 m validity
+
+
+@pytest.mark.parametrize("name", ["1702374040.5.pcd", "scan_0.pcd"])
+def test_a_lidar_scan_not_named_by_its_time_in_nanoseconds_is_refused(sample_copy, name):
+    """lidars/filtered/<seconds>.<9 digits of nanoseconds>.pcd: "…​.5.pcd" would read as 5 ns and
+    "scan_0.pcd" would be left out, each scoring the LiDAR against the wrong scans or none."""
+    folder = sample_copy / "office" / "lidars" / "filtered"
+    first = sorted(folder.glob("*.pcd"))[0]
+    first.rename(folder / name)
+    with pytest.raises(DataFormatError, match=rf"{name}: LiDAR scan name: expected <seconds>.<nanoseconds, 9 digits>"):
+        load_recording(sample_copy, "office")

@@ -20,6 +20,8 @@ from virus_nerf.utils.textfile import (
     utf8_error,
 )
 
+MAX_TIME_S = 1e11  # seconds since 1970 reach 1e11 in the year 5138: a larger stamp is in ms, us or ns
+
 
 def read_csv_rows(path: str | Path, what: str = "file") -> list[list[str]]:
     """All rows of a CSV file as strings (row k of the list = spreadsheet row k + 1).
@@ -61,7 +63,7 @@ def read_numeric_csv(
     """
     path = Path(path)
     if not path.is_file():
-        raise DataFormatError(path, "file not found")
+        raise DataFormatError(path, "is a directory; expected a CSV file" if path.is_dir() else "file not found")
     all_rows = read_csv_rows(path)
     reader = iter(all_rows)
     try:
@@ -100,10 +102,15 @@ def read_numeric_csv(
 
 
 def check_sorted_times(path: Path, times: np.ndarray, field: str = "time") -> None:
-    """Timestamps must be finite and strictly increasing."""
+    """Timestamps must be finite seconds (not milli-, micro- or nanoseconds) and strictly increasing."""
     bad = np.flatnonzero(~np.isfinite(times))
     if bad.size:
         raise DataFormatError(path, "timestamp is not finite", row=int(bad[0]) + 2, field=field)
+    big = np.flatnonzero(np.abs(times) > MAX_TIME_S)
+    if big.size:
+        raise DataFormatError(path, f"timestamp {float(times[big[0]])!r} beyond {MAX_TIME_S:g} s (the year 5138); "
+                                    "expected seconds, not milli-, micro- or nanoseconds",
+                              row=int(big[0]) + 2, field=field)
     back = np.flatnonzero(np.diff(times) <= 0)
     if back.size:
         i = int(back[0]) + 1

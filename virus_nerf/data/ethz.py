@@ -266,6 +266,8 @@ def read_tof(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if far.size:
         i, k = (int(v) for v in far[0])
         raise DataFormatError(path, irs.implausible_problem(float(mm[i, k])), row=i + 2, field=f"meas_{k}")
+    if (problem := irs.metres_problem(mm)) is not None:
+        raise DataFormatError(path, problem)
     return table["time"], irs.grid_from_mm(mm)
 
 
@@ -434,10 +436,12 @@ def load_recording(
     lidar_dir = room_dir / "lidars" / "filtered"
     lidar_entries: list[tuple[float, Path]] = []
     if lidar_dir.is_dir():
-        for p in lidar_dir.iterdir():
-            m = re.fullmatch(r"(\d+)\.(\d+)\.pcd", p.name)
-            if m:
-                lidar_entries.append((int(m.group(1)) + int(m.group(2)) * 1e-9, p))
+        for p in lidar_dir.glob("*.pcd"):
+            m = re.fullmatch(r"(\d+)\.(\d{9})\.pcd", p.name)
+            if not m:  # "1700000000.5.pcd" would read as 5 ns: refused, not guessed
+                raise DataFormatError(p, "LiDAR scan name: expected <seconds>.<nanoseconds, 9 digits>.pcd "
+                                         "(e.g. 1702374040.067347336.pcd), the scan's time")
+            lidar_entries.append((int(m.group(1)) + int(m.group(2)) * 1e-9, p))
     lidar_entries.sort()
     maps = sorted((room_dir / "maps").glob("map*.pcd")) if (room_dir / "maps").is_dir() else []
     map_path = next((p for p in maps if p.name == "map_balm.pcd"), maps[0] if maps else None)

@@ -15,11 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from virus_nerf.data.csvtable import MAX_TIME_S
 from virus_nerf.errors import UsageError
 from virus_nerf.sensors.camera import Intrinsics, image_side_problem, intrinsics_problem
 from virus_nerf.sensors.irs import IRS_MAX_PLAUSIBLE_MM
 
-MAX_TIME_S = 1e11  # seconds since 1970 reach 1e11 in the year 5138: a larger stamp is in ms, us or ns
 MAX_RANGE_M = IRS_MAX_PLAUSIBLE_MM / 1000  # no USS, IRS or depth camera of a robot reads 100 m: millimetres
 
 
@@ -34,6 +34,26 @@ class SyncFrame:
     uss_range: float  # m, radial echo range of the ultrasonic sensor; NaN = no echo
     irs_range: np.ndarray  # (8, 8) m, IRS zone z-depths in image zone order (row 0 = image top); NaN = invalid
     depth: np.ndarray | None = None  # (H, W) m, aligned depth image (z-depth); NaN = invalid; None = none
+
+
+def _pose_problem(cam_to_world) -> str | None:
+    """What keeps `cam_to_world` from being a rigid transform, in a few words; None when it is one."""
+    try:
+        pose = np.asarray(cam_to_world, dtype=np.float64)
+    except (TypeError, ValueError):
+        return f"got a {type(cam_to_world).__name__} that is not an array of numbers"
+    if pose.shape != (4, 4):
+        return f"shape {pose.shape}"
+    if not np.isfinite(pose).all():
+        return "a value is not finite"
+    if not np.allclose(pose[3], (0, 0, 0, 1)):
+        return f"last row {pose[3].tolist()}"
+    rotation = pose[:3, :3]
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3):
+        return f"rotation not orthonormal (R R^T off the identity by up to {np.abs(rotation @ rotation.T - np.eye(3)).max():.3g})"
+    if not np.linalg.det(rotation) > 0:  # a mirror image (det -1) is not a pose
+        return "rotation with det -1 (a mirror image)"
+    return None
 
 
 def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
@@ -65,12 +85,9 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
             raise UsageError(f"SyncFrame.depth (stack {sid}): {np.asarray(frame.depth).dtype} values; expected "
                              "floating-point metres (NaN = invalid): a 16UC1 image in millimetres divided by 1000")
         _check_ranges(f"SyncFrame.depth (stack {sid})", np.asarray(frame.depth, dtype=np.float64), "z-depths")
-    pose = np.asarray(frame.cam_to_world, dtype=np.float64)
-    if pose.shape != (4, 4) or not np.isfinite(pose).all() or not np.allclose(pose[3], (0, 0, 0, 1)) \
-            or not np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-3) \
-            or not np.linalg.det(pose[:3, :3]) > 0:  # a mirror image (det -1) is not a pose
-        raise UsageError(f"SyncFrame.cam_to_world (stack {sid}, time {frame.time}): expected a finite (4, 4) "
-                         "rigid transform (rotation with det +1, translation in metres, last row 0 0 0 1)")
+    if (problem := _pose_problem(frame.cam_to_world)) is not None:
+        raise UsageError(f"SyncFrame.cam_to_world (stack {sid}, time {frame.time}): {problem}; expected a finite "
+                         "(4, 4) rigid transform (rotation with det +1, translation in metres, last row 0 0 0 1)")
     if np.shape(frame.irs_range) != (8, 8):
         raise UsageError(f"SyncFrame.irs_range (stack {sid}): shape {np.shape(frame.irs_range)}; expected (8, 8) "
                          "zone depths in metres in image zone order (NaN = invalid)")

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from virus_nerf.errors import UsageError
+from virus_nerf.errors import DataFormatError, UsageError
 
 KINDS = ("map", "prob", "grid3d", "esdf", "scans", "cloud", "images")
 DEFAULT_KINDS = ("map", "prob", "grid3d", "esdf", "scans")  # cloud and images render many camera rays
@@ -19,6 +19,9 @@ NEEDS_VIRUS = ("prob", "grid3d")  # read the Bayesian grid's probabilities
 # keeps the counts its safety was measured at (D75)
 SCAN_RAYS = 720
 SCAN_POSES = 60
+# --poses positions may lie this far (m) outside the run's scene box (a camera at its edge, a pose
+# file's rounding); farther is another frame or unit
+POSE_BOX_SLACK_M = 1.0
 
 
 def parse_what(what: str | None, grid: str) -> tuple[str, ...]:
@@ -96,9 +99,24 @@ def export(
     # not while a `train` works in the run (its checkpoint would be a moment of a moving run)
     with RunLock(Path(run), "--run"), new_output_dir(out) as tmp:  # OUT made (and checked writable) first
         trainer, cfg, _ = load_trained(run, "--run", poses="odometry" if cfg.odometry_poses else "optimised")
+        if pose_set is not None:
+            _check_poses_in_box(Path(poses), pose_set, trainer.mapper.box)
         written = _export_all(trainer, cfg, tmp, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,
                               image_scale if image_scale is not None else cfg.image_scale)
     print(f"wrote {out}/: " + ", ".join(written))
+
+
+def _check_poses_in_box(path: Path, pose_set, box) -> None:
+    """--poses positions lie in the run's scene box (give or take POSE_BOX_SLACK_M): one far outside
+    is in another frame or unit (millimetres), whose scans would be empty."""
+    lo, hi = np.asarray(box.lo, float), np.asarray(box.hi, float)
+    xyz = pose_set.cam_to_world[:, :3, 3]
+    outside = np.flatnonzero(((xyz < lo - POSE_BOX_SLACK_M) | (xyz > hi + POSE_BOX_SLACK_M)).any(axis=1))
+    if outside.size:
+        i = int(outside[0])
+        raise DataFormatError(path, f"camera at ({', '.join(f'{v:.3g}' for v in xyz[i])}) m lies outside the run's "
+                                    f"scene box {np.round(lo, 2).tolist()}..{np.round(hi, 2).tolist()} m; expected "
+                                    "poses in the run's world frame, in metres", row=i + 2, field="x/y/z")
 
 
 def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,

@@ -31,6 +31,18 @@ def implausible_zones(meas_mm: np.ndarray) -> np.ndarray:
     return np.argwhere(np.abs(np.asarray(meas_mm)) > IRS_MAX_PLAUSIBLE_MM)
 
 
+def metres_problem(meas_mm: np.ndarray) -> str | None:
+    """The refusal of readings that look like metres: every target reading (finite, above 0, the
+    sensor's "no target") below 10 mm, which no VL53L5CX measures (its range starts at 20 mm);
+    None where they read as millimetres."""
+    mm = np.asarray(meas_mm, dtype=np.float64)
+    targets = mm[np.isfinite(mm) & (mm > 0)]
+    if not targets.size or targets.max() >= 10.0:
+        return None
+    return (f"every reading is below 10 mm (the largest {targets.max():g}); expected millimetres "
+            "(the file holds metres?)")
+
+
 def implausible_problem(value_mm: float) -> str:
     """The refusal of a reading beyond IRS_MAX_PLAUSIBLE_MM, in one wording for files and messages."""
     return (f"{value_mm:g} mm ({value_mm / 1000:g} m) is beyond any IRS reading (> {IRS_MAX_PLAUSIBLE_MM} mm "

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from virus_nerf.data.csvtable import MAX_TIME_S
 from virus_nerf.errors import DataFormatError
 from virus_nerf.sensors.geometry import pose_matrix
 
@@ -175,7 +176,8 @@ def csv_track(path: str | Path) -> PoseTrack:
     (`t x y z qx qy qz qw` separated by spaces, `#` comments)."""
     path = Path(path)
     if not path.is_file():
-        raise DataFormatError(path, "pose file not found (--poses-file)")
+        raise DataFormatError(path, "is a directory; expected a pose file (--poses-file)" if path.is_dir()
+                              else "pose file not found (--poses-file)")
     rows: list[tuple[int, list[str]]] = []
     with path.open(newline="") as fh:
         for n, line in enumerate(fh, start=1):
@@ -198,10 +200,16 @@ def csv_track(path: str | Path) -> PoseTrack:
             values[i] = [float(p) for p in parts]
         except ValueError:
             raise DataFormatError(path, f"values {parts} are not all numbers", row=n) from None
+    names = ("time", "x", "y", "z", "qx", "qy", "qz", "qw")
+    for i, j in zip(*np.nonzero(~np.isfinite(values)), strict=True):
+        raise DataFormatError(path, f"{values[i, j]} is not a finite number", row=rows[int(i)][0], field=names[j])
     norms = np.linalg.norm(values[:, 4:], axis=1)
-    bad = np.flatnonzero(~np.isfinite(values).all(axis=1) | (np.abs(norms - 1.0) > 1e-3))
-    if bad.size:
-        raise DataFormatError(path, "pose not finite or quaternion not of unit norm", row=rows[int(bad[0])][0])
+    for i in np.flatnonzero(np.abs(norms - 1.0) > 1e-3):
+        raise DataFormatError(path, f"quaternion {tuple(float(q) for q in values[i, 4:])} has norm {norms[i]:.6g}; "
+                                    "expected a unit quaternion", row=rows[int(i)][0], field="qx/qy/qz/qw")
+    for i in np.flatnonzero(np.abs(values[:, 0]) > MAX_TIME_S):
+        raise DataFormatError(path, f"timestamp {float(values[i, 0])!r} beyond {MAX_TIME_S:g} s; expected seconds, not "
+                                    "milli-, micro- or nanoseconds", row=rows[int(i)][0], field="time")
     if np.any(np.diff(values[:, 0]) <= 0):
         k = int(np.flatnonzero(np.diff(values[:, 0]) <= 0)[0]) + 1
         raise DataFormatError(path, "times must increase", row=rows[k][0], field="time")
