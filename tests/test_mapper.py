@@ -145,7 +145,8 @@ def test_bad_frames_and_arguments_give_one_line_errors(tmp_path):
         (dict(rgb=np.zeros((24, 32, 3), np.float32)), r"got a float32 array"),
         (dict(stack_id=2), r"SyncFrame.stack_id 2: unknown stack; expected one of \[1, 3\]"),
         (dict(irs_range=np.zeros(64)), r"SyncFrame.irs_range \(stack 1\): shape \(64,\); expected \(8, 8\)"),
-        (dict(cam_to_world=np.eye(4) * 2), r"SyncFrame.cam_to_world .*expected a finite \(4, 4\) rigid transform"),
+        (dict(cam_to_world=np.eye(4) * 2), r"SyncFrame.cam_to_world .*: last row \[0.0, 0.0, 0.0, 2.0\]; expected a "
+                                            r"finite \(4, 4\) rigid transform"),
         (dict(uss_range=-1.0), r"SyncFrame.uss_range \(stack 1\) -1.0: expected a range >= 0 m or NaN"),
         (dict(depth=np.zeros((3, 3))), r"SyncFrame.depth \(stack 1\): shape \(3, 3\); expected \(24, 32\)"),
         (dict(time=float("nan")), r"SyncFrame.time nan: expected a finite number"),
@@ -642,7 +643,7 @@ def test_mapper_api_bad_input_round_two():
     mirror = _frame()
     pose = mirror.cam_to_world.copy()
     pose[:3, 0] *= -1  # det -1: orthonormal, but a reflection
-    with pytest.raises(UsageError, match=r"cam_to_world .*det \+1"):
+    with pytest.raises(UsageError, match=r"cam_to_world .*: rotation with det -1 \(a mirror image\); .*det \+1"):
         mapper.add_frame(dataclasses.replace(mirror, cam_to_world=pose))
     depth = np.full((INTR.height, INTR.width), 2.0)
     depth[3, 4] = -2.0
@@ -775,3 +776,124 @@ def test_the_mappers_shadow_is_half_a_metre_in_a_small_fitted_room_and_a_metre_i
             mapper.add_frame(_frame(float(t)))
         mapper.update_map(0.1, n_rays=32, max_poses=4)
     assert asked == [0.5, 1.0]
+
+
+def test_a_refused_state_leaves_the_mapper_as_it_was():
+    """A damaged, edited or foreign state is refused whole, with the key that is wrong, before
+    `load_state` touches the mapper: its field, grid and step stay, and it goes on training."""
+    from virus_nerf.engine.config import MapperConfig
+
+    mapper = _mapper()
+    mapper.add_frame(_frame(0.0))
+    mapper.train(60.0, steps=1)
+    good = mapper.state()
+
+    def field_now():
+        return {k: v.clone() for k, v in mapper.field.state_dict().items()}
+
+    before, grid_before = field_now(), mapper.grid.state_dict()["logodds"].clone()
+    broken_grid = {**good, "grid": {k: v for k, v in good["grid"].items() if k != "logodds"}, "step": 7}
+    no_rng = {k: v for k, v in good.items() if k != "numpy_rng"}
+    other_box = {**good, "box": {"lo": [-4.0, -3.0, -1.0], "hi": [3.0, 3.0, 2.0]}}
+    ngp = Mapper(dataclasses.replace(tiny_train_config(), grid="ngp"), {1: INTR, 3: INTR}, BOX)
+    bad_field = {**good, "field": {**good["field"], next(iter(good["field"])): torch.zeros(3)}}
+    bad_rng = {**good, "torch_generator": torch.zeros(3)}
+    for state, message in ((broken_grid, r"state\['grid'\]: lacks tensor\(s\) \['logodds'\]"),
+                           (no_rng, r"state\['state'\]: lacks \['numpy_rng'\]"),
+                           (other_box, r"state\['box'\]: lo=\[-4.0, .* does not match this mapper's lo=\[-3.0"),
+                           (ngp.state(), r"state\['grid'\]: lacks tensor\(s\) \['logodds'"),
+                           (bad_field, r"state\['field\..*'\]: tensor of shape \(3,\)"),
+                           (bad_rng, r"state\['torch_generator'\]: not a torch CPU generator state"),
+                           ({"weights": 1}, r"state\['state'\]: lacks \['field'"),
+                           ([1, 2], r"state\['state'\]: expected the dict of Mapper.state\(\), got a list")):
+        with pytest.raises(UsageError, match=r"^Mapper.load_state " + message):
+            mapper.load_state(state)
+        after = field_now()
+        assert mapper.step == 1 and all(torch.equal(before[k], after[k]) for k in before)
+        assert torch.equal(mapper.grid.state_dict()["logodds"], grid_before)
+    mapper.train(60.0, steps=1)  # still trains
+    assert mapper.step == 2
+    assert isinstance(MapperConfig(), MapperConfig)
+
+
+def test_numpy_numbers_are_numbers_and_a_pose_far_outside_a_fitted_box_is_refused():
+    """Robot code hands numpy scalars in (np.float32 from a message, np.int64 from an array): the
+    Mapper takes them as the Python numbers they are. A camera far outside a fitted box is a pose
+    in another unit or frame (millimetres: hundreds of metres away), refused as in grow mode; one
+    just outside the box (within extent.FITTED_SLACK_M) is not."""
+    from virus_nerf.engine.extent import FITTED_SLACK_M
+
+    mapper = _mapper()
+    mapper.add_frame(_frame(0.0))
+    assert mapper.train(np.float32(60.0), steps=np.int64(1)).steps == 1
+    assert mapper.map2d(resolution=np.float32(0.25), n_rays=np.int64(16), max_poses=np.int32(2)).resolution == 0.25
+    assert mapper.probability_map(np.float64(0.25), band=np.float32(0.1)).resolution == 0.25
+    far = _frame(1.0)
+    far.cam_to_world[:3, 3] = (362.0, -151.6, -150.1)  # the rig's camera offset in millimetres / 1000 wrong way
+    with pytest.raises(UsageError, match=r"frame at time 1.000 s: camera at \(362.00, -151.60, -150.10\) m lies "
+                                         r"outside the Mapper's box \[-3.0, -3.0, -1.0\]..\[3.0, 3.0, 2.0\] m"):
+        mapper.add_frame(far)
+    near = _frame(2.0)
+    near.cam_to_world[:3, 3] = (3.0 + FITTED_SLACK_M - 0.1, 0.0, 0.5)
+    mapper.add_frame(near)
+    assert mapper.frames == 2
+
+
+@pytest.mark.slow
+def test_threads_may_add_frames_while_another_trains_and_reads_the_map():
+    """A sensor callback adds frames on its thread while a timer's thread trains and reads the
+    map (rospy, an rclpy MultiThreadedExecutor): the calls take turns, none sees a half-added
+    frame, and every frame is in. (Without the turns, about one run in five read the store's arrays
+    at different lengths: an IndexError in the map's track_free.)"""
+    import threading
+
+    mapper = _mapper()
+    mapper.add_frame(_frame(0.0))
+    errors: list[BaseException] = []
+    done = threading.Event()
+
+    def feed():
+        try:
+            for k in range(1, 301):
+                mapper.add_frame(_frame(0.01 * k))
+        except BaseException as exc:  # noqa: BLE001 - reported by the test
+            errors.append(exc)
+        finally:
+            done.set()
+
+    thread = threading.Thread(target=feed)
+    thread.start()
+    rounds = 0
+    while not done.is_set() or rounds < 2:
+        mapper.train(60.0, steps=1)
+        mapper.map2d(resolution=0.25, n_rays=16, max_poses=30)
+        mapper.observed(0.25)
+        rounds += 1
+    thread.join()
+    assert not errors and mapper.frames == 301
+    assert np.array_equal(mapper.store.times, 0.01 * np.arange(301))
+
+
+def test_a_growing_mapper_starts_around_its_first_camera_and_sections_may_be_dicts(tmp_path):
+    """`Mapper.growing` puts the first box around the first camera (grid/extent.py first_box, by
+    hand: +-margin_m 0.1 m in x, y rounded up to whole 0.11 m cells, +-height_m 1.5 m in z: 2 and
+    28 cells); a config section given as a dict keeps the defaults of the keys it lacks and names
+    a mistyped one; a snapshot into an existing folder says which folder."""
+    from virus_nerf.engine.config import MapperConfig
+
+    config = MapperConfig(extent={"mode": "grow"}, max_steps=10, max_time=None)
+    assert config.extent.mode == "grow" and config.extent.grid_cell_m == 0.11
+    with pytest.raises(ValueError, match=r"extent \{'mdoe': 'grow'\}: unknown key\(s\) \['mdoe'\]; expected keys of "
+                                         r"ExtentConfig: \['mode', "):
+        MapperConfig(extent={"mdoe": "grow"})
+    with pytest.raises(ValueError, match=r"extent 3: expected ExtentConfig or a dict of its keys"):
+        MapperConfig(extent=3)
+    mapper = Mapper.growing(MapperConfig(), {1: INTR, 3: INTR}, np.array([10.0, 5.0, 0.5]))
+    assert mapper.config.extent.mode == "grow"
+    np.testing.assert_allclose(mapper.box.lo, (10.0 - 0.11, 5.0 - 0.11, 0.5 - 14 * 0.11), atol=1e-12)
+    np.testing.assert_allclose(mapper.box.hi, (10.0 + 0.11, 5.0 + 0.11, 0.5 + 14 * 0.11), atol=1e-12)
+    with pytest.raises(UsageError, match=r"Mapper.growing first_position of shape \(2,\)"):
+        Mapper.growing(MapperConfig(), {1: INTR}, [1.0, 2.0])
+    (tmp_path / "snap").mkdir()
+    with pytest.raises(OutputExistsError, match=r"snap: output folder already exists; choose a new snapshot folder"):
+        _mapper().snapshot(tmp_path / "snap")

@@ -138,7 +138,7 @@ DAMAGES = [
     ("bad-run-json", "run.json, field 'data': expected a non-empty string"),
     ("bad-config", "config.json, key 'batch_size': expected an integer, got string"),
     # Adam is built at the first step, but its saved state is checked when the checkpoint is read
-    ("damaged-optimizer", "checkpoint.pt: does not fit this run's model (ValueError: optimizer: parameter 0's exp_avg"),
+    ("damaged-optimizer", "checkpoint.pt, field 'optimizer': parameter 0's exp_avg does not fit the field"),
 ]
 
 

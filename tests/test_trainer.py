@@ -337,7 +337,7 @@ def test_checkpoint_of_another_scene_box_is_refused(tiny_office, tmp_path):
     torch.save(state, tmp_path / "moved.pt")
     b = Trainer(rec, small_config(max_steps=2), tmp_path, quiet=True)
     b.load_checkpoint(tmp_path / "checkpoint.pt")  # the same box loads
-    with pytest.raises(ValueError, match="scene box .* does not match") as exc:
+    with pytest.raises(ValueError, match=r"field 'box': lo=.* does not match this mapper's lo=.*\(was the recording or its map changed\?\)") as exc:
         b.load_checkpoint(tmp_path / "moved.pt")
     assert "np.float64" not in str(exc.value), "the boxes are printed as plain numbers"
 

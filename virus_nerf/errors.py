@@ -107,8 +107,9 @@ def require_int(name: str, value: object, lo: int, hi: int | None = None) -> Non
 def require_number(name: str, value: object, lo: float, hi: float | None = None, *, lo_open: bool = True) -> None:
     """`value` of argument `name` must be a finite number above lo (or at least lo) and <= hi."""
     import math
+    import numbers
 
-    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
     ok = ok and (value > lo if lo_open else value >= lo) and (hi is None or value <= hi)  # type: ignore[operator]
     if not ok:
         kind = "a finite number" if isinstance(value, float) and not math.isfinite(value) else "a number"

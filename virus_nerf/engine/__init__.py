@@ -8,8 +8,9 @@ model: `SceneModel` (field + occupancy grid + marcher), the grid and device it r
 schedule: how long and how wide a step is, offline or while driving, and the learning-rate
   horizon (`Schedules`, handed to the Mapper by its caller)
 views: the map queries mixed into `Mapper` (scans, 2D maps, snapshots)
+state: what a `Mapper.state()` must hold, checked before `load_state` touches the mapper
 memory: what a training step needs, checked before any work (`check_batch_memory`)
 """
 
 # its public modules; none is imported here, so `import virus_nerf.engine` loads nothing else
-__all__ = ["config", "extent", "mapper", "memory", "model", "schedule", "views"]
+__all__ = ["config", "extent", "mapper", "memory", "model", "schedule", "state", "views"]

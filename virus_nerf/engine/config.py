@@ -123,6 +123,7 @@ class MapperConfig:
         step); a bad value is a ValueError naming the field, the value and what was expected."""
         check = Checks(self)
         integer, number, flag, bad = check.integer, check.number, check.flag, check.bad
+        self._build_sections(bad)
         if isinstance(self.sensors, str):
             self.sensors = tuple(s.strip() for s in self.sensors.split(",") if s.strip())
         allowed = set(SENSORS)
@@ -190,6 +191,29 @@ class MapperConfig:
         for name in ("free_uss", "free_margin", "free_stereo", "free_stereo_room_m"):
             number(f"weights.{name}", 0.0, lo_open=False)
         number("weights.free_stereo_short", 0.0, 1.0, lo_open=False, hi_open=True)
+
+    def _build_sections(self, bad) -> None:
+        """A section given as a dict (`MapperConfig(extent={"mode": "grow"})`, as a config file
+        writes it) is built with the section's defaults for the keys it lacks; anything else but
+        the section's own class is refused, naming it."""
+        import dataclasses
+        from collections.abc import Mapping
+
+        for f in dataclasses.fields(MapperConfig):
+            if f.default_factory is dataclasses.MISSING:
+                continue
+            kind = type(f.default_factory())
+            value = getattr(self, f.name)
+            if not dataclasses.is_dataclass(kind) or isinstance(value, kind):
+                continue
+            if not isinstance(value, Mapping):
+                raise bad(f.name, value, f"{kind.__name__} or a dict of its keys")
+            known = [g.name for g in dataclasses.fields(kind)]
+            unknown = sorted(set(value) - set(known))
+            if unknown:
+                raise ValueError(f"{f.name} {dict(value)!r}: unknown key(s) {unknown}; expected keys of "
+                                 f"{kind.__name__}: {known}")
+            setattr(self, f.name, kind(**value))
 
     def engine(self) -> MapperConfig:
         """This config's engine knobs alone (a `TrainConfig` drops its run knobs; the sections

@@ -29,6 +29,10 @@ from virus_nerf.sampler.frames import FrameStore
 from virus_nerf.sampler.sensor_rays import irs_zone_rays
 from virus_nerf.scene_box import SceneBox
 
+# a fitted box's camera may stand this far (m) outside it (the box of a floor plan drawn to the
+# walls, a camera on the threshold); farther is a pose in another frame or unit
+FITTED_SLACK_M = 1.0
+
 
 class MapExtent:
     """A mapper's bounds: `fitted` (the given box for the mapper's life) or `grow` (the box
@@ -56,9 +60,18 @@ class MapExtent:
         return GridSpec.from_cell(self.box, self.config.grid_cell_m) if self.growing else None
 
     def check_inside(self, positions: np.ndarray, times: np.ndarray) -> None:
-        """Growing: a camera position (K, 3) outside the frame cube is a one-line UsageError
+        """A camera position (K, 3) outside the frame cube (growing) or more than FITTED_SLACK_M
+        outside the box (fitted: a pose in millimetres or another frame) is a one-line UsageError
         naming the frame's time."""
         if not self.growing:
+            lo, hi = np.asarray(self.box.lo, float), np.asarray(self.box.hi, float)
+            for p, t in zip(positions, times, strict=True):
+                if ((p < lo - FITTED_SLACK_M) | (p > hi + FITTED_SLACK_M)).any():
+                    raise UsageError(
+                        f"frame at time {float(t):.3f} s: camera at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m lies outside "
+                        f"the Mapper's box {np.round(lo, 2).tolist()}..{np.round(hi, 2).tolist()} m (extent.mode "
+                        "fitted); expected a pose in metres, in the box's frame (extent.mode grow maps a drive "
+                        "of any size)")
             return
         for p, t in zip(positions, times, strict=True):
             if not inside_frame(p, self.frame):

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -43,10 +44,17 @@ from virus_nerf.engine.config import MapperConfig
 from virus_nerf.engine.extent import MapExtent
 from virus_nerf.engine.model import SceneModel, build_grid, resolve_device, start_box
 from virus_nerf.engine.schedule import Schedules, StepSchedule
-from virus_nerf.engine.views import MapViews
+from virus_nerf.engine.state import (
+    STATE_KEYS,
+    counters_problem,
+    generators_problem,
+    tensors_problem,
+)
+from virus_nerf.engine.views import MapViews, serialised
 from virus_nerf.errors import UsageError
 from virus_nerf.field.field import NerfField
 from virus_nerf.grid.base import GridUpdateBatch
+from virus_nerf.grid.extent import first_box
 from virus_nerf.losses import LossTerms, distortion_loss, line_of_sight_terms, total_loss
 from virus_nerf.maps.observed import frames_observed
 from virus_nerf.render.marching import ray_box_interval
@@ -88,6 +96,7 @@ class Mapper(MapViews):
 
     def __init__(self, config: MapperConfig, intrinsics: Mapping[int, Intrinsics], box: SceneBox,
                  schedules: Schedules | None = None):
+        self._calls = threading.RLock()  # one call at a time, from any thread (views.serialised)
         if not intrinsics:
             raise UsageError("Mapper intrinsics {}: expected at least one stack id -> Intrinsics")
         check_intrinsics(intrinsics)
@@ -154,6 +163,20 @@ class Mapper(MapViews):
         return cls(config, {s: st.intrinsics for s, st in recording.stacks.items()}, start_box(recording, config),
                    schedules)
 
+    @classmethod
+    def growing(cls, config: MapperConfig, intrinsics: Mapping[int, Intrinsics], first_position,
+                schedules: Schedules | None = None) -> Mapper:
+        """A mapper for a room never seen: the map starts around a camera at `first_position`
+        ((3,) m, the first frame's cam_to_world[:3, 3]) and grows as the robot drives
+        (`extent.mode` grow, set here; grid/extent.py first_box, docs/extent.md)."""
+        p = np.asarray(first_position, dtype=np.float64)
+        if p.shape not in ((3,), (1, 3)) or not np.isfinite(p).all():
+            raise UsageError(f"Mapper.growing first_position of shape {p.shape}: expected a finite (3,) camera "
+                             "position in metres")
+        if config.extent.mode != "grow":
+            config = dataclasses.replace(config, extent=dataclasses.replace(config.extent, mode="grow"))
+        return cls(config, intrinsics, first_box(p.reshape(3), config.extent, config.sensors), schedules)
+
     # ------------------------------------------------------------------ frames
     @property
     def sampler(self) -> BatchSampler:
@@ -172,12 +195,14 @@ class Mapper(MapViews):
     def frames(self) -> int:
         return len(self.store)
 
+    @serialised
     def spill_frames(self, folder: Path, above_bytes: int = SPILL_ABOVE_BYTES) -> None:
         """Keep the growing store's images beyond `above_bytes` in a file under `folder` (a disk,
         not a tmpfs) instead of RAM: mapping while driving for an hour stays within memory
         (sampler.frames.FrameStore.spill_to)."""
         self.store.spill_to(folder, above_bytes)
 
+    @serialised
     def add_frame(self, frame: SyncFrame) -> int:
         """Add one synchronised frame (checked: stack, image shapes, pose, ranges, and its time after
         the stack's previous frame: the newest frames' share of each batch and the stereo tracker
@@ -197,6 +222,7 @@ class Mapper(MapViews):
         self.track_image(row, frame.rgb)
         return row
 
+    @serialised
     def restart_clock(self) -> None:
         """The robot's clock restarted (a bag played again, a clock reset): the next frames may be
         stamped before those already added. Their times then continue after the newest frame's
@@ -224,6 +250,7 @@ class Mapper(MapViews):
         if box is not None:
             self.grid.grow(box)
 
+    @serialised
     def track_image(self, row: int, rgb: np.ndarray) -> None:
         """Feed frame `row`'s full-resolution image (H, W, 3) uint8 to the stereo sensor's tracker
         (frames in time order; nothing without the `stereo` sensor); new targets as tracks end."""
@@ -237,6 +264,7 @@ class Mapper(MapViews):
         if depth is not None:
             self.set_stereo(depth)
 
+    @serialised
     def add_store(self, store: FrameStore, rows: np.ndarray | None = None,
                   images: Callable[[int], np.ndarray] | None = None) -> None:
         """Add frames already decoded at training resolution: `rows` of `store` in that order, or
@@ -258,6 +286,7 @@ class Mapper(MapViews):
             for row, src in enumerate(picked, start=first):
                 self.track_image(row, images(int(src)))
 
+    @serialised
     def set_stereo(self, depth: StereoDepth | None) -> None:
         """Triangulated depth targets (stereo.StereoDepth) for the frames added so far, rows in
         the mapper's store order; used by the `stereo` sensor's share of each batch. With sensed
@@ -286,6 +315,7 @@ class Mapper(MapViews):
         self._prior_done = n
 
     # ------------------------------------------------------------------ training
+    @serialised
     def prepare(self) -> None:
         """Start-up before the first step: the prior of the frames present, kernels loaded."""
         if self.frames == 0:
@@ -348,6 +378,7 @@ class Mapper(MapViews):
         """Share of the learning-rate horizon (`schedules.horizon`) used: drives the lr decay."""
         return self.schedules.horizon.share(self.step, self.seconds)
 
+    @serialised
     def train_step(self, progress: float | None = None) -> LossTerms:
         """The one training step, on the training clock: every frame added so far (the prior of
         new frames first); `progress` in [0, 1] of the budget sets the learning rate (the
@@ -490,10 +521,10 @@ class Mapper(MapViews):
     def train(self, seconds: float, steps: int | None = None) -> TrainSlice:
         """Train on the frames added so far for `seconds` of training clock (and at most `steps`
         steps); the one-off start-up of the first call (kernel loading) is not counted."""
-        if isinstance(seconds, bool) or not isinstance(seconds, int | float) or not math.isfinite(seconds) \
+        if isinstance(seconds, bool) or not isinstance(seconds, numbers.Real) or not math.isfinite(seconds) \
                 or seconds < 0:
             raise UsageError(f"Mapper.train seconds {seconds!r}: expected a finite number >= 0")
-        if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 0):
+        if steps is not None and (isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 0):
             raise UsageError(f"Mapper.train steps {steps!r}: expected an integer >= 0 or None")
         self.prepare()
         step0, clock0 = self.step, self.seconds
@@ -504,6 +535,7 @@ class Mapper(MapViews):
                           total_steps=self.step, total_seconds=self.seconds)
 
     # ------------------------------------------------------------------ state
+    @serialised
     def state(self) -> dict:
         """Everything to continue training (not the frames): the live tensors, so write it out
         (torch.save) before training on."""
@@ -531,9 +563,43 @@ class Mapper(MapViews):
         pending = self._optimizer_state  # read once: another thread may build Adam meanwhile
         return pending if pending is not None else self.optimizer.state_dict()
 
+    def state_problem(self, state: dict) -> tuple[str, str] | None:
+        """(key, what is wrong) of a state this mapper cannot continue from, checked whole before
+        `load_state` touches anything; None when it can (engine/state.py)."""
+        if not isinstance(state, Mapping):
+            return "state", f"expected the dict of Mapper.state(), got a {type(state).__name__}"
+        missing = [k for k in STATE_KEYS if k not in state]
+        if missing:
+            return "state", f"lacks {missing}; expected the dict of Mapper.state()"
+        problem = counters_problem(state) or tensors_problem("field", state["field"], self.field.state_dict())
+        if problem:
+            return problem
+        try:
+            self._check_optimizer_state(state["optimizer"])
+        except ValueError as exc:
+            return "optimizer", str(exc).removeprefix("optimizer: ")
+        if "box" in state:
+            try:
+                saved = SceneBox.from_dict(state["box"])
+            except (TypeError, ValueError, KeyError) as exc:
+                return "box", f"expected {{'lo': [x, y, z], 'hi': [x, y, z]}} in metres ({type(exc).__name__}: {exc})"
+            box = self.box
+            if not self.extent.growing and not (np.allclose(saved.lo, box.lo, atol=1e-6)
+                                                and np.allclose(saved.hi, box.hi, atol=1e-6)):
+                return "box", (f"lo={list(saved.lo)} hi={list(saved.hi)} does not match this mapper's lo={list(box.lo)} "
+                               f"hi={list(box.hi)}; the field would be read in another frame")
+        own_grid = {k: v for k, v in self.grid.state_dict().items() if k not in self.grid.optional_state_keys}
+        return tensors_problem("grid", state["grid"], own_grid, shapes=not self.extent.growing) \
+            or generators_problem(state)
+
+    @serialised
     def load_state(self, state: dict) -> None:
         """Continue from `state()` (read on the CPU). The frames are not in it: add them again in
-        the same order; the first `prior_frames` of them do not get the sensor prior again."""
+        the same order; the first `prior_frames` of them do not get the sensor prior again. A state
+        this mapper cannot continue from is a one-line UsageError naming the key, the mapper unchanged."""
+        problem = self.state_problem(state)
+        if problem is not None:
+            raise UsageError(f"Mapper.load_state state[{problem[0]!r}]: {problem[1]}")
         if "box" in state:  # a grown box: the grid grows to it first
             self._grow(self.extent.restore(SceneBox.from_dict(state["box"])))
         self.field.load_state_dict(state["field"])

@@ -7,7 +7,9 @@ A mixin so that the training engine and the queries read apart; it uses the mapp
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from virus_nerf.errors import UsageError, require_int, require_number
+from virus_nerf.errors import OutputExistsError, UsageError, require_int, require_number
 from virus_nerf.grid.virus import VirusGrid
 from virus_nerf.maps.evidence import stereo_sight_lines
 from virus_nerf.maps.extract import (
@@ -47,9 +49,26 @@ class SnapshotInfo:
     observed: float = 0.0  # share of the map's pixels some sensor looked at (maps/observed.py)
 
 
+def serialised(method):
+    """One call into the mapper at a time: its methods may be called from several threads (a
+    sensor callback adds frames while a timer trains and reads the map); a call waits for the one
+    in progress (`Mapper.train` lets others in between its steps). Needs the mapper's `_calls`
+    re-entrant lock."""
+
+    @functools.wraps(method)
+    def call(self, *args, **kwargs):
+        with self._calls:
+            return method(self, *args, **kwargs)
+
+    return call
+
+
 class MapViews:
     """Queries of the current map (mixed into `Mapper`)."""
 
+    _calls = contextlib.nullcontext()  # the Mapper's lock (`serialised`); none for a bare MapViews
+
+    @serialised
     def scans(self, poses: np.ndarray, n_rays: int = 512) -> list:
         """NeRF 360 deg horizontal scans (maps.scans.Scan2D, world x, y in metres) from each
         pose's position: poses (N, 4, 4) camera-to-world, (4, 4), or positions (N, 3)."""
@@ -65,6 +84,7 @@ class MapViews:
             self.field.train()
         return out
 
+    @serialised
     def map2d(self, resolution: float = 0.05, n_rays: int = MAP_RAYS, max_poses: int = MAP_POSES):
         """The current 2D occupancy map (maps.occupancy.OccupancyMap2D, trinary, over the box's
         x, y): NeRF scans from up to `max_poses` camera positions of the frames added so far
@@ -80,6 +100,7 @@ class MapViews:
             return self.update_map(resolution, n_rays, max_poses)
         return dataclasses.replace(cached[1], image=cached[1].image.copy())
 
+    @serialised
     def update_map(self, resolution: float = 0.05, n_rays: int = MAP_RAYS, max_poses: int = MAP_POSES):
         """Render the 2D map (`map2d`) from the current state now, and keep it for the queries
         that follow (a snapshot, the live view, the safety figure)."""
@@ -108,6 +129,7 @@ class MapViews:
         return (self.step, self.seconds, self.frames, self.box, resolution, int(n_rays), int(max_poses),
                 id(stereo), None if stereo is None else (len(stereo.points), len(stereo)))
 
+    @serialised
     def range_evidence(self) -> RangeEvidence:
         """What the frames' IRS, USS and stereo measured at camera height (maps/planner.py), for
         the sensors the mapper trains with. Kept while the frames (the store only grows), the
@@ -150,6 +172,7 @@ class MapViews:
         check_raster(what, lo, hi, resolution)
         return lo, hi
 
+    @serialised
     def observed(self, resolution: float = 0.05) -> np.ndarray:
         """(nx, ny) bool [ix, iy] over the box's x, y raster: pixels inside some frame's camera
         view wedge or holding a camera (maps/observed.py); outside it every map is unknown."""
@@ -161,6 +184,7 @@ class MapViews:
             self._observed_cache = (key, with_camera_pixels(seen, self.store.cam_to_world[:, :2, 3], lo, resolution))
         return self._observed_cache[1]
 
+    @serialised
     def probability_map(self, resolution: float = 0.05, band: float = 0.1):
         """The VIRUS grid's occupancy probability at camera height (`mode: scale` OccupancyMap2D;
         maps.extract.probability_map); None for the Instant-NGP grid."""
@@ -175,6 +199,7 @@ class MapViews:
         """Median height (m) of the main stack's cameras (all stacks' without it) so far."""
         return camera_height(self.store.cam_to_world, self.store.stack_ids, default=float(self.box.center[2]))
 
+    @serialised
     def snapshot(self, folder: Path, resolution: float = 0.05, n_rays: int = MAP_RAYS, max_poses: int = MAP_POSES,
                  with_state: bool = False, replace: bool = False, maps: tuple | None = None) -> SnapshotInfo:
         """Write the current map into the new folder `folder` (refused if it exists; built under a
@@ -187,6 +212,8 @@ class MapViews:
         from virus_nerf.utils.io import new_output_dir, write_json_atomic
 
         folder = Path(folder)
+        if folder.exists() and not replace:
+            raise OutputExistsError(folder, "snapshot folder")
         with new_output_dir(folder, replace=replace) as tmp:
             m, prob = maps if maps is not None else (self.map2d(resolution, n_rays, max_poses),
                                                      self.probability_map(resolution))

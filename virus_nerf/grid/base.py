@@ -161,6 +161,9 @@ class OccupancyGrid(ABC):
     The grid owns its update: how often (`update_interval`, training steps), how many rays and
     which kinds (its config), and whether it wants a sensor prior before step 0."""
 
+    # state_dict entries a grid holds only once something set them (a state without them loads)
+    optional_state_keys: tuple[str, ...] = ()
+
     spec: GridSpec
     config: object  # the grid's own config dataclass
     @property

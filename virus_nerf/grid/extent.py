@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,7 +94,7 @@ class ExtentConfig:
         for name in ("reach_m", "margin_m", "support_cell_m", "height_m", "grow_step_m", "grid_cell_m", "frame_m",
                      "field_coarse_m", "field_fine_m"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or v <= 0:
                 raise ValueError(f"extent.{name} {v!r}: expected a positive number of metres")
         if self.field_fine_m > self.field_coarse_m:
             raise ValueError(f"extent.field_fine_m {self.field_fine_m}: expected at most field_coarse_m "

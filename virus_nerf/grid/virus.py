@@ -56,6 +56,8 @@ class NerfUpdateInfo:
 class VirusGrid(OccupancyGrid):
     """Bayesian occupancy grid over the scene box, updated from IRS ranges and the NeRF's density."""
 
+    optional_state_keys = ("viewed", "restart_step", "column_applied")  # a column's warm-up restarted
+
     def __init__(
         self,
         box: SceneBox | GridSpec,

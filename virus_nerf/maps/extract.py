@@ -18,6 +18,8 @@ positions and the observed mask (a run: the recording's frames; the Mapper: the 
 
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 import torch
 
@@ -135,7 +137,7 @@ def check_raster(what: str, lo: np.ndarray, hi: np.ndarray, resolution, limit: i
     number, makes the map larger than maps.occupancy.MAX_PIXELS, or whose rasters' working memory
     (RASTER_BYTES_PER_PIXEL) would not fit in half the memory this process may use (`limit`
     bytes; None: utils.memory's)."""
-    if isinstance(resolution, bool) or not isinstance(resolution, int | float) or not np.isfinite(resolution) \
+    if isinstance(resolution, bool) or not isinstance(resolution, numbers.Real) or not np.isfinite(resolution) \
             or resolution <= 0:
         raise UsageError(f"{what} {resolution!r}: expected a positive number of metres per pixel")
     nx, ny = raster_shape(lo, hi, resolution)

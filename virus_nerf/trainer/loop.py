@@ -33,7 +33,6 @@ from virus_nerf.evaluation.evaluate import EvaluationResult, build_ground_truth,
 from virus_nerf.losses import LossTerms
 from virus_nerf.sampler.batch import BatchSampler
 from virus_nerf.sampler.frames import MMAP_ABOVE_BYTES, FrameStore, build_frame_store, release_pages
-from virus_nerf.scene_box import SceneBox
 from virus_nerf.stereo.depth import StereoConfig, small_room_config
 from virus_nerf.trainer.config import TrainConfig
 from virus_nerf.trainer.run_folder import (
@@ -270,33 +269,20 @@ class Trainer:
         """Continue from checkpoint.pt. A checkpoint whose tensors do not fit this run's model
         (damaged, edited, another model) is a DataFormatError naming the file and the tensor."""
         from virus_nerf.errors import DataFormatError, one_line
-        from virus_nerf.trainer.run_folder import check_counters, check_state_shapes
 
         # CPU first: the RNG states must stay CPU byte tensors (Generator.set_state refuses
         # others); load_state_dict copies the tensors onto the field's and optimiser's device
         state = torch.load(path, map_location="cpu", weights_only=False)
         if not isinstance(state, dict):
             raise DataFormatError(path, f"not a virus-nerf checkpoint (holds a {type(state).__name__})")
-        try:
-            check_counters(path, state)
-        except KeyError as exc:
-            raise DataFormatError(path, f"not a complete virus-nerf checkpoint: lacks {exc}") from None
-        check_state_shapes(path, "field", state["field"], self.mapper.field.state_dict())
-        grown = self.config.extent.mode == "grow"  # a grown box (and grid) is restored by the mapper
-        if not grown:
-            check_state_shapes(path, "grid", state["grid"], self.mapper.grid.state_dict())
-        if "box" in state and not grown:
-            saved = SceneBox.from_dict(state["box"])
-            if not np.allclose(saved.lo, self.mapper.box.lo, atol=1e-6) or not np.allclose(saved.hi, self.mapper.box.hi, atol=1e-6):
-                from virus_nerf.errors import DataFormatError
-
-                raise DataFormatError(
-                    path,
-                    f"scene box lo={saved.lo} hi={saved.hi} does not match the recording's "
-                    f"lo={self.mapper.box.lo} hi={self.mapper.box.hi}; the network would be read in another frame "
-                    "(was the recording or its map changed?)",
-                    field="box",
-                )
+        problem = self.mapper.state_problem(state)  # the whole state, before the mapper is touched
+        if problem is not None:
+            key, what = problem
+            if key == "state":
+                raise DataFormatError(path, "not a complete virus-nerf checkpoint: " + what.split(";")[0])
+            if key == "box":
+                what += " (was the recording or its map changed?)"
+            raise DataFormatError(path, what, field=key)
         try:
             self.mapper.load_state(state)
             self.eval_history = [EvalPoint(**e) for e in state.get("eval_history", [])]

@@ -43,9 +43,6 @@ MAP_DIR = "map"  # a run without ground truth: its 2D maps (map.pgm/.yaml/.png, 
 TENSORBOARD = "tensorboard"
 LOCK = "run.lock"
 
-# Checkpoint entries the trainer reads back (Trainer.load_checkpoint).
-CHECKPOINT_KEYS = ("field", "optimizer", "grid", "step", "seconds", "samples", "numpy_rng", "torch_generator")
-
 
 @dataclass(frozen=True)
 class RunInfo:
@@ -189,7 +186,9 @@ def read_checkpoint_header(path: Path, cfg) -> dict:
         raise DataFormatError(path, f"not a readable checkpoint ({type(exc).__name__}: {one_line(exc, 160)})") from None
     if not isinstance(state, dict):
         raise DataFormatError(path, f"not a virus-nerf checkpoint (holds a {type(state).__name__}, expected a dict)")
-    missing = [k for k in CHECKPOINT_KEYS if k not in state]
+    from virus_nerf.engine.state import STATE_KEYS
+
+    missing = [k for k in STATE_KEYS if k not in state]
     if missing:
         raise DataFormatError(path, f"not a complete virus-nerf checkpoint: lacks {missing}")
     saved = state.get("config")
@@ -200,42 +199,12 @@ def read_checkpoint_header(path: Path, cfg) -> dict:
 
 
 def check_counters(path: Path, state: dict) -> None:
-    """The step, clock and sample count of a checkpoint are numbers (a damaged or hand-edited
-    file is named with its field, not a traceback)."""
-    import math
+    """The step, clock and sample count of a checkpoint are numbers and its field and grid dicts
+    (a damaged or hand-edited file is named with its field, not a traceback)."""
+    from virus_nerf.engine.state import counters_problem
 
-    for key, kind in (("step", int), ("samples", int), ("seconds", float)):
-        value = state[key]
-        ok = isinstance(value, int | float) and not isinstance(value, bool)
-        ok = ok and (isinstance(value, int) if kind is int else math.isfinite(value)) and value >= 0
-        if not ok:
-            expected = "an integer >= 0" if kind is int else "a finite number >= 0"
-            raise DataFormatError(path, f"expected {expected}, got {one_line(repr(value), 60)}", field=key)
-    for key in ("field", "grid"):
-        tensors = state[key]
-        if not isinstance(tensors, dict):
-            raise DataFormatError(path, f"expected a dict of tensors, got {type(tensors).__name__}", field=key)
-
-
-def check_state_shapes(path: Path, key: str, saved: dict, expected: dict) -> None:
-    """Each tensor of checkpoint entry `key` (field, grid) has the name, shape and type the
-    run's config gives; otherwise a DataFormatError naming the checkpoint and the tensor."""
-    import torch
-
-    missing = [k for k in expected if k not in saved]
-    if missing:
-        raise DataFormatError(path, f"lacks tensor(s) {missing[:4]} of this run's {key}", field=key)
-    for name, want in expected.items():
-        got = saved[name]
-        if not isinstance(want, torch.Tensor):
-            continue
-        if not isinstance(got, torch.Tensor):
-            raise DataFormatError(path, f"expected a tensor, got {type(got).__name__}", field=f"{key}.{name}")
-        if tuple(got.shape) != tuple(want.shape) or got.dtype.is_floating_point != want.dtype.is_floating_point:
-            raise DataFormatError(
-                path, f"tensor of shape {tuple(got.shape)} ({got.dtype}); this run's config gives "
-                      f"{tuple(want.shape)} ({want.dtype}): the checkpoint is damaged or of another model",
-                field=f"{key}.{name}")
+    if (problem := counters_problem(state)) is not None:
+        raise DataFormatError(path, problem[1], field=problem[0])
 
 
 # ---------------------------------------------------------------------------- the run's lock

@@ -1,0 +1,68 @@
+"""What a `Mapper.state()` must hold before `Mapper.load_state` touches the mapper.
+
+A state is checked whole first, so that a damaged, edited or foreign one is refused with the key
+that is wrong and leaves the mapper as it was (a robot's mapper keeps mapping). The same checks
+name the file of a damaged `checkpoint.pt` (trainer/run_folder.py). Each check returns a
+(key, problem) pair, or None when the state passes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+# the entries every state holds (a state also has optional ones: box, rays, prior_frames, ...)
+STATE_KEYS = ("field", "optimizer", "grid", "step", "seconds", "samples", "numpy_rng", "torch_generator")
+
+
+def counters_problem(state: Mapping) -> tuple[str, str] | None:
+    """The step and sample count are integers >= 0, the clock a finite number >= 0, and the field
+    and grid dicts."""
+    for key, kind in (("step", int), ("samples", int), ("seconds", float)):
+        value = state[key]
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+        ok = ok and (isinstance(value, int) if kind is int else math.isfinite(value)) and value >= 0
+        if not ok:
+            expected = "an integer >= 0" if kind is int else "a finite number >= 0"
+            return key, f"expected {expected}, got {repr(value)[:60]}"
+    for key in ("field", "grid"):
+        if not isinstance(state[key], Mapping):
+            return key, f"expected a dict of tensors, got {type(state[key]).__name__}"
+    return None
+
+
+def tensors_problem(key: str, saved: Mapping, expected: Mapping, *, shapes: bool = True) -> tuple[str, str] | None:
+    """Each tensor of entry `key` (field, grid) has the name, type and (with `shapes`) the shape of
+    `expected`, the mapper's own state_dict."""
+    import torch
+
+    missing = [k for k in expected if k not in saved]
+    if missing:
+        return key, f"lacks tensor(s) {missing[:4]} of this model's {key}"
+    for name, want in expected.items():
+        got = saved[name]
+        if not isinstance(want, torch.Tensor):
+            continue
+        if not isinstance(got, torch.Tensor):
+            return f"{key}.{name}", f"expected a tensor, got {type(got).__name__}"
+        if (shapes and tuple(got.shape) != tuple(want.shape)) or got.ndim != want.ndim \
+                or got.dtype.is_floating_point != want.dtype.is_floating_point:
+            return f"{key}.{name}", (f"tensor of shape {tuple(got.shape)} ({got.dtype}); this model has "
+                                     f"{tuple(want.shape)} ({want.dtype}): damaged or of another model")
+    return None
+
+
+def generators_problem(state: Mapping) -> tuple[str, str] | None:
+    """The random generators' states load into generators of the mapper's kinds (tried on new ones)."""
+    import numpy as np
+    import torch
+
+    try:
+        np.random.default_rng().bit_generator.state = state["numpy_rng"]
+    except (TypeError, ValueError, KeyError) as exc:
+        return "numpy_rng", f"not a numpy PCG64 state ({type(exc).__name__}: {str(exc)[:80]})"
+    try:
+        torch.Generator(device="cpu").set_state(state["torch_generator"])
+    except (TypeError, RuntimeError) as exc:
+        return "torch_generator", f"not a torch CPU generator state ({type(exc).__name__}: {str(exc).splitlines()[0][:80]})"
+    return None
