@@ -95,6 +95,11 @@ def test_zone_borders_at_exactly_1_and_2_m_are_inclusive():
     # a GT point at 1.0000001 m is not in zone 1 (float depths, no rounding: docs/method.md 9.7)
     m = metrics_of(np.array([[1.0000001, 0.0]]), np.array([[1.0000001, 0.0]])).zones
     assert m["zone1"].n_gt == 0 and m["zone1"].acc_mean is None and m["zone2"].n_gt == 1
+    # nor one at 2.0000001 m in zone 2, though float32 (the pooled samples) has no number between
+    # 2 and 2.00000024: the depths are rounded up, never onto a bound
+    assert np.float32(2.0000001) == 2.0
+    m = metrics_of(np.array([[2.0000001, 0.0]]), np.array([[2.0000001, 0.0]])).zones
+    assert m["zone2"].n_gt == 0 and m["zone2"].n_pred == 0 and m["zone3"].n_gt == 1
     # accuracy zone follows the nearest GT point's depth, not the prediction's own depth
     m = metrics_of(np.array([[1.5, 0.0]]), np.array([[0.9, 0.0]])).zones
     assert m["zone1"].n_pred == 1 and m["zone1"].acc_mean == pytest.approx(0.6)
@@ -164,7 +169,7 @@ def test_metrics_document_schema_and_table():
              "grid": "virus", "sensors": ["camera", "uss", "irs"], "seed": 0}
     doc = metrics_document({"NeRF": m, "LiDAR": m}, DEFAULT_ZONES, train)
     assert doc["zones"] == {"zone1": [0, 1], "zone2": [0, 2], "zone3": [0, 100]}
-    assert list(doc) == ["gt", "zones", "sensors", "train"] and doc["train"] == train and doc["gt"] == "map"
+    assert list(doc) == ["gt", "zones", "inlier_m", "sensors", "train"] and doc["train"] == train and doc["gt"] == "map"
     assert list(doc["sensors"]["NeRF"]) == ["zone1", "zone2", "zone3"]
     assert tuple(doc["sensors"]["NeRF"]["zone3"]) == METRIC_KEYS
     assert doc["sensors"]["NeRF"]["zone3"]["n_gt"] == 3 and doc["sensors"]["NeRF"]["zone1"]["n_gt"] == 1

@@ -151,7 +151,7 @@ def test_sensors_command_writes_schema_and_refuses_existing(sample_dir, tmp_path
     out = tmp_path / "results" / "metrics.json"
     sensors(sample_dir, "office", out)
     doc = json.loads(out.read_text())
-    assert list(doc) == ["gt", "zones", "sensors"] and doc["gt"] == "map"
+    assert list(doc) == ["gt", "zones", "inlier_m", "sensors"] and doc["gt"] == "map"
     assert doc["zones"] == {"zone1": [0, 1], "zone2": [0, 2], "zone3": [0, 100]}
     assert list(doc["sensors"]) == ["LiDAR", "USS", "IRS"]
     for per_zone in doc["sensors"].values():

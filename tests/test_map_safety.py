@@ -152,8 +152,8 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     assert evaluated["warnings"] == trained["warnings"] and any("warm-up" in w for w in trained["warnings"])
     assert all(f"warning: {w}" in out_eval for w in trained["warnings"])
     assert not (tmp_path / "eval_plots").exists() and "eval_plots" not in out_eval  # --no-plots: the JSON alone
-    assert "map safety (map ground truth)" in out_eval
-    assert "map safety (map ground truth)" in out
+    assert "map safety (map ground truth; shares of the obstacles within that distance of the path" in out_eval
+    assert "map safety (map ground truth; shares of the obstacles within that distance of the path" in out
     # export: the map, ESDF and probability map are unknown / NaN / 0.5 outside the observed wedges
     code, _, err = run_cli(["export", "--run", run, "--out", tmp_path / "export", "--what", "map,esdf,prob"])
     assert code == 0, err
@@ -426,3 +426,28 @@ def test_the_safety_picture_shows_what_the_body_meets_below_the_band():
     assert tuple(rgb[2, 2]) == (255, 0, 0) and tuple(rgb[0, 4]) == (0, 160, 0) and tuple(rgb[1, 1]) == (255, 255, 255)
     plain = safety_picture(image, (0.0, 0.0), 1.0, band, path)  # without the body's truth: as before
     assert tuple(plain[0, 0]) == (255, 255, 255) and tuple(plain[4, 4]) == (0, 0, 0)
+
+
+def test_distances_on_the_pixel_lattice_keep_their_boundary_pixels():
+    """At 0.05 m every radius, clearance and tolerance is a whole number of pixels, and floating
+    point must not decide the pixels on it (0.3 - 0.1 = 0.19999999999999998 < 4 * 0.05;
+    6 * 0.05 = 0.30000000000000004 > 0.3). By hand, one obstacle pixel in a free 21 x 21 raster:
+    within 0.2 m (4 px) lie the pixels with dx^2 + dy^2 <= 16, 49 of them, the four 4 px away on
+    the axes among them; the centre of a 0.3 m robot must stand more than 6 px from it, so not on
+    the 4 pixels exactly 6 px away on the axes."""
+    from virus_nerf.evaluation.safety import configuration_space, pixels_within, true_free_near_path
+
+    res = 0.05
+    mask = np.zeros((21, 21), dtype=bool)
+    mask[10, 10] = True
+    dy, dx = np.mgrid[-10:11, -10:11]
+    within = pixels_within(mask, res, 0.3 - 0.1)
+    assert within.sum() == int((dx * dx + dy * dy <= 16).sum()) == 49 and within[10, 14] and within[6, 10]
+    image = np.full((21, 21), FREE, dtype=np.uint8)
+    image[10, 10] = OCCUPIED
+    space = configuration_space(to_image(image), res, 0.3)
+    assert not space[10, 16] and not space[4, 10] and space[10, 17]
+    assert space.sum() == int((dx * dx + dy * dy > 36).sum())
+    # the free space a planner needs keeps more than 0.15 m (3 px) from the obstacle: not at 3 px
+    free = true_free_near_path(mask, (0.0, 0.0), res, np.array([[0.025, 0.025]]))
+    assert not free[10, 13] and free[10, 14] and free.sum() == int((dx * dx + dy * dy > 9).sum())

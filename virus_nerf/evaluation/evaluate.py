@@ -132,16 +132,17 @@ class EvaluationResult:
     def document(self, train: Mapping[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
         """extra: safety, warnings (metrics_document)."""
         return metrics_document(self.metrics, self.config.zones, train, gt=self.gt, by_gt=self.by_gt or None,
-                                **extra)
+                                inlier_m=self.config.inlier_m, **extra)
 
     def write_json(self, path: str | Path, train: Mapping[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
         return write_metrics_json(path, self.metrics, self.config.zones, train, gt=self.gt,
-                                  by_gt=self.by_gt or None, **extra)
+                                  by_gt=self.by_gt or None, inlier_m=self.config.inlier_m, **extra)
 
     def table(self) -> str:
         """The metrics table of every protocol, each under a line naming its ground truth."""
         by_gt = self.by_gt or {self.gt: self.metrics}
-        return "\n".join(f"ground truth: {p} ({GT_DESCRIPTIONS[p]}); distances in metres, shares in [0, 1]\n"
+        return "\n".join(f"ground truth: {p} ({GT_DESCRIPTIONS[p]}); distances in metres, shares in [0, 1], "
+                         f"inliers < {self.config.inlier_m:g} m\n"
                          + format_table(m, self.config.zones)
                          for p, m in by_gt.items())
 

@@ -52,8 +52,10 @@ DEFAULT_GT = "map"  # the protocol of a metrics.json that names none
 class NNDSamples:
     """Per-point nearest-neighbour data of one sensor, pooled over any number of test points.
 
-    Kept as float32 (0.1 um at 1 km; the statistics are taken in float64): an hour's drive pools
-    millions of them, and they are the part of the evaluation that grows with the drive (D63)."""
+    Kept as float32 (steps of 0.12 um at 1 m, 61 um at 1 km; the statistics are taken in float64):
+    an hour's drive pools millions of them, and they are the part of the evaluation that grows with
+    the drive (D63). The depths are rounded up (`_up32`), so that a depth beyond a zone's bound (0,
+    1, 2, 100 m: float32 numbers) stays beyond it, as in float64."""
 
     acc_dist: np.ndarray  # (M,) m, predicted point -> nearest GT point
     acc_pred_depth: np.ndarray  # (M,) m, depth of the predicted point
@@ -86,13 +88,21 @@ def nnd_samples(pred: np.ndarray, gt: np.ndarray, origin: np.ndarray) -> NNDSamp
     gt_depth = np.linalg.norm(gt - origin, axis=1)
     out = NNDSamples.empty()
     if len(gt) and not len(pred):
-        out.unseen_gt_depth = gt_depth.astype(np.float32)
+        out.unseen_gt_depth = _up32(gt_depth)
     if len(gt) and len(pred):
         d_acc, j = cKDTree(gt).query(pred)
         d_cov, i = cKDTree(pred).query(gt)
-        out = NNDSamples(*(np.asarray(a, dtype=np.float32) for a in (
-            d_acc, pred_depth, gt_depth[j], d_cov, gt_depth, pred_depth[i])))
+        out = NNDSamples(np.asarray(d_acc, dtype=np.float32), _up32(pred_depth), _up32(gt_depth[j]),
+                         np.asarray(d_cov, dtype=np.float32), _up32(gt_depth), _up32(pred_depth[i]))
     return out
+
+
+def _up32(x: np.ndarray) -> np.ndarray:
+    """float64 (N,) -> the smallest float32 at or above each (a depth just past 2 m stays past it)."""
+    f = np.asarray(x, dtype=np.float64).astype(np.float32)
+    low = f.astype(np.float64) < x
+    f[low] = np.nextafter(f[low], np.float32(np.inf))
+    return f
 
 
 @dataclass
@@ -169,8 +179,9 @@ def metrics_document(
     by_gt: Mapping[str, Mapping[str, SensorMetrics]] | None = None,
     safety: Mapping[str, Any] | None = None,
     warnings: Sequence[str] = (),
+    inlier_m: float = INLIER_M,
 ) -> dict[str, Any]:
-    """The metrics.json object of docs/method.md 7: gt, zones, sensors[, by_gt][, train][, safety][, warnings].
+    """The metrics.json object of docs/method.md 7: gt, zones, inlier_m, sensors[, by_gt][, train][, safety][, warnings].
 
     `sensors` are the metrics under protocol `gt`; `by_gt` (every protocol asked -> metrics, `gt`
     among them) is written only when it holds more than that one protocol. gt None (with no
@@ -180,6 +191,7 @@ def metrics_document(
     doc: dict[str, Any] = {
         "gt": gt,
         "zones": {z.name: [_json_number(z.lo), _json_number(z.hi)] for z in zones},
+        "inlier_m": _json_number(inlier_m),  # acc_inlier / cov_inlier: the share of distances below it
         "sensors": {name: m.to_json() for name, m in sensors.items()},
     }
     if by_gt is not None and list(by_gt) != [gt]:
@@ -216,10 +228,13 @@ def check_metrics_document(doc: Mapping[str, Any]) -> None:
 
     Documents written before the ground-truth protocols (no "gt", no "gt_unseen") are accepted.
     """
-    allowed = {"gt", "zones", "sensors", "by_gt", "train", "safety", "warnings"}
+    allowed = {"gt", "zones", "inlier_m", "sensors", "by_gt", "train", "safety", "warnings"}
     if set(doc) - allowed or not {"zones", "sensors"} <= set(doc):
-        raise ValueError(f"metrics document keys must be [gt,] zones, sensors[, by_gt][, train][, safety]"
-                         f"[, warnings]; got {sorted(doc)}")
+        raise ValueError(f"metrics document keys must be [gt,] zones, [inlier_m,] sensors[, by_gt][, train]"
+                         f"[, safety][, warnings]; got {sorted(doc)}")
+    inlier = doc.get("inlier_m", INLIER_M)  # documents written before it: the paper's 0.1 m
+    if isinstance(inlier, bool) or not isinstance(inlier, int | float) or not math.isfinite(inlier) or inlier <= 0:
+        raise ValueError(f"metrics document inlier_m must be a positive number of metres, got {inlier!r}")
     if not isinstance(doc.get("warnings", []), list) or not all(isinstance(w, str) for w in doc.get("warnings", [])):
         raise ValueError(f"metrics document warnings must be a list of strings, got {doc.get('warnings')!r}")
     gt = doc.get("gt", DEFAULT_GT)
@@ -283,6 +298,7 @@ class RunMetrics:
     by_gt: dict[str, dict[str, SensorMetrics]]
     zones: dict[str, tuple[float, float]]  # zone name -> (lo, hi) GT depth in metres
     train: Mapping[str, Any]
+    inlier_m: float = INLIER_M  # m: the inlier shares count distances below it
 
     @staticmethod
     def from_document(doc: Mapping[str, Any]) -> RunMetrics:
@@ -292,7 +308,7 @@ class RunMetrics:
         protocols = gt_protocols_of(doc)
         return RunMetrics(gt=protocols[0], by_gt={p: sensor_metrics_from_json(doc, p) for p in protocols},
                           zones={z: (float(lo), float(hi)) for z, (lo, hi) in doc["zones"].items()},
-                          train=doc.get("train", {}))
+                          train=doc.get("train", {}), inlier_m=float(doc.get("inlier_m", INLIER_M)))
 
     def sensors(self, gt: str | None = None) -> dict[str, SensorMetrics]:
         """name -> SensorMetrics under protocol `gt` (default: the document's own); KeyError
@@ -325,9 +341,11 @@ def write_metrics_json(
     by_gt: Mapping[str, Mapping[str, SensorMetrics]] | None = None,
     safety: Mapping[str, Any] | None = None,
     warnings: Sequence[str] = (),
+    inlier_m: float = INLIER_M,
 ) -> dict[str, Any]:
     """Write metrics.json atomically; returns the written object."""
-    doc = metrics_document(sensors, zones, train, gt=gt, by_gt=by_gt, safety=safety, warnings=warnings)
+    doc = metrics_document(sensors, zones, train, gt=gt, by_gt=by_gt, safety=safety, warnings=warnings,
+                           inlier_m=inlier_m)
     write_json_atomic(path, doc)
     return doc
 

@@ -37,8 +37,12 @@ import numpy as np
 SAFETY_ZONES_M = (1.0, 2.0, math.inf)  # obstacle distance to the robot's path
 SAFETY_TOLERANCE_M = 0.1  # the paper's inlier distance
 FREE_NEAR_PATH_M = 3.0  # free recall: true free space this close to the path ...
-FREE_CLEARANCE_M = 0.15  # ... and at least this far from every obstacle
+FREE_CLEARANCE_M = 0.15  # ... and more than this far from every obstacle
 PLANNER_RADIUS_M = 0.3  # the robot's radius for the planner's check
+# distances between pixel centres are compared in pixels, with this slack: at 0.05 m a pixel 0.2 m
+# away is 4 px, where 4 * 0.05 = 0.2 but 0.3 - 0.1 = 0.19999999999999998 (floating point would
+# otherwise decide the boundary pixels of every radius, clearance and tolerance)
+PIXEL_EPS = 1e-9
 # `safety_picture`'s colours for what the body meets below the band: held (or unknown), marked free
 BODY_RGB, BODY_MISSED_RGB = (150, 110, 60), (255, 150, 0)
 
@@ -70,7 +74,7 @@ def free_for_sure(image: np.ndarray, free_value: int, resolution: float, toleran
     from scipy.ndimage import binary_erosion
 
     free = np.asarray(image) == free_value
-    r = int(math.floor(tolerance / resolution + 1e-9))
+    r = int(math.floor(tolerance / resolution + PIXEL_EPS))
     if r <= 0:
         return free
     yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
@@ -220,7 +224,7 @@ def configuration_space(image: np.ndarray, resolution: float, radius: float, fre
     farther than `radius` from every pixel that is not free (occupied or unknown alike)."""
     from scipy.ndimage import distance_transform_edt
 
-    return distance_transform_edt(np.asarray(image) == free_value) * resolution > radius
+    return distance_transform_edt(np.asarray(image) == free_value) > radius / resolution + PIXEL_EPS
 
 
 def planner_reach(image: np.ndarray, origin: tuple[float, float], resolution: float, true_space: np.ndarray,
@@ -278,9 +282,9 @@ def _shares(zones: dict) -> str:
 
 def safety_line(doc: dict) -> str:
     """One line for the table: obstacles marked free per zone, free recall, observed share, anchors."""
-    line = (f"map safety ({doc['gt']} ground truth): obstacles the map marks free: {_figures(doc)} "
-            f"(of obstacles within that distance of the path; free space within {doc.get('free_near_path_m', 3):g} m "
-            f"of it); map observed {doc['observed']:.1%}")
+    line = (f"map safety ({doc['gt']} ground truth; shares of the obstacles within that distance of the path, "
+            f"free space within {doc.get('free_near_path_m', 3):g} m of it): obstacles the map marks free: "
+            f"{_figures(doc)}; map observed {doc['observed']:.1%}")
     for name, block in doc.get("anchors", {}).items():
         line += f"\n  beside it, {ANCHOR_LABELS.get(name, name)}: {_figures(block)}"
     if "planner" in doc:
@@ -514,7 +518,7 @@ def pixels_within(mask: np.ndarray, resolution: float, distance: float) -> np.nd
 
     if not mask.any():
         return np.zeros(mask.shape, dtype=bool)
-    return distance_transform_edt(~mask) * resolution <= distance
+    return distance_transform_edt(~mask) <= distance / resolution + PIXEL_EPS
 
 
 def unsafe_near_path(unsafe: np.ndarray, origin: tuple[float, float], resolution: float,

@@ -327,7 +327,8 @@ def ablation(
     refuse_existing(summaries)  # again: another process may have finished the same folder meanwhile
     from virus_nerf.evaluation.gt import GT_DESCRIPTIONS
 
-    md = "\n\n".join(f"Ground truth: **{p}** ({GT_DESCRIPTIONS[p]})\n\n{table_markdown(r)}" for p, r in by_gt.items())
+    md = "\n\n".join(f"Ground truth: **{p}** ({GT_DESCRIPTIONS[p]}); zone 3 (0-100 m), mean ± std over "
+                     f"the seeds\n\n{table_markdown(r)}" for p, r in by_gt.items())
     speed = grid_speed(records)
     speed_md = ", ".join(f"{k}: {v:.2f}x" if v else f"{k}: -" for k, v in speed.items())
     from virus_nerf.experiments.report import runs_warnings, warnings_markdown

@@ -72,6 +72,7 @@ def demo(
     print("[3/3] writing the report")
     copy_file_atomic(out / "run" / "metrics.json", out / "metrics.json")
     train = doc["train"]
+    run_metrics = RunMetrics.from_document(doc)
     plots = sorted(p.name for p in (out / "run" / "plots").glob("*.png"))
     maps = [p for p in plots if p.startswith("scan_")]
     lines = [
@@ -84,9 +85,9 @@ def demo(
         "## 2D scan metrics (nearest-neighbour distances in metres, shares in [0, 1])",
         "",
         "Accuracy: distance from each scan point to the nearest ground-truth point; coverage: from each",
-        "ground-truth point (inside the sensor's field of view) to the nearest scan point. Inliers: < 0.1 m.",
+        f"ground-truth point (inside the sensor's field of view) to the nearest scan point. Inliers: < {run_metrics.inlier_m:g} m.",
         "",
-        metrics_markdown_by_gt(RunMetrics.from_document(doc)),
+        metrics_markdown_by_gt(run_metrics),
         "",
         *safety_markdown(doc, "run/plots/map_safety.png" if "map_safety.png" in plots else None),
         f"## Metrics per sensor and zone (paper Fig. 3; ground truth: {protocols[0]})",
