@@ -297,3 +297,9 @@ def test_a_study_folder_holds_one_study(tmp_path):
     code, _, err = run_cli(_tune_args(tmp_path, tmp_path / "d", "--trials", 1))
     assert code == 2 and "holds the trials of study 'other'; give study 's' its own --out" in err, err
     assert sorted(p.name for p in (tmp_path / "study").iterdir()) == ["study.json"]
+    # a folder of something else (notes, a training run) is not written in either
+    (tmp_path / "study" / "study.json").unlink()
+    (tmp_path / "study" / "notes.txt").write_text("mine")
+    code, _, err = run_cli(_tune_args(tmp_path, tmp_path / "d", "--trials", 1))
+    assert code == 2 and "exists and is not a study's folder (no study.json); give study 's' a new --out" in err, err
+    assert sorted(p.name for p in (tmp_path / "study").iterdir()) == ["notes.txt"]

@@ -204,6 +204,11 @@ def _claim_folder(out: Path, study: str) -> None:
             raise UsageError(f"--out {out}: holds the trials of study {owner!r}; give study {study!r} its own --out")
     elif (out / "trials").exists():
         raise UsageError(f"--out {out}: holds trials/ of an unnamed study; give study {study!r} its own --out")
+    elif out.is_dir() and any(out.iterdir()):  # notes, a training run, another experiment: not ours to write in
+        raise UsageError(f"--out {out}: exists and is not a study's folder (no study.json); give study {study!r} "
+                         "a new --out (nothing was written)")
+    elif out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out}: is a file; expected a study's folder (a new one or the study's own)")
     else:
         write_json_atomic(marker, {"study": study})
 

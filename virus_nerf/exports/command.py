@@ -59,7 +59,7 @@ def export(
 
     Args:
         run: A run folder written by `virus-nerf train`.
-        out: New folder for the files (refused if it exists; README "Exports" lists them).
+        out: New folder for the files (refused if it exists; docs/usage.md "Exports" lists them).
         what: Comma-separated subset of map,prob,grid3d,esdf,scans,cloud,images, or 'all' (default: map,prob,grid3d,esdf,scans).
         poses: CSV of camera poses time,x,y,z,qx,qy,qz,qw (s, m, camera-to-world, OpenCV axes) for scans and images (default: the recording's test poses).
         resolution: Metres per map pixel (> 0).
