@@ -398,3 +398,28 @@ def test_cuda_device_without_a_gpu_is_refused(tmp_path):
     path = write_config(tmp_path, {"device": "cuda"})
     code, _, err = run_cli(train_args(tmp_path, "--config", str(path)))
     assert_one_line_error(code, err, "device 'cuda': no CUDA GPU is available here; use 'auto' or 'cpu'")
+
+
+def test_a_helper_threads_write_error_is_one_line(capsys, monkeypatch):
+    """TensorBoard's event writer thread on a read-only run folder: one warning line naming the
+    file (decoded, not b'...'), not a traceback; other thread errors keep Python's report."""
+    import errno
+    import threading
+
+    from virus_nerf import cli
+
+    monkeypatch.setattr(threading, "excepthook", threading.__excepthook__)
+    cli._one_line_thread_errors()
+    cli._one_line_thread_errors()  # a second command in the same process adds no second hook
+
+    def fail():
+        raise OSError(errno.EROFS, "Read-only file system", b"run/tensorboard/events.out")
+
+    thread = threading.Thread(target=fail, name="tb-writer")
+    thread.start()
+    thread.join()
+    assert capsys.readouterr().err == "virus-nerf: warning: tb-writer: run/tensorboard/events.out: Read-only file system\n"
+    thread = threading.Thread(target=lambda: 1 / 0, name="buggy")
+    thread.start()
+    thread.join()
+    assert "Traceback" in capsys.readouterr().err

@@ -395,3 +395,48 @@ def test_train_online_on_a_full_disk_writes_the_map_before_naming_the_checkpoint
         "train it again\n")
     assert MAP_FILES == {p.name for p in (out / "map").iterdir()} and not (out / "checkpoint.pt").exists()
     assert f"map ({json.loads((out / 'map' / 'snapshot.json').read_text())['map_known']:.1%} known)" in stdout
+
+
+def test_train_stopped_while_scoring_keeps_the_map_and_says_resume_scores_it(tiny_office, tmp_path, monkeypatch):
+    """A signal after the last step, while the run is scored (evaluation, plots): map/ of the
+    finished training, its checkpoint, no metrics.json, one line, exit 143; `--resume` then only
+    scores it (a review found a bare "interrupted" and no map)."""
+    import virus_nerf.trainer.run as run_module
+    from virus_nerf.utils.stop import Stopped
+
+    def stopped(*args, **kwargs):
+        raise Stopped(signal.SIGTERM)
+
+    out = tmp_path / "run"
+    args = ["train", "--data", tiny_office, "--room", "office", "--out", out, "--max-steps", "4", "--quiet"]
+    with monkeypatch.context() as m:
+        m.setattr(run_module, "_score", stopped)
+        code, stdout, err = run_cli(args)
+    assert code == 128 + signal.SIGTERM and err == "", err
+    assert stdout == (f"train: stopped by SIGTERM while scoring the finished training (step 4); map in {out / 'map'}, "
+                      f"checkpoint in {out / 'checkpoint.pt'}; score it with `virus-nerf train --resume --out {out}`\n")
+    assert MAP_FILES == {p.name for p in (out / "map").iterdir()} and (out / "checkpoint.pt").is_file()
+    assert not (out / "metrics.json").exists()
+    code, stdout, err = run_cli(["train", "--resume", "--out", out, "--quiet"])
+    assert code == 0, err
+    assert json.loads((out / "metrics.json").read_text())["train"]["steps"] == 4
+
+
+def test_any_command_stopped_by_sigterm_leaves_no_partial_folder(tmp_path):
+    """SIGTERM to a command without a stop of its own (here `simulate`, as `export` and
+    `import-bag`): as Ctrl-C, its temporary folder is removed, one line, exit 143; a folder a
+    killed attempt left (its pid dead) goes when the next attempt at the same --out starts."""
+    from virus_nerf.utils.io import new_output_dir
+
+    out = tmp_path / "sim"
+    proc = _start(["simulate", "--scene", "office", "--duration", "120", "--out", out], tmp_path)
+    _wait_for(lambda: any(tmp_path.glob(".sim.partial-*")), proc)
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM and stderr == "virus-nerf: interrupted (SIGTERM)\n", stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    stale = tmp_path / ".exp.partial-999999999-abc"  # no such pid
+    stale.mkdir()
+    with new_output_dir(tmp_path / "exp") as tmp:
+        (tmp / "a.txt").write_text("a")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp"]

@@ -254,11 +254,14 @@ def _main(argv: list[str] | None) -> None:
         OutputExistsError,
         UsageError,
     )
+    from virus_nerf.utils.stop import stop_on_signals
 
     argv = sys.argv[1:] if argv is None else list(argv)
     run = _parse(argv)
+    _one_line_thread_errors()
     try:
-        run()
+        with stop_on_signals():  # SIGTERM as Ctrl-C: temporary outputs removed, one line, exit 143
+            run()
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGINT/SIGTERM of a command that stops cleanly
         _interrupted(exc)
     except (UsageError, DataFormatError, OutputExistsError, NotWrittenError) as exc:
@@ -268,14 +271,39 @@ def _main(argv: list[str] | None) -> None:
             raise
         # a path the user named cannot be read or written (permissions, a file where a folder
         # belongs, ...): the system's reason and the path, not a traceback
-        where = f"{exc.filename}" + (f" -> {exc.filename2}" if exc.filename2 else "")
+        import os
+
+        where = os.fsdecode(exc.filename) + (f" -> {os.fsdecode(exc.filename2)}" if exc.filename2 else "")
         if exc.errno in DISK_FULL_ERRNOS:
             # every output is written to a temporary name and renamed whole: what was there is intact
             _fail(f"{where}: could not be written ({exc.strerror or 'no space left on device'}); nothing was lost "
                   "(outputs are written whole under a temporary name, so every file written before is intact); "
-                  "free some space and run the command again (a training continues from its last checkpoint "
-                  "with --resume)")
+                  "free some space and run the command again"
+                  + (" (a training continues from its last checkpoint with --resume)" if argv[:1] == ["train"] else ""))
         _fail(f"{where}: {exc.strerror or exc}")
+
+
+def _one_line_thread_errors() -> None:
+    """A helper thread (TensorBoard's event writer) that cannot write its file says so in one line,
+    not a traceback: the command itself names what it could not write. Other errors keep Python's
+    report (they are bugs)."""
+    import os
+    import threading
+
+    default = threading.excepthook
+    if getattr(default, "one_line", False):  # set by an earlier command of this process
+        return
+
+    def hook(args) -> None:
+        exc = args.exc_value
+        if isinstance(exc, OSError) and exc.filename is not None:
+            name = args.thread.name if args.thread is not None else "a thread"
+            print(f"virus-nerf: warning: {name}: {os.fsdecode(exc.filename)}: {exc.strerror or exc}", file=sys.stderr)
+            return
+        default(args)
+
+    hook.one_line = True
+    threading.excepthook = hook
 
 
 def _interrupted(exc: KeyboardInterrupt) -> NoReturn:

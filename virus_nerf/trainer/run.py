@@ -102,6 +102,7 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
     A recording with only odometry poses is trained on them (one line says so).
     """
     from virus_nerf.trainer.trust import map_warnings
+    from virus_nerf.utils.stop import Stopped
 
     out = Path(out)
     _refuse_existing_out(out, resume)
@@ -119,8 +120,12 @@ def run_training(data: Path, room: str, out: Path, cfg, quiet: bool | None = Non
         if not cfg.evaluation.gt:
             _keep_resumed_config(out, cfg, resume)
             return _finish_without_ground_truth(trainer, out, cfg, summary, resume, warnings)
-        result, run_safety = _score(trainer, out, cfg, eval_recording)
-        doc = _write_results(trainer, out, cfg, summary, result, run_safety, warnings, resume)
+        try:
+            result, run_safety = _score(trainer, out, cfg, eval_recording)
+            doc = _write_results(trainer, out, cfg, summary, result, run_safety, warnings, resume)
+        except Stopped as exc:  # SIGINT/SIGTERM while scoring: the training is whole, the results are not
+            keep_stopped_scoring(trainer, exc)
+            raise
     finally:
         lock.release()
     _print_results(trainer, out, summary, result, run_safety, warnings)
@@ -289,6 +294,24 @@ def keep_stopped_run(trainer, exc) -> None:
     print(f"train: stopped by {exc.name} at step {mapper.step} ({mapper.seconds:.1f} s of training{drive}); "
           f"map in {out / MAP_DIR}, checkpoint in {out / CHECKPOINT}; continue with "
           f"`virus-nerf train --resume --out {out}`")
+
+
+def keep_stopped_scoring(trainer, exc) -> None:
+    """A run stopped by a signal after its last step, while it was scored (evaluation, plots):
+    OUT/map/ and checkpoint.pt as `keep_stopped_run` keeps them (the checkpoint only if it is not
+    there yet: the final one is), no metrics.json, and one line: `train --resume` scores it without
+    training (run_training's docstring)."""
+    from virus_nerf.utils.io import Outputs
+
+    out, mapper = trainer.run_dir, trainer.mapper
+    exc.reported = True
+    outputs = Outputs()
+    outputs.write(out / MAP_DIR, lambda: mapper.snapshot(out / MAP_DIR, replace=True))  # the run's lock is held
+    if not (out / CHECKPOINT).is_file():
+        outputs.write(out / CHECKPOINT, trainer.save_checkpoint)
+    outputs.check(f"free some space and score it with `virus-nerf train --resume --out {out}`")
+    print(f"train: stopped by {exc.name} while scoring the finished training (step {mapper.step}); map in "
+          f"{out / MAP_DIR}, checkpoint in {out / CHECKPOINT}; score it with `virus-nerf train --resume --out {out}`")
 
 
 def _check_final_checkpoint(trainer, kept) -> None:

@@ -138,7 +138,10 @@ class TrainLog:
         except OSError as exc:  # the last flush on a full disk: name the file
             raise type(exc)(exc.errno, exc.strerror, str(self.path)) from exc
         if self._tb is not None:
-            self._tb.close()
+            try:  # TensorBoard's own writer thread met the same folder: the run's outputs speak for it
+                self._tb.close()
+            except OSError:
+                pass
 
 
 @dataclass

@@ -129,6 +129,7 @@ def new_output_dir(path: str | Path, *, replace: bool = False) -> Iterator[Path]
     path = Path(path)
     if path.exists() and not replace:
         raise OutputExistsError(path)
+    remove_stale_partials(path)  # a killed attempt's `.<name>.partial-<pid>-*` (its process is dead)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-{os.getpid()}-", dir=path.parent))
@@ -224,12 +225,19 @@ class Outputs:
         return True
 
     def check(self, hint: str = "") -> None:
-        from virus_nerf.errors import NotWrittenError
+        """hint: what to do, written for a full disk ("free some space; ..."); another reason
+        (a read-only or vanished folder) gets its own first words."""
+        import errno
+
+        from virus_nerf.errors import DISK_FULL_ERRNOS, NotWrittenError
 
         if not self.failed:
             return
         path, exc = self.failed[0]
         reason = exc.strerror or str(exc)
+        if exc.errno not in DISK_FULL_ERRNOS and hint.startswith("free some space"):
+            instead = "make it writable" if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM) else "fix that"
+            hint = instead + hint.removeprefix("free some space")
         more = "".join(f"; {p} neither" for p, _ in self.failed[1:])
         kept = ", ".join(str(p) for p in self.kept) or "nothing"
         raise NotWrittenError(f"{path}: could not be written ({reason}){more}; kept: {kept}"
