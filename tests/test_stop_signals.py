@@ -440,3 +440,24 @@ def test_any_command_stopped_by_sigterm_leaves_no_partial_folder(tmp_path):
     with new_output_dir(tmp_path / "exp") as tmp:
         (tmp / "a.txt").write_text("a")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exp"]
+
+
+def test_a_run_folder_removed_under_train_is_not_rebuilt(tiny_office, tmp_path):
+    """`rm -rf RUN` while `train` runs: its next checkpoint does not make RUN again (holding only
+    that checkpoint, unlocked); one line, exit 2 (a review found a rebuilt folder and a traceback)."""
+    from virus_nerf.config_io import to_dict
+
+    cfg = tmp_path / "c.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config(sensors=("camera", "uss", "irs"), max_steps=100000,
+                                                        checkpoint_every=0.5))))
+    out = tmp_path / "run"
+    proc = _start(["train", "--data", tiny_office, "--room", "office", "--config", cfg, "--out", out, "--quiet"],
+                  tmp_path)
+    _wait_for(lambda: (out / "checkpoint.pt").is_file(), proc)
+    subprocess.run(["rm", "-rf", str(out)], check=True)  # as a user would (files vanishing as it goes)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 2, stderr
+    assert stderr.splitlines()[-1] == (f"virus-nerf: error: {out}: the run folder was removed while the command "
+                                       "ran; nothing more is written (the files it held are gone: run the command "
+                                       "again into a new folder)"), stderr
+    assert "Traceback" not in stderr and not out.exists()

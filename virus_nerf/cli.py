@@ -252,6 +252,7 @@ def _main(argv: list[str] | None) -> None:
         DataFormatError,
         NotWrittenError,
         OutputExistsError,
+        OutputGoneError,
         UsageError,
     )
     from virus_nerf.utils.stop import stop_on_signals
@@ -264,7 +265,7 @@ def _main(argv: list[str] | None) -> None:
             run()
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGINT/SIGTERM of a command that stops cleanly
         _interrupted(exc)
-    except (UsageError, DataFormatError, OutputExistsError, NotWrittenError) as exc:
+    except (UsageError, DataFormatError, OutputExistsError, NotWrittenError, OutputGoneError) as exc:
         _fail(str(exc))
     except OSError as exc:
         if exc.filename is None:

@@ -45,6 +45,22 @@ class OutputExistsError(FileExistsError):
         self.path = Path(path)
 
 
+class OutputGoneError(Exception):
+    """The command's output folder vanished while it ran (removed by hand, a cleaner): nothing more
+    is written, so that it is not rebuilt half-empty and unlocked (exit code 2, one line)."""
+
+    def __init__(self, folder: str | Path, what: str = "the output folder") -> None:
+        super().__init__(f"{folder}: {what} was removed while the command ran; nothing more is written (the "
+                         "files it held are gone: run the command again into a new folder)")
+        self.folder = Path(folder)
+
+
+def require_folder(folder: str | Path, what: str = "the output folder") -> None:
+    """`folder` still exists (a writer must not rebuild a folder removed under it), else OutputGoneError."""
+    if not Path(folder).is_dir():
+        raise OutputGoneError(folder, what)
+
+
 # the errnos of a disk that cannot take more: full (ENOSPC) or over the user's quota (EDQUOT)
 DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)})
 

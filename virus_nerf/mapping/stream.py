@@ -357,6 +357,9 @@ class StreamRun:
         return True
 
     def _snapshot(self, folder: Path, recording_time: float, with_state: bool = False):
+        from virus_nerf.errors import require_folder
+
+        require_folder(self.out)  # removed under the stream: not rebuilt by the next snapshot
         maps = _publish(self.mapper, recording_time, self.resolution, self.n_rays, self.max_poses, self.live,
                         self.ros_bag)
         return self.mapper.snapshot(folder, self.resolution, self.n_rays, self.max_poses, with_state=with_state,

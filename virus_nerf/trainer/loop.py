@@ -260,6 +260,9 @@ class Trainer:
         file renamed over the last one. A failed write (a full disk) raises an OSError naming
         checkpoint.pt and leaves the last good checkpoint in place (torch.save straight to the
         file reported a full disk as a RuntimeError `unexpected pos`)."""
+        from virus_nerf.errors import require_folder
+
+        require_folder(self.run_dir, "the run folder")  # removed under the run: not rebuilt by the write
         buffer = io.BytesIO()
         torch.save(self.state(), buffer)
         with atomic_path(self.run_dir / CHECKPOINT) as tmp:
@@ -363,6 +366,9 @@ class Trainer:
                           acc_inlier=z3.acc_inlier, cov_inlier=z3.cov_inlier,
                           n_test_points=result.n_points)
         self.eval_history.append(point)
+        from virus_nerf.errors import require_folder
+
+        require_folder(self.run_dir, "the run folder")
         write_eval_history(self.run_dir / METRICS_VS_TIME, self.eval_history)
         if log is not None:
             for k in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier"):

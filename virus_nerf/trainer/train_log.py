@@ -125,7 +125,10 @@ class TrainLog:
 
     def scalar(self, tag: str, value: float | None, step: int) -> None:
         if self._tb is not None and value is not None:
-            self._tb.add_scalar(tag, value, step)
+            try:
+                self._tb.add_scalar(tag, value, step)
+            except OSError:  # its folder became read-only or vanished: the run's own writes say so
+                self._tb = None
 
     def advance(self) -> None:
         """One more step on the progress bar."""
