@@ -54,12 +54,14 @@ def _at_once(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signat
     os._exit(128 + signum)
 
 
-_STEP = {"depth": 0, "pending": None}  # `atomic_step`: how deep inside one, the signal it deferred
+# `atomic_step`: how deep inside one, the signal it deferred; `stop_on_signals`: the first signal
+_STEP = {"depth": 0, "pending": None, "signalled": None}
 
 
 def _first(signum, frame) -> None:  # noqa: ARG001
     for s in SIGNALS:
         signal.signal(s, _at_once)
+    _STEP["signalled"] = signum  # a Stopped raised where a C callback swallows it still ends the block
     if _STEP["depth"]:  # inside a training step: it ends first (`atomic_step`)
         _STEP["pending"] = signum
         return
@@ -86,7 +88,8 @@ def atomic_step() -> Iterator[None]:
 def stop_on_signals() -> Iterator[None]:
     """SIGINT and SIGTERM raise `Stopped` inside the block (main thread only; elsewhere a no-op);
     the final outputs are written inside it (a second signal there stops at once). The old
-    handlers are back when the block ends, however it ends."""
+    handlers are back when the block ends, however it ends; a block that ends without the
+    `Stopped` of a signal it got raises it then."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -96,6 +99,10 @@ def stop_on_signals() -> Iterator[None]:
     try:
         yield
     finally:
-        _STEP["pending"] = None
+        signalled, _STEP["signalled"], _STEP["pending"] = _STEP["signalled"], None, None
         for s, handler in old.items():
             signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+    if signalled is not None:
+        # the handler's Stopped was swallowed (raised inside llvmlite's ctypes callback while numba
+        # loaded a kernel: "Exception ignored"): the work went on to its end; the stop stands
+        raise Stopped(signalled)
