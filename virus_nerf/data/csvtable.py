@@ -23,6 +23,11 @@ from virus_nerf.utils.textfile import (
 MAX_TIME_S = 1e11  # seconds since 1970 reach 1e11 in the year 5138: a larger stamp is in ms, us or ns
 
 
+def time_unit_problem(t: float) -> str:
+    """The refusal of a timestamp beyond MAX_TIME_S, in one wording for every table."""
+    return f"timestamp {float(t)!r} beyond {MAX_TIME_S:g} s (the year 5138); expected seconds, not milli-, micro- or nanoseconds"
+
+
 def read_csv_rows(path: str | Path, what: str = "file") -> list[list[str]]:
     """All rows of a CSV file as strings (row k of the list = spreadsheet row k + 1).
 
@@ -108,9 +113,7 @@ def check_sorted_times(path: Path, times: np.ndarray, field: str = "time") -> No
         raise DataFormatError(path, "timestamp is not finite", row=int(bad[0]) + 2, field=field)
     big = np.flatnonzero(np.abs(times) > MAX_TIME_S)
     if big.size:
-        raise DataFormatError(path, f"timestamp {float(times[big[0]])!r} beyond {MAX_TIME_S:g} s (the year 5138); "
-                                    "expected seconds, not milli-, micro- or nanoseconds",
-                              row=int(big[0]) + 2, field=field)
+        raise DataFormatError(path, time_unit_problem(times[big[0]]), row=int(big[0]) + 2, field=field)
     back = np.flatnonzero(np.diff(times) <= 0)
     if back.size:
         i = int(back[0]) + 1

@@ -64,14 +64,12 @@ class MapExtent:
         outside the box (fitted: a pose in millimetres or another frame) is a one-line UsageError
         naming the frame's time."""
         if not self.growing:
-            lo, hi = np.asarray(self.box.lo, float), np.asarray(self.box.hi, float)
-            for p, t in zip(positions, times, strict=True):
-                if ((p < lo - FITTED_SLACK_M) | (p > hi + FITTED_SLACK_M)).any():
-                    raise UsageError(
-                        f"frame at time {float(t):.3f} s: camera at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m lies outside "
-                        f"the Mapper's box {np.round(lo, 2).tolist()}..{np.round(hi, 2).tolist()} m (extent.mode "
-                        "fitted); expected a pose in metres, in the box's frame (extent.mode grow maps a drive "
-                        "of any size)")
+            for i in np.flatnonzero(~self.box.padded(FITTED_SLACK_M).contains(positions))[:1]:
+                p, lo, hi = positions[i], np.round(self.box.lo, 2).tolist(), np.round(self.box.hi, 2).tolist()
+                raise UsageError(
+                    f"frame at time {float(times[i]):.3f} s: camera at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m lies "
+                    f"outside the Mapper's box {lo}..{hi} m (extent.mode fitted); expected a pose in metres, in the "
+                    "box's frame (extent.mode grow maps a drive of any size)")
             return
         for p, t in zip(positions, times, strict=True):
             if not inside_frame(p, self.frame):

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from virus_nerf.errors import OutputExistsError, UsageError, require_int, require_number
+from virus_nerf.errors import UsageError, require_int, require_number
 from virus_nerf.grid.virus import VirusGrid
 from virus_nerf.maps.evidence import stereo_sight_lines
 from virus_nerf.maps.extract import (
@@ -212,9 +212,7 @@ class MapViews:
         from virus_nerf.utils.io import new_output_dir, write_json_atomic
 
         folder = Path(folder)
-        if folder.exists() and not replace:
-            raise OutputExistsError(folder, "snapshot folder")
-        with new_output_dir(folder, replace=replace) as tmp:
+        with new_output_dir(folder, replace=replace, flag="snapshot folder") as tmp:
             m, prob = maps if maps is not None else (self.map2d(resolution, n_rays, max_poses),
                                                      self.probability_map(resolution))
             write_map_server(m, tmp, "map")

@@ -19,9 +19,6 @@ NEEDS_VIRUS = ("prob", "grid3d")  # read the Bayesian grid's probabilities
 # keeps the counts its safety was measured at (D75)
 SCAN_RAYS = 720
 SCAN_POSES = 60
-# --poses positions may lie this far (m) outside the run's scene box (a camera at its edge, a pose
-# file's rounding); farther is another frame or unit
-POSE_BOX_SLACK_M = 1.0
 
 
 def parse_what(what: str | None, grid: str) -> tuple[str, ...]:
@@ -107,16 +104,16 @@ def export(
 
 
 def _check_poses_in_box(path: Path, pose_set, box) -> None:
-    """--poses positions lie in the run's scene box (give or take POSE_BOX_SLACK_M): one far outside
-    is in another frame or unit (millimetres), whose scans would be empty."""
-    lo, hi = np.asarray(box.lo, float), np.asarray(box.hi, float)
+    """--poses positions lie in the run's scene box, give or take a camera at its edge (the
+    Mapper's rule for a fitted box, engine/extent.FITTED_SLACK_M): one far outside is in another
+    frame or unit (millimetres), whose scans would be empty."""
+    from virus_nerf.engine.extent import FITTED_SLACK_M
+
     xyz = pose_set.cam_to_world[:, :3, 3]
-    outside = np.flatnonzero(((xyz < lo - POSE_BOX_SLACK_M) | (xyz > hi + POSE_BOX_SLACK_M)).any(axis=1))
-    if outside.size:
-        i = int(outside[0])
+    for i in np.flatnonzero(~box.padded(FITTED_SLACK_M).contains(xyz))[:1]:
         raise DataFormatError(path, f"camera at ({', '.join(f'{v:.3g}' for v in xyz[i])}) m lies outside the run's "
-                                    f"scene box {np.round(lo, 2).tolist()}..{np.round(hi, 2).tolist()} m; expected "
-                                    "poses in the run's world frame, in metres", row=i + 2, field="x/y/z")
+                                    f"scene box {np.round(box.lo, 2).tolist()}..{np.round(box.hi, 2).tolist()} m; "
+                                    "expected poses in the run's world frame, in metres", row=int(i) + 2, field="x/y/z")
 
 
 def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,

@@ -274,7 +274,6 @@ def keep_stopped_run(trainer, exc) -> None:
     where they are and how to continue. No metrics.json: the run stays resumable (`train --resume`
     trains on and scores it). What does not fit (a full disk) is named in one NotWrittenError
     instead (exit 2)."""
-    from virus_nerf.utils.io import Outputs
 
     out, mapper = trainer.run_dir, trainer.mapper
     exc.reported = True
@@ -283,10 +282,7 @@ def keep_stopped_run(trainer, exc) -> None:
                 if (out / CHECKPOINT).is_file() else "nothing to keep")
         print(f"train: stopped by {exc.name} before the first training step; {kept}")
         return
-    outputs = Outputs()
-    outputs.write(out / MAP_DIR, lambda: mapper.snapshot(out / MAP_DIR, replace=True))  # the run's lock is held
-    outputs.write(out / CHECKPOINT, trainer.save_checkpoint)
-    outputs.check(f"free some space and continue with `virus-nerf train --resume --out {out}`")
+    _keep_map_and_checkpoint(trainer, f"free some space and continue with `virus-nerf train --resume --out {out}`")
     drive = ""
     if trainer.config.online:
         drive = f", drive at {trainer.playback.recording_time(mapper.seconds) - trainer.t0:.1f} of " \
@@ -301,17 +297,25 @@ def keep_stopped_scoring(trainer, exc) -> None:
     OUT/map/ and checkpoint.pt as `keep_stopped_run` keeps them (the checkpoint only if it is not
     there yet: the final one is), no metrics.json, and one line: `train --resume` scores it without
     training (run_training's docstring)."""
+    out, mapper = trainer.run_dir, trainer.mapper
+    exc.reported = True
+    _keep_map_and_checkpoint(trainer, f"free some space and score it with `virus-nerf train --resume --out {out}`",
+                             checkpoint=not (out / CHECKPOINT).is_file())
+    print(f"train: stopped by {exc.name} while scoring the finished training (step {mapper.step}); map in "
+          f"{out / MAP_DIR}, checkpoint in {out / CHECKPOINT}; score it with `virus-nerf train --resume --out {out}`")
+
+
+def _keep_map_and_checkpoint(trainer, hint: str, checkpoint: bool = True) -> None:
+    """OUT/map/ of the mapper now (small, first), then (`checkpoint`) checkpoint.pt; what did not
+    fit is named in one NotWrittenError with `hint` (utils/io.Outputs)."""
     from virus_nerf.utils.io import Outputs
 
     out, mapper = trainer.run_dir, trainer.mapper
-    exc.reported = True
     outputs = Outputs()
     outputs.write(out / MAP_DIR, lambda: mapper.snapshot(out / MAP_DIR, replace=True))  # the run's lock is held
-    if not (out / CHECKPOINT).is_file():
+    if checkpoint:
         outputs.write(out / CHECKPOINT, trainer.save_checkpoint)
-    outputs.check(f"free some space and score it with `virus-nerf train --resume --out {out}`")
-    print(f"train: stopped by {exc.name} while scoring the finished training (step {mapper.step}); map in "
-          f"{out / MAP_DIR}, checkpoint in {out / CHECKPOINT}; score it with `virus-nerf train --resume --out {out}`")
+    outputs.check(hint)
 
 
 def _check_final_checkpoint(trainer, kept) -> None:

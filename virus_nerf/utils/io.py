@@ -117,7 +117,7 @@ def create_new_dir(path: str | Path) -> Path:
 
 
 @contextmanager
-def new_output_dir(path: str | Path, *, replace: bool = False) -> Iterator[Path]:
+def new_output_dir(path: str | Path, *, replace: bool = False, flag: str = "--out") -> Iterator[Path]:
     """Build an output folder under a temporary name and rename it into place when complete.
 
     An error inside the block removes the temporary folder; a kill leaves a
@@ -128,7 +128,7 @@ def new_output_dir(path: str | Path, *, replace: bool = False) -> Iterator[Path]
     """
     path = Path(path)
     if path.exists() and not replace:
-        raise OutputExistsError(path)
+        raise OutputExistsError(path, flag)  # flag: what named `path`, the one to change
     remove_stale_partials(path)  # a killed attempt's `.<name>.partial-<pid>-*` (its process is dead)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

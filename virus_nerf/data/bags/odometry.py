@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from virus_nerf.data.csvtable import MAX_TIME_S
+from virus_nerf.data.csvtable import MAX_TIME_S, time_unit_problem
 from virus_nerf.errors import DataFormatError
 from virus_nerf.sensors.geometry import pose_matrix
 
@@ -208,8 +208,7 @@ def csv_track(path: str | Path) -> PoseTrack:
         raise DataFormatError(path, f"quaternion {tuple(float(q) for q in values[i, 4:])} has norm {norms[i]:.6g}; "
                                     "expected a unit quaternion", row=rows[int(i)][0], field="qx/qy/qz/qw")
     for i in np.flatnonzero(np.abs(values[:, 0]) > MAX_TIME_S):
-        raise DataFormatError(path, f"timestamp {float(values[i, 0])!r} beyond {MAX_TIME_S:g} s; expected seconds, not "
-                                    "milli-, micro- or nanoseconds", row=rows[int(i)][0], field="time")
+        raise DataFormatError(path, time_unit_problem(values[i, 0]), row=rows[int(i)][0], field="time")
     if np.any(np.diff(values[:, 0]) <= 0):
         k = int(np.flatnonzero(np.diff(values[:, 0]) <= 0)[0]) + 1
         raise DataFormatError(path, "times must increase", row=rows[k][0], field="time")
