@@ -134,6 +134,22 @@ def test_an_existing_sink_names_its_own_flag(tmp_path, flag, name):
     assert not (tmp_path / "out").exists() and (tmp_path / name).read_text() == "an earlier output"
 
 
+@pytest.mark.parametrize("extra, fragment", [
+    (["--map-frame", "odom"], "--map-frame and --base-frame name the frames of --out-bag's maps and /tf: "
+                              "give --out-bag DIR"),
+    (["--out-bag", "{tmp}/b", "--map-frame", "/map"], "--map-frame '/map': not a tf2 frame id"),
+    (["--out-bag", "{tmp}/b", "--base-frame", "map"], "--map-frame and --base-frame are both 'map'"),
+])
+def test_map_bag_frames_are_checked_before_any_work(tmp_path, extra, fragment):
+    """--map-frame/--base-frame: tf2 names, two of them, and only with --out-bag, whose frames they name."""
+    bag = tmp_path / "in.bag"
+    bag.write_bytes(b"not read: refused before")
+    code, _, err = run_cli(["map-bag", str(bag), "--out", str(tmp_path / "out"),
+                            *[a.format(tmp=tmp_path) for a in extra]])
+    assert_one_line_error(code, err, fragment)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.bag"]
+
+
 def test_help_into_a_closed_pipe_ends_quietly():
     """`virus-nerf train --help | head`: the reader is gone before the help is written; the
     command ends with 141 (as SIGPIPE ends a Unix tool), no BrokenPipeError traceback."""

@@ -243,7 +243,8 @@ def test_map_bag_streams_with_snapshots_lag_and_final_map(bags, tiny_cfg, tmp_pa
     every frame the importer makes (nothing dropped at --max-lag 100), stream.json; no recording/."""
     out = tmp_path / "out"
     have_sinks = importlib.util.find_spec("rerun") and importlib.util.find_spec("mcap_ros2")
-    sinks = ["--rerun-save", tmp_path / "live.rrd", "--out-bag", tmp_path / "maps_bag"] if have_sinks else []
+    sinks = ["--rerun-save", tmp_path / "live.rrd", "--out-bag", tmp_path / "maps_bag", "--map-frame", "odom",
+             "--base-frame", "robot"] if have_sinks else []
     code, stdout, stderr = run_cli(["map-bag", bags["ros1"], "--out", out, "--playback", "2", "--snapshot-every",
                                     "0.6", "--config", tiny_cfg, "--n-rays", "32", "--max-poses", "3", "--poses", "csv",
                                     "--poses-file", bags["csv"], "--max-lag", "100", *sinks])
@@ -264,7 +265,7 @@ def test_map_bag_streams_with_snapshots_lag_and_final_map(bags, tiny_cfg, tmp_pa
     if have_sinks:  # the live view and the ROS maps get every frame and every snapshot's maps, as in replay
         from test_mapper import _check_map_bag_sinks
 
-        _check_map_bag_sinks(tmp_path / "live.rrd", tmp_path / "maps_bag", out, len(snaps), 30)
+        _check_map_bag_sinks(tmp_path / "live.rrd", tmp_path / "maps_bag", out, len(snaps), 30, ("odom", "robot"))
 
 
 def test_map_bag_drops_late_frames_and_keeps_the_map_on_bad_data(bags, tiny_cfg, tmp_path):

@@ -603,8 +603,10 @@ def test_the_driving_sample_budget_bites_only_once_frames_arrive_after_training_
         assert n == max(16, min(128, int(640 // spr)))
 
 
-def _check_map_bag_sinks(rrd, bag_dir, out, n_snapshots: int, n_frames: int) -> None:
-    """The .rrd (read by rerun's own reader) and the MCAP (read by mcap + mcap_ros2) of a map-bag run."""
+def _check_map_bag_sinks(rrd, bag_dir, out, n_snapshots: int, n_frames: int,
+                         frames: tuple[str, str] = ("map", "base_link")) -> None:
+    """The .rrd (read by rerun's own reader) and the MCAP (read by mcap + mcap_ros2) of a map-bag
+    run; `frames`: the maps' frame and /tf parent, the /tf child."""
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
     from PIL import Image
@@ -621,7 +623,9 @@ def _check_map_bag_sinks(rrd, bag_dir, out, n_snapshots: int, n_frames: int) -> 
         for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
             if channel.topic == "/map":
                 maps.append(msg)
+                assert msg.header.frame_id == frames[0]
             if channel.topic == "/tf":
+                assert (msg.transforms[0].header.frame_id, msg.transforms[0].child_frame_id) == frames
                 v = msg.transforms[0].transform.translation
                 tfs.append((v.x, v.y))
     # base_link is one camera's (the first stack seen): one /tf per frame of that stack, and it never

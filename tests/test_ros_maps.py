@@ -5,6 +5,7 @@ resolution, topics, counts, timestamps and the tf of hand-computed poses."""
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -194,3 +195,23 @@ def test_mount_per_stack_and_refusals(tmp_path):
         RosMapBag(tmp_path / "c", distro="noetic")
     with pytest.raises(UsageError, match="already closed"):
         b.write_maps(1.0, _pattern_map())
+
+
+def test_frames_are_named_by_the_caller_and_checked(tmp_path):
+    """map_frame names the maps' frame and the /tf parent, base_frame the /tf child; a name tf2
+    refuses (leading '/', spaces, empty) or the same name twice is refused before the bag is made."""
+    with RosMapBag(tmp_path / "odom_bag", map_frame="odom", base_frame="robot") as b:
+        b.write_pose(1.0, _upright_camera((1.0, 2.0, 0.5), 0.0))
+        b.write_maps(1.5, _pattern_map(), _prob_map())
+    msgs = _messages(b)
+    tf = next(dec for t, _, dec in msgs if t == "/tf").transforms[0]
+    assert (tf.header.frame_id, tf.child_frame_id) == ("odom", "robot")
+    assert [dec.header.frame_id for t, _, dec in msgs if t != "/tf"] == ["odom", "odom"]
+    for kwargs, message in (({"map_frame": "/map"}, "map_frame '/map': not a tf2 frame id"),
+                            ({"base_frame": "base link"}, "base_frame 'base link': not a tf2 frame id"),
+                            ({"map_frame": ""}, "map_frame '': not a tf2 frame id"),
+                            ({"map_frame": "odom", "base_frame": "odom"},
+                             "map_frame and base_frame are both 'odom': a transform needs two frames")):
+        with pytest.raises(UsageError, match=re.escape(message)):
+            RosMapBag(tmp_path / "refused", **kwargs)
+        assert not (tmp_path / "refused").exists()

@@ -58,6 +58,8 @@ def map_bag(
     maps: Annotated[MapRaster, tyro.conf.arg(name="")] = DEFAULT_RASTER,
     view: Annotated[RerunSinks, tyro.conf.arg(name="")] = NO_VIEW,
     out_bag: Path | None = None,
+    map_frame: str = "map",
+    base_frame: str = "base_link",
     resume: bool = False,
 ) -> None:
     """Map a ROS bag while playing it in real time: snapshots every few seconds, a final map.
@@ -100,6 +102,8 @@ def map_bag(
         view: The live view (--rerun, --rerun-connect, --rerun-save; mapping/options.py).
         out_bag: New folder for a rosbag2 (MCAP) of the maps as they grow (/map, /map_probability,
             nav_msgs/OccupancyGrid) and the robot's /tf, for RViz 2 and Foxglove.
+        map_frame: --out-bag: the maps' frame_id and the parent frame of the /tf poses.
+        base_frame: --out-bag: the robot's frame, the child frame of the /tf poses.
         resume: Finish the map-bag in --out that was killed (SIGKILL, a power cut): its final map
             (OUT/map/) from its last snapshot and the mapper state saved with it, and stream.json
             marked stopped; the stream is not continued (BAG and the other flags are not needed).
@@ -109,6 +113,7 @@ def map_bag(
     if resume:
         # the final map is the last snapshot as it was made: a flag that asks for more is refused, not ignored
         unused = [flag for flag, given in (("--out-bag", out_bag is not None), ("--rerun*", view.wanted),
+                                           ("--map-frame/--base-frame", (map_frame, base_frame) != ("map", "base_link")),
                                            ("--resolution/--n-rays/--max-poses", maps != DEFAULT_RASTER)) if given]
         if unused:
             raise UsageError(f"--resume writes the final map from the last snapshot as it was made; {unused[0]} "
@@ -139,8 +144,13 @@ def map_bag(
         raise OutputExistsError(out)
     if out_bag is not None and Path(out_bag).exists():
         raise OutputExistsError(out_bag, "--out-bag")
+    from virus_nerf.mapping.ros_maps import require_tf_pair
+
+    require_tf_pair(("--map-frame", map_frame), ("--base-frame", base_frame))
+    if out_bag is None and (map_frame, base_frame) != ("map", "base_link"):
+        raise UsageError("--map-frame and --base-frame name the frames of --out-bag's maps and /tf: give --out-bag DIR")
     view.check()
-    sinks = Sinks(view, out_bag)
+    sinks = Sinks(view, out_bag, map_frame, base_frame)
     pose_args = dict(poses=poses, poses_file=poses_file, tf_parent=tf_parent, tf_child=tf_child)
     from virus_nerf.utils.stop import stop_on_signals
 
@@ -200,6 +210,8 @@ class Sinks:
 
     view: RerunSinks = NO_VIEW
     out_bag: Path | None = None  # a rosbag2 (MCAP) of /map, /map_probability and /tf
+    map_frame: str = "map"  # out_bag's maps' frame_id and its /tf parent
+    base_frame: str = "base_link"  # out_bag's /tf child
 
     def open(self, stack: ExitStack) -> tuple:
         """(LiveView or None, RosMapBag or None), closed with `stack`."""
@@ -212,7 +224,8 @@ class Sinks:
         if self.out_bag is not None:
             from virus_nerf.mapping.ros_maps import RosMapBag
 
-            ros_bag = stack.enter_context(RosMapBag(self.out_bag))
+            ros_bag = stack.enter_context(RosMapBag(self.out_bag, map_frame=self.map_frame,
+                                                    base_frame=self.base_frame))
         return live, ros_bag
 
     def note(self) -> str:

@@ -13,7 +13,7 @@ PATH/ holding metadata.yaml and PATH/<folder name>.mcap (`RosMapBag.mcap_path`) 
 - `/tf` (tf2_msgs/msg/TFMessage): map -> base_link, one per frame of the stack(s) that give the
   robot's pose (`RobotStacks`: the mounted ones, else the first seen).
 
-Both grids are in frame "map"; info.origin is the world (x, y, 0) of the lower-left corner of
+Both grids are in frame "map" (`map_frame`; the /tf child is `base_frame`); info.origin is the world (x, y, 0) of the lower-left corner of
 the lower-left cell with identity orientation, info.resolution metres per cell. Cell data is
 row-major from the lower-left (OccupancyGrid row 0 = smallest y), whereas the map images
 (maps.occupancy, PGM) have row 0 = largest y: the rows are flipped on the way out.
@@ -132,6 +132,22 @@ def stamp_ns(time_s: float) -> int:
     return int(round(float(time_s) * 1e9))
 
 
+def require_frame(flag: str, value: str) -> str:
+    """A tf2 frame id: not empty, no whitespace, no leading '/' (tf2 refuses or strips it)."""
+    if not value or any(c.isspace() for c in value) or value.startswith("/"):
+        raise UsageError(f"{flag} {value!r}: not a tf2 frame id; expected a name without spaces or a "
+                         "leading '/', e.g. map or odom")
+    return value
+
+
+def require_tf_pair(parent: tuple[str, str], child: tuple[str, str]) -> None:
+    """A transform's (flag, frame) parent and child: two tf2 frame ids, not the same one."""
+    for flag, value in (parent, child):
+        require_frame(flag, value)
+    if parent[1] == child[1]:
+        raise UsageError(f"{parent[0]} and {child[0]} are both {parent[1]!r}: a transform needs two frames")
+
+
 def grid_message(typestore, ns: int, m: OccupancyMap2D, frame_id: str = "map"):
     """nav_msgs/OccupancyGrid (of `typestore`'s distro) of map `m` at `ns` nanoseconds in frame
     `frame_id`: its origin the lower-left corner, yaw 0 (the bag's /map and the ROS 2 node's)."""
@@ -153,7 +169,8 @@ class RosMapBag:
     path: the bag folder to create (refused if it exists). distro: "humble" or "jazzy", whose
     message definitions go into the bag (the three types are the same in both; jazzy adds their
     type hashes). camera_in_base: stack id -> (4, 4) camera-to-base_link mount (module
-    docstring); stacks without one use the levelled camera. Use as a context manager, or call
+    docstring); stacks without one use the levelled camera. map_frame: the maps' frame_id and
+    the /tf parent; base_frame: the /tf child (tf2 frame ids). Use as a context manager, or call
     `close()`: the bag's metadata.yaml is written on close.
     """
 
@@ -175,6 +192,7 @@ class RosMapBag:
             raise UsageError("--out-bag needs the ros extra: pip install 'virus-nerf[ros]'") from None
         if distro not in DISTROS:
             raise UsageError(f"distro {distro!r}: expected one of {DISTROS}")
+        require_tf_pair(("map_frame", map_frame), ("base_frame", base_frame))
         self.path = Path(path)
         if self.path.exists():
             raise OutputExistsError(self.path, "--out-bag")

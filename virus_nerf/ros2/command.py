@@ -95,7 +95,8 @@ def ros2(
         exit_when_idle: Stop when no message came for this many seconds after the first one.
         view: The live view (--rerun, --rerun-connect, --rerun-save; as map-bag's).
     """
-    from virus_nerf.ros2.dds import require_dds, require_frame, require_name, resolve
+    from virus_nerf.mapping.ros_maps import require_frame
+    from virus_nerf.ros2.dds import require_dds, require_name, resolve
 
     if out is None:
         raise UsageError("--out is required: give --out DIR (a new folder for the snapshots and the final map)")

@@ -113,14 +113,6 @@ def require_name(flag: str, value: str, resolved: str, what: str = "topic") -> s
     return resolved
 
 
-def require_frame(flag: str, value: str) -> str:
-    """A tf2 frame id: not empty, no whitespace, no leading '/' (tf2 refuses or strips it)."""
-    if not value or any(c.isspace() for c in value) or value.startswith("/"):
-        raise UsageError(f"{flag} {value!r}: not a tf2 frame id; expected a name without spaces or a "
-                         "leading '/', e.g. map or odom")
-    return value
-
-
 def resolve(name: str, namespace: str = "/") -> str:
     """A ROS name resolved in `namespace`: '/x' stays, 'x' -> '<namespace>/x', '~/x' as 'x'."""
     if name.startswith("/"):
