@@ -215,6 +215,18 @@ def test_bad_input_while_streaming_names_the_topic_and_time(bags, tmp_path):
     assert "topic /TOF3 stopped: its last message is at 0.860 s" in str(err) and "none came for 1 s" in str(err)
     assert frames and err.at_s > 1.86
 
+    def jumps(topic, t, msg, ty):  # every stamp after 1.5 s 20 s later: a clock jump, not 8 topics stopping
+        if t * 1e-9 > 1700000001.5:
+            if hasattr(msg, "header"):
+                msg.header.stamp.sec += 20
+            t += 20 * 10**9
+        return keep(topic, t, msg, ty)
+
+    frames, err = _bad(bags, tmp_path, "jumps", jumps)
+    assert re.search(r"the bag's clock jumps 20\.\d{3} s forward: no topic sent anything between 1\.[45]\d\d s and "
+                     r"21\.\d{3} s \(message \d+ of /\S+; .* a gap over 2 s in every topic stops the stream$", str(err)), err
+    assert frames and 1.4 < err.at_s <= 1.5
+
     # a pose file whose poses jump 2 m after 1.5 s
     rec_csv = bags["csv"].read_text().splitlines()
     jumped = [rec_csv[0]] + [_shift(row, 2.0) if float(row.split(",")[0]) > 1700000001.5 else row for row in rec_csv[1:]]

@@ -22,7 +22,8 @@ which the importer re-registers against the following seconds (odometry.py `refi
 stream cannot.
 
 Bad data stops the stream with a `StreamError` (one line naming the topic and the bag time): a
-stamp older than its topic's previous one, a watched topic silent for `max_silence_s`, or the robot
+stamp older than its topic's previous one, a watched topic silent for `max_silence_s`, a gap of
+`max_silence_s` in every topic (the bag's clock jumps forward: said as such), or the robot
 moving more than `max_jump_m` between consecutive frames (at most JUMP_WINDOW_S apart).
 
 Live (the ROS 2 node, `on_problem` given) a robot's data cannot be refused and the map must go on:
@@ -179,6 +180,7 @@ class LiveSync:
         if not self._check_clock(topic, msg):
             return []  # live: skipped
         if not live_static:
+            self._check_gap(topic, msg)
             self.clock = max(self.clock, t)
         with self._at(msg, topic):
             if topic in self.poses.topics:
@@ -293,6 +295,17 @@ class LiveSync:
             self.restart(msg.time_s)
         self.last_stamp[topic] = msg.time_s
         return True
+
+    def _check_gap(self, topic: str, msg: Message) -> None:
+        """A bag: no topic sent anything for more than max_silence_s of bag time (a clock jump, a
+        recording paused) stops the stream, named as such rather than as every topic stopping.
+        Live, a gap is the link or the robot going quiet: the silence checks say it."""
+        gap = msg.time_s - self.clock
+        if self.on_problem is None and self.clock > -math.inf and gap > self.max_silence_s:
+            raise StreamError(self.bag, f"the bag's clock jumps {gap:.3f} s forward: no topic sent anything between "
+                              f"{self.rel(self.clock):.3f} s and {self.rel(msg.time_s):.3f} s (message "
+                              f"{msg.index + 1} of {topic}; seconds since the bag's first message); a gap over "
+                              f"{self.max_silence_s:g} s in every topic stops the stream", self.rel(self.clock))
 
     def _check_silence(self) -> None:
         """A watched topic (or the pose source) silent for max_silence_s of bag time has stopped."""
