@@ -4,6 +4,7 @@ unit quaternion), and import-bag and the stream refuse the same bad message in t
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from types import SimpleNamespace as NS
 
@@ -52,6 +53,29 @@ def test_a_tof_zone_beyond_100_m_is_refused_as_from_a_tof_file(tmp_path):
     with pytest.raises(DataFormatError) as file_err:
         read_tof(csv)
     assert file_err.value.problem == problem and file_err.value.field == "meas_10"
+
+
+def test_a_tof_message_in_metres_is_refused_as_a_tof_file_is(tmp_path):
+    """Readings 0.3-3.9 (metres, not millimetres): no VL53L5CX reads below 20 mm, so a message whose
+    eight or more target zones all read below 10 mm is refused naming its field, in the TOF file's
+    words; fewer target zones (a stray reading) or readings from 20 mm up decode."""
+    from virus_nerf.data.ethz import read_tof
+
+    meas = np.linspace(0.3, 3.9, 64)
+    meas[::2] = 0.0  # 32 zones with a target, the others the sensor's "no target"
+    with pytest.raises(m.MessageError) as err:
+        m.decode_tof(NS(meas=meas), WHERE)
+    problem = "every reading is below 10 mm (the largest 3.9); expected millimetres (the {} holds metres?)"
+    assert str(err.value) == f"robot.bag, field 'meas': topic /TOF1, message 5: {problem.format('message')}"
+    csv = tmp_path / "TOF1.csv"
+    csv.write_text("time," + ",".join(f"meas_{k}" for k in range(64)) + "\n1.0," + ",".join(f"{v:g}" for v in meas) + "\n")
+    with pytest.raises(DataFormatError, match=re.escape(problem.format("file"))):
+        read_tof(csv)
+    few = np.zeros(64)
+    few[:7] = 5.0  # seven stray readings: no evidence of the unit
+    assert np.isnan(m.decode_tof(NS(meas=few), WHERE).grid_m()).all()  # 5 mm is below the 0.1 m floor: invalid
+    near = np.full(64, 20.0)  # every zone at the sensor's nearest reading, in millimetres
+    assert m.decode_tof(NS(meas=near), WHERE).meas_mm.tolist() == [20.0] * 64
 
 
 def test_a_message_and_the_layouts_file_give_the_same_tof_and_uss_numbers(tmp_path):

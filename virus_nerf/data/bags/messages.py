@@ -325,9 +325,14 @@ class TofReading:
         return irs.grid_from_mm(self.meas_mm)
 
 
+TOF_UNIT_MIN_TARGETS = 8  # zones with a target before a message whose readings are all below 10 mm is refused
+
+
 def decode_tof(msg, where: Where) -> TofReading:
     """sensors/msg/TOF -> 64 zones in mm; a zone beyond 100 m is refused (irs.IRS_MAX_PLAUSIBLE_MM:
-    the TOF file's check); stds 65535 where the message has none."""
+    the TOF file's check), and so is a message whose TOF_UNIT_MIN_TARGETS or more target zones all
+    read below 10 mm (metres: irs.metres_problem, the TOF file's check); stds 65535 where the
+    message has none."""
     meas = np.asarray(_field(msg, "meas", where), dtype=np.float64)
     if meas.size != irs.IRS_ZONE_COUNT:
         raise where.error(f"has {meas.size} zones; expected 64 (8x8)", field="meas")
@@ -335,6 +340,8 @@ def decode_tof(msg, where: Where) -> TofReading:
     if far.size:
         k = int(far[0, 0])
         raise where.error(irs.implausible_problem(float(meas[k])), field=f"meas[{k}]")
+    if (problem := irs.metres_problem(meas, min_targets=TOF_UNIT_MIN_TARGETS)) is not None:
+        raise where.error(problem.replace("the file holds", "the message holds"), field="meas")
     stds = np.asarray(getattr(msg, "stds", ()), dtype=np.float64)
     if stds.size != irs.IRS_ZONE_COUNT:
         stds = np.full(irs.IRS_ZONE_COUNT, 65535.0)
