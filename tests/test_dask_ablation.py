@@ -137,3 +137,63 @@ def test_a_port_that_is_no_scheduler_is_one_line_before_anything_is_written(tmp_
             assert not out.exists()
     finally:
         listener.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scheduler", [None, "dask"])
+def test_a_stopped_command_stops_its_trainings_and_the_same_command_continues_them(tiny_office, tmp_path,
+                                                                                  scheduler):
+    """The command alone is stopped (a supervisor's SIGTERM to its pid, not the terminal's Ctrl-C to
+    the whole group): its training ends its step and keeps its checkpoint, on a Dask worker too,
+    whose child a training is (the cluster stays up: no worker dies to end it). Run again, the
+    same runs continue from their checkpoints to the end."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from virus_nerf.experiments.executors import run_all
+    from virus_nerf.experiments.runs import STOPPED_WITH_CALLER, RunSpec, stop_file
+    from virus_nerf.trainer.run_folder import RunLock
+
+    cfg = tmp_path / "tiny.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config())))
+    out = tmp_path / "runs" / "r"
+    spec = RunSpec("r", tiny_office, "office", out, ("--config", str(cfg), "--max-steps", "1000"))
+
+    def interrupt_once_training() -> None:
+        t0 = time.monotonic()
+        while not (out.is_dir() and RunLock(out).held_by_another()) and time.monotonic() - t0 < 120:
+            time.sleep(0.1)
+        time.sleep(2.0)  # a few steps in
+        os.kill(os.getpid(), signal.SIGINT)  # to this process alone: the training is not in its group
+
+    def run(address):
+        threading.Thread(target=interrupt_once_training, daemon=True).start()
+        with pytest.raises(KeyboardInterrupt):
+            run_all([spec], workers=1, threads_per_worker=1, scheduler=address)
+        t0 = time.monotonic()  # the training ends its step on its own (the cluster is still up)
+        while RunLock(out).held_by_another() and time.monotonic() - t0 < 60:
+            time.sleep(0.2)
+        assert not RunLock(out).held_by_another()
+        assert (out / "checkpoint.pt").is_file() and not (out / "metrics.json").exists()
+        assert stop_file(out).read_text().strip() == STOPPED_WITH_CALLER
+        assert run_all([spec], workers=1, threads_per_worker=1, scheduler=address) == []
+
+    if scheduler is None:
+        run(None)
+    else:
+        distributed = pytest.importorskip("distributed")
+        with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                      dashboard_address=None) as cluster:
+            run(cluster.scheduler_address)
+    assert not stop_file(out).exists()
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["train"]["steps"] == 1000
+    assert "--resume" in log_text(out)
+
+
+def log_text(out: Path) -> str:
+    from virus_nerf.experiments.runs import log_file
+
+    return log_file(out).read_text()

@@ -13,9 +13,19 @@ import concurrent.futures
 import os
 import threading
 from collections.abc import Iterable, Iterator
+from contextlib import closing
 from typing import Any
 
-from virus_nerf.experiments.runs import RunResult, RunSpec, execute_run, log_file, run_done
+from virus_nerf.experiments.runs import (
+    STOPPED_WITH_CALLER,
+    RunResult,
+    RunSpec,
+    clear_caller_stop,
+    execute_run,
+    log_file,
+    request_stop,
+    run_done,
+)
 
 
 def require_extra(module: str, extra: str, what: str) -> Any:
@@ -153,17 +163,39 @@ def make_executor(scheduler: str | None, workers: int, threads: int | None = Non
     return DaskExecutor(scheduler, workers, threads)
 
 
+def stop_unfinished(futures: dict) -> int:
+    """The caller stops (Ctrl-C, SIGTERM, an error): every run not finished gets its stop file
+    (runs.STOPPED_WITH_CALLER), which the attempt waiting on its training polls: the training
+    ends its step and keeps its checkpoint. Needed beyond the local children dying with their
+    parent: a training on a Dask worker is the worker's child and would run on. Runs not started
+    yet are cancelled. Returns how many runs were unfinished."""
+    unfinished = {fut: spec for fut, spec in futures.items() if not fut.done()}
+    for fut, spec in unfinished.items():
+        request_stop(spec.out, STOPPED_WITH_CALLER)
+        fut.cancel()  # a queued run never starts; a running one ends through its stop file
+    return len(unfinished)
+
+
 def run_many(executor, specs: Iterable[RunSpec]) -> Iterator[tuple[RunSpec, RunResult | None, str]]:
-    """Submit every spec; yield (spec, result or None, error text) as each completes."""
+    """Submit every spec; yield (spec, result or None, error text) as each completes. Closed or
+    interrupted before the end (use contextlib.closing), the unfinished runs are stopped."""
     futures = {}
-    for spec in specs:
-        futures[executor.submit(spec)] = spec
-    for fut in executor.as_completed(list(futures)):
-        spec = futures[fut]
-        try:
-            yield spec, fut.result(), ""
-        except Exception as exc:  # the task itself broke (e.g. a worker lost the shared folder)
-            yield spec, None, f"{type(exc).__name__}: {exc}"
+    try:
+        for spec in specs:
+            clear_caller_stop(spec.out)  # left by this command's earlier stop: continue the run
+            futures[executor.submit(spec)] = spec
+        for fut in executor.as_completed(list(futures)):
+            spec = futures[fut]
+            try:
+                result = fut.result()
+            except Exception as exc:  # the task itself broke (e.g. a worker lost the shared folder)
+                yield spec, None, f"{type(exc).__name__}: {exc}"
+            else:
+                yield spec, result, ""
+    finally:
+        if n := stop_unfinished(futures):
+            print(f"stopping {n} unfinished run(s): each ends its step and keeps its checkpoint; the same "
+                  "command continues them", flush=True)
 
 
 def run_all(specs: list[RunSpec], workers: int = 2, threads_per_worker: int | None = None,
@@ -175,14 +207,15 @@ def run_all(specs: list[RunSpec], workers: int = 2, threads_per_worker: int | No
     with make_executor(scheduler, workers, threads_per_worker) as executor:
         print(f"{len(specs)} runs: {len(specs) - len(todo)} already finished, {len(todo)} to run on "
               f"{executor.describe()}", flush=True)
-        for k, (spec, res, error) in enumerate(run_many(executor, todo), start=1):
-            if res is not None and res.ok:
-                status = f"ok in {res.seconds:.0f} s" + (f" ({res.attempts} attempts)" if res.attempts > 1 else "")
-            elif res is not None:
-                status = f"FAILED after {res.attempts} attempt(s) (exit {res.returncode}, see {log_file(spec.out)})"
-            else:
-                status = f"FAILED ({error})"
-            print(f"  [{k}/{len(todo)}] {spec.name}: {status}", flush=True)
-            if res is None or not res.ok:
-                failed.append(spec)
+        with closing(run_many(executor, todo)) as results:  # stopped early: the unfinished runs are stopped
+            for k, (spec, res, error) in enumerate(results, start=1):
+                if res is not None and res.ok:
+                    status = f"ok in {res.seconds:.0f} s" + (f" ({res.attempts} attempts)" if res.attempts > 1 else "")
+                elif res is not None:
+                    status = f"FAILED after {res.attempts} attempt(s) (exit {res.returncode}, see {log_file(spec.out)})"
+                else:
+                    status = f"FAILED ({error})"
+                print(f"  [{k}/{len(todo)}] {spec.name}: {status}", flush=True)
+                if res is None or not res.ok:
+                    failed.append(spec)
     return failed

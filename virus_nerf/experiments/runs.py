@@ -4,7 +4,8 @@
 another machine), so a run folder looks the same whichever executor ran it. It never reruns or
 overwrites a finished run (finished = metrics.json exists); a run that died is retried once
 (resumed from its checkpoint, or started again with the dead folder kept aside); a run whose
-stop file (`RUN.stop`, beside the folder) appears is terminated and not retried (tune's pruning).
+stop file (`RUN.stop`, beside the folder) appears is terminated and not retried (tune's pruning,
+or the command that started it stopped: a training on a Dask worker is no child of that command).
 """
 
 from __future__ import annotations
@@ -68,10 +69,25 @@ def stop_file(out: Path) -> Path:
     return out.with_name(f"{out.name}.stop")
 
 
+# the reason a command's own stop (Ctrl-C, SIGTERM) writes: the same command run again clears it
+STOPPED_WITH_CALLER = "stopped with the command that started it"
+
+
 def request_stop(out: Path, reason: str = "stop requested") -> None:
     path = stop_file(out)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(reason + "\n")
+
+
+def clear_caller_stop(out: Path) -> None:
+    """Remove RUN.stop if the command's own stop wrote it (not a study's pruning): the command run
+    again continues the run from its checkpoint."""
+    path = stop_file(out)
+    try:
+        if path.read_text().strip() == STOPPED_WITH_CALLER:
+            path.unlink()
+    except FileNotFoundError:
+        pass
 
 
 def _worker_env(threads: int, shared_cpu: bool = False) -> dict[str, str]:
@@ -154,10 +170,13 @@ def execute_run(spec: RunSpec, threads: int = 1, retries: int = 1, poll_s: float
     host = socket.gethostname()
     if run_done(spec.out):
         return RunResult(spec, 0, 0, host=host)
-    attempts, rc, stopped = 0, 0, stop_file(spec.out).exists()
-    while not stopped and attempts <= retries:
+    attempts, rc, stopped = 0, 0, False
+    while attempts <= retries:
+        if stop_file(spec.out).exists():  # also after an attempt that died of the same stop (Ctrl-C)
+            stopped = True
+            break
         rc, stopped = _attempt(spec, threads, poll_s, shared_cpu)
         attempts += 1
-        if run_done(spec.out) or rc == USAGE_EXIT:
+        if stopped or run_done(spec.out) or rc == USAGE_EXIT:
             break
     return RunResult(spec, rc, attempts, stopped=stopped, host=host, seconds=time.perf_counter() - t0)

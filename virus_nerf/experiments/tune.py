@@ -74,7 +74,7 @@ def run_trial(ctx: _Context) -> str:
 
     from virus_nerf.config_io import to_dict
     from virus_nerf.evaluation.metrics import read_metrics
-    from virus_nerf.experiments.runs import RunSpec, log_file, request_stop
+    from virus_nerf.experiments.runs import STOPPED_WITH_CALLER, RunSpec, log_file, request_stop
     from virus_nerf.experiments.search_space import build_config, distributions
     from virus_nerf.utils.io import write_json_atomic
 
@@ -83,6 +83,7 @@ def run_trial(ctx: _Context) -> str:
         trial = study.ask(distributions())
     n = trial.number
     run = ctx.trials_dir / f"{n:04d}"
+    future = None
     try:
         import os
         import socket
@@ -129,6 +130,9 @@ def run_trial(ctx: _Context) -> str:
                 f"cov {zone.cov_mean:.3f} m) in {result.seconds:.0f} s")
     except BaseException:
         study.tell(trial, state=optuna.trial.TrialState.FAIL, skip_if_finished=True)
+        if future is not None and not future.done():  # a training on a Dask worker would run on
+            request_stop(run, STOPPED_WITH_CALLER)
+            future.cancel()
         raise
 
 
