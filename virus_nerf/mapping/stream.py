@@ -143,12 +143,17 @@ class StreamRun:
     def now(self) -> float:
         return time.monotonic() - self.start
 
+    def map_time(self) -> float:
+        """The recording time the maps carry: the newest mapped frame's; the stream's first stamp
+        before the first frame and after a clock restart until a frame of the new clock is mapped."""
+        return self.newest if self.newest is not None else self.t0
+
     def lag(self, now: float) -> float:
         """Recording seconds between the robot's present and the newest frame (the first message
         stands in before the first frame). From a bag, the present is the scaled wall clock. Live,
         the input's rate is not ours to know (a bag played at --rate 2 runs twice as fast as the
         wall clock): the present is the newest message's stamp plus how late it was read."""
-        newest = self.newest if self.newest is not None else self.t0
+        newest = self.map_time()
         if self.live_source:
             return max(self.latest - newest, 0.0) + max(self.behind, 0.0)
         return self.stamped.recording_time(now) - newest
@@ -340,7 +345,7 @@ class StreamRun:
         folder = self.out / SNAPSHOTS / f"{k:04d}_{now:.1f}s"
         lag = self.lag(now)
         try:
-            info = self._snapshot(folder, self.newest)
+            info = self._snapshot(folder, self.map_time())
         except OSError as exc:  # a full disk: the map is still in memory, the final map comes first
             self._warn("snapshot", f"snapshot {k}: {exc.filename or folder}: could not be written "
                        f"({exc.strerror or exc}); mapping goes on")
@@ -367,7 +372,7 @@ class StreamRun:
 
     def _line(self, what: str, now: float, info, folder: Path, lag: float) -> str:
         """replay's progress line with the lag and the frames dropped so far."""
-        drive_t = (self.newest if self.newest is not None else self.t0) - self.t0
+        drive_t = self.map_time() - self.t0
         head, _, tail = _progress_line(what, now, drive_t, self.drive_s, info, folder).rpartition(" -> ")
         dropped = sum(self.sync.dropped_total().values())
         return f"{head}, lag {lag:.2f} s, {dropped} dropped -> {tail}"
@@ -413,7 +418,7 @@ class StreamRun:
             final = self.out / FINAL
             made = {}
             if outputs.write(final, lambda: made.update(info=self._snapshot(
-                    final, self.newest if self.newest is not None else self.t0))):
+                    final, self.map_time()))):
                 r.final = str(final)
                 self.log(self._line("final map", now, made["info"], final, lag))
             r.frames, r.steps, r.train_s, r.wall_s = self.mapper.frames, self.mapper.step, self.mapper.seconds, now
