@@ -215,6 +215,14 @@ def test_bad_input_while_streaming_names_the_topic_and_time(bags, tmp_path):
     assert "topic /TOF3 stopped: its last message is at 0.860 s" in str(err) and "none came for 1 s" in str(err)
     assert frames and err.at_s > 1.86
 
+    def blind(topic, t, msg, ty):  # stack 1's camera never says its intrinsics
+        return [] if topic == "/CAM1/color/camera_info" else keep(topic, t, msg, ty)
+
+    frames, err = _bad(bags, tmp_path, "blind", blind, max_silence_s=1.0)
+    assert re.search(r"topic /CAM1/color/camera_info sent nothing while stack 1's colour images came for 1 s \(bag "
+                     r"time 1\.\d{3} s\): its frames cannot be made without the camera's intrinsics$", str(err)), err
+    assert 1.0 < err.at_s < 1.4
+
     def jumps(topic, t, msg, ty):  # every stamp after 1.5 s 20 s later: a clock jump, not 8 topics stopping
         if t * 1e-9 > 1700000001.5:
             if hasattr(msg, "header"):
@@ -456,10 +464,36 @@ def test_live_a_silent_tof_leaves_its_camera_mapping(bags):
     waited = sum(n for why, n in sync.dropped[3].items() if why.startswith("no tof"))
     assert len(by_stack[3]) >= 10 and all(np.isnan(f.irs_range).all() for f in by_stack[3])
     assert sync.without_total() == {"tof": len(by_stack[3])} and 1 <= waited <= len(by_stack[3])
+    assert not any("camera_info" in ln for ln in lines)
     whole = _by_stack(_stream(bags["ros1"], "csv", poses_file=bags["csv"])[0])[1]  # every topic, not live
     assert [f.time for f in by_stack[1]] == [f.time for f in whole]
     assert all(np.array_equal(a.irs_range, b.irs_range, equal_nan=True) for a, b in zip(by_stack[1], whole, strict=True))
     assert any(np.isfinite(f.irs_range).any() for f in by_stack[1])
+
+
+def test_live_a_camera_without_camera_info_is_said_and_said_back(bags):
+    """Live, colour images whose camera_info does not come (a typo in the topics file, a driver
+    that does not publish it): said once after max_silence_s, the stack's frames dropped and counted
+    meanwhile; when it comes, said back, and that stack's frames are made again."""
+    cfg = default_topics()
+    with BagReader(bags["ros1"]) as reader:
+        lines: list[str] = []
+        source = make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"])
+        sync = LiveSync(cfg, source, bags["ros1"], max_silence_s=0.5, on_problem=lines.append)
+        frames = []
+        for topic, msg in reader.iter_topics(sync.topics()):
+            if topic != "/CAM3/color/camera_info" or msg.time_s - sync.t0 > 1.5:
+                frames += sync.push(topic, msg)
+        frames += sync.finish()
+    said = [ln for ln in lines if "camera_info" in ln]
+    assert len(said) == 2, lines
+    assert re.search(r"topic /CAM3/color/camera_info sent nothing while stack 3's colour images came for 0\.5 s "
+                     r"\(bag time 0\.\d{3} s\): its frames cannot be made without the camera's intrinsics; they are "
+                     r"dropped until it comes$", said[0]), said[0]
+    assert re.search(r"topic /CAM3/color/camera_info is back at bag time 1\.[5-7]\d\d s$", said[1]), said[1]
+    by_stack = _by_stack(frames)
+    assert sync.dropped[3]["no camera_info"] >= 5 and by_stack[3] and min(f.time for f in by_stack[3]) > sync.t0 + 1.4
+    assert len(by_stack[1]) >= 10  # the other camera never waited
 
 
 def test_an_out_that_keeps_nothing_leaves_no_parent_behind(tmp_path):

@@ -143,6 +143,7 @@ class LiveSync:
         self.watched = {t for t, keys in self.roles.items() if any(r != "camera_info" for _, r in keys)}
         self.last_kept = dict.fromkeys(cfg.stacks, -math.inf)  # camera_rate_hz thinning
         self.last_color = dict.fromkeys(cfg.stacks, -math.inf)
+        self.first_color: dict[int, float] = {}  # the first colour stamp (since a restart), for the intrinsics' wait
         self.last_stamp: dict[str, float] = {}
         self.t0: float | None = None  # the first stamp: bag times in messages count from here
         self.clock = -math.inf  # the newest stamp seen
@@ -261,11 +262,13 @@ class LiveSync:
         self.silent.clear()
         self.last_kept = dict.fromkeys(self.cfg.stacks, -math.inf)
         self.last_color = dict.fromkeys(self.cfg.stacks, -math.inf)
+        self.first_color.clear()
         self.clock, self.last_frame = t, None
 
     def _color(self, s: int, msg: Message, late: bool) -> None:
         t = msg.time_s
         self.last_color[s] = t
+        self.first_color.setdefault(s, t)
         rate = self.cfg.sync.camera_rate_hz
         if rate > 0 and t - self.last_kept[s] < 1.0 / rate - 1e-6:
             self.dropped[s]["thinned to camera_rate_hz"] += 1
@@ -316,6 +319,15 @@ class LiveSync:
                 what = "sent nothing" if last is None else f"stopped: its last message is at {self.rel(last):.3f} s"
                 self._silent(topic, -math.inf if last is None else last, StreamError(self.bag, f"topic {topic} {what} and none came for {limit:g} s "
                                                 f"(bag time {self.rel(self.clock):.3f} s)", self.rel(self.clock)))
+        for s, first in self.first_color.items():  # a camera's images came, its intrinsics did not
+            topic = self.cfg.stacks[s].camera_info
+            if s not in self.intrinsics and topic and self.clock - first > limit and topic not in self.silent:
+                last = self.last_stamp.get(topic)
+                what = "sent nothing" if last is None else f"sent nothing usable since {self.rel(last):.3f} s"
+                self._silent(topic, -math.inf if last is None else last, StreamError(
+                    self.bag, f"topic {topic} {what} while stack {s}'s colour images came for {limit:g} s (bag "
+                    f"time {self.rel(self.clock):.3f} s): its frames cannot be made without the camera's intrinsics",
+                    self.rel(self.clock)), live="they are dropped until it comes")
         newest = self.poses.newest_s()
         if self.clock - max(newest, self.t0) > limit and "poses" not in self.silent:
             why = self.poses.problem()
@@ -324,13 +336,15 @@ class LiveSync:
                                               f"(bag time {self.rel(self.clock):.3f} s){': ' + why if why else ''}",
                                               self.rel(self.clock)))
 
-    def _silent(self, key: str, last: float, error: StreamError) -> None:
-        """A topic (or "poses") silent since stamp `last`: the stream stops, or live goes on (said)."""
+    def _silent(self, key: str, last: float, error: StreamError,
+                live: str = "mapping goes on without it") -> None:
+        """A topic (or "poses") silent since stamp `last`: the stream stops, or live goes on (said,
+        with what becomes of the frames)."""
         if self.on_problem is None:
             raise error
         self.silent[key] = last
         self.problems[f"silent {key}"] += 1
-        self.on_problem(f"{error}; mapping goes on without it")
+        self.on_problem(f"{error}; {live}")
 
     def _check_jump(self, f: StreamFrame) -> bool:
         """Consecutive frames at most JUMP_WINDOW_S apart (frames dropped while the mapper was
