@@ -228,6 +228,8 @@ def test_names_resolve_as_ros_2_resolves_them():
     assert dds.resolve("map", "/") == "/map"
     assert dds.resolve("map", "/robot1") == "/robot1/map"
     assert dds.resolve("/map", "/robot1") == "/map"
+    assert dds.resolve("~/map", "/robot1", "virus_nerf") == "/robot1/virus_nerf/map"  # the node's private name
+    assert dds.resolve("~", "/", "virus_nerf") == "/virus_nerf"
     assert dds.dds_topic("/robot1/map") == "rt/robot1/map"
     assert dds.is_tf_static("/tf_static") and dds.is_tf_static("/robot1/tf_static") and not dds.is_tf_static("/tf")
     assert types.dds_type_name(GRID) == "nav_msgs::msg::dds_::OccupancyGrid_"

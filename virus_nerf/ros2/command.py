@@ -81,7 +81,7 @@ def ros2(
         localhost_only: Use the loopback interface only, no multicast (also ROS_LOCALHOST_ONLY=1 or
             ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST).
         namespace: The node's namespace: relative topic names resolve in it.
-        map_topic: The planner's map (nav_msgs/OccupancyGrid; relative: in --namespace).
+        map_topic: The planner's map (nav_msgs/OccupancyGrid; relative: in --namespace; ~/x: the node's).
         probability_topic: The VIRUS grid's occupancy probability, 0-100.
         map_frame: The maps' frame_id (default: --tf-parent, the frame the poses are in).
         publish_every: Wall-clock seconds between maps (each also a snapshot in OUT/snapshots).
@@ -111,7 +111,7 @@ def ros2(
                                       ("probability", "--probability-topic", probability_topic, "map_probability")):
         if not value:
             raise UsageError(f"{flag} '': expected a topic name, e.g. {example}")
-        names[key] = require_name(flag, value, resolve(value, namespace))
+        names[key] = require_name(flag, value, resolve(value, namespace, NODE_NAME))
     require_name("--odometry-topic", odometry_topic, odometry_topic)  # an input, as the topics file's: absolute
     for flag, value in (("--tf-parent", tf_parent), ("--tf-child", tf_child), ("--map-frame", map_frame)):
         if value is not None:

@@ -113,13 +113,17 @@ def require_name(flag: str, value: str, resolved: str, what: str = "topic") -> s
     return resolved
 
 
-def resolve(name: str, namespace: str = "/") -> str:
-    """A ROS name resolved in `namespace`: '/x' stays, 'x' -> '<namespace>/x', '~/x' as 'x'."""
+def resolve(name: str, namespace: str = "/", node: str | None = None) -> str:
+    """A ROS name resolved as rcl resolves it for node `node` in `namespace`: '/x' stays,
+    'x' -> '<namespace>/x', '~' and '~/x' -> the node's private '<namespace>/<node>[/x]'."""
     if name.startswith("/"):
         return name
     ns = "/" + namespace.strip("/")
-    rel = name[2:] if name.startswith("~/") else name
-    return (ns.rstrip("/") + "/" + rel) if rel else ns
+    if name == "~" or name.startswith("~/"):
+        if node is None:
+            raise ValueError(f"{name!r}: a private name needs the node's name")
+        ns, name = ns.rstrip("/") + "/" + node, name[2:]
+    return (ns.rstrip("/") + "/" + name) if name else ns
 
 
 _LOOPBACK_DOMAINS: dict[int, object] = {}  # domain id -> its cyclonedds Domain, configured loopback-only
