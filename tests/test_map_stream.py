@@ -286,6 +286,25 @@ def test_map_bag_streams_with_snapshots_lag_and_final_map(bags, tiny_cfg, tmp_pa
         from test_mapper import _check_map_bag_sinks
 
         _check_map_bag_sinks(tmp_path / "live.rrd", tmp_path / "maps_bag", out, len(snaps), 30, ("odom", "robot"))
+        _check_base_is_the_lidar(tmp_path / "maps_bag", bags["csv"])
+
+
+def _check_base_is_the_lidar(bag_dir: Path, poses_csv: Path) -> None:
+    """Every /tf of the maps' bag is the LiDAR's pose of --poses-file at its stamp (the cameras
+    mounted by the topics file's camera_in_lidar), whichever stack's frame wrote it."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    rows = np.loadtxt(poses_csv, delimiter=",", skiprows=1)  # time, x, y, z, qx, qy, qz, qw
+    with open(bag_dir / f"{bag_dir.name}.mcap", "rb") as f:
+        tfs = [msg.transforms[0] for _, ch, _, msg in make_reader(f, decoder_factories=[DecoderFactory()])
+               .iter_decoded_messages() if ch.topic == "/tf"]
+    assert len(tfs) == 30
+    for tf in tfs:
+        t = tf.header.stamp.sec + 1e-9 * tf.header.stamp.nanosec
+        expected = [np.interp(t, rows[:, 0], rows[:, k]) for k in (1, 2, 3)]
+        v = tf.transform.translation
+        np.testing.assert_allclose([v.x, v.y, v.z], expected, atol=0.01)
 
 
 def test_map_bag_drops_late_frames_and_keeps_the_map_on_bad_data(bags, tiny_cfg, tmp_path):
@@ -338,6 +357,23 @@ def test_map_bag_refuses_a_bag_without_images_or_odometry(bags, tmp_path):
         code, _, stderr = run_cli(["map-bag", *argv, "--out", tmp_path / "out"])
         assert code == 2 and stderr.count("\n") == 1 and message in stderr, stderr
         assert not (tmp_path / "out").exists()
+    # a stream that maps nothing (no transform to the world frame asked for) keeps nothing: not
+    # OUT, not the maps' bag it had begun, so the same command can run again
+    code, _, stderr = run_cli(["map-bag", bags["tf"], "--out", tmp_path / "out", "--poses", "tf", "--tf-parent",
+                               "nowhere", "--out-bag", tmp_path / "maps_bag", "--playback", "4"])
+    assert code == 2 and stderr.count("\n") == 1 and "nowhere" in stderr, stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["blind.bag"]
+    for argv, message in (([tmp_path / "out"], f"--out-bag {tmp_path / 'out'}: the same folder as --out"),
+                          ([tmp_path / "blind.bag" / "maps"], f"--out-bag {tmp_path / 'blind.bag' / 'maps'}: cannot "
+                                                              f"be made: {tmp_path / 'blind.bag'} is a file, not a folder")):
+        code, _, stderr = run_cli(["map-bag", bags["ros1"], "--poses", "csv", "--poses-file", bags["csv"], "--out",
+                                   tmp_path / "out", "--out-bag", *argv])
+        assert code == 2 and stderr.count("\n") == 1 and message in stderr, stderr
+    code, _, stderr = run_cli(["map-bag", bags["ros1"], "--poses", "csv", "--poses-file", bags["csv"], "--out",
+                               tmp_path / "blind.bag" / "out"])
+    assert code == 2 and f"--out {tmp_path / 'blind.bag' / 'out'}: cannot be made: {tmp_path / 'blind.bag'} is a " \
+                         "file, not a folder" in stderr, stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["blind.bag"]
     # a config whose step could not fit in memory (issue 39): the marcher's worst case, before any work
     big = tmp_path / "big.json"
     big.write_text(json.dumps({"batch_size": 10**9}))

@@ -216,7 +216,10 @@ def test_export_makes_its_output_folder_before_computing(run_copy, tmp_path, mon
     monkeypatch.setattr(train_run, "load_trained", no_work)
     (tmp_path / "afile").write_text("a file where a folder should be")
     code, _, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "afile" / "map"])
-    one_line_error(code, err, f"{tmp_path / 'afile' / 'map'}: cannot create this folder (a parent is not a folder)")
+    one_line_error(code, err, f"--out {tmp_path / 'afile' / 'map'}: cannot be made: {tmp_path / 'afile'} is a file, "
+                              "not a folder")
+    code, _, err = run_cli(["export", "--run", run_copy, "--out", "/proc/virus-nerf-map"])  # a virtual file system
+    one_line_error(code, err, "--out /proc/virus-nerf-map: cannot be made: /proc takes no new folder (")
 
 
 # ------------------------------------------------------------------------------ item 7: bad splits

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import shutil
 from contextlib import ExitStack
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
 
@@ -26,6 +26,7 @@ from virus_nerf.mapping.options import (
     RerunSinks,
     load_stream_config,
 )
+from virus_nerf.utils.io import require_new_folder
 
 
 def _importer():
@@ -140,17 +141,21 @@ def map_bag(
     if topics is not None and not Path(topics).is_file():
         raise UsageError(f"--topics {topics}: no such file; expected the importer's topic mapping file")
     cfg = load_stream_config(config)
-    if out.exists():
-        raise OutputExistsError(out)
-    if out_bag is not None and Path(out_bag).exists():
-        raise OutputExistsError(out_bag, "--out-bag")
+    require_new_folder("--out", out)
+    if out_bag is not None:
+        if Path(out_bag).absolute() == out.absolute():
+            raise UsageError(f"--out-bag {out_bag}: the same folder as --out; give the maps' bag a folder of its own")
+        require_new_folder("--out-bag", out_bag)
     from virus_nerf.mapping.ros_maps import require_tf_pair
 
     require_tf_pair(("--map-frame", map_frame), ("--base-frame", base_frame))
     if out_bag is None and (map_frame, base_frame) != ("map", "base_link"):
         raise UsageError("--map-frame and --base-frame name the frames of --out-bag's maps and /tf: give --out-bag DIR")
     view.check()
-    sinks = Sinks(view, out_bag, map_frame, base_frame)
+    from virus_nerf.data.bags.topics import default_topics, read_topics
+
+    mounts = {s: st.camera_in_lidar() for s, st in (read_topics(topics) if topics else default_topics()).stacks.items()}
+    sinks = Sinks(view, out_bag, map_frame, base_frame, mounts)  # base_link: the frame the poses are in
     pose_args = dict(poses=poses, poses_file=poses_file, tf_parent=tf_parent, tf_child=tf_child)
     from virus_nerf.utils.stop import stop_on_signals
 
@@ -212,6 +217,8 @@ class Sinks:
     out_bag: Path | None = None  # a rosbag2 (MCAP) of /map, /map_probability and /tf
     map_frame: str = "map"  # out_bag's maps' frame_id and its /tf parent
     base_frame: str = "base_link"  # out_bag's /tf child
+    camera_in_base: dict = field(default_factory=dict)  # out_bag: stack id -> (4, 4) camera mount on base_link
+    made: list = field(default_factory=list)  # the files and folders `open` made (`discard` removes them)
 
     def open(self, stack: ExitStack) -> tuple:
         """(LiveView or None, RosMapBag or None), closed with `stack`."""
@@ -221,12 +228,25 @@ class Sinks:
 
             v = self.view
             live = stack.enter_context(LiveView(spawn=v.rerun, connect=v.rerun_connect, save=v.rerun_save))
+            if v.rerun_save is not None:
+                self.made.append(Path(v.rerun_save))
         if self.out_bag is not None:
             from virus_nerf.mapping.ros_maps import RosMapBag
 
-            ros_bag = stack.enter_context(RosMapBag(self.out_bag, map_frame=self.map_frame,
-                                                    base_frame=self.base_frame))
+            ros_bag = stack.enter_context(RosMapBag(self.out_bag, map_frame=self.map_frame, base_frame=self.base_frame,
+                                                    camera_in_base=self.camera_in_base))
+            self.made.append(Path(self.out_bag))
         return live, ros_bag
+
+    def discard(self) -> None:
+        """A run that kept nothing: the live view's recording and the maps' bag it made go too, so
+        the same command can run again (both were refused had they existed)."""
+        for path in self.made:
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+        self.made.clear()
 
     def note(self) -> str:
         """"; live view in X; ROS maps in Y" for the files written, "" for none."""
@@ -309,6 +329,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
             nothing = run_made_nothing(out)
             if nothing:
                 made.remove()
+                sinks.discard()
             if isinstance(exc, Stopped):
                 exc.reported = True
                 if nothing or run is None or run.report.final is None:
@@ -324,6 +345,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
             raise
     if report.final is None:
         made.remove()
+        sinks.discard()
         raise DataFormatError(bag, f"no frame could be made ({summary(report)}); check the topics file's sync "
                               "tolerances and the pose source")
     print(f"map-bag: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s; "

@@ -11,7 +11,7 @@ from typing import Annotated
 
 import tyro
 
-from virus_nerf.errors import OutputExistsError, UsageError, require_number
+from virus_nerf.errors import UsageError, require_number
 from virus_nerf.mapping.command import Sinks
 from virus_nerf.mapping.options import (
     DEFAULT_RASTER,
@@ -20,6 +20,7 @@ from virus_nerf.mapping.options import (
     RerunSinks,
     load_stream_config,
 )
+from virus_nerf.utils.io import require_new_folder
 
 NODE_POSES = ("tf", "odometry", "lidar-odometry")
 NODE_NAME = "virus_nerf"  # the name `ros2 node list` shows (in --namespace)
@@ -127,8 +128,7 @@ def ros2(
     if topics is not None and not Path(topics).is_file():
         raise UsageError(f"--topics {topics}: no such file; expected the importer's topic mapping file")
     out = Path(out)
-    if out.exists():
-        raise OutputExistsError(out)
+    require_new_folder("--out", out)
     view.check()
     require_dds()
     from virus_nerf.ros2.types import typestore
@@ -207,6 +207,7 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
             nothing = run_made_nothing(out)
             if nothing:
                 made.remove()  # made by this run, and nothing in it
+                sinks.discard()
             if isinstance(exc, Stopped):
                 exc.reported = True
                 if nothing or run is None or run.report.final is None:
@@ -217,6 +218,7 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
             raise
     if report.final is None:
         made.remove()  # made by this run, and nothing in it
+        sinks.discard()
         log(f"ros2: no frame was mapped ({summary(report)}); nothing was kept")
         return
     log(f"ros2: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s; {publisher.published} maps "

@@ -106,6 +106,34 @@ def write_json_atomic(path: str | Path, obj: Any) -> None:
     write_text_atomic(path, json.dumps(obj, indent=2, allow_nan=False) + "\n")
 
 
+def folder_problem(path: str | Path) -> str | None:
+    """Why a new folder `path` (and its missing parents) cannot be made, or None: its nearest
+    existing ancestor is not a folder, or does not take a new folder (read-only, no permission,
+    a virtual file system; tried with an empty folder made and removed at once)."""
+    path = Path(path)
+    ancestor = next((a for a in path.absolute().parents if os.path.lexists(a)), Path("/"))
+    if not ancestor.is_dir():
+        return f"{ancestor} is a file, not a folder"
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".virus-nerf-probe-", dir=ancestor))
+    except OSError as exc:
+        return f"{ancestor} takes no new folder ({exc.strerror or exc})"
+    return None
+
+
+def require_new_folder(flag: str, path: str | Path) -> Path:
+    """`path` for a new output folder, checked before any work: it must not exist (nothing is
+    overwritten) and must be makeable; else the one-line error names `flag`."""
+    from virus_nerf.errors import UsageError
+
+    path = Path(path)
+    if os.path.lexists(path):
+        raise OutputExistsError(path, flag)
+    if (problem := folder_problem(path)) is not None:
+        raise UsageError(f"{flag} {path}: cannot be made: {problem}")
+    return path
+
+
 def create_new_dir(path: str | Path) -> Path:
     """Create `path` (and parents); refuse if it already exists, so nothing is overwritten."""
     path = Path(path)
@@ -133,9 +161,13 @@ def new_output_dir(path: str | Path, *, replace: bool = False, flag: str = "--ou
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-{os.getpid()}-", dir=path.parent))
-    except OSError as exc:  # name the folder asked for, not a parent or the temporary name
-        reason = "a parent is not a folder" if isinstance(exc, FileExistsError | NotADirectoryError) else exc.strerror
-        raise type(exc)(exc.errno, f"cannot create this folder ({reason})", str(path)) from None
+    except OSError as exc:  # name the flag and the folder asked for, not a parent or the temporary name
+        from virus_nerf.errors import UsageError
+
+        if exc.errno == errno.ENOSPC:  # a full disk keeps its own one line and advice
+            raise type(exc)(exc.errno, f"cannot create this folder ({exc.strerror})", str(path)) from None
+        problem = folder_problem(path) or exc.strerror
+        raise UsageError(f"{flag} {path}: cannot be made: {problem}") from None
     try:
         try:
             yield tmp
