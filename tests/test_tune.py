@@ -83,6 +83,16 @@ def test_a_run_that_dies_twice_fails_and_usage_errors_are_not_retried(tmp_path):
     assert (tmp_path / "run.log").read_text().count("# ") == 2
 
 
+def test_a_run_stopped_by_a_signal_is_not_retried(tmp_path):
+    """A training ended by SIGINT or SIGTERM (a Ctrl-C to the whole process group, a shutdown)
+    was stopped, not dead: one attempt, reported stopped."""
+    for code in (130, 143):
+        res = execute_run(spec(tmp_path / str(code), f"import sys; sys.exit({code})"), poll_s=0.05)
+        assert res.stopped and res.attempts == 1 and res.returncode == code and not res.ok
+    res = execute_run(spec(tmp_path / "term", "import os, signal; os.kill(os.getpid(), signal.SIGTERM)"), poll_s=0.05)
+    assert res.stopped and res.attempts == 1 and res.returncode == -15
+
+
 def test_a_stop_file_terminates_the_run_and_keeps_its_folder(tmp_path):
     s = spec(tmp_path, "import sys, time, pathlib; pathlib.Path(sys.argv[1]).mkdir(); time.sleep(60)")
     threading.Timer(0.5, request_stop, args=(s.out, "test")).start()
@@ -169,6 +179,33 @@ def test_a_trial_worse_than_the_median_is_pruned_and_its_run_kept(tmp_path):
     assert trial.state == optuna.trial.TrialState.PRUNED, line
     assert "pruned" in line and (tmp_path / "trials" / "0003").is_dir()
     assert trial.intermediate_values[1] == pytest.approx(1.5)  # 0.5 * acc 1.0 + 0.5 * cov 2.0
+
+
+def test_a_stopped_tune_stops_its_trials_trainings_and_asks_no_more(tmp_path):
+    """Ctrl-C or SIGTERM to tune alone: the trial waiting on a training (on a Dask worker it is
+    no child of tune) writes its stop file, the training ends, the trial is failed and no trial is
+    asked after it."""
+    import signal
+
+    from virus_nerf.experiments.runs import STOPPED_WITH_CALLER
+    from virus_nerf.experiments.tune import run_trials
+
+    def training(spec):  # ends only when asked to, as a training on a worker would
+        spec.out.mkdir(parents=True)
+        for _ in range(400):
+            if stop_file(spec.out).exists():
+                return RunResult(spec, -15, 1, stopped=True)
+            time.sleep(0.05)
+        return RunResult(spec, 0, 1)
+
+    ctx = _context(tmp_path, training)
+    threading.Timer(0.5, os.kill, args=(os.getpid(), signal.SIGINT)).start()
+    t0 = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        run_trials(ctx, 3, parallel=1)
+    assert time.monotonic() - t0 < 10  # not the 20 s the training would run unasked
+    assert [t.state for t in ctx.study.trials] == [optuna.trial.TrialState.FAIL]
+    assert stop_file(tmp_path / "trials" / "0000").read_text().strip() == STOPPED_WITH_CALLER
 
 
 # ------------------------------------------------------------------------------ the command

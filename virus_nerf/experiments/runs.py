@@ -19,6 +19,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 USAGE_EXIT = 2  # `virus-nerf` exits 2 on a user mistake: the same command would fail again
+# `train` stopped by SIGINT / SIGTERM (kept its checkpoint; 130 / 143), or ended by either before it
+# could say so: a stop asked for, never retried
+STOP_EXITS = (130, 143, -2, -15)
 
 
 @dataclass(frozen=True)
@@ -164,8 +167,8 @@ def _attempt(spec: RunSpec, threads: int, poll_s: float, shared_cpu: bool) -> tu
 def execute_run(spec: RunSpec, threads: int = 1, retries: int = 1, poll_s: float = 0.5,
                 shared_cpu: bool = False) -> RunResult:
     """Run `spec` to its end: nothing if finished, else up to 1 + `retries` attempts (a run that
-    died is retried; a usage error, exit 2, or a stop request is not). `shared_cpu`: other runs
-    use the same cores at the same time (see `_worker_env`)."""
+    died is retried; a usage error, exit 2, a stop request or a stop by SIGINT / SIGTERM is not).
+    `shared_cpu`: other runs use the same cores at the same time (see `_worker_env`)."""
     t0 = time.perf_counter()
     host = socket.gethostname()
     if run_done(spec.out):
@@ -177,6 +180,7 @@ def execute_run(spec: RunSpec, threads: int = 1, retries: int = 1, poll_s: float
             break
         rc, stopped = _attempt(spec, threads, poll_s, shared_cpu)
         attempts += 1
+        stopped = stopped or rc in STOP_EXITS  # stopped by a signal (a Ctrl-C to the group), not dead
         if stopped or run_done(spec.out) or rc == USAGE_EXIT:
             break
     return RunResult(spec, rc, attempts, stopped=stopped, host=host, seconds=time.perf_counter() - t0)

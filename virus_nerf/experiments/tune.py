@@ -35,6 +35,8 @@ class _Context:
     # one trial asked at a time: the seeded sampler's draws then go to the trials in number order
     # (threads asking at once interleaved them: parallel studies were not reproducible)
     ask_lock: threading.Lock = field(default_factory=threading.Lock)
+    # set when the command stops (Ctrl-C, SIGTERM): each trial stops its training and asks no more
+    stopping: threading.Event = field(default_factory=threading.Event)
 
 
 def _eval_index(point, eval_interval: float) -> int:
@@ -99,12 +101,18 @@ def run_trial(ctx: _Context) -> str:
         spec = RunSpec(name=f"trial {n}", data=ctx.data, room=ctx.room, out=run, args=("--config", str(cfg_path)))
         future = ctx.executor.submit(spec)
         reported: set[int] = set()
-        pruned = False
+        pruned = stopped = False
         while not future.done():
             time.sleep(ctx.poll_s)
-            if ctx.prune and not pruned and _report(trial, ctx, run, reported):
+            if ctx.stopping.is_set() and not stopped:  # the training ends its step, keeps its checkpoint
+                request_stop(run, STOPPED_WITH_CALLER)
+                stopped = True
+            if ctx.prune and not pruned and not stopped and _report(trial, ctx, run, reported):
                 request_stop(run, f"pruned by the study at evaluation {max(reported)}")
                 pruned = True
+        if stopped:
+            study.tell(trial, state=optuna.trial.TrialState.FAIL)
+            return f"trial {n}: stopped with the command (run kept in {run})"
         try:
             result = future.result()
         except Exception as exc:  # the task broke (lost worker, unreadable shared folder)
@@ -136,29 +144,44 @@ def run_trial(ctx: _Context) -> str:
         raise
 
 
+STOP_WAIT_S = 60.0  # how long a stopped tune waits for its trials' trainings to end their step
+
+
 def run_trials(ctx: _Context, n_trials: int, parallel: int) -> None:
     """`n_trials` trials, `parallel` at a time (each a thread asking, waiting and telling)."""
     lock = threading.Lock()
     left = [n_trials]
     errors: list[BaseException] = []
 
-    def worker() -> None:
-        while True:
-            with lock:
-                if left[0] <= 0 or errors:
+    def worker(finished: threading.Event) -> None:
+        try:
+            while True:
+                with lock:
+                    if left[0] <= 0 or errors or ctx.stopping.is_set():
+                        return
+                    left[0] -= 1
+                try:
+                    print("  " + run_trial(ctx), flush=True)
+                except BaseException as exc:  # a bug or a storage error: stop asking, re-raise below
+                    errors.append(exc)
                     return
-                left[0] -= 1
-            try:
-                print("  " + run_trial(ctx), flush=True)
-            except BaseException as exc:  # a bug or a storage error: stop asking, re-raise below
-                errors.append(exc)
-                return
+        finally:
+            finished.set()
 
-    threads = [threading.Thread(target=worker, daemon=True) for _ in range(max(1, min(parallel, n_trials)))]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    # Events, not Thread.join: a join that a signal interrupted may return early when called again
+    finished = [threading.Event() for _ in range(max(1, min(parallel, n_trials)))]
+    for event in finished:
+        threading.Thread(target=worker, args=(event,), daemon=True).start()
+    try:
+        for event in finished:
+            while not event.wait(0.5):
+                pass
+    except BaseException:  # Ctrl-C, SIGTERM: the trials stop their trainings (wherever they run) first
+        ctx.stopping.set()
+        deadline = time.monotonic() + STOP_WAIT_S
+        for event in finished:
+            event.wait(max(0.0, deadline - time.monotonic()))
+        raise
     if errors:
         raise errors[0]
 
