@@ -98,6 +98,13 @@ def test_train_argument_errors(tmp_path, extra, fragment):
         (["demo", "--out", "{tmp}/demo", "--gt", "mesh"], ["--gt 'mesh': unknown protocol"]),
         (["ablation", "--out", "{tmp}/abl", "--gt", "mesh"], ["--gt 'mesh': unknown protocol"]),
         (["online", "--out", "{tmp}/onl", "--gt", "mesh"], ["--gt 'mesh': unknown protocol"]),
+        # commands that exist to compare with a ground truth: none is refused before any work
+        (["sensors", "--data", "{tmp}/d", "--room", "office", "--out", "{tmp}/m.json", "--gt", "none"],
+         ["--gt none: nothing to score; give --gt map, exact or paper"]),
+        (["demo", "--out", "{tmp}/demo", "--gt", "none"], ["--gt none: nothing to score"]),
+        (["ablation", "--out", "{tmp}/abl", "--gt", "none"], ["--gt none: nothing to score"]),
+        (["online", "--out", "{tmp}/onl", "--gt", "none"], ["--gt none: nothing to score"]),
+        (["evaluate", "--run", "{tmp}/run", "--gt", "none"], ["--gt none: nothing to score"]),
         (["train", "--out", "{tmp}/run"], ["--data is required"]),
         (["train", "--out", "{tmp}/run", "--resume"], ["--resume {tmp}/run: no such run folder"]),
         (["train", "--data", "{tmp}", "--room", "../x", "--out", "{tmp}/run"], ["--room '../x': expected the name of a room"]),

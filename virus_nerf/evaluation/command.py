@@ -50,7 +50,7 @@ def sensors(
 
     require_int("--n-rays", n_rays, 1, 1_000_000)
     require_number("--lidar-angle-range-deg", lidar_angle_range_deg, 0.0, 360.0)
-    protocols = parse_gt_flag(gt)
+    protocols = parse_gt_flag(gt, scores=True)
     out = Path(out)
     plot_dir = plots_dir_for(out)
     if out.exists():

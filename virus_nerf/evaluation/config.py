@@ -40,12 +40,14 @@ def check_gt_protocols(protocols: object, name: str = "evaluation.gt") -> tuple[
     return tuple(protocols)  # type: ignore[arg-type]
 
 
-def parse_gt_flag(text: str, flag: str = "--gt") -> tuple[str, ...]:
-    """`--gt map,exact` -> ("map", "exact"), `--gt none` -> (); a one-line UsageError naming the
-    flag otherwise."""
+def parse_gt_flag(text: str, flag: str = "--gt", scores: bool = False) -> tuple[str, ...]:
+    """`--gt map,exact` -> ("map", "exact"), `--gt none` -> () unless the command `scores` (it
+    exists to compare with a ground truth); a one-line UsageError naming the flag otherwise."""
     from virus_nerf.errors import UsageError
 
     if str(text).strip() == "none":
+        if scores:
+            raise UsageError(f"{flag} none: nothing to score; give {flag} map, exact or paper (comma-separated)")
         return ()
     names = tuple(s.strip() for s in str(text).split(","))
     unknown = [s for s in names if s not in GT_PROTOCOLS]

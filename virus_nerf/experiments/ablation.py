@@ -268,7 +268,7 @@ def ablation(
     if seeds is not None:
         require_int("--seeds", seeds, 1, 1000)
     require_int("--workers", workers, 1, 64)
-    protocols = parse_gt_flag(gt)
+    protocols = parse_gt_flag(gt, scores=True)
     if train_time is not None:
         require_number("--train-time", train_time, 0.0)
     if max_steps is not None:

@@ -52,7 +52,7 @@ def demo(
     require_int("--seed", seed, 0, 2**32 - 1)
     require_number("--duration", duration, 0.0, 3600.0)
     require_number("--train-time", train_time, 0.0)
-    protocols = parse_gt_flag(gt)
+    protocols = parse_gt_flag(gt, scores=True)
     out = Path(out)
     if out.exists():
         raise OutputExistsError(out)

@@ -98,7 +98,7 @@ def online(
     if eval_interval is not None:
         require_number("--eval-interval", eval_interval, 0.0)
     require_int("--workers", workers, 1, 64)
-    protocols = parse_gt_flag(gt)
+    protocols = parse_gt_flag(gt, scores=True)
     summaries = [out / "online.json", out / "online.md", out / "online.png"]
     n_seeds = seeds or (1 if quick else 3)
     duration = duration or (10.0 if quick else 40.0)

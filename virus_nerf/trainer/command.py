@@ -206,7 +206,7 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
 
     if n_rays is not None:
         require_int("--n-rays", n_rays, 1, 1_000_000)
-    protocols = parse_gt_flag(gt) if gt is not None else None
+    protocols = parse_gt_flag(gt, scores=True) if gt is not None else None
     out = Path(out) if out is not None else Path(run) / "evaluation" / "metrics.json"
     if out.exists():
         raise OutputExistsError(out)
@@ -245,8 +245,6 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
                                  gt=protocols if protocols is not None else ev.gt)
         cfg = dataclasses.replace(cfg, evaluation=ev)
         trainer.config = cfg
-    if protocols is not None and not protocols:
-        raise UsageError("--gt none: nothing to score; give --gt map, exact or paper (comma-separated)")
     if not cfg.evaluation.gt:
         raise UsageError(f"--run {run}: the run was trained without ground truth (evaluation.gt none); "
                          "give --gt map, exact or paper to score it")
