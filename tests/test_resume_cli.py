@@ -439,6 +439,42 @@ def test_an_experiment_folder_is_taken_new_or_continued(tmp_path):
         take_experiment_folder(a_file, "online", [a_file / "online.json"])
 
 
+@pytest.mark.parametrize("experiment, first, then, fragment", [
+    ("ablation", ["--quick", "--max-steps", "20"], ["--quick", "--max-steps", "500"],
+     "this ablation was begun with --max-steps 20 (now 500)"),
+    ("ablation", ["--quick"], ["--max-steps", "20"], "this ablation was begun with --quick True (now False)"),
+    ("online", ["--quick", "--playback", "1"], ["--quick", "--playback", "0.5"],
+     "this online was begun with --playback 1.0 (now 0.5)"),
+])
+def test_an_experiment_is_continued_only_with_the_settings_it_was_begun_with(tmp_path, monkeypatch, experiment,
+                                                                            first, then, fragment):
+    """An unfinished experiment continued with another budget, drive or config would mix runs of
+    both in one table (and the summary would state the new settings): refused in one line naming
+    the flag, before anything is written; the same settings (more seeds aside) continue it."""
+    import virus_nerf.sim.command as sim_command
+
+    class Stop(Exception):
+        pass
+
+    def stop_here(*args, **kwargs):
+        raise Stop  # the folder was taken: no simulation, no training needed to see that
+
+    monkeypatch.setattr(sim_command, "simulate", stop_here)
+    out = tmp_path / "exp"
+    from virus_nerf.cli import main
+
+    with pytest.raises(Stop):
+        main([experiment, "--out", str(out), *first])
+    mark = json.loads((out / "experiment.json").read_text())
+    before = snapshot(out)
+    code, _, err = run_cli([experiment, "--out", out, *then])
+    one_line_error(code, err, f"--out {out}: {fragment}", "give the same settings to continue it")
+    assert snapshot(out) == before
+    with pytest.raises(Stop):  # the same settings with more seeds: continued
+        main([experiment, "--out", str(out), *first, "--seeds", "2"])
+    assert json.loads((out / "experiment.json").read_text()) == mark
+
+
 def test_a_run_without_ground_truth_killed_writing_its_map_resumes_to_the_same_map(tiny_office, tmp_path):
     """--gt none, killed while writing map/ after its last step (the budget reached, no metrics.json,
     a `.map.partial-*` left): the resume writes the same map from the frames it trained on (before:

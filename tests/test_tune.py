@@ -313,6 +313,9 @@ def test_trials_left_running_by_a_dead_process_are_settled(tmp_path):
     assert settle_stale_trials(study, Objective()) == [0, 1]
     states = [t.state.name for t in study.trials]
     assert states == ["COMPLETE", "FAIL", "RUNNING"] and study.trials[0].value == pytest.approx(0.3)
+    # the settled trial's row in trials.csv has its figures, as a trial told by run_trial has
+    assert {k: study.trials[0].user_attrs.get(k) for k in ("acc_mean", "cov_mean")} == {"acc_mean": 0.2,
+                                                                                      "cov_mean": 0.4}
 
 
 def test_an_rdb_study_keeps_its_objective(tmp_path):
@@ -325,6 +328,12 @@ def test_an_rdb_study_keeps_its_objective(tmp_path):
     assert study.directions[1].name == "MINIMIZE" and base["optim"]["lr"] == TrainConfig().optim.lr
     with pytest.raises(UsageError, match="--objective weighted --acc-weight 0.5: study 's' optimises"):
         open_study("s", url, Objective("weighted"), None, 0, "none", tmp_path, "office")
+    # continued on another recording, its trials would rank configurations on other data
+    with pytest.raises(UsageError, match=f"--data {tmp_path / 'other'}: study 's' was started on --data {tmp_path}; "
+                                         "give the same or a new --study"):
+        open_study("s", url, Objective("multi"), None, 0, "none", tmp_path / "other", "office")
+    with pytest.raises(UsageError, match="--room lab: study 's' was started on --room office"):
+        open_study("s", url, Objective("multi"), None, 0, "none", tmp_path, "lab")
 
 
 def test_a_study_folder_holds_one_study(tmp_path):

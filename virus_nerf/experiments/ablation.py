@@ -261,7 +261,11 @@ def ablation(
 
     from virus_nerf.errors import UsageError, require_int, require_number
     from virus_nerf.evaluation.config import parse_gt_flag
-    from virus_nerf.experiments.folder import refuse_existing, take_experiment_folder
+    from virus_nerf.experiments.folder import (
+        config_setting,
+        refuse_existing,
+        take_experiment_folder,
+    )
     from virus_nerf.sim.command import simulate
     from virus_nerf.utils.io import write_json_atomic, write_text_atomic
 
@@ -300,7 +304,9 @@ def ablation(
     from virus_nerf.experiments.executors import check_scheduler
 
     check_scheduler(scheduler)  # the extra and a scheduler that answers, before anything is written
-    take_experiment_folder(out, "ablation", summaries)  # new, or this command's unfinished ablation
+    settings = {"--quick": quick, "--train-time": t_train, "--max-steps": max_steps, "--config": config_setting(config),
+                "--gt": ",".join(protocols)}  # what every run shares (the drive simulated: --quick's)
+    take_experiment_folder(out, "ablation", summaries, settings)  # new, or this command's unfinished ablation
     for scene in scenes:
         data = out / "data" / scene
         duration = WAREHOUSE_DRIVE_S if scene == "warehouse" else prof.duration

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from virus_nerf.errors import OutputExistsError, UsageError
 
-EXPERIMENT_MARK = "experiment.json"  # {"command": "ablation" | "online"}
+EXPERIMENT_MARK = "experiment.json"  # {"command": "ablation" | "online", "settings": {flag: value}}
 EXPERIMENT_ENTRIES = frozenset({"data", "runs", EXPERIMENT_MARK})  # what the commands write besides summaries
 
 
@@ -50,10 +50,33 @@ def marked_command(out: Path) -> str | None:
     return command if isinstance(command, str) else "?"
 
 
-def take_experiment_folder(out: Path, command: str, summaries: list[Path]) -> None:
-    """Create OUT for `command` or check that it holds an unfinished experiment of that command,
-    then leave the command's mark in it; a one-line error naming OUT before anything is written
-    otherwise (a finished experiment: OutputExistsError for its first summary)."""
+def config_setting(config: Path | None) -> str | None:
+    """A --config file as an experiment's setting: its path and a digest of its content (the same
+    path edited between two runs of the command is another setting)."""
+    import hashlib
+
+    if config is None:
+        return None
+    return f"{config} (sha256 {hashlib.sha256(Path(config).read_bytes()).hexdigest()[:12]})"
+
+
+def _settings_problem(out: Path, command: str, begun: dict, now: dict) -> str | None:
+    """The first setting of `now` that differs from the one the experiment was begun with."""
+    for key, value in now.items():
+        if key in begun and begun[key] != value:
+            shown = {v: "not given" if v is None else str(v) for v in (begun[key], value)}
+            return (f"--out {out}: this {command} was begun with {key} {shown[begun[key]]} (now {shown[value]}); "
+                    "its runs would mix the two: give the same settings to continue it, or choose a new --out "
+                    "(nothing was changed)")
+    return None
+
+
+def take_experiment_folder(out: Path, command: str, summaries: list[Path], settings: dict | None = None) -> None:
+    """Create OUT for `command` or check that it holds an unfinished experiment of that command
+    begun with the same `settings` (flag -> value: what every run shares, e.g. the budget; more
+    seeds or another subset of rooms only add runs), then leave the command's mark and settings
+    in it; a one-line error naming OUT before anything is written otherwise (a finished
+    experiment: OutputExistsError for its first summary)."""
     from virus_nerf.utils.io import write_json_atomic
 
     done = next((p for p in summaries if p.exists()), None)
@@ -70,6 +93,19 @@ def take_experiment_folder(out: Path, command: str, summaries: list[Path]) -> No
         shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
         raise UsageError(f"--out {out}: holds {shown}, so it is not an unfinished {command}; choose a new --out "
                          "(nothing was changed)")
+    begun = _marked_settings(out) if marked is not None else {}
+    settings = settings or {}
+    if (problem := _settings_problem(out, command, begun, settings)) is not None:
+        raise UsageError(problem)
     out.mkdir(parents=True, exist_ok=True)
-    if marked is None:
-        write_json_atomic(out / EXPERIMENT_MARK, {"command": command})
+    if marked is None or any(key not in begun for key in settings):  # a mark from before settings were kept
+        write_json_atomic(out / EXPERIMENT_MARK, {"command": command, "settings": {**settings, **begun}})
+
+
+def _marked_settings(out: Path) -> dict:
+    """The settings OUT's mark keeps ({} for a mark written before they were kept)."""
+    try:
+        settings = json.loads((out / EXPERIMENT_MARK).read_text(encoding="utf-8")).get("settings", {})
+    except (OSError, ValueError, AttributeError):
+        return {}
+    return settings if isinstance(settings, dict) else {}

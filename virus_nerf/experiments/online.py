@@ -104,7 +104,9 @@ def online(
     duration = duration or (10.0 if quick else 40.0)
     t_train = duration / playback_speed
     interval = eval_interval or t_train / 10
-    take_experiment_folder(out, "online", summaries)  # new, or this command's unfinished experiment
+    settings = {"--duration": duration, "--playback": playback_speed, "--eval-interval": interval,
+                "--gt": ",".join(protocols)}  # what every run shares
+    take_experiment_folder(out, "online", summaries, settings)  # new, or this command's unfinished experiment
     data = out / "data"
     if not (data / "office").is_dir():
         simulate(scene="office", out=data, seed=0, duration=duration, resolution_scale=0.5)

@@ -101,6 +101,10 @@ def open_study(name: str, storage, objective: Objective, base: dict | None, seed
             raise UsageError(f"--config/--max-steps/--max-time/--eval-interval: study {name!r} was started with "
                              "another base config or budget; give the same (or none, to reuse the study's) "
                              "or a new --study")
+        for key, flag, value in (("data", "--data", str(data)), ("room", "--room", room)):
+            if attrs.get(key, value) != value:  # its trials would rank configurations on other recordings
+                raise UsageError(f"{flag} {value}: study {name!r} was started on {flag} {attrs[key]}; give the same "
+                                 "or a new --study")
         from virus_nerf.config_io import with_added_keys
 
         base = with_added_keys(stored)  # a study started by an earlier version runs on as it began
@@ -150,6 +154,9 @@ def settle_stale_trials(study, objective: Objective) -> list[int]:
         if run_done(run):
             zone = read_metrics(run / "metrics.json").sensors()["NeRF"].zones["zone3"]
             values = objective.values(zone.acc_mean, zone.cov_mean)
+            trial = optuna.trial.Trial(study, t._trial_id)  # the trial as run_trial would have left it
+            trial.set_user_attr("acc_mean", zone.acc_mean)
+            trial.set_user_attr("cov_mean", zone.cov_mean)
         if values is None:
             study.tell(t.number, state=optuna.trial.TrialState.FAIL)
         else:
