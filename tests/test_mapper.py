@@ -820,7 +820,7 @@ def test_a_refused_state_leaves_the_mapper_as_it_was():
     assert isinstance(MapperConfig(), MapperConfig)
 
 
-def test_numpy_numbers_are_numbers_and_a_pose_far_outside_a_fitted_box_is_refused():
+def test_numpy_numbers_are_numbers_and_a_pose_far_outside_a_fitted_box_is_refused(tmp_path):
     """Robot code hands numpy scalars in (np.float32 from a message, np.int64 from an array): the
     Mapper takes them as the Python numbers they are. A camera far outside a fitted box is a pose
     in another unit or frame (millimetres: hundreds of metres away), refused as in grow mode; one
@@ -832,6 +832,10 @@ def test_numpy_numbers_are_numbers_and_a_pose_far_outside_a_fitted_box_is_refuse
     assert mapper.train(np.float32(60.0), steps=np.int64(1)).steps == 1
     assert mapper.map2d(resolution=np.float32(0.25), n_rays=np.int64(16), max_poses=np.int32(2)).resolution == 0.25
     assert mapper.probability_map(np.float64(0.25), band=np.float32(0.1)).resolution == 0.25
+    mapper.snapshot(tmp_path / "snap", resolution=np.float32(0.1), n_rays=16, max_poses=2)
+    for name in ("map.yaml", "prob.yaml"):  # numbers to a YAML reader (map_server), not "np.float32(0.1)"
+        doc = (tmp_path / "snap" / name).read_text()
+        assert "resolution: 0.10000000149011612\n" in doc and "np." not in doc, doc
     far = _frame(1.0)
     far.cam_to_world[:3, 3] = (362.0, -151.6, -150.1)  # the rig's camera offset in millimetres / 1000 wrong way
     with pytest.raises(UsageError, match=r"frame at time 1.000 s: camera at \(362.00, -151.60, -150.10\) m lies "

@@ -23,6 +23,10 @@ class DistanceField2D:
     resolution: float  # metres per pixel
     origin: tuple[float, float]  # world (x, y) of the lower-left pixel corner
 
+    def __post_init__(self) -> None:  # Python floats, as OccupancyMap2D's: YAML that reads back as numbers
+        self.resolution = float(self.resolution)
+        self.origin = (float(self.origin[0]), float(self.origin[1]))
+
 
 def signed_distance(occupied: np.ndarray, resolution: float) -> np.ndarray:
     """(H, W) bool obstacles -> (H, W) float32 signed distance in metres (see module docstring)."""
@@ -48,7 +52,7 @@ def write_esdf(field: DistanceField2D, folder: Path, name: str = "esdf", preview
     write_text_atomic(
         folder / f"{name}.yaml",
         f"data: {name}.npy\nunits: metres\nsigned: true  # negative inside obstacles\n"
-        f"resolution: {field.resolution!r}\norigin: [{field.origin[0]:.6f}, {field.origin[1]:.6f}, 0.0]\n"
+        f"resolution: {field.resolution!r}\norigin: [{field.origin[0]!r}, {field.origin[1]!r}, 0.0]\n"
         "layout: rows top (largest y) to bottom, columns x increasing, as the map_server image\n",
     )
     d = np.clip(np.nan_to_num(field.distance, nan=-preview_max, posinf=preview_max), -preview_max, preview_max)

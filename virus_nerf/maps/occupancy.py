@@ -43,6 +43,12 @@ class OccupancyMap2D:
     origin: tuple[float, float]  # world (x, y) of the lower-left pixel corner
     mode: Literal["trinary", "scale"] = "trinary"
 
+    def __post_init__(self) -> None:
+        # Python floats whatever the caller gave (numpy scalars): the YAML and JSON written from
+        # them must read back as numbers (`np.float32(0.1)` is a string to a YAML reader)
+        self.resolution = float(self.resolution)
+        self.origin = (float(self.origin[0]), float(self.origin[1]))
+
 
 def raster_shape(lo: np.ndarray, hi: np.ndarray, resolution: float) -> tuple[int, int]:
     """(nx, ny) pixels covering the box [lo, hi] (x, y) at `resolution` metres per pixel."""
