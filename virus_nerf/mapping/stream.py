@@ -79,8 +79,21 @@ class StreamReport:
     stopped_at_s: float | None = None  # bag seconds since the first message
     running: bool = False  # true in the report written at each snapshot while the stream runs
 
-    def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
+    def as_dict(self, out: Path) -> dict:
+        """The stream.json document of the run in OUT: its folders named relative to OUT (where
+        stream.json lies), so they hold wherever OUT is read from or moved to."""
+        doc = dataclasses.asdict(self)
+        doc["snapshots"] = [_relative(p, out) for p in self.snapshots]
+        doc["final"] = None if self.final is None else _relative(self.final, out)
+        return doc
+
+
+def _relative(path: str, out: Path) -> str:
+    """`path` relative to OUT (as is when it lies elsewhere)."""
+    try:
+        return Path(path).relative_to(out).as_posix()
+    except ValueError:
+        return str(path)
 
 
 def warm_up(config) -> float:
@@ -393,7 +406,7 @@ class StreamRun:
         r.frames, r.steps, r.train_s, r.wall_s = self.mapper.frames, self.mapper.step, self.mapper.seconds, self.now()
         r.running = True
         try:
-            write_json_atomic(self.out / REPORT, r.as_dict())
+            write_json_atomic(self.out / REPORT, r.as_dict(self.out))
             save_torch_atomic({"snapshot": folder.name, "mapper": self.mapper.state()}, self.out / SNAPSHOTS / STATE)
         except OSError as exc:
             self._warn("state", f"{exc.filename}: could not be written ({exc.strerror or exc}); mapping goes on")
@@ -423,7 +436,7 @@ class StreamRun:
                 self.log(self._line("final map", now, made["info"], final, lag))
             r.frames, r.steps, r.train_s, r.wall_s = self.mapper.frames, self.mapper.step, self.mapper.seconds, now
         if self.out.is_dir():
-            outputs.write(self.out / REPORT, lambda: write_json_atomic(self.out / REPORT, r.as_dict()))
+            outputs.write(self.out / REPORT, lambda: write_json_atomic(self.out / REPORT, r.as_dict(self.out)))
         if self.mapper is not None:
             state = self.out / FINAL / STATE
             outputs.write(state, lambda: save_torch_atomic(self.mapper.state(), state))
@@ -510,7 +523,7 @@ def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport
 
     if outputs.write(final, copy_map):
         report.final = str(final)
-    outputs.write(report_path, lambda: write_json_atomic(report_path, report.as_dict()))
+    outputs.write(report_path, lambda: write_json_atomic(report_path, report.as_dict(out)))
     if state is not None and not written:
         outputs.write(final / STATE, lambda: save_torch_atomic(state, final / STATE))
     outputs.check("free some space and run map-bag --resume again")
