@@ -134,7 +134,11 @@ def test_esdf_of_one_occupied_pixel_is_the_distance_to_it(tmp_path):
     row = 11 - 1 - int((2.0 + 6.5 * 0.1 - 2.0) / 0.1)
     assert back[row, int((-1.0 + 0.65 + 1.0) / 0.1)] == pytest.approx(-0.1)
     png = np.asarray(Image.open(tmp_path / "esdf.png"))
-    assert png.shape == (11, 13) and png[4, 6] < 128 < png[0, 0]
+    assert png.shape == (11, 13, 3) and png[4, 6, 0] < 128 < png[0, 0, 0]
+    d[0, :] = np.nan  # a row no sensor looked at: blue in the preview, not the black of "deep inside"
+    esdf.write_esdf(esdf.DistanceField2D(d, 0.1, (-1.0, 2.0)), tmp_path / "unseen")
+    png = np.asarray(Image.open(tmp_path / "unseen" / "esdf.png"))
+    assert (png[0] == esdf.UNOBSERVED_RGB).all() and (png[1:, :, 0] == png[1:, :, 2]).all()
     assert np.all(np.isinf(esdf.signed_distance(np.zeros((3, 3), bool), 0.1)))  # no obstacle: infinitely far
 
 
@@ -207,6 +211,10 @@ def test_export_all_writes_every_format(exported):
             "images/depth_0000.png"} <= names
     trinary, prob = read_yaml(exported / "map.yaml"), read_yaml(exported / "prob.yaml")
     assert trinary["mode"] == "trinary" and prob["mode"] == "scale"
+    doc = json.loads((exported / "export.json").read_text())  # the frame and how the map was made
+    assert doc["frame"].startswith("world: the recording's pose frame")
+    assert (doc["map"]["n_rays"], doc["map"]["max_poses"]) == (90, 2)
+    assert doc["map"]["height"] == pytest.approx(doc["prob_map"]["height"])  # the median camera height
     assert trinary["origin"] == prob["origin"] and trinary["resolution"] == prob["resolution"] == 0.05
     a, b = np.asarray(Image.open(exported / "map.pgm")), np.asarray(Image.open(exported / "prob.pgm"))
     assert a.shape == b.shape and set(np.unique(a)) <= {0, 205, 254}

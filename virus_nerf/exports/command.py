@@ -116,6 +116,10 @@ def _check_poses_in_box(path: Path, pose_set, box) -> None:
                                     "expected poses in the run's world frame, in metres", row=int(i) + 2, field="x/y/z")
 
 
+# the frame every export is in: the recording's, in which its poses (and LiDAR map) are given
+WORLD_FRAME = "world: the recording's pose frame (its LiDAR map's), metres"
+
+
 def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,
                 image_scale) -> list[str]:
     """Compute and write every requested kind into `folder`; returns a short line per kind."""
@@ -128,7 +132,8 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
     mapper = trainer.mapper
     box = mapper.box
     lo, hi = np.asarray(box.lo[:2], float), np.asarray(box.hi[:2], float)
-    summary: dict = {"kinds": list(kinds), "resolution": resolution, "origin": [float(lo[0]), float(lo[1]), 0.0]}
+    summary: dict = {"kinds": list(kinds), "frame": WORLD_FRAME, "resolution": resolution,
+                     "origin": [float(lo[0]), float(lo[1]), 0.0]}
     done = []
     seen = None
     if {"map", "esdf", "prob"} & set(kinds):
@@ -138,8 +143,10 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
         summary["observed"] = round(observed.observed_share(seen), 4)
     if "map" in kinds or "esdf" in kinds:
         # the Mapper's own map (engine/views.py): what the run's snapshots wrote and its safety block judged
-        m = mapper.map2d(resolution, maps.MAP_RAYS if n_rays is None else n_rays,
-                         maps.MAP_POSES if max_poses is None else max_poses)
+        rays, poses = maps.MAP_RAYS if n_rays is None else n_rays, maps.MAP_POSES if max_poses is None else max_poses
+        m = mapper.map2d(resolution, rays, poses)
+        summary["map"] = {"height": mapper.camera_height(), "scans": "360 deg NeRF scans at each position's camera "
+                          "height, then the range sensors' hits", "n_rays": rays, "max_poses": poses}
         if "map" in kinds:
             maps.write_map_server(m, folder, "map")
             _write_png(folder / "map.png", m.image)

@@ -40,9 +40,13 @@ def signed_distance(occupied: np.ndarray, resolution: float) -> np.ndarray:
     return ((outside - inside) * resolution).astype(np.float32)
 
 
+UNOBSERVED_RGB = (70, 110, 200)  # esdf.png: pixels no sensor looked at (NaN distance)
+
+
 def write_esdf(field: DistanceField2D, folder: Path, name: str = "esdf", preview_max: float = 2.0) -> None:
-    """esdf.npy + esdf.yaml (origin, resolution, units) + esdf.png (distance clipped to
-    [-preview_max, preview_max] m: black = deep inside obstacles, mid grey = surface, white far)."""
+    """esdf.npy + esdf.yaml (origin, resolution, units) + esdf.png (RGB; distance clipped to
+    [-preview_max, preview_max] m: black = deep inside obstacles, mid grey = surface, white far,
+    blue (UNOBSERVED_RGB) = unobserved)."""
     from PIL import Image
 
     from virus_nerf.utils.io import atomic_path, write_text_atomic
@@ -55,7 +59,9 @@ def write_esdf(field: DistanceField2D, folder: Path, name: str = "esdf", preview
         f"resolution: {field.resolution!r}\norigin: [{field.origin[0]!r}, {field.origin[1]!r}, 0.0]\n"
         "layout: rows top (largest y) to bottom, columns x increasing, as the map_server image\n",
     )
-    d = np.clip(np.nan_to_num(field.distance, nan=-preview_max, posinf=preview_max), -preview_max, preview_max)
+    d = np.clip(np.nan_to_num(field.distance, nan=0.0, posinf=preview_max), -preview_max, preview_max)
     grey = np.rint((d + preview_max) / (2 * preview_max) * 255).astype(np.uint8)
+    rgb = np.repeat(grey[..., None], 3, axis=2)  # (H, W, 3)
+    rgb[np.isnan(field.distance)] = UNOBSERVED_RGB  # not black: that is deep inside an obstacle
     with atomic_path(folder / f"{name}.png") as tmp:
-        Image.fromarray(grey).save(tmp, format="PNG")
+        Image.fromarray(rgb).save(tmp, format="PNG")
