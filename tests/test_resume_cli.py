@@ -7,7 +7,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
+import signal
 from pathlib import Path
 
 import pytest
@@ -359,7 +361,50 @@ def test_demo_copies_metrics_atomically(tmp_path, monkeypatch):
     monkeypatch.setattr(shutil, "copyfile", half_copy)
     with pytest.raises(OSError, match="No space left"):
         demo(out=tmp_path / "demo", quiet=True)
-    assert sorted(p.name for p in (tmp_path / "demo").iterdir()) == ["data", "run"]
+    assert sorted(p.name for p in (tmp_path / "demo").iterdir()) == ["data", "demo.json", "run"]
+
+
+def test_a_stopped_demo_is_finished_with_resume(tmp_path, monkeypatch, capsys):
+    """A demo stopped while training says how to finish it; `demo --resume --out OUT` trains on
+    from the run's checkpoint with the settings it was begun with and writes the report. A folder
+    that is no stopped demo, a finished one and a flag asking for other settings are refused."""
+    import virus_nerf.sim.command as sim_command
+    import virus_nerf.trainer.run as train_run
+    from virus_nerf.errors import UsageError
+    from virus_nerf.experiments.demo import demo
+    from virus_nerf.utils.stop import Stopped
+
+    doc = {"zones": {"zone1": [0, 1], "zone2": [0, 2], "zone3": [0, 100]}, "sensors": {},
+           "train": {"seconds": 1.0, "steps": 2, "steps_per_s": 2.0, "samples_per_s": 1e6, "sensors": ["camera"]}}
+    calls = []
+
+    def fake_simulate(**kwargs):
+        (Path(kwargs["out"]) / "office").mkdir(parents=True)
+
+    def fake_training(data, room, out, cfg, quiet=None, resume=False):
+        calls.append((resume, cfg.seed, cfg.max_time))
+        if not resume:
+            (out / "plots").mkdir(parents=True)
+            raise Stopped(signal.SIGTERM)
+        (out / "metrics.json").write_text(json.dumps(doc))
+        return doc
+
+    monkeypatch.setattr(sim_command, "simulate", fake_simulate)
+    monkeypatch.setattr(train_run, "run_training", fake_training)
+    out = tmp_path / "demo"
+    with pytest.raises(Stopped):
+        demo(out=out, seed=4, train_time=30.0, quiet=True)
+    assert f"`virus-nerf demo --resume --out {out}` finishes it" in capsys.readouterr().out
+    for kwargs, message in (({"out": tmp_path / "other"}, "not a stopped demo (no demo.json)"),
+                            ({"out": out, "seed": 5}, "--seed 5: --resume finishes the demo as it was begun "
+                                                      "(--seed 4,")):
+        with pytest.raises(UsageError, match=re.escape(message)):
+            demo(resume=True, quiet=True, **kwargs)
+    demo(out=out, resume=True, quiet=True)
+    assert calls == [(False, 4, 30.0), (True, 4, 30.0)] and (out / "report.md").is_file()
+    assert json.loads((out / "metrics.json").read_text()) == doc
+    with pytest.raises(UsageError, match="this demo is finished"):
+        demo(out=out, resume=True, quiet=True)
 
 
 @pytest.mark.parametrize("experiment, summary", [("ablation", "ablation.md"), ("ablation", "ablation.png"),

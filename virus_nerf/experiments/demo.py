@@ -7,6 +7,7 @@ time budget, evaluate it beside the instantaneous LiDAR, USS and IRS scans, writ
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from pathlib import Path
 
@@ -28,17 +29,23 @@ def demo(
     train_time: float = 180.0,
     quiet: bool = False,
     gt: str = "map",
+    resume: bool = False,
 ) -> None:
     """Simulate an office, train VIRUS-NeRF on it, evaluate, and write OUT/report.md.
 
+    A demo stopped part-way (Ctrl-C, SIGTERM, a kill) is finished with `--resume --out OUT`: the
+    simulation is made if it is missing, the training continues from its checkpoint, then the
+    report is written, all with the settings the demo was begun with (OUT/demo.json).
+
     Args:
-        out: New folder for everything (refused if it exists).
+        out: New folder for everything (refused if it exists; with --resume the stopped demo's).
         seed: Seed of the simulated room, the drive and the training.
         duration: Seconds of simulated robot drive, in (0, 3600].
         train_time: Seconds of training (the CPU budget; evaluation excluded), > 0.
         quiet: No progress bars.
         gt: Ground truth, one or more of map (default), exact, paper, comma-separated; a table
             per protocol in the report, the first one's in the plots and metrics.json's own.
+        resume: Finish the stopped demo in --out (the other flags are its own: not needed).
     """
     from virus_nerf.errors import OutputExistsError, require_int, require_number
     from virus_nerf.evaluation.config import parse_gt_flag
@@ -47,28 +54,53 @@ def demo(
     from virus_nerf.sim.command import simulate
     from virus_nerf.trainer.config import TrainConfig
     from virus_nerf.trainer.run import run_training
-    from virus_nerf.utils.io import copy_file_atomic, create_new_dir, write_text_atomic
+    from virus_nerf.utils.io import (
+        copy_file_atomic,
+        create_new_dir,
+        write_json_atomic,
+        write_text_atomic,
+    )
+    from virus_nerf.utils.stop import Stopped
 
     require_int("--seed", seed, 0, 2**32 - 1)
     require_number("--duration", duration, 0.0, 3600.0)
     require_number("--train-time", train_time, 0.0)
-    protocols = parse_gt_flag(gt, scores=True)
+    parse_gt_flag(gt, scores=True)
     out = Path(out)
-    if out.exists():
+    settings = {"seed": seed, "duration": duration, "train_time": train_time, "gt": gt}
+    if resume:
+        settings = _stopped_demo(out, settings)
+        seed, duration, train_time, gt = (settings[k] for k in ("seed", "duration", "train_time", "gt"))
+    elif out.exists():
         raise OutputExistsError(out)
+    protocols = parse_gt_flag(gt, scores=True)
     t_start = time.perf_counter()
-    create_new_dir(out)
+    if not resume:
+        create_new_dir(out)
+        write_json_atomic(out / SETTINGS, settings)
     data = out / "data"
-    print(f"[1/3] simulating a {duration:.0f} s drive through an office (seed {seed}) -> {data}")
-    simulate(scene="office", out=data, seed=seed, duration=duration, resolution_scale=0.5)
-    t_sim = time.perf_counter() - t_start
     base = TrainConfig()
     cfg = dataclasses.replace(
         base, seed=seed, max_time=train_time, image_scale=1.0, eval_interval=max(10.0, train_time / 8),
         evaluation=dataclasses.replace(base.evaluation, gt=protocols),
     )
-    print(f"[2/3] training VIRUS-NeRF ({sensor_words(cfg.sensors)}; VIRUS grid) for {train_time:.0f} s")
-    doc = run_training(data, "office", out / "run", cfg, quiet=True if quiet else None)
+    try:
+        if not (data / "office").is_dir():
+            print(f"[1/3] simulating a {duration:.0f} s drive through an office (seed {seed}) -> {data}")
+            simulate(scene="office", out=data, seed=seed, duration=duration, resolution_scale=0.5)
+        t_sim = time.perf_counter() - t_start
+        run = out / "run"
+        if (run / "metrics.json").is_file():  # trained and scored before the stop
+            doc = json.loads((run / "metrics.json").read_text())
+        elif resume and run.is_dir():
+            print(f"[2/3] training VIRUS-NeRF on from its checkpoint, to {train_time:.0f} s of training")
+            doc = run_training(data, "office", run, cfg, quiet=True if quiet else None, resume=True)
+        else:
+            print(f"[2/3] training VIRUS-NeRF ({sensor_words(cfg.sensors)}; VIRUS grid) for {train_time:.0f} s")
+            doc = run_training(data, "office", run, cfg, quiet=True if quiet else None)
+    except Stopped:
+        print(f"demo: stopped; `virus-nerf demo --resume --out {out}` finishes it (trains on, writes the report)")
+        raise
     print("[3/3] writing the report")
     copy_file_atomic(out / "run" / "metrics.json", out / "metrics.json")
     train = doc["train"]
@@ -110,6 +142,29 @@ def demo(
     ]
     write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
     print(f"done in {time.perf_counter() - t_start:.0f} s: {out / 'report.md'}")
+
+
+SETTINGS = "demo.json"  # the demo's flags, for --resume
+
+
+def _stopped_demo(out: Path, given: dict) -> dict:
+    """--resume: the settings of the stopped demo in OUT; a one-line UsageError for a folder that
+    is not one, a finished demo, or a flag that asks for other settings."""
+    from virus_nerf.errors import UsageError
+
+    if not (out / SETTINGS).is_file():
+        raise UsageError(f"--resume --out {out}: not a stopped demo (no {SETTINGS}); expected the --out of a demo "
+                         "that was stopped")
+    if (out / "report.md").exists():
+        raise UsageError(f"--resume --out {out}: this demo is finished ({out / 'report.md'}); nothing to resume")
+    begun = json.loads((out / SETTINGS).read_text())
+    defaults = {"seed": 0, "duration": 40.0, "train_time": 180.0, "gt": "map"}
+    for key, value in given.items():
+        if value != defaults[key] and value != begun.get(key):
+            flag = "--" + key.replace("_", "-")
+            raise UsageError(f"{flag} {value}: --resume finishes the demo as it was begun ({flag} {begun.get(key)}, "
+                             f"{out / SETTINGS}); drop {flag}")
+    return begun
 
 
 def on_device(train: dict) -> str:
