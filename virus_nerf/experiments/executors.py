@@ -104,6 +104,11 @@ class DaskExecutor:
         return iter(self._distributed.as_completed(futures))
 
     def close(self) -> None:
+        import logging
+
+        # a stop cancels tasks and ends a LocalCluster's busy workers: distributed's warnings about
+        # that (a CancelledError, "still alive after 4 s, killing") would follow the command's one line
+        logging.getLogger("distributed").setLevel(logging.ERROR)
         self.client.close()
         if self._cluster is not None:
             self._cluster.close()
