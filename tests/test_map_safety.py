@@ -451,3 +451,32 @@ def test_distances_on_the_pixel_lattice_keep_their_boundary_pixels():
     # the free space a planner needs keeps more than 0.15 m (3 px) from the obstacle: not at 3 px
     free = true_free_near_path(mask, (0.0, 0.0), res, np.array([[0.025, 0.025]]))
     assert not free[10, 13] and free[10, 14] and free.sum() == int((dx * dx + dy * dy > 9).sum())
+
+
+@pytest.mark.slow
+def test_evaluate_scores_a_driving_run_on_the_frames_it_trained_on(tiny_office, tmp_path):
+    """A driving run (train --online) adds frames as its clock passes them, at each step's start:
+    frames that come due during the last step were never the mapper's. `evaluate` loads the
+    checkpoint with exactly the frames its mapper held, so it gives the run's own figures (it
+    added every frame due by the final clock, and judged another map, with more camera positions)."""
+    import json
+
+    import torch
+    from helpers import run_cli, tiny_train_config
+
+    from virus_nerf.config_io import to_dict
+
+    cfg = tmp_path / "small.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config(max_steps=None, max_time=4.0, online=True,
+                                                        playback_speed=0.5))))
+    run = tmp_path / "run"
+    code, _, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", run, "--config", cfg,
+                            "--quiet", "--no-plots"])
+    assert code == 0, err
+    held = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)["frames"]
+    assert 1 < held < 30  # a 3 s drive at half speed in 4 s of training: the drive is not over
+    code, _, err = run_cli(["evaluate", "--run", run, "--out", tmp_path / "again.json", "--no-plots"])
+    assert code == 0, err
+    own, again = (json.loads(p.read_text()) for p in (run / "metrics.json", tmp_path / "again.json"))
+    assert again["safety"] == own["safety"]
+    assert again["sensors"]["NeRF"] == own["sensors"]["NeRF"]

@@ -65,6 +65,14 @@ class FrameFeeder:
         self.released = max(self.released, n)
         return new
 
+    def release_first(self, n: int) -> np.ndarray:
+        """The first `n` rows in time order not released before (a checkpoint's frames, whatever
+        is due at its clock)."""
+        n = min(max(int(n), 0), len(self.order))
+        new = self.order[self.released:n]
+        self.released = max(self.released, n)
+        return new
+
     def wait(self, elapsed: float) -> float:
         """Seconds of the clock from `elapsed` until the next frame is due (inf: all released)."""
         if self.done:

@@ -552,6 +552,7 @@ class Mapper(MapViews):
             "torch_generator": self.generator.get_state(),
             "box": self.box.to_dict(),
             "prior_frames": self._prior_done,
+            "frames": self.frames,  # a driving run's loader adds exactly these (not all due at its clock)
             "stereo_points": self._stereo_points_done,
             "frames_at_start": self._frames_at_start,
             "viewed_frames": self._viewed_frames,

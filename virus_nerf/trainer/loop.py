@@ -86,6 +86,9 @@ class Trainer:
             self.mapper.spill_frames(self.run_dir)
         self._source: FrameStore | None = None  # every training frame, decoded on first use
         self._feeder: FrameFeeder | None = None  # online: releases the source rows as the clock passes them
+        # online, from a checkpoint: how many frames its mapper held (the first sync adds exactly these:
+        # frames come due during a step and are added at the next one, so the clock alone would add more)
+        self._frames_at_load: int | None = None
         self._gt = None
         self.eval_history: list[EvalPoint] = []
         self._prepared = False
@@ -124,7 +127,10 @@ class Trainer:
         if not self.config.online:
             self.mapper.add_store(store)
             return
-        new = self.feeder.release(self.mapper.seconds)
+        if self._frames_at_load is not None:  # a checkpoint's mapper: the frames it held, not all due by its clock
+            new, self._frames_at_load = self.feeder.release_first(self._frames_at_load), None
+        else:
+            new = self.feeder.release(self.mapper.seconds)
         if new.size:  # the stereo tracker reads the recording's own images
             self.mapper.add_store(store, new, self._full_image)
             for pixels in (store.images, store.depths_mm):  # copied: the source's pages go back to the OS
@@ -289,6 +295,8 @@ class Trainer:
         try:
             self.mapper.load_state(state)
             self.eval_history = [EvalPoint(**e) for e in state.get("eval_history", [])]
+            if self.config.online and isinstance(state.get("frames"), int) and self.mapper.frames == 0:
+                self._frames_at_load = state["frames"]
         except (KeyError, ValueError, TypeError, RuntimeError) as exc:  # optimiser, RNG states, history
             raise DataFormatError(path, f"does not fit this run's model ({type(exc).__name__}: "
                                         f"{one_line(exc, 160)})") from None
