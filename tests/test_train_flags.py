@@ -5,6 +5,7 @@ line naming the flag (the dataclass checks are the only range checks)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 
@@ -47,6 +48,12 @@ def test_a_flag_given_replaces_one_value_and_one_not_given_keeps_the_files(tmp_p
     cfg = resolve("--max-steps", "9", config=path)
     assert (cfg.max_steps, cfg.max_time, cfg.virus_grid.warmup_steps) == (9, None, 700)
     assert resolve(config=path).max_time == TrainConfig().max_time  # no --max-steps: the default budget
+    # --resume --config FILE: the file's keys over the run's own config, as flags are (not over the defaults)
+    run = dataclasses.replace(TrainConfig(), batch_size=256, max_steps=40, max_time=None, plots=False, seed=7)
+    path.write_text(json.dumps({"max_steps": 45, "optim": {"lr": 0.002}}))
+    cfg = resolve(config=path, base=run)
+    assert (cfg.max_steps, cfg.max_time, cfg.batch_size, cfg.plots, cfg.seed) == (45, None, 256, False, 7)
+    assert cfg.optim.lr == 0.002 and cfg.optim.lr_decay_to == run.optim.lr_decay_to
 
 
 def test_the_short_flags_are_the_derived_ones_and_keep_their_meaning():
@@ -219,3 +226,25 @@ def test_a_comment_after_a_field_describes_the_next_field_only():
     comments = field_comments(LossWeights)
     assert comments["free_margin"].startswith("line-of-sight emptiness")
     assert comments["distortion"].startswith("interval distortion")
+
+
+def test_a_sensor_named_twice_in_a_file_is_taken_once(tmp_path):
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps({"sensors": ["camera", "irs", "camera"]}))
+    assert resolve(config=path).sensors == ("camera", "irs")
+
+
+@pytest.mark.slow
+def test_an_image_scale_leaving_fewer_than_8_pixels_trains(tiny_office, tmp_path):
+    """--image-scale 0.01 of 160x120 px images: 2x1 px frames (the refusal is for less than 1x1);
+    the kernels' warm-up took 8 pixels of the first frame and ended in an IndexError."""
+    from helpers import run_cli, tiny_train_config
+
+    from virus_nerf.config_io import to_dict
+
+    cfg = tmp_path / "tiny.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config(max_steps=2))))
+    code, _, err = run_cli(["train", "--data", tiny_office, "--room", "office", "--out", tmp_path / "run", "--config",
+                            cfg, "--image-scale", "0.01", "--quiet"])
+    assert code == 0, err
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["train"]["steps"] == 2

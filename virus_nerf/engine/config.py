@@ -129,7 +129,7 @@ class MapperConfig:
         allowed = set(SENSORS)
         if not isinstance(self.sensors, tuple | list) or not all(isinstance(s, str) for s in self.sensors):
             raise bad("sensors", self.sensors, f"a non-empty subset of {sorted(allowed)}")
-        self.sensors = tuple(self.sensors)
+        self.sensors = tuple(dict.fromkeys(self.sensors))  # each once, as the --sensors flag takes them
         bad_sensors = set(self.sensors) - allowed
         if bad_sensors or not self.sensors:
             raise ValueError(f"sensors {self.sensors}: expected a non-empty subset of {sorted(allowed)}")

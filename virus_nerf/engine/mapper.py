@@ -330,7 +330,8 @@ class Mapper(MapViews):
     def _warm_kernels(self) -> None:
         """Load (or compile) the marching, field and compositing kernels on a few rays, so the
         first timed step is an ordinary one. Draws no random numbers and leaves no gradient."""
-        rays = self.sampler._rays(np.zeros(8, dtype=np.int64), np.arange(8, dtype=np.int64)).to(self.device)
+        n = min(8, self.store.images.shape[1] * self.store.images.shape[2])  # an image may have fewer pixels
+        rays = self.sampler._rays(np.zeros(n, dtype=np.int64), np.arange(n, dtype=np.int64)).to(self.device)
         out, _ = self.model.render(rays.origins, rays.directions, generator=None, visible_share=self.visible_share)
         warm = out.rgb.sum() + out.depth.sum()
         if warm.requires_grad:  # rays that march no occupied cell (a pruned grid on resume) have no graph

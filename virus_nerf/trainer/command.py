@@ -81,14 +81,26 @@ def train_flags(knobs: dict, gt: str | None = None, playback_speed: float | None
     return given, flags
 
 
+def _layered(below: dict, above: dict) -> dict:
+    """`above`'s keys over `below`'s, section by section (nested dicts merged, other values replaced)."""
+    out = dict(below)
+    for key, value in above.items():
+        out[key] = _layered(below[key], value) if isinstance(value, dict) and isinstance(below.get(key), dict) \
+            else value
+    return out
+
+
 def _resolve_config(config: Path | None, given: dict, flags: dict, base=None) -> TrainConfig:
-    """The run's TrainConfig: `base` (the run's own on --resume), or the --config file, or the
-    defaults, with the fields the flags give on top; a flag not given keeps the value below it."""
-    from virus_nerf.config_io import from_dict, read_json_config
+    """The run's TrainConfig: the --config file's keys over `base` (the run's own on --resume) or
+    over the defaults, with the fields the flags give on top; a key or flag not given keeps the
+    value below it."""
+    from virus_nerf.config_io import from_dict, read_json_config, to_dict
 
     file_sets_time = False
     if config is not None:
         data = read_json_config(config)
+        if base is not None and isinstance(data, dict):  # --resume: the file changes what it names, as flags do
+            data = _layered(to_dict(base), data)
         cfg = from_dict(TrainConfig, data, file=Path(config))
         file_sets_time = "max_time" in data  # a file that gives its own budget keeps it
     else:
