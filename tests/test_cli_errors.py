@@ -446,3 +446,14 @@ def test_a_helper_threads_write_error_is_one_line(capsys, monkeypatch):
     thread.start()
     thread.join()
     assert "Traceback" in capsys.readouterr().err
+
+
+def test_sensors_on_a_recording_without_test_frames_is_one_line(tmp_path):
+    """A one-frame drive has no test frame: `sensors` refuses it as `train` does (it wrote a table of
+    dashes and exit 0), naming the split and the stack, before writing anything."""
+    from virus_nerf.sim.command import simulate
+
+    simulate(scene="office", out=tmp_path / "sim", seed=0, duration=0.2, resolution_scale=0.25)
+    code, _, err = run_cli(["sensors", "--data", tmp_path / "sim", "--room", "office", "--out", tmp_path / "m.json"])
+    assert_one_line_error(code, err, "field 'CAM1'", "no CAM1 rows labelled 'test'")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sim"]

@@ -47,6 +47,7 @@ def sensors(
         lidar_scored_against_own_map,
         parse_gt_flag,
     )
+    from virus_nerf.evaluation.testpoints import require_test_points
 
     require_int("--n-rays", n_rays, 1, 1_000_000)
     require_number("--lidar-angle-range-deg", lidar_angle_range_deg, 0.0, 360.0)
@@ -60,6 +61,7 @@ def sensors(
     remove_stale_partials(plot_dir)
     redo = plot_dir.exists()
     recording = load_recording(data, room, poses="odometry" if odometry_poses else "optimised")
+    require_test_points(recording)  # nothing to score: refused, not an empty table
     check_ground_truth_inputs(recording, protocols)
     config = EvaluationConfig(n_rays=n_rays, lidar_angle_range_deg=lidar_angle_range_deg, gt=protocols)
     result = evaluate(recording, None, config)

@@ -87,3 +87,16 @@ def make_test_points(recording: Recording, split: str = "test") -> list[TestPoin
         )
     return points
 
+
+def split_file(recording: Recording) -> str:
+    """The split file a refusal names (the default split when the recording has none)."""
+    path = recording.room_dir / "split" / "split.csv"
+    return str(path) if path.is_file() else f"{path} (absent: the default split made in memory)"
+
+
+def require_test_points(recording: Recording) -> None:
+    """A one-line DataFormatError naming the split file when the recording has no test frame of
+    the main stack: there is nothing to score (`train` and `sensors` refuse it before any work)."""
+    if not make_test_points(recording):
+        raise DataFormatError(split_file(recording), f"no CAM{MAIN_STACK} rows labelled 'test'; the evaluation "
+                              f"scores the test frames of stack {MAIN_STACK}", field=f"CAM{MAIN_STACK}")

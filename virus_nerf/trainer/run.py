@@ -32,25 +32,16 @@ from virus_nerf.utils.io import write_json_atomic
 
 
 # ---------------------------------------------------------------------------- checks on inputs
-def _split_file(recording) -> str:
-    path = recording.room_dir / "split" / "split.csv"
-    return str(path) if path.is_file() else f"{path} (absent: the default split made in memory)"
-
-
 def check_recording_for_training(recording, cfg, eval_recording=None) -> None:
     """Refuse, before any training, a recording the run could not train on or be scored on."""
     from virus_nerf.evaluation.evaluate import check_ground_truth_inputs
-    from virus_nerf.evaluation.testpoints import MAIN_STACK, make_test_points
+    from virus_nerf.evaluation.testpoints import require_test_points, split_file
 
     if not any((s.split == "train").any() for s in recording.stacks.values()):
-        raise DataFormatError(_split_file(recording), "no rows labelled 'train'; training needs at least one")
+        raise DataFormatError(split_file(recording), "no rows labelled 'train'; training needs at least one")
     ev = eval_recording or recording
-    if cfg.evaluation.gt and not make_test_points(ev):
-        raise DataFormatError(
-            _split_file(ev),
-            f"no CAM{MAIN_STACK} rows labelled 'test'; the evaluation scores the test frames of stack {MAIN_STACK}",
-            field=f"CAM{MAIN_STACK}",
-        )
+    if cfg.evaluation.gt:
+        require_test_points(ev)
     # the ground truth needs the LiDAR map (map, paper) or scene.json (exact): a missing or bad
     # one fails now, not after training
     check_ground_truth_inputs(ev, cfg.evaluation.gt)
