@@ -294,7 +294,7 @@ def test_missing_ros_extra_is_one_line(tmp_path, monkeypatch):
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: None if n == "rosbags" else real(n, *a))
-    _fails([tmp_path / "b.bag", "--out", tmp_path / "out"], "pip install 'virus-nerf[ros]'")
+    _fails([tmp_path / "b.bag", "--out", tmp_path / "out"], "pip install -e '.[ros]' in the virus-nerf repository")
 
 
 def test_an_implausible_camera_info_is_one_line_naming_topic_message_and_field():

@@ -345,7 +345,7 @@ def test_map_bag_without_the_ros_extra_is_one_clear_line(tmp_path, monkeypatch):
     bag.write_bytes(b"")
     code, _, stderr = run_cli(["map-bag", bag, "--out", tmp_path / "out"])
     assert code == 2 and not (tmp_path / "out").exists()
-    assert stderr.startswith("virus-nerf: error: ") and "pip install 'virus-nerf[ros]'" in stderr
+    assert stderr.startswith("virus-nerf: error: ") and "pip install -e '.[ros]' in the virus-nerf repository" in stderr
     assert stderr.count("\n") == 1
     for argv, message in ((["map-bag", tmp_path / "none.bag", "--out", tmp_path / "o"], "BAG"),
                           (["map-bag", bag, "--out", tmp_path / "o", "--playback", "0"], "--playback 0.0"),

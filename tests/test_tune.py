@@ -273,7 +273,7 @@ def test_missing_extra_is_named(tmp_path, monkeypatch):
     (tmp_path / "d" / "office").mkdir(parents=True)
     monkeypatch.setitem(sys.modules, "optuna", None)  # import optuna -> ImportError
     code, _, err = run_cli(_tune_args(tmp_path, tmp_path / "d", "--trials", 1))
-    assert code == 2 and "pip install 'virus-nerf[tune]'" in err and err.count("\n") == 1, err
+    assert code == 2 and "pip install -e '.[tune]' in the virus-nerf repository" in err and err.count("\n") == 1, err
 
 
 def test_readme_shows_the_search_space():

@@ -78,6 +78,11 @@ class NotWrittenError(OSError):
         return self.message
 
 
+def install_extra(extra: str) -> str:
+    """How to install an optional extra, the way the README installs the package (from its clone)."""
+    return f"pip install -e '.[{extra}]' in the virus-nerf repository"
+
+
 class UsageError(ValueError):
     """A mistake on the command line or in a config file, found before any work is done.
 

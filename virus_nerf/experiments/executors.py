@@ -32,13 +32,13 @@ def require_extra(module: str, extra: str, what: str) -> Any:
     """Import an optional dependency, or a one-line UsageError naming the extra to install."""
     import importlib
 
-    from virus_nerf.errors import UsageError
+    from virus_nerf.errors import UsageError, install_extra
 
     try:
         return importlib.import_module(module)
     except ImportError:
         raise UsageError(f"{what} needs the optional package '{module}', which is not installed: "
-                         f"pip install 'virus-nerf[{extra}]'") from None
+                         f"{install_extra(extra)}") from None
 
 
 class LocalExecutor:

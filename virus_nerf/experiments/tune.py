@@ -261,7 +261,7 @@ def tune(
     export_config: Path | None = None,
 ) -> None:
     """Tune VIRUS-NeRF's loss weights, learning rate and grid parameters with Optuna (needs the
-    [tune] extra: pip install 'virus-nerf[tune]').
+    [tune] extra: pip install -e '.[tune]').
 
     Runs --trials more trials of study --study (created, or continued: the same command again
     adds trials) and prints the best; each trial trains in its own process into OUT/trials/NNNN/.

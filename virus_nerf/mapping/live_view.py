@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.data.frame import SyncFrame
-from virus_nerf.errors import OutputExistsError, UsageError, one_line
+from virus_nerf.errors import OutputExistsError, UsageError, install_extra, one_line
 from virus_nerf.mapping.ros_maps import RobotStacks, base_pose
 from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS, OccupancyMap2D
 from virus_nerf.sensors.camera import Intrinsics
@@ -82,7 +82,7 @@ def _rerun():
     try:
         import rerun
     except ImportError:
-        raise UsageError("--rerun needs the live extra: pip install 'virus-nerf[live]'") from None
+        raise UsageError(f"--rerun needs the live extra: {install_extra('live')}") from None
     return rerun
 
 

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from virus_nerf.errors import OutputExistsError, UsageError
+from virus_nerf.errors import OutputExistsError, UsageError, install_extra
 from virus_nerf.maps.occupancy import FREE_THRESH, OCCUPIED_THRESH, OccupancyMap2D
 from virus_nerf.sensors.geometry import invert_pose, matrix_to_quat
 
@@ -189,7 +189,7 @@ class RosMapBag:
             from rosbags.rosbag2 import StoragePlugin, Writer
             from rosbags.typesys import Stores, get_typestore
         except ImportError:
-            raise UsageError("--out-bag needs the ros extra: pip install 'virus-nerf[ros]'") from None
+            raise UsageError(f"--out-bag needs the ros extra: {install_extra('ros')}") from None
         if distro not in DISTROS:
             raise UsageError(f"distro {distro!r}: expected one of {DISTROS}")
         require_tf_pair(("map_frame", map_frame), ("base_frame", base_frame))

@@ -26,7 +26,7 @@ import os
 import time
 from dataclasses import dataclass
 
-from virus_nerf.errors import UsageError
+from virus_nerf.errors import UsageError, install_extra
 
 ROS_TOPIC_PREFIX = "rt"  # rmw_cyclonedds: topics; "rq"/"rr" are services
 DISCOVERY_TOPIC = "ros_discovery_info"  # rmw_dds_common's graph topic (a DDS name, no prefix)
@@ -49,7 +49,7 @@ def require_dds():
         import rosbags  # noqa: F401
     except ImportError as exc:
         raise UsageError(f"the ROS 2 node needs the ros2 extra ({exc.name} is missing): "
-                         "pip install 'virus-nerf[ros2]'") from None
+                         f"{install_extra('ros2')}") from None
 
 
 def domain_id(value: int | None = None) -> int:

@@ -20,14 +20,14 @@ from virus_nerf.data.bags.reader import BagReader
 from virus_nerf.data.bags.report import REPORT_NAME, ImportReport
 from virus_nerf.data.bags.stages import ImportRun, Plan
 from virus_nerf.data.bags.topics import TopicsConfig, default_topics, read_topics
-from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError
+from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError, install_extra
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.utils.io import new_output_dir, write_json_atomic
 
 __all__ = ["ImportReport", "import_bag", "require_ros_extra", "room_name"]
 
 PoseMode = Literal["lidar-odometry", "tf", "csv", "odometry"]
-ROS_EXTRA = "pip install 'virus-nerf[ros]'"
+ROS_EXTRA = install_extra("ros")
 
 
 def require_ros_extra(poses: str = "lidar-odometry") -> None:
