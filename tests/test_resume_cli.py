@@ -65,6 +65,10 @@ def test_resume_of_a_finished_run_is_refused_and_touches_nothing(run_copy, tiny_
         one_line_error(code, err, f"--resume {run_copy}: the run is finished (step 5", "budget max_steps 5",
                        "nothing to resume")
         assert snapshot(run_copy) == before
+    # a larger --max-time cannot train on while the steps bind: the hint names the budget reached
+    code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--quiet", "--max-time", "600"])
+    one_line_error(code, err, "(give a larger --max-steps to train on)")
+    assert snapshot(run_copy) == before
 
 
 def test_resume_after_a_crash_before_the_metrics_only_evaluates(run_copy):

@@ -344,7 +344,7 @@ def _resume(out: Path, recording, cfg, quiet):
             raise UsageError(
                 f"--resume {out}: the run is finished (step {header['step']}, {header['seconds']:.1f} s of training "
                 f"reached the budget {_budget(cfg)}) and has its metrics.json; nothing to resume "
-                "(give a larger --max-steps or --max-time to train on)"
+                f"(give a larger {_binding_flags(trainer)} to train on)"
             )
     else:  # stopped before its first checkpoint: its config.json and run.json say how to start it
         print(f"{out}: no checkpoint yet (stopped before the first one); training from step 0", file=sys.stderr)
@@ -380,6 +380,15 @@ def _finish_without_ground_truth(trainer, out: Path, cfg, summary, resume: bool,
     )
     _check_final_checkpoint(trainer, [out / MAP_DIR, out / METRICS])
     return doc
+
+
+def _binding_flags(trainer) -> str:
+    """The budget flag(s) whose limit the run reached: only a larger one of these trains on."""
+    c, m = trainer.config, trainer.mapper
+    flags = [flag for flag, reached in (("--max-steps", c.max_steps is not None and m.step >= c.max_steps),
+                                        ("--max-time", trainer.max_time is not None and m.seconds >= trainer.max_time))
+             if reached]
+    return " and ".join(flags) or "--max-steps or --max-time"
 
 
 def _budget(cfg) -> str:
