@@ -159,13 +159,15 @@ def test_a_stopped_command_stops_its_trainings_and_the_same_command_continues_th
     cfg = tmp_path / "tiny.json"
     cfg.write_text(json.dumps(to_dict(tiny_train_config())))
     out = tmp_path / "runs" / "r"
-    spec = RunSpec("r", tiny_office, "office", out, ("--config", str(cfg), "--max-steps", "1000"))
+    spec = RunSpec("r", tiny_office, "office", out, ("--config", str(cfg), "--max-steps", "300"))
 
     def interrupt_once_training() -> None:
-        t0 = time.monotonic()
-        while not (out.is_dir() and RunLock(out).held_by_another()) and time.monotonic() - t0 < 120:
-            time.sleep(0.1)
-        time.sleep(2.0)  # a few steps in
+        t0 = time.monotonic()  # a few steps in: train_log.csv has a row every 2 steps (flushed)
+        while time.monotonic() - t0 < 120:
+            log = out / "train_log.csv"
+            if log.is_file() and log.read_text().count("\n") >= 3:
+                break
+            time.sleep(0.05)
         os.kill(os.getpid(), signal.SIGINT)  # to this process alone: the training is not in its group
 
     def run(address):
@@ -189,7 +191,7 @@ def test_a_stopped_command_stops_its_trainings_and_the_same_command_continues_th
             run(cluster.scheduler_address)
     assert not stop_file(out).exists()
     doc = json.loads((out / "metrics.json").read_text())
-    assert doc["train"]["steps"] == 1000
+    assert doc["train"]["steps"] == 300
     assert "--resume" in log_text(out)
 
 
