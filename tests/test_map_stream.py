@@ -481,20 +481,27 @@ def messages_by(messages, topic: str, index: int):
     return next(msg for t, msg in messages if t == topic and msg.index == index)
 
 
-def test_live_a_silent_tof_leaves_its_camera_mapping(bags):
-    """Live, a ToF topic that never sends is said once and its stack's frames go on without it
-    (IRS all NaN: no measurement, as for a stack without a ToF), counted in `without`; only the
-    frames before its silence was noticed wait in vain. The other stack keeps its ToF."""
+def _live(bags, keep) -> tuple[list, LiveSync, list[str]]:
+    """The ROS 1 bag streamed live (the node's LiveSync, max_silence_s 0.5) with the messages
+    keep(topic, msg, sync) passes: (frames, sync, the lines it said)."""
     cfg = default_topics()
+    lines: list[str] = []
     with BagReader(bags["ros1"]) as reader:
-        lines: list[str] = []
         source = make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"])
         sync = LiveSync(cfg, source, bags["ros1"], max_silence_s=0.5, on_problem=lines.append)
         frames = []
         for topic, msg in reader.iter_topics(sync.topics()):
-            if topic != "/TOF3":
+            if keep(topic, msg, sync):
                 frames += sync.push(topic, msg)
         frames += sync.finish()
+    return frames, sync, lines
+
+
+def test_live_a_silent_tof_leaves_its_camera_mapping(bags):
+    """Live, a ToF topic that never sends is said once and its stack's frames go on without it
+    (IRS all NaN: no measurement, as for a stack without a ToF), counted in `without`; only the
+    frames before its silence was noticed wait in vain. The other stack keeps its ToF."""
+    frames, sync, lines = _live(bags, lambda topic, msg, sync: topic != "/TOF3")
     by_stack = _by_stack(frames)
     assert any("topic /TOF3 sent nothing" in ln and "mapping goes on without it" in ln for ln in lines), lines
     waited = sum(n for why, n in sync.dropped[3].items() if why.startswith("no tof"))
@@ -511,16 +518,8 @@ def test_live_a_camera_without_camera_info_is_said_and_said_back(bags):
     """Live, colour images whose camera_info does not come (a typo in the topics file, a driver
     that does not publish it): said once after max_silence_s, the stack's frames dropped and counted
     meanwhile; when it comes, said back, and that stack's frames are made again."""
-    cfg = default_topics()
-    with BagReader(bags["ros1"]) as reader:
-        lines: list[str] = []
-        source = make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"])
-        sync = LiveSync(cfg, source, bags["ros1"], max_silence_s=0.5, on_problem=lines.append)
-        frames = []
-        for topic, msg in reader.iter_topics(sync.topics()):
-            if topic != "/CAM3/color/camera_info" or msg.time_s - sync.t0 > 1.5:
-                frames += sync.push(topic, msg)
-        frames += sync.finish()
+    frames, sync, lines = _live(bags, lambda topic, msg, sync: topic != "/CAM3/color/camera_info"
+                               or msg.time_s - sync.t0 > 1.5)
     said = [ln for ln in lines if "camera_info" in ln]
     assert len(said) == 2, lines
     assert re.search(r"topic /CAM3/color/camera_info sent nothing while stack 3's colour images came for 0\.5 s "
