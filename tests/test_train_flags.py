@@ -248,3 +248,25 @@ def test_an_image_scale_leaving_fewer_than_8_pixels_trains(tiny_office, tmp_path
                             cfg, "--image-scale", "0.01", "--quiet"])
     assert code == 0, err
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["train"]["steps"] == 2
+
+
+def test_a_runs_config_json_passed_back_rebuilds_that_run(tmp_path):
+    """A run's config.json written before a key was added (here D77's weights.free_stereo and
+    D112's small-room filters) loads, with --config, at the values that run was made with, as
+    `evaluate` and `--resume` load it; a file of a few keys keeps today's defaults."""
+    from virus_nerf.config_io import to_dict
+
+    doc = to_dict(TrainConfig())
+    del doc["weights"]["free_stereo"], doc["stereo"]["small_room_min_views"]
+    run = tmp_path / "old_run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps(doc))
+    (run / "run.json").write_text("{}")
+    cfg = resolve(config=run / "config.json")
+    assert (cfg.weights.free_stereo, cfg.stereo.small_room_min_views) == (0.0, 4)
+    partial = tmp_path / "mine.json"
+    partial.write_text(json.dumps({"weights": {"irs": 1.0}, "stereo": {}}))
+    cfg = resolve(config=partial)
+    assert cfg.weights.free_stereo == TrainConfig().weights.free_stereo
+    assert cfg.stereo.small_room_min_views == TrainConfig().stereo.small_room_min_views
+
