@@ -60,10 +60,7 @@ class FrameFeeder:
 
     def release(self, elapsed: float) -> np.ndarray:
         """Rows due after `elapsed` s and not released before, in time order."""
-        n = self._due_count(elapsed)
-        new = self.order[self.released:n]
-        self.released = max(self.released, n)
-        return new
+        return self.release_first(self._due_count(elapsed))
 
     def release_first(self, n: int) -> np.ndarray:
         """The first `n` rows in time order not released before (a checkpoint's frames, whatever

@@ -157,10 +157,12 @@ def _stopped_demo(out: Path, given: dict) -> dict:
                          "that was stopped")
     if (out / "report.md").exists():
         raise UsageError(f"--resume --out {out}: this demo is finished ({out / 'report.md'}); nothing to resume")
+    import inspect
+
     begun = json.loads((out / SETTINGS).read_text())
-    defaults = {"seed": 0, "duration": 40.0, "train_time": 180.0, "gt": "map"}
+    defaults = inspect.signature(demo).parameters  # a flag left at its default asks for nothing
     for key, value in given.items():
-        if value != defaults[key] and value != begun.get(key):
+        if value != defaults[key].default and value != begun.get(key):
             flag = "--" + key.replace("_", "-")
             raise UsageError(f"{flag} {value}: --resume finishes the demo as it was begun ({flag} {begun.get(key)}, "
                              f"{out / SETTINGS}); drop {flag}")

@@ -111,10 +111,11 @@ def map_bag(
     """
     if out is None:
         raise UsageError("--out is required: give --out DIR (a new folder; with --resume the killed run's folder)")
+    frames_given = (map_frame, base_frame) != ("map", "base_link")
     if resume:
         # the final map is the last snapshot as it was made: a flag that asks for more is refused, not ignored
         unused = [flag for flag, given in (("--out-bag", out_bag is not None), ("--rerun*", view.wanted),
-                                           ("--map-frame/--base-frame", (map_frame, base_frame) != ("map", "base_link")),
+                                           ("--map-frame/--base-frame", frames_given),
                                            ("--resolution/--n-rays/--max-poses", maps != DEFAULT_RASTER)) if given]
         if unused:
             raise UsageError(f"--resume writes the final map from the last snapshot as it was made; {unused[0]} "
@@ -149,7 +150,7 @@ def map_bag(
     from virus_nerf.mapping.ros_maps import require_tf_pair
 
     require_tf_pair(("--map-frame", map_frame), ("--base-frame", base_frame))
-    if out_bag is None and (map_frame, base_frame) != ("map", "base_link"):
+    if out_bag is None and frames_given:
         raise UsageError("--map-frame and --base-frame name the frames of --out-bag's maps and /tf: give --out-bag DIR")
     view.check()
     from virus_nerf.data.bags.topics import default_topics, read_topics
