@@ -310,8 +310,9 @@ def _one_line_thread_errors() -> None:
 def _interrupted(exc: KeyboardInterrupt) -> NoReturn:
     """A stop asked for by a signal: exit 128 + the signal (130 Ctrl-C, 143 SIGTERM) with no
     traceback; one line unless the command already said where its outputs are (utils/stop.py)."""
-    from virus_nerf.utils.stop import Stopped, exit_code_of
+    from virus_nerf.utils.stop import Stopped, exit_code_of, quiet_after_stop
 
+    quiet_after_stop()  # what the stop cut half-built may report at exit: not after the one line
     if not (isinstance(exc, Stopped) and exc.reported):
         what = exc.name if isinstance(exc, Stopped) else "Ctrl-C"
         print(f"virus-nerf: interrupted ({what})", file=sys.stderr)

@@ -9,12 +9,18 @@ which exits 128 + the signal number (130, 143) without a traceback. A second sig
 outputs are being written stops the process at once (exit 128 + signal; every file is written
 atomically, so what was written before is whole). A Ctrl-C outside such a block is a plain
 KeyboardInterrupt: one line and exit 130 (cli.py).
+
+Once a stop signal came, "Exception ignored in ..." reports are dropped (`quiet_after_stop`): a
+signal that lands inside a C callback (llvmlite's, while numba loads a kernel) is reported so,
+and an object it cut half-built reports its `__del__` at exit. Both are the stop's echo, not
+errors, and would follow the command's one line.
 """
 
 from __future__ import annotations
 
 import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -58,9 +64,19 @@ def _at_once(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signat
 _STEP = {"depth": 0, "pending": None, "signalled": None}
 
 
+def _ignore_unraisable(unraisable) -> None:  # noqa: ARG001 - sys.unraisablehook's signature
+    """`sys.unraisablehook` after a stop: the reports are the stop's echo (see the module docstring)."""
+
+
+def quiet_after_stop() -> None:
+    """Drop "Exception ignored in ..." reports from now on: the process was stopped by a signal."""
+    sys.unraisablehook = _ignore_unraisable
+
+
 def _first(signum, frame) -> None:  # noqa: ARG001
     for s in SIGNALS:
         signal.signal(s, _at_once)
+    quiet_after_stop()
     _STEP["signalled"] = signum  # a Stopped raised where a C callback swallows it still ends the block
     if _STEP["depth"]:  # inside a training step: it ends first (`atomic_step`)
         _STEP["pending"] = signum
