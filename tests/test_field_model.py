@@ -36,7 +36,7 @@ def test_presets():
         FieldConfig(backend="gpu")
     f = NerfField(BOX, SMALL)
     n_mlp = 12 * 64 + 64 * 16 + 32 * 64 + 64 * 64 + 64 * 3  # 6 levels x F=2 inputs, no biases
-    assert sum(p.numel() for p in f.mlp_parameters()) == n_mlp
+    assert sum(p.numel() for m in (f.density_mlp, f.color_mlp) for p in m.parameters()) == n_mlp
     assert f.encoding.table.shape == (SMALL.layout.n_entries, 2)
 
 

@@ -7,7 +7,8 @@ at any time. The VIRUS grid's sensor prior (docs/method.md 3.4) is applied to ev
 at the first step after it was added. `Trainer` (trainer/loop.py) drives one Mapper for
 `virus-nerf train` (offline: every frame added before the first step; `--online`: each frame
 when the training clock, scaled by the playback speed, passes its timestamp); `virus-nerf
-map-bag` replays a recording through one in real time (mapping/replay.py).
+map-bag` streams a bag through one in real time (mapping/stream.py; mapping/replay.py with
+--import-first).
 
 Example, in a ROS node or a script (metres, seconds, RGB; OpenCV camera axes)::
 

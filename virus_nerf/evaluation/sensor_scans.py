@@ -78,24 +78,20 @@ def irs_points_3d(irs_range: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray
     return transform_points(cam_to_world, pts_cam)
 
 
+def _camera_fov(test_point: TestPoint, half_rad: float) -> FieldOfView:
+    """Union of +-half_rad sectors around each camera heading, apex at each camera."""
+    return FieldOfView(tuple(Sector(p[:2, 3].copy(), float(yaw_of(p)), float(half_rad))
+                             for _, p in test_point.camera_poses().values()))
+
+
 def irs_fov(test_point: TestPoint) -> FieldOfView:
     """Union of +-22.5 deg sectors around each camera heading, apex at each camera."""
-    return FieldOfView(
-        tuple(
-            Sector(p[:2, 3].copy(), float(yaw_of(p)), float(IRS_HALF_FOV_RAD))
-            for _, p in test_point.camera_poses().values()
-        )
-    )
+    return _camera_fov(test_point, IRS_HALF_FOV_RAD)
 
 
 def uss_fov(test_point: TestPoint) -> FieldOfView:
     """Union of +-27.5 deg sectors around each camera heading, apex at each camera."""
-    return FieldOfView(
-        tuple(
-            Sector(p[:2, 3].copy(), float(yaw_of(p)), float(USS_HALF_FOV_RAD))
-            for _, p in test_point.camera_poses().values()
-        )
-    )
+    return _camera_fov(test_point, USS_HALF_FOV_RAD)
 
 
 def irs_scan_2d(recording: Recording, test_point: TestPoint, band: float = 0.05) -> Scan2D:

@@ -9,7 +9,6 @@ import numpy as np
 
 from virus_nerf.data.ethz import Recording
 from virus_nerf.errors import DataFormatError
-from virus_nerf.sensors.geometry import yaw_of
 from virus_nerf.sensors.rig import MAIN_STACK
 
 PARTNER_STACK = 3
@@ -49,10 +48,6 @@ class TestPoint:
         if self.index3 is not None and self.pose3 is not None:
             out[PARTNER_STACK] = (self.index3, self.pose3)
         return out
-
-    def camera_headings(self) -> dict[int, float]:
-        """Stack id -> heading (rad, about world z) of that camera's optical axis."""
-        return {s: float(yaw_of(p)) for s, (_, p) in self.camera_poses().items()}
 
 
 def nearest_index(times: np.ndarray, t: float) -> int:

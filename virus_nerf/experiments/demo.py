@@ -11,6 +11,8 @@ import json
 import time
 from pathlib import Path
 
+from virus_nerf.trainer.run_folder import METRICS, PLOTS
+
 SENSOR_WORDS = {"camera": "the cameras' colour", "stereo": "their triangulated depth", "rgbd": "depth images",
                 "uss": "USS", "irs": "IRS"}
 
@@ -90,8 +92,8 @@ def demo(
             simulate(scene="office", out=data, seed=seed, duration=duration, resolution_scale=0.5)
         t_sim = time.perf_counter() - t_start
         run = out / "run"
-        if (run / "metrics.json").is_file():  # trained and scored before the stop
-            doc = json.loads((run / "metrics.json").read_text())
+        if (run / METRICS).is_file():  # trained and scored before the stop
+            doc = json.loads((run / METRICS).read_text())
         elif resume and run.is_dir():
             print(f"[2/3] training VIRUS-NeRF on from its checkpoint, to {train_time:.0f} s of training")
             doc = run_training(data, "office", run, cfg, quiet=True if quiet else None, resume=True)
@@ -102,10 +104,10 @@ def demo(
         print(f"demo: stopped; `virus-nerf demo --resume --out {out}` finishes it (trains on, writes the report)")
         raise
     print("[3/3] writing the report")
-    copy_file_atomic(out / "run" / "metrics.json", out / "metrics.json")
+    copy_file_atomic(out / "run" / METRICS, out / METRICS)
     train = doc["train"]
     run_metrics = RunMetrics.from_document(doc)
-    plots = sorted(p.name for p in (out / "run" / "plots").glob("*.png"))
+    plots = sorted(p.name for p in (out / "run" / PLOTS).glob("*.png"))
     maps = [p for p in plots if p.startswith("scan_")]
     lines = [
         "# VIRUS-NeRF demo",

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from virus_nerf.evaluation.metrics import RunMetrics
+from virus_nerf.trainer.run_folder import METRICS
 
 METRIC_COLUMNS = ("acc_mean", "acc_median", "acc_inlier", "cov_mean", "cov_median", "cov_inlier")
 
@@ -109,7 +110,7 @@ def runs_warnings(runs: Sequence[Path], root: Path) -> dict[str, list[str]]:
 
     out: dict[str, list[str]] = {}
     for run in runs:
-        path = Path(run) / "metrics.json"
+        path = Path(run) / METRICS
         if path.is_file():
             warnings = json.loads(path.read_text()).get("warnings") or []
             if warnings:

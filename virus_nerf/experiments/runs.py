@@ -18,6 +18,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from virus_nerf.trainer.run_folder import CHECKPOINT, METRICS
+
 USAGE_EXIT = 2  # `virus-nerf` exits 2 on a user mistake: the same command would fail again
 # `train` stopped by SIGINT / SIGTERM (kept its checkpoint; 130 / 143), or ended by either before it
 # could say so: a stop asked for, never retried
@@ -57,7 +59,7 @@ class RunResult:
 
 
 def run_done(out: Path) -> bool:
-    return (Path(out) / "metrics.json").is_file()
+    return (Path(out) / METRICS).is_file()
 
 
 def log_file(out: Path) -> Path:
@@ -139,7 +141,7 @@ def _attempt(spec: RunSpec, threads: int, poll_s: float, shared_cpu: bool) -> tu
     cmd = spec.command()
     if not _wait_for_the_holder(spec):
         return USAGE_EXIT, False
-    if spec.out.exists() and (spec.out / "checkpoint.pt").is_file():
+    if spec.out.exists() and (spec.out / CHECKPOINT).is_file():
         cmd = cmd + ["--resume"]  # an interrupted run continues from its checkpoint
     elif spec.out.exists():
         # died before its first checkpoint: keep it aside, never delete

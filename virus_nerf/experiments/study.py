@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from virus_nerf.experiments.search_space import build_config
+from virus_nerf.trainer.run_folder import METRICS
 from virus_nerf.utils.io import pid_alive
 
 JOURNAL = "optuna.journal"  # default storage: a journal file in the study folder
@@ -152,7 +153,7 @@ def settle_stale_trials(study, objective: Objective) -> list[int]:
         run = Path(t.user_attrs.get("run", ""))
         values = None
         if run_done(run):
-            zone = read_metrics(run / "metrics.json").sensors()["NeRF"].zones["zone3"]
+            zone = read_metrics(run / METRICS).sensors()["NeRF"].zones["zone3"]
             values = objective.values(zone.acc_mean, zone.cov_mean)
             trial = optuna.trial.Trial(study, t._trial_id)  # the trial as run_trial would have left it
             trial.set_user_attr("acc_mean", zone.acc_mean)

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Literal
 
 from virus_nerf.experiments.study import Objective
+from virus_nerf.trainer.run_folder import METRICS
 
 
 @dataclass
@@ -126,7 +127,7 @@ def run_trial(ctx: _Context) -> str:
             study.tell(trial, state=optuna.trial.TrialState.FAIL)
             return (f"trial {n}: FAILED after {result.attempts} attempt(s) (exit {result.returncode}, "
                     f"see {log_file(run)})")
-        zone = read_metrics(run / "metrics.json").sensors()["NeRF"].zones["zone3"]
+        zone = read_metrics(run / METRICS).sensors()["NeRF"].zones["zone3"]
         values = ctx.objective.values(zone.acc_mean, zone.cov_mean)
         trial.set_user_attr("acc_mean", zone.acc_mean)
         trial.set_user_attr("cov_mean", zone.cov_mean)

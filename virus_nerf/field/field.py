@@ -152,12 +152,5 @@ class NerfField(nn.Module):
         h = self._geo(x)  # (M, G)
         return self._sigma(h), self._rgb(h, dirs)
 
-    def encoding_parameters(self) -> list[nn.Parameter]:
-        """The hash table (for a separate optimiser group: no weight decay there)."""
-        return [self.encoding.table]
-
-    def mlp_parameters(self) -> list[nn.Parameter]:
-        return list(self.density_mlp.parameters()) + list(self.color_mlp.parameters())
-
     def extra_repr(self) -> str:
         return f"box lo={self.box.lo} hi={self.box.hi}"

@@ -1,7 +1,7 @@
 """A map whose extent is not known in advance (issue 29, item 2; docs/extent.md).
 
 `fitted` (the default for offline training): the scene box is fitted before the first step from
-the LiDAR map and the whole drive (engine/model.py fit_scene_box); the field's hash encoding and
+the LiDAR map and the whole drive (data/room_box.py fit_scene_box); the field's hash encoding and
 the occupancy grid both span it.
 
 `grow` (a robot in a room it has never seen): the Mapper starts from a small box around its first

@@ -108,7 +108,7 @@ class VirusGridConfig:
 
     @property
     def sigma_threshold_max(self) -> float:
-        """sigma_T_max (1/m): -ln(1 - alpha) / step, 4.48 /m by default (paper.json: 1.005)."""
+        """sigma_T_max (1/m): -ln(1 - alpha) / step, 16.3 /m by default (paper.json: 1.005)."""
         return -math.log(1.0 - self.threshold_alpha) / self.threshold_step
 
     @property

@@ -192,11 +192,12 @@ def _publish(mapper, recording_time: float, resolution: float, n_rays: int, max_
     neither (the snapshot computes them itself)."""
     if live is None and ros_bag is None:
         return None
-    m, prob = mapper.map2d(resolution, n_rays, max_poses), mapper.probability_map(resolution)
     if live is not None:
-        pose = mapper.store.cam_to_world[-1]  # (4, 4) the newest frame's camera
-        scan = mapper.scans(pose, n_rays)[0].points  # (N, 2) world x, y at its height
-        live.log_map(recording_time, m, prob, scan, scan_height=float(pose[2, 3]))
+        from virus_nerf.mapping.live_view import log_mapper
+
+        m, prob, _ = log_mapper(live, mapper, recording_time, resolution, n_rays, max_poses)
+    else:
+        m, prob = mapper.map2d(resolution, n_rays, max_poses), mapper.probability_map(resolution)
     if ros_bag is not None:
         ros_bag.write_maps(recording_time, m, prob)
     return m, prob

@@ -5,7 +5,7 @@ The camera-to-LiDAR transforms were derived from the real sample recording
 with both poses read by `virus_nerf.data.ethz.load_recording` at the same camera timestamps
 (poses_cam_balm_sync{1,3}.csv and poses_lidar_balm_sync{1,3}.csv; the 5 samples agree to 1e-15).
 The numbers are hard-coded here (rounded to um / 1e-8) so the simulator needs no sample;
-`tests/test_sim_rig.py` recomputes them from the sample and compares.
+`tests/test_sim_sensors.py` (`test_mounting_matches_the_sample`) recomputes them from the sample and compares.
 
 What the numbers say: the cameras are mounted upside down (camera y axis ~ +z of the LiDAR),
 stack 1 looks ~14.7 deg to the right and stack 3 ~14.4 deg to the left, both pitched up ~5 deg,

@@ -3,5 +3,5 @@ written as an ETHZ-format recording. Entry point: `virus_nerf.sim.command.simula
 
 # its public modules; none is imported here, so `import virus_nerf.sim` loads nothing else
 __all__ = [
-    "command", "furniture", "kernels", "look", "racks", "rooms", "scene", "sensors", "trajectory",
+    "command", "furniture", "kernels", "racks", "rooms", "scene", "sensors", "trajectory",
 ]

@@ -15,9 +15,7 @@ so the floor is at z = -LIDAR_HEIGHT_M.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 
@@ -27,7 +25,6 @@ from virus_nerf.sim.racks import RackSpec, build_racks
 from virus_nerf.sim.scene import Box, Material, Primitive, Scene, SceneObject
 from virus_nerf.sim.trajectory import DrivePath, DriveSpec
 
-RoomName = Literal["office", "common", "warehouse"]
 ROOM_NAMES: tuple[str, ...] = ("office", "common", "warehouse")
 
 
@@ -272,6 +269,3 @@ def build_room(name: str, rng: np.random.Generator, spec: RoomSpec | None = None
                         "drive": {"straight": drive.straight, "radius": drive.radius}}
                   | ({"racks": racks_meta} if racks_meta else {}))
     return Room(scene=scene, drive=drive, spec=spec, placed=placed)
-
-
-RoomBuilder = Callable[[np.random.Generator], Room]

@@ -15,8 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from virus_nerf.sensors.geometry import quat_to_matrix
-
 
 @dataclass(frozen=True)
 class DriveSpec:
@@ -163,11 +161,3 @@ def odometry_poses(traj: Trajectory, times: np.ndarray, drift: OdometryDrift,
     times = np.asarray(times, dtype=np.float64)
     return planar_pose(np.interp(times, traj.t, xo), np.interp(times, traj.t, yo),
                        np.interp(times, traj.t, yaw_o), np.interp(times, traj.t, zo))
-
-
-def rows_to_poses(xyz: np.ndarray, quat: np.ndarray) -> np.ndarray:
-    out = np.zeros((len(xyz), 4, 4))
-    out[:, :3, :3] = quat_to_matrix(quat)
-    out[:, :3, 3] = xyz
-    out[:, 3, 3] = 1.0
-    return out

@@ -11,8 +11,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +20,7 @@ from virus_nerf.data.ethz import Recording
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.stereo.depth import StereoBuilder, StereoConfig, StereoDepth
 from virus_nerf.utils.cache import cache_root
+from virus_nerf.utils.io import atomic_path
 
 FORMAT_VERSION = 1  # bump when tracking or triangulation change what a key means
 _FIELDS = ("frames", "uv", "ranges", "sigmas", "points")
@@ -54,15 +53,8 @@ def _load(path: Path) -> StereoDepth | None:
 def _store(path: Path, depth: StereoDepth) -> None:
     """Atomic write; a cache that cannot be written is skipped, never an error."""
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.partial-", suffix=".npz", dir=path.parent)
-        os.close(fd)
-        try:
-            np.savez(tmp, **{name: getattr(depth, name) for name in _FIELDS})
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.remove(tmp)
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:  # a file: given a name, savez adds .npz
+            np.savez(f, **{name: getattr(depth, name) for name in _FIELDS})
     except OSError:
         return
 

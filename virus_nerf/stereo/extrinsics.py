@@ -53,10 +53,6 @@ class RotationCheck:
     median_px_before: float
     median_px_after: float
 
-    @property
-    def angle_deg(self) -> float:
-        return float(np.linalg.norm(self.correction_deg))
-
 
 def rotate_camera(pose: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
     """cam_to_world (4, 4) turned by the rotation vector `rotvec` (rad) about its own axes."""

@@ -339,7 +339,7 @@ class Trainer:
                 if not c.online:
                     raise
                 # online (a robot's map): the map and the results are written first, then this
-                # is named (trainer/command.py); the last periodic checkpoint stays
+                # is named (trainer/run.py _check_final_checkpoint); the last periodic checkpoint stays
                 self.checkpoint_error = exc
         finally:
             log.close()

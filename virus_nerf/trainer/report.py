@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from virus_nerf.trainer.run_folder import EvalPoint
+from virus_nerf.trainer.run_folder import PLOTS, EvalPoint
 
 SAFETY_PICTURE = "map_safety.png"
 # scan maps of a run (evenly over its test points): each is a five-panel figure of ~1 s on a
@@ -24,7 +24,7 @@ def write_run_plots(run_dir: Path, result, eval_history: list[EvalPoint], max_ma
     from virus_nerf.evaluation.plots import plot_metric_vs_time, write_plot_files
     from virus_nerf.utils.io import new_output_dir
 
-    folder = Path(run_dir) / "plots"
+    folder = Path(run_dir) / PLOTS
     with new_output_dir(folder, replace=replace) as tmp:
         names = write_plot_files(result, tmp, max_maps=max_maps)
         curve = plot_metric_vs_time({"NeRF": eval_history}, tmp / "metric_vs_time.png")

@@ -17,7 +17,7 @@ A run folder (`virus-nerf train --out RUN`) holds:
 config.json changes only when a resume with other flags (a larger budget, another batch size)
 has made its first step: a resume that fails before (e.g. out of memory) leaves the run as it was.
 
-`open_run` (and `trainer.command.load_trained` on top of it, which also loads the checkpoint into a
+`open_run` (and `trainer.run.load_trained` on top of it, which also loads the checkpoint into a
 Trainer) is the only way the commands (evaluate, export, resume) open an existing run, so every
 damaged or foreign folder is refused the same way.
 """

@@ -13,6 +13,7 @@ from dataclasses import astuple, dataclass, fields
 from pathlib import Path
 from typing import ClassVar
 
+from virus_nerf.trainer.run_folder import TENSORBOARD, TRAIN_LOG
 from virus_nerf.utils.io import write_text_atomic
 
 
@@ -98,7 +99,7 @@ class TrainLog:
     def __init__(self, run_dir: Path, step: int, total_steps: int | None, quiet: bool):
         from tqdm import tqdm
 
-        path = Path(run_dir) / "train_log.csv"
+        path = Path(run_dir) / TRAIN_LOG
         self.path = path
         new = not path.exists()
         if not new:
@@ -107,7 +108,7 @@ class TrainLog:
         self._csv = csv.writer(self._file)  # rows end in \r\n (the csv module's default)
         if new:
             self._append(LogRow.FIELDS)
-        self._tb = _tensorboard(Path(run_dir) / "tensorboard")
+        self._tb = _tensorboard(Path(run_dir) / TENSORBOARD)
         self._bar = tqdm(total=total_steps, initial=step, disable=quiet, unit="step", dynamic_ncols=True)
 
     def _append(self, values) -> None:

@@ -19,7 +19,7 @@ import numpy as np
 
 from virus_nerf.data.csvtable import MAX_TIME_S, time_unit_problem
 from virus_nerf.errors import DataFormatError
-from virus_nerf.sensors.geometry import pose_matrix
+from virus_nerf.sensors.geometry import QUATERNION_NORM_TOLERANCE, pose_matrix
 
 
 @dataclass
@@ -204,7 +204,7 @@ def csv_track(path: str | Path) -> PoseTrack:
     for i, j in zip(*np.nonzero(~np.isfinite(values)), strict=True):
         raise DataFormatError(path, f"{values[i, j]} is not a finite number", row=rows[int(i)][0], field=names[j])
     norms = np.linalg.norm(values[:, 4:], axis=1)
-    for i in np.flatnonzero(np.abs(norms - 1.0) > 1e-3):
+    for i in np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_NORM_TOLERANCE):
         raise DataFormatError(path, f"quaternion {tuple(float(q) for q in values[i, 4:])} has norm {norms[i]:.6g}; "
                                     "expected a unit quaternion", row=rows[int(i)][0], field="qx/qy/qz/qw")
     for i in np.flatnonzero(np.abs(values[:, 0]) > MAX_TIME_S):

@@ -123,12 +123,12 @@ class BagReader:
         if info.msgtype not in accepted:
             raise DataFormatError(self.path, f"topic {topic} ({key}) has message type {info.msgtype}; "
                                   f"expected {' or '.join(accepted)}")
-        self._ensure_type(topic, info)
+        self._ensure_type(topic)
         if info.count == 0:
             raise DataFormatError(self.path, f"topic {topic} ({key}) has no messages")
         return info
 
-    def _ensure_type(self, topic: str, info: TopicInfo) -> None:
+    def _ensure_type(self, topic: str) -> None:
         """Register a known type the bag carries no definition of (older ROS 2 bags); refuse an unknown one."""
         store = self._reader.typestore
         raw = {c.msgtype for c in self._reader.connections if c.topic == topic}

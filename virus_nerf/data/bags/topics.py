@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.errors import ConfigError
-from virus_nerf.sensors.geometry import pose_matrix
+from virus_nerf.sensors.geometry import QUATERNION_NORM_TOLERANCE, pose_matrix
 
 
 @dataclass(frozen=True)
@@ -195,7 +195,7 @@ class _Reader:
         t = self.vector(ext.get("translation"), 3, f"{key}.camera_in_lidar.translation")
         q = self.vector(ext.get("rotation_xyzw"), 4, f"{key}.camera_in_lidar.rotation_xyzw")
         norm = float(np.linalg.norm(q))
-        if abs(norm - 1.0) > 1e-3:
+        if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
             raise ConfigError(f"quaternion norm {norm:.6g}; expected a unit quaternion (x, y, z, w)",
                               file=self.path, key=f"{key}.camera_in_lidar.rotation_xyzw")
         return StackTopics(**values, camera_in_lidar_translation=t,  # type: ignore[arg-type]
