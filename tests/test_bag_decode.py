@@ -184,10 +184,9 @@ def test_the_streams_nearest_partner_is_the_importers():
 
 
 # ----------------------------------------------------------------- one bad message, both paths
-@pytest.fixture(scope="module")
-def tof_bag(tiny_office, tmp_path_factory) -> tuple[Path, Path]:
+def _tof_rewritten(tiny_office, folder: Path, change) -> tuple[Path, Path]:
     """The tiny office as a ROS 1 bag whose /TOF1 carries uint32 zones (a robot's own TOF
-    definition), the 5th message with 150 m in zone 10; and its LiDAR poses as CSV."""
+    definition), `change(n, meas)` applied to its n-th message (from 1); and its LiDAR poses as CSV."""
     pytest.importorskip("rosbags")
     from rosbags.rosbag1 import Reader, Writer
     from rosbags.typesys import get_types_from_msg
@@ -196,7 +195,6 @@ def tof_bag(tiny_office, tmp_path_factory) -> tuple[Path, Path]:
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.data.writer import write_poses
 
-    folder = tmp_path_factory.mktemp("tof_bag")
     rec = load_recording(tiny_office, "office")
     write_poses(folder / "lidar.csv", *rec._lidar_pose_track)
     good = write_bag(tiny_office, folder / "good.bag", ros_version=1)
@@ -211,8 +209,7 @@ def tof_bag(tiny_office, tmp_path_factory) -> tuple[Path, Path]:
             if c.topic == "/TOF1":
                 meas = np.asarray(msg.meas, dtype=np.uint32)
                 n_tof += 1
-                if n_tof == 5:
-                    meas[10] = 150_000
+                change(n_tof, meas)
                 msg, msgtype = store.types[wide](header=msg.header, meas=meas, stds=msg.stds), wide
             if c.topic not in conns:
                 conns[c.topic] = w.add_connection(c.topic, msgtype, typestore=store)
@@ -220,19 +217,28 @@ def tof_bag(tiny_office, tmp_path_factory) -> tuple[Path, Path]:
     return folder / "bad.bag", folder / "lidar.csv"
 
 
-def test_import_bag_and_the_stream_refuse_a_150_m_tof_reading_alike(tof_bag, tmp_path):
-    """The same bad ToF message: import-bag refuses it (before: imported, then refused by the TOF
-    file's reader), the stream stops at it (before: mapped as a 150 m free ray), in the same line."""
+@pytest.fixture(scope="module")
+def tof_bag(tiny_office, tmp_path_factory) -> tuple[Path, Path]:
+    """The 5th /TOF1 message with 150 m in zone 10."""
+
+    def far(n: int, meas: np.ndarray) -> None:
+        if n == 5:
+            meas[10] = 150_000
+
+    return _tof_rewritten(tiny_office, tmp_path_factory.mktemp("tof_bag"), far)
+
+
+def _import_and_stream(bag: Path, poses: Path, out: Path):
+    """import-bag's error and the stream's (at which message, and the frames before it)."""
     from virus_nerf.data.bags.importer import import_bag
     from virus_nerf.data.bags.live import LiveSync, StreamError
     from virus_nerf.data.bags.poses import make_pose_source
     from virus_nerf.data.bags.reader import BagReader
     from virus_nerf.data.bags.topics import default_topics
 
-    bag, poses = tof_bag
     with pytest.raises(DataFormatError) as imported:
-        import_bag(bag, tmp_path / "rec", poses="csv", poses_file=poses)
-    assert not (tmp_path / "rec").exists()
+        import_bag(bag, out, poses="csv", poses_file=poses)
+    assert not out.exists()
     cfg = default_topics()
     frames, last = [], None
     with pytest.raises(StreamError) as streamed, BagReader(bag) as reader:
@@ -241,7 +247,52 @@ def test_import_bag_and_the_stream_refuse_a_150_m_tof_reading_alike(tof_bag, tmp
             last = (topic, msg)
             frames += sync.push(topic, msg)
     assert str(streamed.value) == str(imported.value)
-    assert str(imported.value) == (f"{bag}, field 'meas[10]': topic /TOF1, message 5: 150000 mm (150 m) is beyond "
-                                   "any IRS reading (> 100000 mm = 100 m); expected millimetres")
+    return imported.value, streamed.value, last, frames, sync
+
+
+def test_a_tof_topic_in_metres_is_refused_over_its_messages(tiny_office, tmp_path):
+    """Three target zones a message, in metres (1, 2 and 3): no message alone holds the eight
+    target readings `decode_tof` wants as evidence of the unit, the topic does by its third
+    message (9 readings), where import-bag and the stream both stop, in the same line. Seen in a
+    user's review: one message in 39 of an office held eight targets, so map-bag mapped 76 frames
+    of metres first and import-bag wrote a recording the TOF file's reader refused."""
+
+    def metres(n: int, meas: np.ndarray) -> None:
+        meas[:] = 0
+        meas[[3, 30, 60]] = (1, 2, 3)
+
+    bag, poses = _tof_rewritten(tiny_office, tmp_path, metres)
+    imported, streamed, last, _, _ = _import_and_stream(bag, poses, tmp_path / "rec")
+    assert str(imported) == (f"{bag}, field 'meas': topic /TOF1, message 3: every reading of the topic up to here is "
+                             "below 10 mm (9 readings, the largest 3); expected millimetres (the topic holds metres?)")
+    assert last[0] == "/TOF1" and last[1].index == 2
+
+
+def test_the_tof_unit_check_settles_on_millimetres_and_counts_each_topic_apart():
+    """A reading of 10 mm or more settles a topic as millimetres (later small readings pass); the
+    readings of two topics never add up; a message without targets counts nothing."""
+    check = m.TofUnitCheck()
+    small = np.zeros(64)
+    small[:5] = 4.0  # five targets below 10 mm: under eight, no evidence alone
+    tof1, tof3 = m.Where("b", "/TOF1", 0), m.Where("b", "/TOF3", 0)
+    check.add(m.decode_tof(NS(meas=np.zeros(64)), tof1), tof1)
+    check.add(m.decode_tof(NS(meas=small), tof1), tof1)
+    check.add(m.decode_tof(NS(meas=small), tof3), tof3)  # 5 + 5, but apart
+    settled = small.copy()
+    settled[10] = 25.0
+    check.add(m.decode_tof(NS(meas=settled), tof3), tof3)  # 10 readings, one of 25 mm: millimetres
+    for _ in range(3):
+        check.add(m.decode_tof(NS(meas=small), tof3), tof3)
+    with pytest.raises(m.MessageError, match=r"\(10 readings, the largest 4\)"):
+        check.add(m.decode_tof(NS(meas=small), tof1), tof1)
+
+
+def test_import_bag_and_the_stream_refuse_a_150_m_tof_reading_alike(tof_bag, tmp_path):
+    """The same bad ToF message: import-bag refuses it (before: imported, then refused by the TOF
+    file's reader), the stream stops at it (before: mapped as a 150 m free ray), in the same line."""
+    bag, poses = tof_bag
+    imported, streamed, last, frames, sync = _import_and_stream(bag, poses, tmp_path / "rec")
+    assert str(imported) == (f"{bag}, field 'meas[10]': topic /TOF1, message 5: 150000 mm (150 m) is beyond "
+                             "any IRS reading (> 100000 mm = 100 m); expected millimetres")
     assert last[0] == "/TOF1" and last[1].index == 4  # stopped at that message, at its bag time
-    assert streamed.value.at_s == sync.rel(last[1].time_s) > 0.5 and frames  # the frames before it reach the map
+    assert streamed.at_s == sync.rel(last[1].time_s) > 0.5 and frames  # the frames before it reach the map

@@ -146,6 +146,14 @@ def test_topics_file_defaults_and_errors(tmp_path):
     f.write_text("[stacks.1]\ncolor = '/c'\ncamera_in_lidar = { translation = [0, 0], rotation_xyzw = [0, 0, 0, 1] }\n")
     with pytest.raises(ConfigError, match=r"stacks.1.camera_in_lidar.translation.*list of 3"):
         read_topics(f)
+    # the sample's mounting in millimetres (a user's review): 0.42 m from the LiDAR read as 420 m
+    f.write_text("[stacks.1]\ncolor = '/c'\n"
+                 "camera_in_lidar = { translation = [362.0, -152.0, -150.0], rotation_xyzw = [0, 0, 0, 1] }\n")
+    with pytest.raises(ConfigError) as err:
+        read_topics(f)
+    assert str(err.value).endswith("key 'stacks.1.camera_in_lidar.translation': [362.0, -152.0, -150.0] puts the "
+                                   "camera 420.295 m from the LiDAR; expected metres (a robot's camera within 5 m of its "
+                                   "LiDAR: millimetres?)"), str(err.value)
     f.write_text("[sync]\nuss_tolerance_s = -1\n")
     with pytest.raises(ConfigError, match="sync.uss_tolerance_s"):
         read_topics(f)

@@ -21,6 +21,7 @@ from virus_nerf.data.bags.poses import make_pose_source  # noqa: E402
 from virus_nerf.data.bags.reader import BagReader  # noqa: E402
 from virus_nerf.data.bags.topics import default_topics  # noqa: E402
 from virus_nerf.data.ethz import load_recording  # noqa: E402
+from virus_nerf.errors import DataFormatError  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -120,6 +121,60 @@ def test_a_ros1_bag_with_tf_gives_the_ros2_bags_frames(bags, tiny_office, tmp_pa
     np.testing.assert_allclose([f.frame.time for f in got], [f.frame.time for f in want], atol=1e-6)
     np.testing.assert_allclose(np.stack([f.frame.cam_to_world for f in got]),
                                np.stack([f.frame.cam_to_world for f in want]), atol=1e-8)
+
+
+def test_a_bag_on_sim_time_streams_from_tf_on_its_stamps(tiny_office, tmp_path):
+    """Every header stamp (the transforms' too) on the robot's clock, starting at 100 s, 1699999900 s
+    behind the bag's receive times (a bag of sim time, a replayed bag): the stream runs on the
+    stamps, /tf's as every topic's, and gives the bag's frames at their stamps. Before, /tf took its
+    receive time and the stream stopped at once: "the bag's clock jumps 1699999900.000 s forward"
+    (a user's review)."""
+    import dataclasses
+
+    from virus_nerf.data.bags.writer import write_bag
+
+    behind = 1_699_999_900
+    ros1 = write_bag(tiny_office, tmp_path / "drive_tf.bag", ros_version=1, tf=True)
+
+    def earlier(stamped):
+        stamp = stamped.header.stamp
+        return dataclasses.replace(stamped, header=dataclasses.replace(
+            stamped.header, stamp=dataclasses.replace(stamp, sec=stamp.sec - behind)))
+
+    def edit(topic, t_ns, msg, msgtype):
+        if hasattr(msg, "transforms"):
+            msg = dataclasses.replace(msg, transforms=[earlier(tr) for tr in msg.transforms])
+        elif hasattr(msg, "header"):
+            msg = earlier(msg)
+        return [(topic, msgtype, t_ns, msg)]
+
+    sim_time = _rewrite(ros1, tmp_path / "sim_time.bag", edit)
+    got, sync = _stream(sim_time, "tf", tf_child="rslidar")
+    want, _ = _stream(ros1, "tf", tf_child="rslidar")
+    assert not sync.dropped_total() and len(got) == len(want) > 10
+    assert min(f.frame.time for f in want) > behind  # the simulator's stamps: 2023 on the recorder's clock
+    np.testing.assert_allclose([f.frame.time + behind for f in got], [f.frame.time for f in want], atol=1e-6)
+    np.testing.assert_allclose(np.stack([f.frame.cam_to_world for f in got]),
+                               np.stack([f.frame.cam_to_world for f in want]), atol=1e-8)
+
+
+def test_a_poses_file_on_another_clock_is_named_with_both_time_ranges(bags, tmp_path):
+    """A poses file with times from the drive's start (a user's export), a bag on the robot's clock:
+    import-bag names both ranges, as it does for a sensor topic on another clock."""
+    from virus_nerf.data.bags.importer import import_bag
+    from virus_nerf.data.ethz import read_poses
+    from virus_nerf.data.writer import write_poses
+
+    times, poses = read_poses(bags["csv"])
+    relative = tmp_path / "relative.csv"
+    write_poses(relative, times - times[0], poses)
+    with pytest.raises(DataFormatError) as err:
+        import_bag(bags["ros1"], tmp_path / "rec", poses="csv", poses_file=relative)
+    got = str(err.value)
+    want = (f"cannot synchronise /CAM1/color/image_raw with the poses: no pose within sync.pose_tolerance_s of any "
+            f"colour frame (poses 0.000..{times[-1] - times[0]:.3f} s of --poses csv, colour 1700000000.000..")
+    assert want in got and got.endswith("s); check the clocks"), got
+    assert not (tmp_path / "rec").exists()
 
 
 def test_kiss_icp_in_its_worker_process_gives_the_in_process_poses(bags):

@@ -85,6 +85,24 @@ def test_a_recording_without_lidar_trains_maps_and_says_nothing_was_scored(no_li
     assert code == 2 and "--gt none: nothing to score" in err and len(err.strip().splitlines()) == 1
 
 
+def test_evaluate_on_a_run_of_a_recording_without_any_ground_truth_says_so(no_lidar, small_config, tmp_path):
+    """No LiDAR map and no simulator scene (a user's own robot without a LiDAR): evaluate says that
+    nothing can score the run, rather than suggesting a --gt that the next line refuses."""
+    from virus_nerf.evaluation.evaluate import SCENE_FILE
+
+    data = tmp_path / "data"
+    shutil.copytree(no_lidar, data)
+    run = tmp_path / "run"
+    code, _, err = run_cli(["train", "--data", data, "--room", "office", "--out", run, "--config", small_config,
+                            "--quiet"])
+    assert code == 0, err
+    (data / "office" / SCENE_FILE).unlink()
+    code, _, err = run_cli(["evaluate", "--run", run])
+    assert code == 2 and err == (f"virus-nerf: error: --run {run}: the run was trained without ground truth, and its "
+                                 "recording has no LiDAR map (maps/map_*.pcd) to score it against; its map is in the "
+                                 "run (export writes it again)\n"), err
+
+
 def test_asking_for_the_lidar_map_on_a_recording_without_one_is_one_line(no_lidar, small_config, tmp_path):
     code, _, err = run_cli(["train", "--data", no_lidar, "--room", "office", "--out", tmp_path / "run",
                             "--config", small_config, "--gt", "map", "--quiet"])

@@ -35,14 +35,9 @@ DISCOVER_EVERY_S = 0.5  # wall seconds between looks at the graph's publishers
 def live_stamp(msg, fallback_s: float) -> float:
     """The message's time on the robot's clock: its header stamp; a TFMessage's newest transform
     stamp (it has no header); else `fallback_s` (the writer's source time)."""
-    t = m.stamp_s(msg)
+    t = m.stamp_s(msg)  # a TFMessage's newest transform
     if t > 0:
         return t
-    transforms = getattr(msg, "transforms", None)
-    if transforms:
-        t = max(float(tr.header.stamp.sec) + 1e-9 * float(tr.header.stamp.nanosec) for tr in transforms)
-        if t > 0:
-            return t
     return fallback_s
 
 

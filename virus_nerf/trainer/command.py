@@ -268,6 +268,12 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
         cfg = dataclasses.replace(cfg, evaluation=ev)
         trainer.config = cfg
     if not cfg.evaluation.gt:
+        from virus_nerf.evaluation.evaluate import scene_path
+
+        if trainer.recording.map_path is None and not scene_path(trainer.recording).is_file():
+            raise UsageError(f"--run {run}: the run was trained without ground truth, and its recording has no "
+                             "LiDAR map (maps/map_*.pcd) to score it against; its map is in the run (export "
+                             "writes it again)")
         raise UsageError(f"--run {run}: the run was trained without ground truth (evaluation.gt none); "
                          "give --gt map, exact or paper to score it")
     check_ground_truth_inputs(trainer.recording, cfg.evaluation.gt)

@@ -139,6 +139,7 @@ class LiveSync:
             for role, topic in st.roles().items():
                 self.roles.setdefault(topic, []).append((s, role))
         self.buffers = {(s, r): Recent() for s, st in cfg.stacks.items() for r in PARTNERS if r in st.roles()}
+        self.tof_units = m.TofUnitCheck()  # a ToF topic in metres, over its messages
         self.waiting: dict[int, deque[Message]] = {s: deque() for s in cfg.stacks}
         self.watched = {t for t, keys in self.roles.items() if any(r != "camera_info" for _, r in keys)}
         self.last_kept = dict.fromkeys(cfg.stacks, -math.inf)  # camera_rate_hz thinning
@@ -171,18 +172,19 @@ class LiveSync:
         if self.error is not None:
             raise self.error
         t = msg.time_s
-        live_static = self.on_problem is not None and "static" in topic
-        if live_static and self.t0 is None:  # live: a late joiner's static transforms are old (transient local)
+        if "static" in topic:
+            # timeless: static transforms start no clock and move none. A late joiner gets old ones
+            # (transient local); a bag's are often stamped 0, or on the recorder's clock where the
+            # robot's is sim time
             with self._at(msg, topic):
                 self.poses.add(topic, msg)
-            return []
+            return self._release() if self.t0 is not None else []
         if self.t0 is None:
             self.t0 = t
         if not self._check_clock(topic, msg):
             return []  # live: skipped
-        if not live_static:
-            self._check_gap(topic, msg)
-            self.clock = max(self.clock, t)
+        self._check_gap(topic, msg)
+        self.clock = max(self.clock, t)
         with self._at(msg, topic):
             if topic in self.poses.topics:
                 self.poses.add(topic, msg)
@@ -196,7 +198,9 @@ class LiveSync:
                 elif role == "uss":
                     self.buffers[(s, role)].add(t, m.decode_uss(msg.msg, msg.msgtype, where).range_m)
                 elif role == "tof":
-                    self.buffers[(s, role)].add(t, m.decode_tof(msg.msg, where).grid_m())
+                    reading = m.decode_tof(msg.msg, where)
+                    self.tof_units.add(reading, where)
+                    self.buffers[(s, role)].add(t, reading.grid_m())
                 else:  # depth: decoded only if the frame is made and wants it
                     self.buffers[(s, role)].add(t, msg)
         if self.silent:

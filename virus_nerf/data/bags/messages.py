@@ -117,10 +117,13 @@ class Where:
 
 
 def stamp_s(msg) -> float:
-    """Header stamp in seconds (0.0 when the message has no header or an unset stamp)."""
+    """Header stamp in seconds (0.0 when the message has no header or an unset stamp). A
+    TFMessage, which has no header, is stamped by its newest transform: the robot's clock, as every
+    other topic (its receive time may be another clock: a bag of sim time, a replayed bag)."""
     header = getattr(msg, "header", None)
     if header is None:
-        return 0.0
+        transforms = getattr(msg, "transforms", None)
+        return max((stamp_s(tr) for tr in transforms), default=0.0) if transforms is not None else 0.0
     return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
 
 
@@ -346,6 +349,30 @@ def decode_tof(msg, where: Where) -> TofReading:
     if stds.size != irs.IRS_ZONE_COUNT:
         stds = np.full(irs.IRS_ZONE_COUNT, 65535.0)
     return TofReading(meas, stds)
+
+
+class TofUnitCheck:
+    """The metres check over each ToF topic's messages so far, as the TOF file's check takes the
+    whole file: one message of a room seen from its middle holds 0-11 targets (a simulated office),
+    too few for `decode_tof`'s check alone. A topic is millimetres from its first target reading
+    of 10 mm up; it is refused (this message and every later one) once TOF_UNIT_MIN_TARGETS target
+    readings came, all below 10 mm."""
+
+    def __init__(self) -> None:
+        self._seen: dict[str, tuple[int, float]] = {}  # topic -> (target readings, the largest) mm
+
+    def add(self, reading: TofReading, where: Where) -> None:
+        count, largest = self._seen.get(where.topic, (0, 0.0))
+        if largest >= 10.0:
+            return
+        mm = reading.meas_mm
+        targets = mm[np.isfinite(mm) & (mm > 0)]
+        if targets.size:
+            count, largest = count + int(targets.size), max(largest, float(targets.max()))
+            self._seen[where.topic] = (count, largest)
+        if count >= TOF_UNIT_MIN_TARGETS and largest < 10.0:
+            raise where.error(f"every reading of the topic up to here is below 10 mm ({count} readings, the largest "
+                              f"{largest:g}); expected millimetres (the topic holds metres?)", field="meas")
 
 
 # ---------------------------------------------------------------------------------- LiDAR

@@ -59,6 +59,7 @@ class ImportRun:
         self.notes: list[str] = list(cfg.notes)  # e.g. that the topics file named no stacks
         self.stamps: dict[Key, list[float]] = defaultdict(list)
         self.small: dict[Key, list] = defaultdict(list)  # uss: UssReading; tof: TofReading
+        self.tof_units = m.TofUnitCheck()  # a ToF topic in metres, over its messages
         self.camera_info: dict[int, Intrinsics] = {}
         self.transforms: list[Transform] = []
         self.odometry: list[tuple[float, np.ndarray]] = []  # (time s, (4, 4) robot pose) of --poses odometry
@@ -71,6 +72,7 @@ class ImportRun:
         for sub in ("measurements", "poses", "lidars/filtered", "maps", "split"):
             (self.room_dir / sub).mkdir(parents=True)
         self._first_pass()
+        self._pose_origin = f" of --poses {poses}"  # named when no pose meets a colour frame
         track, pose_settings = self._poses(poses, csv_poses, tf_parent, tf_child, kiss)
         matches = {s: self._match(s, track) for s in self.cfg.stacks}
         intrinsics = {s: self.camera_info.get(s) or self.plan.intrinsics[s] for s in self.cfg.stacks}
@@ -105,7 +107,9 @@ class ImportRun:
                 if role == "uss":
                     self.small[(stack, role)].append(m.decode_uss(msg.msg, msg.msgtype, where))
                 elif role == "tof":
-                    self.small[(stack, role)].append(m.decode_tof(msg.msg, where))
+                    reading = m.decode_tof(msg.msg, where)
+                    self.tof_units.add(reading, where)
+                    self.small[(stack, role)].append(reading)
                 elif role == "camera_info" and stack not in self.camera_info:
                     self.camera_info[stack] = self._camera_info(msg, where)
                 elif role == "lidar":
@@ -189,13 +193,13 @@ class ImportRun:
         _, pose_ok = track.at(color, sync.pose_tolerance_s)
         match = match_stack(s, color, streams, pose_ok, sync.camera_rate_hz)
         if len(match.times_s) == 0:
-            self._unsynchronised(s, color, streams, pose_ok)
+            self._unsynchronised(s, color, streams, pose_ok, track)
         self._report((s, "color"), color, len(match.times_s))
         for role, (times, _) in streams.items():
             self._report((s, role), times, len(np.unique(match.partner[role])))
         return match
 
-    def _unsynchronised(self, s: int, color: np.ndarray, streams: dict, pose_ok: np.ndarray) -> None:
+    def _unsynchronised(self, s: int, color: np.ndarray, streams: dict, pose_ok: np.ndarray, track: PoseTrack) -> None:
         """Name the stream that no colour frame could be matched with."""
         ctopic = self.plan.roles[(s, "color")]
         span = f"{color.min():.3f}..{color.max():.3f} s" if len(color) else "no frames"
@@ -206,8 +210,11 @@ class ImportRun:
                                       f"{times.min():.3f}..{times.max():.3f} s, colour {span}); check the clocks or "
                                       f"raise sync.{role}_tolerance_s in the topics file")
         if not pose_ok.any():
+            t = track.times_s
+            poses = f"poses {t.min():.3f}..{t.max():.3f} s" if len(t) else "no poses"
             raise DataFormatError(self.reader.path, f"cannot synchronise {ctopic} with the poses: no pose within "
-                                  f"sync.pose_tolerance_s of any colour frame (colour {span})")
+                                  f"sync.pose_tolerance_s of any colour frame ({poses}{self._pose_origin}, colour "
+                                  f"{span}); check the clocks")
         raise DataFormatError(self.reader.path, f"stack {s}: no colour frame of {ctopic} has every partner within "
                               "its tolerance (sync section of the topics file)")
 

@@ -18,6 +18,8 @@ import numpy as np
 from virus_nerf.errors import ConfigError
 from virus_nerf.sensors.geometry import QUATERNION_NORM_TOLERANCE, pose_matrix
 
+MAX_MOUNT_M = 5.0  # a camera farther from its LiDAR is a unit mistake (a translation in millimetres)
+
 
 @dataclass(frozen=True)
 class StackTopics:
@@ -193,6 +195,10 @@ class _Reader:
                               file=self.path, key=f"{key}.camera_in_lidar")
         self.keys(ext, f"{key}.camera_in_lidar", {"translation", "rotation_xyzw"})
         t = self.vector(ext.get("translation"), 3, f"{key}.camera_in_lidar.translation")
+        if (reach := float(np.linalg.norm(t))) > MAX_MOUNT_M:
+            raise ConfigError(f"{list(t)} puts the camera {reach:g} m from the LiDAR; expected metres (a robot's "
+                              f"camera within {MAX_MOUNT_M:g} m of its LiDAR: millimetres?)", file=self.path,
+                              key=f"{key}.camera_in_lidar.translation")
         q = self.vector(ext.get("rotation_xyzw"), 4, f"{key}.camera_in_lidar.rotation_xyzw")
         norm = float(np.linalg.norm(q))
         if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
