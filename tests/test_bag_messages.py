@@ -92,6 +92,15 @@ def test_uss_range_and_custom_fields():
     assert no_echo.echo_us == 50000.0 and np.isnan(no_echo.range_m)
     with pytest.raises(DataFormatError, match="no field 'meas'"):
         m.decode_uss(NS(distance=1), m.USS_TYPE, WHERE)
+    # centimetres (a user's review: every reading became "no echo", silently): 75 cm of 800 cm
+    with pytest.raises(m.MessageError) as err:
+        m.decode_uss(NS(range=75.0, min_range=2.0, max_range=800.0), m.RANGE, WHERE)
+    assert err.value.field == "max_range" and str(err.value).endswith(
+        ": 800 m is beyond any ultrasonic range (> 100 m); expected metres (centimetres?)")
+    with pytest.raises(m.MessageError) as err:
+        m.decode_uss(NS(range=150.0, max_range=0.0), m.RANGE, WHERE)  # no max_range given
+    assert err.value.field == "range" and "150 m is beyond any ultrasonic reading (> 100 m)" in str(err.value)
+    assert np.isnan(m.decode_uss(NS(range=75.0, max_range=90.0), m.RANGE, WHERE).range_m)  # within 100 m: beyond 8 m
     assert m.normalise_type("sensors/uss") == m.USS_TYPE and m.normalise_type("sensors/TOF") == m.TOF_TYPE
 
 

@@ -269,6 +269,56 @@ def test_mini_bag_imports_with_a_topics_file(tmp_path):
     assert np.isnan(rec.stacks[1].irs_range).all() and np.isnan(rec.stacks[1].depth(0)).all()
 
 
+def test_intrinsics_csv_without_a_size_takes_the_images(tmp_path):
+    """usage.md: cam_id,fx,fy,cx,cy[,width,height]. Without the size the camera's images give it
+    (8x6 here), for import-bag and map-bag's stream alike; a principal point outside those images
+    is one line naming the CSV. Before, 640x480 (the ETHZ cameras') was taken and every image
+    refused: "image is 8x6; the camera info says 640x480" (a user's review)."""
+    bag = _mini_bag(tmp_path / "b", 2)
+    topics = _topics_file(tmp_path / "t.toml", uss="/USS1")
+    intr = tmp_path / "intr.csv"
+    intr.write_text("cam_id,fx,fy,cx,cy\nCAM1,5,5,4,3\n")
+    code, _, err = run_cli(["import-bag", bag, "--out", tmp_path / "out", "--topics", topics, "--room", "lab"])
+    assert code == 0, err
+    got = load_recording(tmp_path / "out", "lab").stacks[1]
+    assert (got.intrinsics.width, got.intrinsics.height, got.intrinsics.fx, got.intrinsics.cx) == (8, 6, 5.0, 4.0)
+
+    from virus_nerf.data.bags.importer import plan_topics
+    from virus_nerf.data.bags.live import LiveSync
+    from virus_nerf.data.bags.poses import make_pose_source
+    from virus_nerf.data.bags.reader import BagReader
+    from virus_nerf.data.bags.topics import read_topics
+
+    cfg = read_topics(topics)
+    with BagReader(bag) as reader:
+        plan = plan_topics(reader, cfg, "lidar-odometry")
+        assert (plan.intrinsics[1].width, plan.intrinsics[1].height) == (0, 0)
+        sync = LiveSync(cfg, make_pose_source("lidar-odometry", cfg, bag, present=lambda t: True), bag,
+                        intrinsics=plan.intrinsics)
+        for topic, msg in reader.iter_topics(sync.topics()):
+            sync.push(topic, msg)
+        sync.finish()
+    assert (sync.intrinsics[1].width, sync.intrinsics[1].height) == (8, 6)
+    intr.write_text("cam_id,fx,fy,cx,cy\nCAM1,5,5,40,3\n")
+    _fails([bag, "--out", tmp_path / "out2", "--topics", topics], "intr.csv", "field 'cx'",
+           "principal point 40 px lies outside the image (0 to 8 px) (the size of the camera's images, 8x6: the file "
+           "gives none)")
+
+
+def test_a_bag_without_stack_1_imports_and_says_it_cannot_be_scored(tmp_path):
+    """The one camera numbered 2 in the topics file: it imports and maps, and the report says that
+    scoring needs stack 1 (train then refuses without --gt none: the test points are stack 1's)."""
+    bag = _mini_bag(tmp_path / "b", 2)
+    topics = _topics_file(tmp_path / "t.toml", uss="/USS1")
+    topics.write_text(topics.read_text().replace("[stacks.1]", "[stacks.2]"))
+    (tmp_path / "intr.csv").write_text("cam_id,fx,fy,cx,cy,width,height\nCAM2,5,5,4,3,8,6\n")
+    code, out, err = run_cli(["import-bag", bag, "--out", tmp_path / "out", "--topics", topics, "--room", "lab"])
+    assert code == 0, err
+    assert ("note: no stack 1: the scores' test points stand at stack 1's frames, so train can only map this "
+            "recording (--gt none); to score it, number the main camera [stacks.1] in the topics file") in out, out
+    assert list(load_recording(tmp_path / "out", "lab").stacks) == [2]
+
+
 def test_a_ros2_bag_without_type_definitions_reads_with_the_registered_custom_types(tmp_path):
     """Older rosbag2 recordings store no message definitions; the standard types and the ETHZ
     custom USS/TOF types are then taken from the importer's own typestore."""

@@ -177,6 +177,50 @@ def test_a_poses_file_on_another_clock_is_named_with_both_time_ranges(bags, tmp_
     assert not (tmp_path / "rec").exists()
 
 
+def test_a_topic_on_another_clock_is_named_so_not_as_stopped(bags, tmp_path):
+    """/TOF1 stamped in kiloseconds (a driver's clock): its messages keep coming, stamped 1.7e6 s
+    where the others are at 1.7e9. The stream names the clock; before, "topic /TOF1 stopped: its
+    last message is at -1698300000.000 s" (a user's review). import-bag already said "check the clocks"."""
+    import dataclasses
+
+    def edit(topic, t_ns, msg, msgtype):
+        if topic == "/TOF1":
+            stamp = msg.header.stamp
+            msg = dataclasses.replace(msg, header=dataclasses.replace(
+                msg.header, stamp=dataclasses.replace(stamp, sec=stamp.sec // 1000)))
+        return [(topic, msgtype, t_ns, msg)]
+
+    bag = _rewrite(bags["ros1"], tmp_path / "kilo.bag", edit)
+    with pytest.raises(StreamError) as err:
+        _stream(bag, "csv", poses_file=bags["csv"])
+    got = str(err.value)
+    assert "topic /TOF1 is stamped on another clock: its newest message at -1698300000.000 s, the stream at " in got, got
+    assert got.endswith("s (seconds since the bag's first message); check the clocks"), got
+
+
+def test_poses_with_the_quaternion_in_w_x_y_z_order_are_noted(bags, tmp_path):
+    """The LiDAR poses written w,x,y,z in the qx,qy,qz,qw columns: each reads as a half turn, the
+    robot upside down. import-bag says so in a note (a LiDAR may hang upside down, so it is no
+    refusal); the right order gives no such note."""
+    from virus_nerf.data.bags.importer import import_bag
+    from virus_nerf.data.ethz import read_poses
+    from virus_nerf.sensors.geometry import matrix_to_quat
+
+    times, poses = read_poses(bags["csv"])
+    q = np.stack([matrix_to_quat(p[:3, :3]) for p in poses])  # (N, 4) x, y, z, w
+    assert (poses[:, 2, 2] > 0.9).all()  # the simulated LiDAR stands upright
+    swapped = tmp_path / "wxyz.csv"
+    rows = [",".join(repr(float(v)) for v in (t, *p[:3, 3], w, x, y, z))
+            for t, p, (x, y, z, w) in zip(times, poses, q, strict=True)]
+    swapped.write_text("time,x,y,z,qx,qy,qz,qw\n" + "\n".join(rows) + "\n")
+    note = "points below the horizon: an upside-down LiDAR, or quaternions in w,x,y,z order?"
+    report = import_bag(bags["ros1"], tmp_path / "wrong", poses="csv", poses_file=swapped)
+    assert any(note in n and n.startswith("the up axis of 100% of the poses (--poses csv)") for n in report.notes), \
+        report.notes
+    report = import_bag(bags["ros1"], tmp_path / "right", poses="csv", poses_file=bags["csv"])
+    assert not any(note in n for n in report.notes)
+
+
 def test_kiss_icp_in_its_worker_process_gives_the_in_process_poses(bags):
     """The registration moved to a worker process (it holds the GIL): the same frames, the same
     poses to the last bit, and the worker ends with the stream."""

@@ -8,6 +8,7 @@ Nothing under DATA/ is ever written unless `write_split=True` is asked for.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -176,11 +177,13 @@ def common_image_size(intrinsics: dict[int, Intrinsics], *, source: Path | None 
     raise UsageError(problem)
 
 
-def read_intrinsics(path: Path) -> dict[int, Intrinsics]:
+def read_intrinsics(path: Path, default_size: tuple[int, int] | None = (640, 480)) -> dict[int, Intrinsics]:
     """camera_intrinsics.CSV (cam_id,fx,fy,cx,cy[,width,height]) -> {stack id: Intrinsics}.
 
     The real recordings have no size columns and are 640x480; simulated ones at another
-    resolution add width,height.
+    resolution add width,height. default_size None: without the columns the size is the images'
+    (a bag's topics file), given as 0 x 0 and checked with the principal point once known
+    (`sized_by_image`).
     """
     if not path.is_file():
         raise DataFormatError(path, "camera intrinsics file not found (expected cam_id,fx,fy,cx,cy)")
@@ -212,12 +215,25 @@ def read_intrinsics(path: Path) -> dict[int, Intrinsics]:
                 raise DataFormatError(path, problem, row=row_no, field=name)
             values.append(v)
         fx, fy, cx, cy = values[:4]
-        size = (int(values[4]), int(values[5])) if len(values) == 6 else (640, 480)
-        bad = intrinsics_problem(fx, fy, cx, cy, *size)
+        size = (int(values[4]), int(values[5])) if len(values) == 6 else (default_size or (0, 0))
+        bad = intrinsics_problem(fx, fy, cx, cy, *size) if size != (0, 0) else None
         if bad:
             raise DataFormatError(path, bad[1], row=row_no, field=bad[0])
         out[int(m.group(1))] = Intrinsics(fx, fy, cx, cy, width=size[0], height=size[1])
     return out
+
+
+def sized_by_image(intr: Intrinsics, rgb_shape: tuple[int, ...], source: str | Path) -> Intrinsics:
+    """Intrinsics of unknown size (read_intrinsics with default_size None) given the size of the
+    camera's first image (H, W, ...), and checked with it; known ones as they are."""
+    if (intr.width, intr.height) != (0, 0):
+        return intr
+    sized = dataclasses.replace(intr, width=int(rgb_shape[1]), height=int(rgb_shape[0]))
+    bad = intrinsics_problem(sized.fx, sized.fy, sized.cx, sized.cy, sized.width, sized.height)
+    if bad:
+        raise DataFormatError(source, f"{bad[1]} (the size of the camera's images, {sized.width}x{sized.height}: the "
+                                      "file gives none)", field=bad[0])
+    return sized
 
 
 def read_poses(path: Path) -> tuple[np.ndarray, np.ndarray]:

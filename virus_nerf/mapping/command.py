@@ -287,7 +287,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
                    first_snapshot: float = 1.0, max_lag: float = 2.0, max_silence: float = 2.0) -> None:
     """The streaming path (mapping/stream.py): topics checked against the bag before OUT is made;
     OUT removed again when the stream stops before its first frame (nothing was mapped)."""
-    from virus_nerf.data.bags.importer import _plan, require_ros_extra
+    from virus_nerf.data.bags.importer import plan_topics, require_ros_extra
     from virus_nerf.data.bags.live import LiveSync
     from virus_nerf.data.bags.poses import make_pose_source
     from virus_nerf.data.bags.reader import BagReader
@@ -302,7 +302,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
     tcfg = read_topics(topics) if topics else default_topics()
     cfg = cfg if cfg is not None else TrainConfig()
     with BagReader(bag) as reader, ExitStack() as owned:
-        plan = _plan(reader, tcfg, "csv" if poses == "odometry" else poses)
+        plan = plan_topics(reader, tcfg, "csv" if poses == "odometry" else poses)
         if poses == "odometry":
             reader.require(odometry_topic, "odometry", "--odometry-topic")
         child = pose_args["tf_child"]

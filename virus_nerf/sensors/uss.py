@@ -14,6 +14,9 @@ USS_NO_ECHO_RAW = 50000.0  # raw echo time (us) at or above which there was no e
 USS_RAW_PER_M = 5000.0  # raw microseconds per metre of range (docs/method.md 4)
 USS_MIN_RANGE_M = 0.02  # the URM37 V5.0's nearest range (datasheet: 2-800 cm)
 USS_MAX_RANGE_M = 8.0  # the URM37 V5.0's range (datasheet, docs/uss-range.md); bounds the box when there is no map
+# A sensor_msgs/Range of an ultrasonic sensor beyond this (a reading or its max_range) is a unit
+# mistake (centimetres: 800 cm read as 800 m), refused where a message enters, naming the field
+USS_MAX_PLAUSIBLE_M = 100.0
 
 
 def range_from_raw(raw: np.ndarray) -> np.ndarray:

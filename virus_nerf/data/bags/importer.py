@@ -70,7 +70,7 @@ def import_bag(bag: str | Path, out: str | Path, topics: str | Path | TopicsConf
     if not re.fullmatch(r"[A-Za-z0-9_-]+", room):
         raise UsageError(f"--room {room!r}: expected letters, digits, '_' or '-'")
     with BagReader(bag) as reader:
-        plan = _plan(reader, cfg, poses, odometry_topic)
+        plan = plan_topics(reader, cfg, poses, odometry_topic)
         with new_output_dir(out) as root:
             report = ImportRun(reader, cfg, plan, root, room).run(poses, csv_poses, tf_parent, tf_child, kiss)
             report.data_dir = str(out)
@@ -78,7 +78,7 @@ def import_bag(bag: str | Path, out: str | Path, topics: str | Path | TopicsConf
     return report
 
 
-def _plan(reader: BagReader, cfg: TopicsConfig, poses: str, odometry_topic: str = "/odom") -> Plan:
+def plan_topics(reader: BagReader, cfg: TopicsConfig, poses: str, odometry_topic: str = "/odom") -> Plan:
     """Check every named topic against the bag before anything is written."""
     roles: dict[tuple[int | None, str], str] = {}
     where = f"topics file {cfg.source}" if cfg.source else "default ETHZ topics"
@@ -114,7 +114,7 @@ def _plan(reader: BagReader, cfg: TopicsConfig, poses: str, odometry_topic: str 
                                   "name one or give intrinsics_csv (cam_id,fx,fy,cx,cy[,width,height])")
         from virus_nerf.data.ethz import read_intrinsics
 
-        table = read_intrinsics(cfg.intrinsics_csv)
+        table = read_intrinsics(cfg.intrinsics_csv, default_size=None)  # no size columns: the images' size
         for s in need_csv:
             if s not in table:
                 raise DataFormatError(cfg.intrinsics_csv, f"no row for CAM{s}", field="cam_id")

@@ -320,9 +320,15 @@ class LiveSync:
         for topic in self.watched:
             last = self.last_stamp.get(topic)
             if self.clock - (self.t0 if last is None else last) > limit and topic not in self.silent:
-                what = "sent nothing" if last is None else f"stopped: its last message is at {self.rel(last):.3f} s"
-                self._silent(topic, -math.inf if last is None else last, StreamError(self.bag, f"topic {topic} {what} and none came for {limit:g} s "
-                                                f"(bag time {self.rel(self.clock):.3f} s)", self.rel(self.clock)))
+                if last is not None and last < self.t0 - limit:  # its messages come, stamped long before the stream
+                    problem = (f"topic {topic} is stamped on another clock: its newest message at {self.rel(last):.3f} s, "
+                               f"the stream at {self.rel(self.clock):.3f} s (seconds since the bag's first message); "
+                               "check the clocks")
+                else:
+                    what = "sent nothing" if last is None else f"stopped: its last message is at {self.rel(last):.3f} s"
+                    problem = f"topic {topic} {what} and none came for {limit:g} s (bag time {self.rel(self.clock):.3f} s)"
+                self._silent(topic, -math.inf if last is None else last,
+                             StreamError(self.bag, problem, self.rel(self.clock)))
         for s, first in self.first_color.items():  # a camera's images came, its intrinsics did not
             topic = self.cfg.stacks[s].camera_info
             if s not in self.intrinsics and topic and self.clock - first > limit and topic not in self.silent:
@@ -424,8 +430,14 @@ class LiveSync:
         intr = self.intrinsics[s]
         rgb = depth = None
         with self._at(msg, self.cfg.stacks[s].color):
-            rgb = m.decode_color(msg.msg, msg.msgtype, m.Where(self.bag, self.cfg.stacks[s].color, msg.index),
-                                 (intr.width, intr.height))
+            where = m.Where(self.bag, self.cfg.stacks[s].color, msg.index)
+            if (intr.width, intr.height) == (0, 0):  # the topics file's CSV gives no size: the images'
+                from virus_nerf.data.ethz import sized_by_image
+
+                rgb = m.decode_color(msg.msg, msg.msgtype, where)
+                intr = self.intrinsics[s] = sized_by_image(intr, rgb.shape, self.cfg.intrinsics_csv or self.bag)
+            else:
+                rgb = m.decode_color(msg.msg, msg.msgtype, where, (intr.width, intr.height))
         if self.with_depth:
             depth = self._depth(s, partner.get("depth"), intr)
         if rgb is None or (self.with_depth and depth is None):  # live: a malformed image (said)

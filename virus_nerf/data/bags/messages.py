@@ -304,10 +304,15 @@ class UssReading:
 def decode_uss(msg, msgtype: str, where: Where) -> UssReading:
     """sensors/msg/USS (echo time in us, as is) or sensor_msgs/Range (m * 5000). REP 117: -Inf is
     something nearer than min_range, an echo there (the datasheet's 2 cm without a min_range);
-    +Inf (nothing within max_range), NaN, <= 0 or beyond max_range is no echo."""
+    +Inf (nothing within max_range), NaN, <= 0 or beyond max_range is no echo. A finite range or
+    max_range beyond uss.USS_MAX_PLAUSIBLE_M is refused (centimetres)."""
     if msgtype == USS_TYPE:
         return UssReading(float(_field(msg, "meas", where)))
     r = float(msg.range)
+    for name, value in (("max_range", float(msg.max_range)), ("range", r)):
+        if np.isfinite(value) and value > uss.USS_MAX_PLAUSIBLE_M:
+            raise where.error(f"{value:g} m is beyond any ultrasonic {'reading' if name == 'range' else 'range'} "
+                              f"(> {uss.USS_MAX_PLAUSIBLE_M:g} m); expected metres (centimetres?)", field=name)
     if r == -np.inf:
         near = float(msg.min_range)
         return UssReading((near if np.isfinite(near) and near > 0 else uss.USS_MIN_RANGE_M) * uss.USS_RAW_PER_M)

@@ -37,6 +37,7 @@ from virus_nerf.data.split import DEFAULT_RATIOS, make_split, write_split
 from virus_nerf.data.voxel_map import VoxelMap
 from virus_nerf.errors import DataFormatError, UsageError
 from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.sensors.rig import MAIN_STACK
 
 Key = tuple[int | None, str]  # (stack, role); stack None for the LiDAR and tf topics
 
@@ -46,7 +47,16 @@ class Plan:
     """Topics checked against the bag before anything is written."""
 
     roles: dict[Key, str]  # (stack, role) -> topic
-    intrinsics: dict[int, Intrinsics]  # from the topics file's CSV, for stacks without camera_info
+    intrinsics: dict[int, Intrinsics]  # from the topics file's CSV, for stacks without camera_info (0 x 0: the images')
+
+
+def upside_down_share(track: PoseTrack) -> float:
+    """The share of the poses whose z axis points below the horizon (a ground robot's LiDAR or base
+    stands upright: what quaternions read in the wrong order turn over)."""
+    return float(np.mean(track.poses[:, 2, 2] < 0.0)) if len(track.poses) else 0.0
+
+
+_SIZED = Intrinsics(1.0, 1.0, 0.0, 0.0)  # a stand-in of known size (stacks with a camera_info)
 
 
 class ImportRun:
@@ -74,7 +84,14 @@ class ImportRun:
         self._first_pass()
         self._pose_origin = f" of --poses {poses}"  # named when no pose meets a colour frame
         track, pose_settings = self._poses(poses, csv_poses, tf_parent, tf_child, kiss)
+        if (down := upside_down_share(track)) > 0.5:
+            self.notes.append(f"the up axis of {down:.0%} of the poses (--poses {poses}) points below the horizon: an "
+                              "upside-down LiDAR, or quaternions in w,x,y,z order? They are read as qx,qy,qz,qw")
         matches = {s: self._match(s, track) for s in self.cfg.stacks}
+        if MAIN_STACK not in matches:
+            self.notes.append(f"no stack {MAIN_STACK}: the scores' test points stand at stack {MAIN_STACK}'s frames, so "
+                              "train can only map this recording (--gt none); to score it, number the main camera "
+                              f"[stacks.{MAIN_STACK}] in the topics file")
         intrinsics = {s: self.camera_info.get(s) or self.plan.intrinsics[s] for s in self.cfg.stacks}
         write_frames(self, matches, intrinsics)
         for mt in matches.values():
@@ -112,6 +129,8 @@ class ImportRun:
                     self.small[(stack, role)].append(reading)
                 elif role == "camera_info" and stack not in self.camera_info:
                     self.camera_info[stack] = self._camera_info(msg, where)
+                elif role == "color" and self.plan.intrinsics.get(stack, _SIZED).width == 0:
+                    self.plan.intrinsics[stack] = self._sized(stack, msg, where)
                 elif role == "lidar":
                     self._lidar_scan(msg, where, seen_files)
                 elif role.startswith("tf"):
@@ -148,6 +167,13 @@ class ImportRun:
         write_pcd_xyz(path, pts)
         self.lidar_times.append(msg.time_s)
         self.lidar_paths.append(path)
+
+    def _sized(self, stack: int, msg, where: m.Where) -> Intrinsics:
+        """The topics file's intrinsics without a size take the camera's first image's."""
+        from virus_nerf.data.ethz import sized_by_image
+
+        rgb = m.decode_color(msg.msg, msg.msgtype, where)
+        return sized_by_image(self.plan.intrinsics[stack], rgb.shape, self.cfg.intrinsics_csv or self.reader.path)
 
     def _report(self, key: Key, times: np.ndarray, used: int) -> None:
         topic = self.plan.roles[key]
