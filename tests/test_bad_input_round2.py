@@ -57,3 +57,12 @@ def test_study_storages_that_cannot_be_opened_are_one_line(sample_dir, tmp_path)
         code, _, err = run_cli(["tune", "--data", sample_dir, "--room", "office", "--study", "s1", "--trials", "0",
                                 "--storage", storage, "--out", tmp_path / "out"])
         assert code == 2 and len(err.strip().splitlines()) == 1 and fragment in err, err
+        assert not (tmp_path / "out").exists()  # the --out this call made (study.json) goes with it
+    (tmp_path / "note.txt").write_text("x")
+    for flag, path in (("--out", tmp_path / "note.txt" / "sub"), ("--export-config", tmp_path / "note.txt" / "b.json")):
+        args = ["tune", "--data", sample_dir, "--room", "office", "--study", "s2", "--trials", "0",
+                "--out", tmp_path / "out2", flag, path]
+        code, _, err = run_cli(args[:-4] + args[-2:] if flag == "--out" else args)
+        assert code == 2 and err == f"virus-nerf: error: {flag} {path}: cannot be made: {tmp_path / 'note.txt'} is a " \
+            "file, not a folder\n", err
+        assert not (tmp_path / "out2").exists()

@@ -56,7 +56,8 @@ def train_args(tmp_path: Path, *extra: str) -> list[str]:
         (("--batch-size", "abc"), "--batch-size 'abc': expected an integer"),
         (("--max-time", "fast"), "--max-time 'fast': expected a number"),
         (("--grid", "voxel"), "invalid choice 'voxel' for argument '--grid'"),
-        (("--gt", "lidar"), "--gt 'lidar': unknown protocol 'lidar'; expected one or more of map,exact,paper"),
+        (("--gt", "lidar"), "--gt 'lidar': unknown protocol 'lidar'; expected one or more of map,exact,paper, "
+                            "comma-separated (e.g. map,exact), or none"),
         (("--gt", "map,map"), "--gt 'map,map': a protocol named twice"),
         (("--bogus", "1"), "Unrecognized options: --bogus"),
     ],
@@ -108,7 +109,8 @@ def test_train_argument_errors(tmp_path, extra, fragment):
         (["train", "--out", "{tmp}/run"], ["--data is required"]),
         (["train", "--out", "{tmp}/run", "--resume"], ["--resume {tmp}/run: no such run folder"]),
         (["train", "--data", "{tmp}", "--room", "../x", "--out", "{tmp}/run"], ["--room '../x': expected the name of a room"]),
-        (["train", "--data", "{tmp}/nope", "--room", "office", "--out", "{tmp}/run"], ["{tmp}/nope/office: room folder not found"]),
+        (["train", "--data", "{tmp}/nope", "--room", "office", "--out", "{tmp}/run"],
+         ["{tmp}/nope: no such folder; expected the dataset folder that holds the room folders (--data)"]),
         (["trian"], ["Unrecognized options: trian", "Available subcommands"]),
         ([], ["missing command"]),
         (["train", "--data", "x"], ["virus-nerf train: missing required argument(s) --out PATH"]),
@@ -121,6 +123,27 @@ def test_command_errors(tmp_path, argv, fragments):
     code, _, err = run_cli(argv)
     assert_one_line_error(code, err, *[f.format(tmp=tmp_path) for f in fragments])
     assert sorted(tmp_path.iterdir()) == []  # nothing was written
+
+
+@pytest.mark.parametrize("command", ["demo", "sensors", "ablation", "online"])
+def test_a_command_that_scores_offers_no_gt_none(tmp_path, command):
+    """A user's review: the error offered `none`, which the next try was refused (nothing to score)."""
+    data = ["--data", tmp_path / "d", "--room", "office"] if command == "sensors" else []
+    code, _, err = run_cli([command, *data, "--out", tmp_path / "o", "--gt", "mesh"])
+    assert_one_line_error(code, err)
+    assert err.endswith("--gt 'mesh': unknown protocol 'mesh'; expected one or more of map,exact,paper, "
+                        "comma-separated (e.g. map,exact)\n"), err
+
+
+@pytest.mark.parametrize("argv", [["demo"], ["ablation", "--quick"], ["online", "--quick"]])
+def test_an_out_under_a_file_is_one_line_before_any_work(tmp_path, argv):
+    """A user's review: `File exists` or `Not a directory` without the flag (evaluate's after 10 s
+    of loading), as train, simulate, export and map-bag already said."""
+    (tmp_path / "notes.txt").write_text("a file")
+    out = tmp_path / "notes.txt" / "sub"
+    code, _, err = run_cli([*argv, "--out", out])
+    assert_one_line_error(code, err, f"--out {out}: cannot be made: {tmp_path / 'notes.txt'} is a file, not a folder")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
 
 
 def test_existing_output_refused_before_any_work(tmp_path):
@@ -405,7 +428,7 @@ def test_fuzzed_config_files_exit_2_with_one_line(tmp_path, doc):
     path.write_text(json.dumps(doc))
     code, _, err = run_cli(train_args(tmp_path, "--config", str(path)))
     line = assert_one_line_error(code, err)
-    assert str(path) in line or "room folder not found" in line
+    assert str(path) in line or "no-data: no such folder; expected the dataset folder" in line
     assert not (tmp_path / "run").exists()
 
 

@@ -123,6 +123,8 @@ def test_a_port_that_is_no_scheduler_is_one_line_before_anything_is_written(tmp_
     from virus_nerf.experiments import executors
 
     monkeypatch.setattr(executors, "CONNECT_TIMEOUT_S", 2.0)
+    (tmp_path / "maps").mkdir()
+    (tmp_path / "maps" / "map.pcd").write_text("not read: refused before")  # tune's room has a LiDAR map
     listener = socket.socket()
     listener.bind(("127.0.0.1", 0))
     listener.listen(8)  # accepts (the kernel does), never answers

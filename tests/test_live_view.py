@@ -176,9 +176,20 @@ def test_refusals(tmp_path, monkeypatch):
         RerunSinks(rerun_connect="http://127.0.0.1:9876/proxy").check()
     with pytest.raises(UsageError, match=r"LiveView sinks \['http://x/proxy'\]: invalid endpoint"):
         LiveView(connect="http://x/proxy")
+    # a viewer that cannot start (none beside this Python, none on PATH: a user's review gave a traceback)
+    import virus_nerf.mapping.live_view as live_view
+
+    monkeypatch.setattr(live_view, "_viewer_executable", lambda: str(tmp_path / "no-viewer"))
+    with pytest.raises(UsageError) as err:
+        LiveView(spawn=True, port=9)
+    assert str(err.value).startswith("--rerun: cannot start the Rerun viewer (") and "--rerun-save FILE.rrd" in str(err.value)
     monkeypatch.setitem(sys.modules, "rerun", None)  # as if the live extra were not installed
     with pytest.raises(UsageError, match=re.escape("pip install -e '.[live]' in the virus-nerf repository")):
         LiveView(save=tmp_path / "y.rrd")
+    for flags, named in (({"rerun_save": tmp_path / "z.rrd"}, "--rerun-save"), ({"rerun": True}, "--rerun"),
+                         ({"rerun_connect": "rerun+http://127.0.0.1:9/proxy"}, "--rerun-connect")):
+        with pytest.raises(UsageError, match=f"^{named} needs the live extra: "):  # the flag given, not --rerun
+            RerunSinks(**flags).check()
 
 
 def test_a_viewer_that_is_not_there_is_a_warning_at_close_not_a_failure(tmp_path, capsys):

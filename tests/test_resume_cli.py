@@ -205,6 +205,10 @@ def test_evaluate_and_export_still_work(run_copy, tmp_path):
     assert (run_copy / "evaluation" / "metrics_plots" / "metrics_bars.png").is_file()
     code, _, err = run_cli(["evaluate", "--run", run_copy])
     one_line_error(code, err, "evaluation/metrics.json: output file already exists")
+    (tmp_path / "notes.txt").write_text("a file")  # refused before the run is loaded (about 10 s)
+    code, _, err = run_cli(["evaluate", "--run", run_copy, "--out", tmp_path / "notes.txt" / "m.json"])
+    one_line_error(code, err, f"--out {tmp_path / 'notes.txt' / 'm.json'}: cannot be made: {tmp_path / 'notes.txt'} "
+                              "is a file, not a folder")
     code, _, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "map", "--max-poses", "2", "--n-rays", "16"])
     assert code == 0, err
     assert (tmp_path / "map" / "map.pgm").read_bytes().startswith(b"P5")

@@ -176,6 +176,22 @@ def test_map_bag_stopped_by_a_signal_keeps_the_map_in_one_line(drive, tmp_path, 
     _none_survive(children, proc.pid)
 
 
+def test_map_bag_import_first_holds_its_folder_against_a_resume(drive, tmp_path):
+    """--import-first writes into OUT as the stream does: while it maps, `map-bag --resume --out OUT`
+    is refused naming its pid (a user's review: the resume wrote OUT/map, then the live run lost
+    its final map to "output folder already exists")."""
+    out = tmp_path / "out"
+    proc = _start([*_map_bag(drive, out), "--import-first"], tmp_path)
+    try:
+        _wait_for(lambda: len(_snapshots(out)) >= 1, proc)
+        code, _, stderr = run_cli(["map-bag", "--resume", "--out", out])
+        assert code == 2 and f"pid {proc.pid}" in stderr and "still being mapped" in stderr, stderr
+        assert not (out / "map").exists()
+    finally:
+        proc.kill()
+        proc.communicate(timeout=60)
+
+
 def test_map_bag_killed_then_resume_writes_the_final_map(drive, tmp_path):
     """SIGKILL after the second snapshot: whole snapshots and the mapper state of the last one; the
     worker dies with its parent; `map-bag --resume --out OUT` makes OUT/map/ from them (that

@@ -114,6 +114,9 @@ def test_plots_must_be_a_bool():
      "--shares.irs 0.7 + --shares.uss 0.7 + shares.stereo 0.1: expected a sum <= 1"),
     (("--max-time", "None"), "max_steps and --max-time are both None"),
     (("--virus-grid.init", "all"), "invalid choice 'all' for argument '--virus-grid.init'"),
+    # an online run lasts its drive: the budget would be ignored (a user's review: 20 s trained 4.8 s)
+    (("--online", "--max-time", "20"), "--max-time 20: an online run (--online) lasts its drive, the recording's "
+                                       "duration / --playback; drop --max-time (--max-steps still bounds it)"),
 ])
 def test_a_bad_flag_is_one_line_naming_it(tmp_path, extra, line):
     code, _, err = run_cli(["train", "--data", tmp_path / "no-data", "--room", "office", "--out", tmp_path / "run",

@@ -255,6 +255,8 @@ def test_study_on_a_tiny_room_resumes_from_its_journal_and_exports_the_best(tiny
     (("--trials", "1", "--max-steps", "0"), {}, "--max-steps 0: expected an integer >= 1"),
     (("--trials", "1", "--objective", "sum"), {}, "--objective"),
     (("--trials", "1"), {"room": "kitchen"}, "is not a room folder"),
+    # a user's review: a trial trained, then a KeyError traceback, and the study folder left
+    (("--trials", "1"), {}, "the recording has no LiDAR map (maps/map*.pcd), so no trial can be scored"),
 ])
 def test_tune_errors_are_one_line(tmp_path, extra, names, fragment):
     (tmp_path / "d" / "office").mkdir(parents=True)
@@ -337,7 +339,8 @@ def test_an_rdb_study_keeps_its_objective(tmp_path):
 
 
 def test_a_study_folder_holds_one_study(tmp_path):
-    (tmp_path / "d" / "office").mkdir(parents=True)
+    (tmp_path / "d" / "office" / "maps").mkdir(parents=True)
+    (tmp_path / "d" / "office" / "maps" / "map.pcd").write_text("not read: the folder is refused before")
     (tmp_path / "study").mkdir()
     (tmp_path / "study" / "study.json").write_text('{"study": "other"}')
     code, _, err = run_cli(_tune_args(tmp_path, tmp_path / "d", "--trials", 1))

@@ -387,6 +387,9 @@ def load_recording(
     """
     root = Path(data_dir)
     room_dir = root / room
+    if not root.is_dir():  # the dataset folder itself (--data), named as such, not as a missing room
+        raise DataFormatError(root, ("is a file" if root.exists() else "no such folder")
+                              + "; expected the dataset folder that holds the room folders (--data)")
     if not room_dir.is_dir():
         raise DataFormatError(room_dir, f"room folder not found under {root}")
     intrinsics = read_intrinsics(root / "camera_intrinsics.CSV")

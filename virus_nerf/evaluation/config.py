@@ -54,7 +54,7 @@ def parse_gt_flag(text: str, flag: str = "--gt", scores: bool = False) -> tuple[
     if unknown or len(set(names)) != len(names):
         what = f"unknown protocol {unknown[0]!r}" if unknown else "a protocol named twice"
         raise UsageError(f"{flag} {text!r}: {what}; expected one or more of {','.join(GT_PROTOCOLS)}, "
-                         "comma-separated (e.g. map,exact), or none")
+                         f"comma-separated (e.g. map,exact){'' if scores else ', or none'}")
     return names
 
 

@@ -49,7 +49,7 @@ def demo(
             per protocol in the report, the first one's in the plots and metrics.json's own.
         resume: Finish the stopped demo in --out (the other flags are its own: not needed).
     """
-    from virus_nerf.errors import OutputExistsError, require_int, require_number
+    from virus_nerf.errors import require_int, require_number
     from virus_nerf.evaluation.config import parse_gt_flag
     from virus_nerf.evaluation.metrics import RunMetrics
     from virus_nerf.experiments.report import metrics_markdown_by_gt, safety_markdown
@@ -59,6 +59,7 @@ def demo(
     from virus_nerf.utils.io import (
         copy_file_atomic,
         create_new_dir,
+        require_new_folder,
         write_json_atomic,
         write_text_atomic,
     )
@@ -73,8 +74,8 @@ def demo(
     if resume:
         settings = _stopped_demo(out, settings)
         seed, duration, train_time, gt = (settings[k] for k in ("seed", "duration", "train_time", "gt"))
-    elif out.exists():
-        raise OutputExistsError(out)
+    else:
+        require_new_folder("--out", out)  # not there yet, and makeable (a file above it, a read-only place)
     protocols = parse_gt_flag(gt, scores=True)
     t_start = time.perf_counter()
     if not resume:

@@ -11,6 +11,8 @@ the same command again adds trials to it, and with an RDB URL many machines can 
 
 from __future__ import annotations
 
+import os
+import shutil
 import threading
 import time
 from dataclasses import dataclass, field
@@ -294,9 +296,8 @@ def tune(
         export_config: Write the best trial as a config file for `train --config` (never overwritten).
     """
     from virus_nerf.errors import OutputExistsError, UsageError, require_int, require_number
-    from virus_nerf.experiments import study as studies
-    from virus_nerf.experiments.executors import DaskExecutor, LocalExecutor, require_extra
-    from virus_nerf.utils.io import write_text_atomic
+    from virus_nerf.experiments.executors import require_extra
+    from virus_nerf.utils.io import folder_problem
 
     require_int("--trials", trials, 0, 1_000_000)
     require_number("--acc-weight", acc_weight, 0.0, 1.0, lo_open=False)
@@ -315,11 +316,34 @@ def tune(
     if export_config is not None and Path(export_config).exists():
         raise OutputExistsError(export_config, "--export-config")
     require_extra("optuna", "tune", "virus-nerf tune")
+    if not any((Path(data) / room / "maps").glob("map*.pcd")):
+        raise UsageError(f"--data {data} --room {room}: the recording has no LiDAR map (maps/map*.pcd), so no trial "
+                         "can be scored; tune needs a recording with one")
     base = _base_config(config, max_steps, max_time, eval_interval)
     out = Path(out if out is not None else Path("studies") / study).absolute()
+    made = not os.path.lexists(out)
+    for flag, folder in (("--out", out), ("--export-config", None if export_config is None else Path(export_config).parent)):
+        if folder is not None and (problem := folder_problem(folder)) is not None:
+            raise UsageError(f"{flag} {out if flag == '--out' else export_config}: cannot be made: {problem}")
     from virus_nerf.experiments.executors import check_scheduler
 
     check_scheduler(scheduler)  # the extra and a scheduler that answers, before the study is opened
+    try:
+        _run_study(out, study, storage, objective, acc_weight, base, seed, pruner, data, room, trials, scheduler,
+                   parallel, threads_per_run, export_config)
+    except BaseException:
+        if made and out.is_dir() and not (out / "trials").exists():
+            shutil.rmtree(out, ignore_errors=True)  # this call made it and ran no trial: nothing is lost
+        raise
+
+
+def _run_study(out: Path, study: str, storage, objective, acc_weight, base, seed, pruner, data, room, trials,
+               scheduler, parallel, threads_per_run, export_config) -> None:
+    """`tune` after its checks: the study opened in OUT, its trials run, its table and best written."""
+    from virus_nerf.experiments import study as studies
+    from virus_nerf.experiments.executors import DaskExecutor, LocalExecutor
+    from virus_nerf.utils.io import write_text_atomic
+
     _claim_folder(out, study)
     obj = Objective(objective, acc_weight)
     handle, base = studies.open_study(study, studies.storage_for(storage, out), obj, base, seed, pruner,

@@ -259,25 +259,27 @@ def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: f
                         pose_args: dict, maps: MapRaster, sinks: Sinks) -> None:
     """The whole bag imported into OUT/recording, then replayed (--import-first)."""
     from virus_nerf.mapping.replay import replay
+    from virus_nerf.trainer.run_folder import RunLock
     from virus_nerf.utils.stop import Stopped
 
     import_bag = _importer()
     made = make_out(out)
-    try:
-        imported = import_bag(bag, out / "recording", topics=topics, **pose_args)
-    except BaseException:
-        made.remove()  # nothing written yet but the partial import
-        raise
-    try:
-        with ExitStack() as stack:
-            live, ros_bag = sinks.open(stack)
-            report = replay(out / "recording", out, playback, snapshot_every, cfg, room=imported.room, **maps.kwargs(),
-                            live=live, ros_bag=ros_bag)
-    except Stopped as exc:
-        exc.reported = True
-        final = f"final map in {out / 'map'}" if (out / "map").is_dir() else "no map was made yet"
-        print(f"map-bag: stopped by {exc.name}; {final}; the recording imported in {out / 'recording'}")
-        raise
+    with RunLock(out, "--out"):  # one process writes into OUT: map-bag --resume waits for this one to end
+        try:
+            imported = import_bag(bag, out / "recording", topics=topics, **pose_args)
+        except BaseException:
+            made.remove()  # nothing written yet but the partial import
+            raise
+        try:
+            with ExitStack() as stack:
+                live, ros_bag = sinks.open(stack)
+                report = replay(out / "recording", out, playback, snapshot_every, cfg, room=imported.room,
+                                **maps.kwargs(), live=live, ros_bag=ros_bag)
+        except Stopped as exc:
+            exc.reported = True
+            final = f"final map in {out / 'map'}" if (out / "map").is_dir() else "no map was made yet"
+            print(f"map-bag: stopped by {exc.name}; {final}; the recording imported in {out / 'recording'}")
+            raise
     print(f"map-bag: {report.frames} frames, {report.steps} steps in {report.wall_s:.1f} s; "
           f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}{sinks.note()}")
 

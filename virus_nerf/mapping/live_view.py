@@ -38,6 +38,7 @@ opens at its end.
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Mapping
 from pathlib import Path
@@ -77,13 +78,20 @@ def layout(stacks: list[int]):
     )
 
 
-def _rerun():
-    """The rerun module, or a one-line UsageError naming the extra that brings it."""
+def _rerun(flag: str = "--rerun"):
+    """The rerun module, or a one-line UsageError naming the flag given and the extra that brings it."""
     try:
         import rerun
     except ImportError:
-        raise UsageError(f"--rerun needs the live extra: {install_extra('live')}") from None
+        raise UsageError(f"{flag} needs the live extra: {install_extra('live')}") from None
     return rerun
+
+
+def _viewer_executable() -> str | None:
+    """The `rerun` viewer installed beside this Python (a venv's bin/, on PATH or not: the README
+    runs `.venv/bin/virus-nerf` without activating the venv); None: rerun looks on PATH."""
+    beside = Path(sys.executable).parent / ("rerun.exe" if os.name == "nt" else "rerun")
+    return str(beside) if beside.is_file() else None
 
 
 def uss_cone_lines(range_m: float, n: int = 32) -> list[np.ndarray]:
@@ -156,7 +164,12 @@ class LiveView:
         self.rec = rr.RecordingStream(application_id)
         urls = []
         if spawn:
-            self.rec.spawn(port=port, connect=False)
+            try:
+                rr.spawn(port=port, connect=False, executable_path=_viewer_executable(), recording=self.rec)
+            except (RuntimeError, OSError) as exc:  # no viewer executable, or one that does not start
+                raise UsageError(f"--rerun: cannot start the Rerun viewer ({one_line(exc, 200)}); install the live "
+                                 "extra, or save the view with --rerun-save FILE.rrd and open it with `rerun "
+                                 "FILE.rrd`") from None
             urls.append(f"rerun+http://127.0.0.1:{port}/proxy")
         if connect and connect not in urls:
             urls.append(connect)

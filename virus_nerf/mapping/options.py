@@ -65,7 +65,8 @@ class RerunSinks:
         if self.wanted:
             from virus_nerf.mapping.live_view import _rerun
 
-            rr = _rerun()
+            given = "--rerun" if self.rerun else ("--rerun-connect" if self.rerun_connect else "--rerun-save")
+            rr = _rerun(given)
             if self.rerun_connect:
                 from virus_nerf.errors import one_line
 

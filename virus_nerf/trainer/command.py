@@ -184,6 +184,7 @@ def train(
             raise UsageError(f"--room {room}: the run in {out} was trained on room {info.room!r}; "
                              "omit --data and --room with --resume")
         cfg = _resolve_config(config, given, flags, base=saved_cfg)
+        _refuse_unused_budget(cfg, given)
         # the training is imported here: the flags, --help and their errors need no torch
         from virus_nerf.trainer.run import run_training
         from virus_nerf.utils.stop import stop_on_signals
@@ -195,12 +196,20 @@ def train(
         raise UsageError(f"{'--data' if data is None else '--room'} is required: give --data DIR --room NAME "
                          "(or --resume to continue the run in --out)")
     cfg = _resolve_config(config, given, flags)
+    _refuse_unused_budget(cfg, given)
     from virus_nerf.trainer.run import run_training
     from virus_nerf.utils.stop import stop_on_signals
 
     with stop_on_signals():
         run_training(data, room, out, cfg, quiet=True if quiet else None, auto_gt=gt is None)
 
+
+def _refuse_unused_budget(cfg, given: dict) -> None:
+    """An online run lasts its drive (duration / playback; docs/method.md 3.6): a --max-time given
+    with it would be ignored, so it is refused (a user's review: a 20 s budget trained 4.8 s)."""
+    if cfg.online and given.get("max_time") is not None:
+        raise UsageError(f"--max-time {given['max_time']:g}: an online run (--online) lasts its drive, the "
+                         "recording's duration / --playback; drop --max-time (--max-steps still bounds it)")
 
 def train_short_help():
     """`train` as `train --help` shows it: the product knobs' flags alone (the command parses all)."""
@@ -224,7 +233,7 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     from virus_nerf.errors import OutputExistsError
     from virus_nerf.evaluation.config import parse_gt_flag
     from virus_nerf.evaluation.plots import plots_dir_for
-    from virus_nerf.utils.io import remove_stale_partials
+    from virus_nerf.utils.io import folder_problem, remove_stale_partials
 
     if n_rays is not None:
         require_int("--n-rays", n_rays, 1, 1_000_000)
@@ -232,6 +241,8 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     out = Path(out) if out is not None else Path(run) / "evaluation" / "metrics.json"
     if out.exists():
         raise OutputExistsError(out)
+    if (problem := folder_problem(out.parent)) is not None:  # before ~10 s of loading and scoring
+        raise UsageError(f"--out {out}: cannot be made: {problem}")
     # plots without metrics.json: an evaluation killed before its end, done again whole (plots
     # replaced once the new ones are complete); `.<plots>.partial-<pid>-*` of dead attempts go
     remove_stale_partials(plots_dir_for(out))

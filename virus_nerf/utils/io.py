@@ -107,11 +107,11 @@ def write_json_atomic(path: str | Path, obj: Any) -> None:
 
 
 def folder_problem(path: str | Path) -> str | None:
-    """Why a new folder `path` (and its missing parents) cannot be made, or None: its nearest
-    existing ancestor is not a folder, or does not take a new folder (read-only, no permission,
+    """Why a new folder `path` (and its missing parents) cannot be made, or None: it, or its nearest
+    existing ancestor, is not a folder, or does not take a new folder (read-only, no permission,
     a virtual file system; tried with an empty folder made and removed at once)."""
-    path = Path(path)
-    ancestor = next((a for a in path.absolute().parents if os.path.lexists(a)), Path("/"))
+    path = Path(path).absolute()
+    ancestor = next((a for a in (path, *path.parents) if os.path.lexists(a)), Path("/"))
     if not ancestor.is_dir():
         return f"{ancestor} is a file, not a folder"
     try:
