@@ -670,6 +670,50 @@ def test_mapper_api_bad_input_round_two():
     assert all(torch.equal(a, b.detach()) for a, b in zip(before, outward.field.parameters(), strict=True))
 
 
+def test_mapper_api_bad_input_round_three(tmp_path):
+    """A user's review of the API (thirty-seventh session): what a robot program gets wrong."""
+    from virus_nerf.maps.occupancy import OCCUPIED, UNKNOWN
+    from virus_nerf.mapping.ros_maps import stamp_ns
+
+    # string stack keys (a KeyError after the frame was half added), bool and float stack ids
+    with pytest.raises(UsageError, match=r"^Mapper intrinsics\['1'\]: the key '1' is a str; expected the stack id as an int"):
+        Mapper(tiny_train_config(), {"1": INTR}, BOX)
+    mapper = _mapper()
+    for sid in (True, 1.0):
+        with pytest.raises(UsageError, match=rf"^SyncFrame.stack_id {sid!r}: a {type(sid).__name__}; expected an int"):
+            mapper.add_frame(_frame(stack=sid))
+    # a pose in a ROS body frame (x forward, z up): the camera would look straight up
+    with pytest.raises(UsageError, match=r"the camera looks straight up \(0.0 deg from vertical\); expected OpenCV "):
+        mapper.add_frame(_frame(cam_to_world=np.eye(4)))
+    # a bool mask or complex values for the IRS zones
+    for bad in (np.ones((8, 8), bool), np.full((8, 8), 2.0 + 0j)):
+        with pytest.raises(UsageError, match=rf"SyncFrame.irs_range \(stack 1\): {bad.dtype} values; expected real"):
+            mapper.add_frame(_frame(irs_range=bad))
+    assert mapper.frames == 0  # nothing half added
+    # 0 is the VL53L5CX's "no target" (as in a TOF file: <= 0.1 m invalid), USS 0 no echo
+    zones = np.full((8, 8), 2.0)
+    zones[0, :3] = (0.0, 0.05, 0.1)
+    mapper.add_frame(_frame(irs_range=zones, uss_range=0.0))
+    kept = mapper.store.irs_range[0]
+    assert np.isnan(kept[0, :3]).all() and (kept[np.isfinite(kept)] == 2.0).all() and np.isfinite(kept).sum() == 61
+    assert np.isnan(mapper.store.uss_range[0]) and zones[0, 0] == 0.0  # the caller's array is not changed
+    # before the first step the field is haze: no walls from it, only the robot's own pixels free
+    m = mapper.map2d()
+    assert (m.image == OCCUPIED).sum() == 0 and (m.image != UNKNOWN).sum() <= 4, np.unique(m.image, return_counts=True)
+    # a snapshot handed maps of another resolution
+    with pytest.raises(UsageError, match=r"Mapper.snapshot maps: computed at resolution 0.1 m; expected the "
+                                         r"snapshot's resolution 0.05 m"):
+        mapper.snapshot(tmp_path / "s", resolution=0.05, maps=(mapper.map2d(resolution=0.1), None))
+    assert not (tmp_path / "s").exists()
+    # a box in millimetres
+    with pytest.raises(UsageError, match=r"^Mapper box: a side of 6000 m; expected metres, a box of at most 1000 m"):
+        Mapper(tiny_train_config(), {1: INTR}, SceneBox((-3000.0, -3000.0, -1000.0), (3000.0, 3000.0, 2000.0)))
+    # a ROS stamp in nanoseconds: one line, not a struct.error from deep inside rosbags
+    assert stamp_ns(2**31 - 1) == (2**31 - 1) * 10**9
+    with pytest.raises(UsageError, match=r"beyond a ROS stamp's 2147483647 s \(the year 2038\); expected seconds"):
+        stamp_ns(1.7e18)
+
+
 def test_the_learning_rate_decays_over_the_horizon_the_caller_hands_in():
     """One horizon for every caller (engine/schedule.py): a drive of 30 s of recording at playback
     2 is 15 s of training; the lr after a step is lr * decay ** (share of that horizon), whatever

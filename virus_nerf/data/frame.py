@@ -18,9 +18,12 @@ import numpy as np
 from virus_nerf.data.csvtable import MAX_TIME_S
 from virus_nerf.errors import UsageError
 from virus_nerf.sensors.camera import Intrinsics, image_side_problem, intrinsics_problem
-from virus_nerf.sensors.irs import IRS_MAX_PLAUSIBLE_MM
+from virus_nerf.sensors.irs import IRS_MAX_PLAUSIBLE_MM, IRS_MIN_VALID_M
 
 MAX_RANGE_M = IRS_MAX_PLAUSIBLE_MM / 1000  # no USS, IRS or depth camera of a robot reads 100 m: millimetres
+# A camera whose optical axis lies within this of the vertical sees no room at camera height: its
+# pose is in another axis convention (a ROS body frame: x forward, z up), as ros_maps.base_pose says
+MIN_AXIS_TILT_DEG = 10.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,6 +64,9 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
     if not isinstance(frame, SyncFrame):
         raise UsageError(f"Mapper.add_frame frame: got a {type(frame).__name__}; expected a SyncFrame")
     sid = frame.stack_id
+    if isinstance(sid, bool) or not isinstance(sid, numbers.Integral):
+        raise UsageError(f"SyncFrame.stack_id {sid!r}: a {type(sid).__name__}; expected an int (a key of the "
+                         "Mapper's intrinsics)")
     if sid not in intrinsics:
         raise UsageError(f"SyncFrame.stack_id {sid!r}: unknown stack; expected one of {sorted(intrinsics)} "
                          "(the stacks whose intrinsics the Mapper was given)")
@@ -88,9 +94,19 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
     if (problem := _pose_problem(frame.cam_to_world)) is not None:
         raise UsageError(f"SyncFrame.cam_to_world (stack {sid}, time {frame.time}): {problem}; expected a finite "
                          "(4, 4) rigid transform (rotation with det +1, translation in metres, last row 0 0 0 1)")
+    axis_z = float(np.asarray(frame.cam_to_world, dtype=np.float64)[2, 2])  # the optical axis' world z
+    if abs(axis_z) > math.cos(math.radians(MIN_AXIS_TILT_DEG)):
+        raise UsageError(f"SyncFrame.cam_to_world (stack {sid}, time {frame.time}): the camera looks straight "
+                         f"{'up' if axis_z > 0 else 'down'} ({math.degrees(math.acos(min(1.0, abs(axis_z)))):.1f} deg "
+                         "from vertical); expected OpenCV camera axes (z forward, y down), not a ROS body frame "
+                         "(x forward, z up), of a camera that sees the room")
     if np.shape(frame.irs_range) != (8, 8):
         raise UsageError(f"SyncFrame.irs_range (stack {sid}): shape {np.shape(frame.irs_range)}; expected (8, 8) "
                          "zone depths in metres in image zone order (NaN = invalid)")
+    kind = np.asarray(frame.irs_range).dtype.kind
+    if kind in "bc":  # a bool mask would read as 1 m, complex values lose their imaginary part
+        raise UsageError(f"SyncFrame.irs_range (stack {sid}): {np.asarray(frame.irs_range).dtype} values; expected "
+                         "real (8, 8) zone depths in metres (NaN = invalid)")
     try:
         irs = np.asarray(frame.irs_range, dtype=np.float64)
     except (TypeError, ValueError):
@@ -102,6 +118,17 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
         raise UsageError(f"SyncFrame.uss_range (stack {sid}) {uss!r}: expected a range >= 0 m or NaN (no echo)")
     if uss > MAX_RANGE_M:
         raise UsageError(f"SyncFrame.uss_range (stack {sid}) {uss!r}: beyond {MAX_RANGE_M:g} m; expected metres")
+
+
+def valid_ranges(uss_range: float, irs_range) -> tuple[float, np.ndarray]:
+    """A checked frame's USS range and IRS zones (8, 8) in metres as the mapper keeps them: NaN
+    where invalid, as the TOF and USS files are read (sensors/irs.py, sensors/uss.py): an IRS zone
+    at or below IRS_MIN_VALID_M (0 is the sensor's "no target", which many drivers publish) and a
+    USS range of 0 (no echo) are no readings, not obstacles at the lens."""
+    irs = np.array(irs_range, dtype=np.float64)  # a copy: the caller's array is not changed
+    irs[irs <= IRS_MIN_VALID_M] = np.nan
+    uss = float(uss_range)
+    return (math.nan if uss <= 0.0 else uss), irs
 
 
 def _check_ranges(what: str, values: np.ndarray, kind: str) -> None:
@@ -120,6 +147,9 @@ def check_intrinsics(intrinsics: Mapping[int, Intrinsics]) -> None:
     (one training batch holds every camera's pixels), or a one-line UsageError naming the field."""
     for sid, intr in intrinsics.items():
         where = f"Mapper intrinsics[{sid!r}]"
+        if isinstance(sid, bool) or not isinstance(sid, numbers.Integral):
+            raise UsageError(f"{where}: the key {sid!r} is a {type(sid).__name__}; expected the stack id as an int "
+                             "(SyncFrame.stack_id)")
         if not isinstance(intr, Intrinsics):
             raise UsageError(f"{where}: got a {type(intr).__name__}; expected a virus_nerf.sensors.camera.Intrinsics")
         for name in ("fx", "fy", "cx", "cy", "width", "height"):

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from virus_nerf.data.frame import SyncFrame, check_frame, check_intrinsics
+from virus_nerf.data.frame import SyncFrame, check_frame, check_intrinsics, valid_ranges
 from virus_nerf.engine.config import MapperConfig
 from virus_nerf.engine.extent import MapExtent
 from virus_nerf.engine.model import SceneModel, build_grid, resolve_device, start_box
@@ -79,6 +79,7 @@ class TrainSlice:
     total_seconds: float  # training clock since the mapper was made
 
 RESTART_GAP_S = 1.0  # s between the newest frame and the first after `Mapper.restart_clock`
+MAX_BOX_SIDE_M = 1000.0  # a room or a hall a robot maps; a larger box is a unit mistake
 
 
 class Mapper(MapViews):
@@ -104,6 +105,9 @@ class Mapper(MapViews):
         if not isinstance(box, SceneBox):
             raise UsageError(f"Mapper box: got a {type(box).__name__}; expected a virus_nerf.scene_box.SceneBox "
                              "(lo, hi corners in metres)")
+        if max(box.size) > MAX_BOX_SIDE_M:  # before a map of 10^10 pixels is asked for
+            raise UsageError(f"Mapper box: a side of {max(box.size):g} m; expected metres, a box of at most "
+                             f"{MAX_BOX_SIDE_M:g} m (millimetres?)")
         config = config.engine()  # the engine's knobs alone (a TrainConfig's run knobs stay with the run)
         self.config = config
         self.schedules = schedules or Schedules.of(config)
@@ -217,8 +221,7 @@ class Mapper(MapViews):
             depth = resize_depth_mm(np.asarray(frame.depth, dtype=np.float32), size)
         self.extent.check_inside(np.asarray(frame.cam_to_world, dtype=np.float64)[None, :3, 3], np.array([frame.time]))
         row = self.store.append(frame.stack_id, self.frames, time_s, np.asarray(frame.cam_to_world),
-                                resize_rgb(frame.rgb, size), depth, float(frame.uss_range),
-                                np.asarray(frame.irs_range, dtype=np.float64))
+                                resize_rgb(frame.rgb, size), depth, *valid_ranges(frame.uss_range, frame.irs_range))
         self._grow(self.extent.add_frames(self.store, np.array([row])))
         self.track_image(row, frame.rgb)
         return row

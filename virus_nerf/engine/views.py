@@ -112,7 +112,8 @@ class MapViews:
                               int(max_poses), self.observed(resolution), self.range_evidence(),
                               low_front_level(self.step),  # D / A while the field is haze (D94)
                               self.store.stack_ids, self.store.times,
-                              low_shadow_depth(self.box.lo, self.box.hi, self.extent.growing))  # D111
+                              low_shadow_depth(self.box.lo, self.box.hi, self.extent.growing),  # D111
+                              scan=self.step > 0)  # an untrained field's haze is no wall
         finally:
             self.field.train()
         self._map_cache = (key, dataclasses.replace(m, image=m.image.copy()))
@@ -212,6 +213,10 @@ class MapViews:
         from virus_nerf.utils.io import new_output_dir, write_json_atomic
 
         folder = Path(folder)
+        for given in maps or ():
+            if given is not None and abs(given.resolution - float(resolution)) > 1e-9:
+                raise UsageError(f"Mapper.snapshot maps: computed at resolution {given.resolution:g} m; expected the "
+                                 f"snapshot's resolution {float(resolution):g} m (or leave maps out)")
         with new_output_dir(folder, replace=replace, flag="snapshot folder") as tmp:
             m, prob = maps if maps is not None else (self.map2d(resolution, n_rays, max_poses),
                                                      self.probability_map(resolution))

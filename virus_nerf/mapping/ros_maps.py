@@ -129,7 +129,13 @@ def stamp_ns(time_s: float) -> int:
     if isinstance(time_s, bool) or not isinstance(time_s, int | float | np.floating) or not np.isfinite(time_s) \
             or time_s < 0:
         raise UsageError(f"time_s {time_s!r}: expected a finite time in seconds >= 0")
+    if time_s > ROS_MAX_STAMP_S:  # builtin_interfaces/Time's sec is an int32
+        raise UsageError(f"time_s {time_s!r}: beyond a ROS stamp's {ROS_MAX_STAMP_S} s (the year 2038); expected "
+                         "seconds, not milli-, micro- or nanoseconds")
     return int(round(float(time_s) * 1e9))
+
+
+ROS_MAX_STAMP_S = 2**31 - 1
 
 
 def require_frame(flag: str, value: str) -> str:

@@ -397,7 +397,7 @@ def behind_ends(origins: np.ndarray, directions: np.ndarray, ranges: np.ndarray,
 def occupancy_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, resolution: float, n_rays: int,
                   max_poses: int, observed: np.ndarray, evidence: RangeEvidence | None = None,
                   low_front: float | None = MAP_LOW_FRONT_OPACITY, stack_ids: np.ndarray | None = None,
-                  times: np.ndarray | None = None, shadow: float = MAP_LOW_SHADOW_M) -> OccupancyMap2D:
+                  times: np.ndarray | None = None, shadow: float = MAP_LOW_SHADOW_M, scan: bool = True) -> OccupancyMap2D:
     """The trinary 2D map a planner reads: scans from up to `max_poses` of the camera `positions`
     (N, 3), unknown outside `observed` ((nx, ny) bool [ix, iy], maps/observed.py) whatever the
     model says, then occupied where the IRS and USS `evidence` touched what the scans called free
@@ -405,9 +405,11 @@ def occupancy_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, 
     given the positions' `stack_ids` and `times` (N,), on the way between a stack's consecutive
     positions, maps/planner.track_free). The low rays end at the opacity `low_front` (`scan_map`;
     the Mapper's: `low_front_level` of its step) and the shadow behind them reaches `shadow` m (the
-    Mapper's: `low_shadow_depth` of its box)."""
-    m = scan_map(model, spread_positions(positions, max_poses), lo, hi, resolution, n_rays, evidence, low_front,
-                 shadow)
+    Mapper's: `low_shadow_depth` of its box). `scan` False: no model scans (a field not trained yet
+    says nothing: its haze would read as walls about 1 m around the cameras), the sensors' own
+    evidence and the cameras' pixels alone."""
+    scanned = spread_positions(positions, max_poses) if scan else np.zeros((0, 3))
+    m = scan_map(model, scanned, lo, hi, resolution, n_rays, evidence, low_front, shadow)
     m.image = apply_mask(m.image, observed, UNKNOWN)  # free only where a sensor looked
     if evidence is not None:
         m.image = planner_image(m.image, lo, resolution, evidence)
