@@ -672,8 +672,8 @@ def test_mapper_api_bad_input_round_two():
 
 def test_mapper_api_bad_input_round_three(tmp_path):
     """A user's review of the API (thirty-seventh session): what a robot program gets wrong."""
-    from virus_nerf.maps.occupancy import OCCUPIED, UNKNOWN
     from virus_nerf.mapping.ros_maps import stamp_ns
+    from virus_nerf.maps.occupancy import OCCUPIED, UNKNOWN
 
     # string stack keys (a KeyError after the frame was half added), bool and float stack ids
     with pytest.raises(UsageError, match=r"^Mapper intrinsics\['1'\]: the key '1' is a str; expected the stack id as an int"):
