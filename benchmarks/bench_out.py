@@ -7,10 +7,18 @@ import sys
 from pathlib import Path
 
 
-def new_out(path: Path | None) -> None:
-    """Exit with one line when --out exists already (checked before the benchmark runs)."""
-    if path is not None and Path(path).exists():
-        sys.exit(f"--out {path}: exists; choose a new file (nothing is overwritten)")
+def new_out(path: Path | None, flag: str = "--out") -> None:
+    """Exit with one line when the output file exists already, or its folder cannot be made (a
+    parent that is a file, a read-only place): checked before the benchmark runs, not after."""
+    if path is None:
+        return
+    if Path(path).exists():
+        sys.exit(f"{flag} {path}: exists; choose a new file (nothing is overwritten)")
+    from virus_nerf.utils.io import folder_problem
+
+    if (problem := folder_problem(Path(path).absolute().parent)) is not None:
+        sys.exit(f"{flag} {path}: cannot be written: {problem}")
+
 
 
 def write_out(path: Path, text: str) -> None:
@@ -20,3 +28,7 @@ def write_out(path: Path, text: str) -> None:
     new_out(path)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(Path(path), text)
+
+
+if __name__ == "__main__":
+    sys.exit("bench_out.py is the benchmarks' helper for --out, not a benchmark: run a bench_*.py script")

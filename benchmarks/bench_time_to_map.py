@@ -94,9 +94,14 @@ def child(args: argparse.Namespace) -> None:
         points = []
         last_steps, last_samples, last_rays = 0, 0, 0
         for cp in checkpoints:
+            # start-up (or the step before) already outlasted this checkpoint: it is scored late, not on time
+            late = not by_steps and since_process_start() - eval_s >= cp
             while (trainer.mapper.step < cp) if by_steps else (since_process_start() - eval_s < cp):
                 trainer.train_step()  # on the training clock
             wall = since_process_start() - eval_s
+            if late:
+                print(f"warning: checkpoint {cp:g} s scored at {wall:.1f} s after {trainer.mapper.step} steps (start-up "
+                      "took longer); marked late, left out of the means", file=sys.stderr, flush=True)
             t0 = time.perf_counter()
             result = trainer.evaluate(with_sensors=False, keep_scans=0)
             eval_s += time.perf_counter() - t0
@@ -108,7 +113,7 @@ def child(args: argparse.Namespace) -> None:
             d_rays = rays - last_rays
             points.append({
                 ("checkpoint_steps" if by_steps else "checkpoint_s"): int(cp) if by_steps else cp, "wall_s": round(wall, 2), "steps": trainer.mapper.step,
-                "train_s": round(trainer.mapper.seconds, 2),
+                "train_s": round(trainer.mapper.seconds, 2), "late": late,
                 "steps_per_s": round(trainer.mapper.step / trainer.mapper.seconds, 3) if trainer.mapper.seconds else None,
                 "samples_per_s": round(trainer.mapper.samples / trainer.mapper.seconds) if trainer.mapper.seconds else None,
                 "samples_per_ray": round(d_samples / max(1, d_rays), 1),
@@ -161,8 +166,11 @@ def seed_summary(per_seed: dict[int, dict], patch: str) -> dict:
     points = []
     for i, first in enumerate(runs[0]["points"]):
         row = {key: first[key] for key in ("checkpoint_s", "checkpoint_steps") if key in first}
+        late = [bool(r["points"][i].get("late")) for r in runs]
+        on_time = [r for r, was in zip(runs, late, strict=True) if not was] or runs  # late ones left out of the means
+        row["late_runs"] = sum(late)
         for key in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier", "wall_s", "steps", "steps_per_s"):
-            vals = np.array([r["points"][i][key] for r in runs], dtype=float)
+            vals = np.array([r["points"][i][key] for r in on_time], dtype=float)
             row[key] = round(float(vals.mean()), 4)
             if key in ("acc_mean", "cov_mean"):
                 row[key.replace("_mean", "_std")] = round(float(vals.std(ddof=1)), 4) if len(vals) > 1 else 0.0
@@ -228,15 +236,35 @@ def main() -> None:
     ap.add_argument("--config", default="{}", help=argparse.SUPPRESS)
     args = ap.parse_args()
     new_out(args.out)  # before the run: a result is never overwritten
+    new_out(args.plot, "--plot")
     if args.child:
         child(args)
         return
     variants = {} if args.no_default else {"default": "{}"}
     for v in args.variant:
-        name, _, patch = v.partition("=")
-        json.loads(patch)  # fail early on a typo
+        name, eq, patch = v.partition("=")
+        try:
+            if not eq or not name or not isinstance(json.loads(patch), dict):
+                raise ValueError
+        except ValueError:
+            ap.error(f"--variant {v!r}: expected NAME=JSON, a partial config object (e.g. 'lr={{\"optim\": "
+                     f"{{\"lr\": 0.005}}}}')")
         variants[name] = patch
-    checkpoints = sorted(float(c) for c in args.checkpoints.split(","))
+    try:
+        checkpoints = sorted(float(c) for c in args.checkpoints.split(","))
+        seeds_given = [int(x) for x in args.sim_seeds.split(",")]
+    except ValueError:
+        ap.error(f"--checkpoints {args.checkpoints!r} / --sim-seeds {args.sim_seeds!r}: expected comma-separated "
+                 "numbers (seconds, or steps with --steps) / whole-number seeds")
+    if (bad := [s for s in args.scenes.split(",") if s not in SCENES]):
+        ap.error(f"--scenes {args.scenes!r}: unknown scene {bad[0]!r}; expected some of {','.join(SCENES)}")
+    from virus_nerf.errors import UsageError
+    from virus_nerf.evaluation.config import parse_gt_flag
+
+    try:
+        parse_gt_flag(args.gt, scores=True)
+    except UsageError as exc:
+        ap.error(str(exc))
     doc: dict = {
         "benchmark": "time_to_map",
         "ground_truth": f"{args.gt.split(',')[0]} (headline; 'map' = LiDAR map slice, solid 3 cm voxels); "
@@ -249,10 +277,7 @@ def main() -> None:
         "scenes": {},
     }
     for scene in args.scenes.split(","):
-        if args.sim_seed is not None:
-            seeds = [args.sim_seed]
-        else:
-            seeds = [int(x) for x in args.sim_seeds.split(",")]
+        seeds = [args.sim_seed] if args.sim_seed is not None else seeds_given
         doc["scenes"][scene] = {}
         for name, patch in variants.items():
             per_seed = {}

@@ -70,6 +70,19 @@ def main() -> None:
     ap.add_argument("--fields", default=None, help="comma-separated field profiles: cpu_default,paper")
     ap.add_argument("--data", type=Path, default=None, help="an ETHZ recording (default: simulate an office)")
     args = ap.parse_args()
+    # the flags checked before anything is simulated or trained, each in one line
+    fields = tuple(args.fields.split(",")) if args.fields else None
+    if fields is not None and (bad := [f for f in fields if f not in ("cpu_default", "paper")]):
+        ap.error(f"--fields {args.fields!r}: unknown profile {bad[0]!r}; expected cpu_default and/or paper")
+    try:
+        batches = tuple(int(b) for b in args.batches.split(",")) if args.batches else None
+    except ValueError:
+        ap.error(f"--batches {args.batches!r}: expected comma-separated whole numbers of rays (e.g. 1024,4096)")
+    if batches is not None and min(batches) < 1:
+        ap.error(f"--batches {args.batches!r}: expected rays per step >= 1")
+    if args.steps < 1 or args.warm < 2:
+        ap.error(f"--steps {args.steps} --warm {args.warm}: expected --steps >= 1 and --warm >= 2 (the grid warms "
+                 "up for warm/2 steps)")
     _keep_large_allocations()
     from virus_nerf.data.ethz import load_recording
     from virus_nerf.sim.command import simulate
@@ -80,12 +93,8 @@ def main() -> None:
             data = Path(tmp) / "office"
             simulate(scene="office", out=data, seed=0, duration=20.0, resolution_scale=0.5)
         recording = load_recording(data, "office")
-        fields = ("cpu_default",) if args.quick else ("cpu_default", "paper")
-        batches = (1024,) if args.quick else (1024, 4096)
-        if args.fields:
-            fields = tuple(args.fields.split(","))
-        if args.batches:
-            batches = tuple(int(b) for b in args.batches.split(","))
+        fields = fields or (("cpu_default",) if args.quick else ("cpu_default", "paper"))
+        batches = batches or ((1024,) if args.quick else (1024, 4096))
         results = {}
         for field in fields:
             for batch in batches:
