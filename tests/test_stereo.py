@@ -398,13 +398,17 @@ def test_mapper_gets_stereo_targets_while_frames_arrive():
 
     cfg = dataclasses.replace(tiny_train_config(sensors=("camera", "stereo"), device="cpu"),
                               stereo=Cfg(refresh_frames=4))
-    mapper = Mapper(cfg, {1: INTR, 3: INTR}, SceneBox((-3.0, -2.0, -0.5), (3.0, 2.0, 7.0)))
+    # the wall scene's world has z along the cameras' axis; the Mapper's is z up (a camera looking
+    # straight up is refused): the same scene turned, x = the scene's z, y = -x, z = -y
+    turn = np.eye(4)
+    turn[:3, :3] = [[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]]
+    mapper = Mapper(cfg, {1: INTR, 3: INTR}, SceneBox((-0.5, -3.0, -2.0), (7.0, 3.0, 2.0)))
     tex = _texture()
     for i in range(12):
         for stack, dx, yaw in ((1, -0.14, -7.5), (3, 0.14, 7.5)):
             pose = _pose(-1.0 + 0.15 * i + dx, yaw_deg=yaw)
             rgb, _ = _render_wall(pose, tex)
-            mapper.add_frame(SyncFrame(time=0.2 * i, stack_id=stack, rgb=rgb, cam_to_world=pose,
+            mapper.add_frame(SyncFrame(time=0.2 * i, stack_id=stack, rgb=rgb, cam_to_world=turn @ pose,
                                        uss_range=math.nan, irs_range=np.full((8, 8), np.nan)))
     assert mapper.stereo is not None and len(mapper.stereo) > 500
     assert mapper.stereo.frames.max() < mapper.frames
