@@ -55,8 +55,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--data", type=Path, default=None)
     ap.add_argument("--room", default="office")
-    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {','.join(VARIANTS)}")
     args = ap.parse_args()
+    if (bad := [v for v in args.variants.split(",") if v not in VARIANTS]):
+        ap.error(f"--variants {args.variants!r}: unknown variant {bad[0]!r}; expected some of {','.join(VARIANTS)}")
     with tempfile.TemporaryDirectory() as tmp:
         data = args.data
         if data is None:

@@ -53,6 +53,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     new_out(args.out)  # before the run: a result is never overwritten
+    if (missing := [r for r in args.runs if not (r / "checkpoint.pt").is_file()]):
+        ap.error(f"--runs: {missing[0]} is no trained run (no checkpoint.pt there)")
     import torch
 
     if args.threads:

@@ -54,6 +54,8 @@ def main() -> None:
     args = ap.parse_args()
     new_out(args.out)  # before the run: a result is never overwritten
     source = args.source.resolve()
+    if not (source / "virus_nerf" / "__init__.py").is_file():
+        ap.error(f"--source {args.source}: no virus_nerf checkout there (expected SOURCE/virus_nerf/__init__.py)")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         cli(source, ["simulate", "--scene", "office", "--seed", "3", "--duration", "3", "--resolution-scale", "0.25",

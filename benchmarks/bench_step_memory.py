@@ -1,7 +1,7 @@
 """Memory a training step takes per marched sample (issue 39 item 3): the constant behind
 `engine.memory.SAMPLE_BYTES`, the batch check's bound.
 
-For each --batch-size, a fresh process builds the trainer on a simulated office (the default
+For each of --batches, a fresh process builds the trainer on a simulated office (the default
 config, the CPU-default field), decodes its frames, notes its peak RSS, then runs --steps steps
 from the start (the grid's warm-up: the most samples per ray a run sees) and notes its peak RSS
 again. The step's working memory over its samples is the slope between batch sizes (what does not
@@ -59,7 +59,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--batches", default="1024,4096,16384")
     ap.add_argument("--steps", type=int, default=4)
-    ap.add_argument("--data", type=Path, default=None, help="an ETHZ recording (default: simulate an office)")
+    ap.add_argument("--data", type=Path, default=None,
+                    help="an ETHZ dataset holding an office room (default: simulate one)")
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child is not None:

@@ -118,13 +118,18 @@ def measure(data: Path, room: str, labels: tuple[str, ...], reference: str, filt
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--rooms", default="common61,common62,common63,office61,office62,office63")
+    ap.add_argument("--rooms", default="common61,common62,common63,office61,office62,office63",
+                    help="comma-separated SCENE+SEED rooms (office, common or warehouse and a simulation seed)")
     ap.add_argument("--data", type=Path, default=HERE / ".data")
     ap.add_argument("--sample", type=Path, default=HERE.parent.parent / "shared" / "data" / "sample_dataset")
     ap.add_argument("--filters", choices=("defaults", "small-room", "offline"), default="defaults",
                     help="the pass's track filters (the module's docstring)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
+    for name in args.rooms.split(","):
+        if not re.fullmatch(r"(office|common|warehouse)\d+", name):
+            ap.error(f"--rooms {args.rooms!r}: {name!r} is no room; expected SCENE+SEED, e.g. office61 (scenes "
+                     "office, common, warehouse)")
     new_out(args.out)  # before the run: a result is never overwritten
     sys.path.insert(0, str(HERE))
     from bench_time_to_map import ensure_data
