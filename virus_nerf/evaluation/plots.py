@@ -166,7 +166,7 @@ def plot_metric_bars(
         ax.set_xticks(x, [f"{z.name}\n[{z.lo:g}, {z.hi:g}] m" for z in zones])
         ax.set_ylabel(f"{label} NND mean [m]")
         ax.set_title(f"{label}: mean (bars) and median (ticks)")
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, loc="upper left")  # "best" is searched over every bar: slow, and warned about
         ax.grid(True, axis="y", lw=0.3)
 
         ax = axes[row, 1]
@@ -214,7 +214,7 @@ def plot_metric_vs_time(curves: Mapping[str, Sequence], path: Path, key: str = "
     ax.set_ylabel(f"zone 3 {key.replace('_', ' ')} [m]" if "mean" in key else f"zone 3 {key}")
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend()
+    ax.legend(loc="upper right")  # the curves fall from the left
     return save_png(fig, path)
 
 
