@@ -77,15 +77,14 @@ def take_experiment_folder(out: Path, command: str, summaries: list[Path], setti
     seeds or another subset of rooms only add runs), then leave the command's mark and settings
     in it; a one-line error naming OUT before anything is written otherwise (a finished
     experiment: OutputExistsError for its first summary)."""
-    from virus_nerf.utils.io import folder_problem, write_json_atomic
+    from virus_nerf.utils.io import require_makeable, write_json_atomic
 
     done = next((p for p in summaries if p.exists()), None)
     if done is not None:
         raise FinishedExperimentError(done, command, summaries)
     if out.exists() and not out.is_dir():
         raise OutputExistsError(out)
-    if (problem := folder_problem(out)) is not None:
-        raise UsageError(f"--out {out}: cannot be made: {problem}")
+    require_makeable("--out", out)
     marked = marked_command(out)  # None for a new folder too
     if marked is not None and marked != command:
         raise UsageError(f"--out {out}: holds another experiment ({EXPERIMENT_MARK} says {marked!r}), not an "

@@ -15,6 +15,8 @@ import os
 import shutil
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -243,6 +245,19 @@ def _claim_folder(out: Path, study: str) -> None:
         write_json_atomic(marker, {"study": study})
 
 
+@contextmanager
+def _removed_unless_a_trial_ran(out: Path) -> Iterator[None]:
+    """An --out this call makes is removed again when the call fails before any trial ran (a
+    storage that cannot be opened, a best config to export with no finished trial): nothing is lost."""
+    made = not os.path.lexists(out)
+    try:
+        yield
+    except BaseException:
+        if made and out.is_dir() and not (out / "trials").exists():
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
 def tune(
     data: Path,
     room: str,
@@ -297,7 +312,7 @@ def tune(
     """
     from virus_nerf.errors import OutputExistsError, UsageError, require_int, require_number
     from virus_nerf.experiments.executors import require_extra
-    from virus_nerf.utils.io import folder_problem
+    from virus_nerf.utils.io import require_makeable
 
     require_int("--trials", trials, 0, 1_000_000)
     require_number("--acc-weight", acc_weight, 0.0, 1.0, lo_open=False)
@@ -321,57 +336,43 @@ def tune(
                          "can be scored; tune needs a recording with one")
     base = _base_config(config, max_steps, max_time, eval_interval)
     out = Path(out if out is not None else Path("studies") / study).absolute()
-    made = not os.path.lexists(out)
-    for flag, folder in (("--out", out), ("--export-config", None if export_config is None else Path(export_config).parent)):
-        if folder is not None and (problem := folder_problem(folder)) is not None:
-            raise UsageError(f"{flag} {out if flag == '--out' else export_config}: cannot be made: {problem}")
-    from virus_nerf.experiments.executors import check_scheduler
-
-    check_scheduler(scheduler)  # the extra and a scheduler that answers, before the study is opened
-    try:
-        _run_study(out, study, storage, objective, acc_weight, base, seed, pruner, data, room, trials, scheduler,
-                   parallel, threads_per_run, export_config)
-    except BaseException:
-        if made and out.is_dir() and not (out / "trials").exists():
-            shutil.rmtree(out, ignore_errors=True)  # this call made it and ran no trial: nothing is lost
-        raise
-
-
-def _run_study(out: Path, study: str, storage, objective, acc_weight, base, seed, pruner, data, room, trials,
-               scheduler, parallel, threads_per_run, export_config) -> None:
-    """`tune` after its checks: the study opened in OUT, its trials run, its table and best written."""
+    require_makeable("--out", out)
+    if export_config is not None:
+        require_makeable("--export-config", export_config, Path(export_config).parent)
     from virus_nerf.experiments import study as studies
-    from virus_nerf.experiments.executors import DaskExecutor, LocalExecutor
+    from virus_nerf.experiments.executors import DaskExecutor, LocalExecutor, check_scheduler
     from virus_nerf.utils.io import write_text_atomic
 
-    _claim_folder(out, study)
-    obj = Objective(objective, acc_weight)
-    handle, base = studies.open_study(study, studies.storage_for(storage, out), obj, base, seed, pruner,
-                                              Path(data).absolute(), room)
-    settled = studies.settle_stale_trials(handle, obj)
-    if settled:
-        print(f"settled trial(s) {settled} left running by a tune process that died")
-    if trials:
-        executor = (LocalExecutor(parallel or 1, threads_per_run) if scheduler is None
-                    else DaskExecutor(scheduler, parallel or 2, threads_per_run))
-        with executor:
-            n_parallel = parallel or (1 if scheduler is None else max(1, executor.n_workers))
-            print(f"study {study!r}: {len(handle.trials)} trial(s) so far; running {trials} more, "
-                  f"{n_parallel} at a time on {executor.describe()}", flush=True)
-            (out / "trials").mkdir(parents=True, exist_ok=True)
-            ctx = _Context(handle, executor, obj, base, Path(data).absolute(), room, out / "trials",
-                           float(base.get("eval_interval") or 0.0),
-                           prune=obj.mode == "weighted" and pruner != "none" and bool(base.get("eval_interval")))
-            run_trials(ctx, trials, n_parallel)
-    out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(out / "trials.csv", studies.trials_table(handle))  # derived from the storage, rewritten
-    best = studies.best_trial(handle, obj)
-    states = [t.state.name for t in handle.trials]
-    counts = ", ".join(f"{states.count(s)} {s.lower()}" for s in sorted(set(states)))
-    print(f"study {study!r}: {len(states)} trial(s) ({counts}); table in {out / 'trials.csv'}" if states
-          else f"study {study!r}: no trials yet (run more with --trials N); empty table in {out / 'trials.csv'}")
-    if best is not None:
-        print(f"best: trial {best.number}, values {best.values}, params {best.params}")
-    if export_config is not None:
-        trial = studies.export_config(handle, obj, base, Path(export_config))
-        print(f"wrote trial {trial.number}'s config to {export_config} (use: virus-nerf train --config {export_config})")
+    check_scheduler(scheduler)  # the extra and a scheduler that answers, before the study is opened
+    with _removed_unless_a_trial_ran(out):
+        _claim_folder(out, study)
+        obj = Objective(objective, acc_weight)
+        handle, base = studies.open_study(study, studies.storage_for(storage, out), obj, base, seed, pruner,
+                                          Path(data).absolute(), room)
+        settled = studies.settle_stale_trials(handle, obj)
+        if settled:
+            print(f"settled trial(s) {settled} left running by a tune process that died")
+        if trials:
+            executor = (LocalExecutor(parallel or 1, threads_per_run) if scheduler is None
+                        else DaskExecutor(scheduler, parallel or 2, threads_per_run))
+            with executor:
+                n_parallel = parallel or (1 if scheduler is None else max(1, executor.n_workers))
+                print(f"study {study!r}: {len(handle.trials)} trial(s) so far; running {trials} more, "
+                      f"{n_parallel} at a time on {executor.describe()}", flush=True)
+                (out / "trials").mkdir(parents=True, exist_ok=True)
+                ctx = _Context(handle, executor, obj, base, Path(data).absolute(), room, out / "trials",
+                               float(base.get("eval_interval") or 0.0),
+                               prune=obj.mode == "weighted" and pruner != "none" and bool(base.get("eval_interval")))
+                run_trials(ctx, trials, n_parallel)
+        out.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(out / "trials.csv", studies.trials_table(handle))  # derived from the storage, rewritten
+        best = studies.best_trial(handle, obj)
+        states = [t.state.name for t in handle.trials]
+        counts = ", ".join(f"{states.count(s)} {s.lower()}" for s in sorted(set(states)))
+        print(f"study {study!r}: {len(states)} trial(s) ({counts}); table in {out / 'trials.csv'}" if states
+              else f"study {study!r}: no trials yet (run more with --trials N); empty table in {out / 'trials.csv'}")
+        if best is not None:
+            print(f"best: trial {best.number}, values {best.values}, params {best.params}")
+        if export_config is not None:
+            trial = studies.export_config(handle, obj, base, Path(export_config))
+            print(f"wrote trial {trial.number}'s config to {export_config} (use: virus-nerf train --config {export_config})")

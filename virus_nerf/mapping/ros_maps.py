@@ -124,6 +124,9 @@ def grid_data(m: OccupancyMap2D) -> np.ndarray:
     return np.ascontiguousarray(np.flipud(occupancy_values(m))).reshape(-1)
 
 
+ROS_MAX_STAMP_S = 2**31 - 1  # builtin_interfaces/Time's sec is an int32
+
+
 def stamp_ns(time_s: float) -> int:
     """Seconds -> nanoseconds (refused below 0): the bag's receive time and the header stamp."""
     if isinstance(time_s, bool) or not isinstance(time_s, int | float | np.floating) or not np.isfinite(time_s) \
@@ -133,9 +136,6 @@ def stamp_ns(time_s: float) -> int:
         raise UsageError(f"time_s {time_s!r}: beyond a ROS stamp's {ROS_MAX_STAMP_S} s (the year 2038); expected "
                          "seconds, not milli-, micro- or nanoseconds")
     return int(round(float(time_s) * 1e9))
-
-
-ROS_MAX_STAMP_S = 2**31 - 1
 
 
 def require_frame(flag: str, value: str) -> str:

@@ -31,6 +31,10 @@ def implausible_zones(meas_mm: np.ndarray) -> np.ndarray:
     return np.argwhere(np.abs(np.asarray(meas_mm)) > IRS_MAX_PLAUSIBLE_MM)
 
 
+# a target reading below this (mm) is metres: no VL53L5CX measures under 20 mm
+METRES_BELOW_MM = 10.0
+
+
 def metres_problem(meas_mm: np.ndarray, min_targets: int = 1) -> str | None:
     """The refusal of readings that look like metres: every target reading (finite, above 0, the
     sensor's "no target") below 10 mm, which no VL53L5CX measures (its range starts at 20 mm);
@@ -38,7 +42,7 @@ def metres_problem(meas_mm: np.ndarray, min_targets: int = 1) -> str | None:
     message: a stray reading alone is no evidence of the unit)."""
     mm = np.asarray(meas_mm, dtype=np.float64)
     targets = mm[np.isfinite(mm) & (mm > 0)]
-    if targets.size < max(1, min_targets) or targets.max() >= 10.0:
+    if targets.size < max(1, min_targets) or targets.max() >= METRES_BELOW_MM:
         return None
     return (f"every reading is below 10 mm (the largest {targets.max():g}); expected millimetres "
             "(the file holds metres?)")

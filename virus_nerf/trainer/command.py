@@ -233,7 +233,7 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     from virus_nerf.errors import OutputExistsError
     from virus_nerf.evaluation.config import parse_gt_flag
     from virus_nerf.evaluation.plots import plots_dir_for
-    from virus_nerf.utils.io import folder_problem, remove_stale_partials
+    from virus_nerf.utils.io import remove_stale_partials, require_makeable
 
     if n_rays is not None:
         require_int("--n-rays", n_rays, 1, 1_000_000)
@@ -241,8 +241,7 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     out = Path(out) if out is not None else Path(run) / "evaluation" / "metrics.json"
     if out.exists():
         raise OutputExistsError(out)
-    if (problem := folder_problem(out.parent)) is not None:  # before ~10 s of loading and scoring
-        raise UsageError(f"--out {out}: cannot be made: {problem}")
+    require_makeable("--out", out, out.parent)  # before ~10 s of loading and scoring
     # plots without metrics.json: an evaluation killed before its end, done again whole (plots
     # replaced once the new ones are complete); `.<plots>.partial-<pid>-*` of dead attempts go
     remove_stale_partials(plots_dir_for(out))

@@ -124,14 +124,20 @@ def folder_problem(path: str | Path) -> str | None:
 def require_new_folder(flag: str, path: str | Path) -> Path:
     """`path` for a new output folder, checked before any work: it must not exist (nothing is
     overwritten) and must be makeable; else the one-line error names `flag`."""
-    from virus_nerf.errors import UsageError
-
     path = Path(path)
     if os.path.lexists(path):
         raise OutputExistsError(path, flag)
-    if (problem := folder_problem(path)) is not None:
-        raise UsageError(f"{flag} {path}: cannot be made: {problem}")
+    require_makeable(flag, path)
     return path
+
+
+def require_makeable(flag: str, path: str | Path, folder: str | Path | None = None) -> None:
+    """A one-line UsageError naming `flag` and `path` when the folder `path` (or `folder`, the one
+    the file `path` goes in) cannot be made: checked before any work, not after it."""
+    from virus_nerf.errors import UsageError
+
+    if (problem := folder_problem(path if folder is None else folder)) is not None:
+        raise UsageError(f"{flag} {path}: cannot be made: {problem}")
 
 
 def create_new_dir(path: str | Path) -> Path:

@@ -368,14 +368,14 @@ class TofUnitCheck:
 
     def add(self, reading: TofReading, where: Where) -> None:
         count, largest = self._seen.get(where.topic, (0, 0.0))
-        if largest >= 10.0:
+        if largest >= irs.METRES_BELOW_MM:
             return
         mm = reading.meas_mm
         targets = mm[np.isfinite(mm) & (mm > 0)]
         if targets.size:
             count, largest = count + int(targets.size), max(largest, float(targets.max()))
             self._seen[where.topic] = (count, largest)
-        if count >= TOF_UNIT_MIN_TARGETS and largest < 10.0:
+        if count >= TOF_UNIT_MIN_TARGETS and largest < irs.METRES_BELOW_MM:
             raise where.error(f"every reading of the topic up to here is below 10 mm ({count} readings, the largest "
                               f"{largest:g}); expected millimetres (the topic holds metres?)", field="meas")
 

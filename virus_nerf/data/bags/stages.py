@@ -56,9 +56,6 @@ def upside_down_share(track: PoseTrack) -> float:
     return float(np.mean(track.poses[:, 2, 2] < 0.0)) if len(track.poses) else 0.0
 
 
-_SIZED = Intrinsics(1.0, 1.0, 0.0, 0.0)  # a stand-in of known size (stacks with a camera_info)
-
-
 class ImportRun:
     """One import into the temporary folder `root`; `run` returns the report."""
 
@@ -82,12 +79,11 @@ class ImportRun:
         for sub in ("measurements", "poses", "lidars/filtered", "maps", "split"):
             (self.room_dir / sub).mkdir(parents=True)
         self._first_pass()
-        self._pose_origin = f" of --poses {poses}"  # named when no pose meets a colour frame
         track, pose_settings = self._poses(poses, csv_poses, tf_parent, tf_child, kiss)
         if (down := upside_down_share(track)) > 0.5:
             self.notes.append(f"the up axis of {down:.0%} of the poses (--poses {poses}) points below the horizon: an "
                               "upside-down LiDAR, or quaternions in w,x,y,z order? They are read as qx,qy,qz,qw")
-        matches = {s: self._match(s, track) for s in self.cfg.stacks}
+        matches = {s: self._match(s, track, poses) for s in self.cfg.stacks}
         if MAIN_STACK not in matches:
             self.notes.append(f"no stack {MAIN_STACK}: the scores' test points stand at stack {MAIN_STACK}'s frames, so "
                               "train can only map this recording (--gt none); to score it, number the main camera "
@@ -129,7 +125,7 @@ class ImportRun:
                     self.small[(stack, role)].append(reading)
                 elif role == "camera_info" and stack not in self.camera_info:
                     self.camera_info[stack] = self._camera_info(msg, where)
-                elif role == "color" and self.plan.intrinsics.get(stack, _SIZED).width == 0:
+                elif role == "color" and stack in self.plan.intrinsics and self.plan.intrinsics[stack].width == 0:
                     self.plan.intrinsics[stack] = self._sized(stack, msg, where)
                 elif role == "lidar":
                     self._lidar_scan(msg, where, seen_files)
@@ -211,7 +207,7 @@ class ImportRun:
         return csv_poses, None
 
     # ------------------------------------------------------------------------------ matching
-    def _match(self, s: int, track: PoseTrack) -> StackMatch:
+    def _match(self, s: int, track: PoseTrack, poses: str) -> StackMatch:
         sync, roles = self.cfg.sync, self.cfg.stacks[s].roles()
         color = np.array(self.stamps[(s, "color")])
         tol = {"depth": sync.depth_tolerance_s, "uss": sync.uss_tolerance_s, "tof": sync.tof_tolerance_s}
@@ -219,13 +215,14 @@ class ImportRun:
         _, pose_ok = track.at(color, sync.pose_tolerance_s)
         match = match_stack(s, color, streams, pose_ok, sync.camera_rate_hz)
         if len(match.times_s) == 0:
-            self._unsynchronised(s, color, streams, pose_ok, track)
+            self._unsynchronised(s, color, streams, pose_ok, track, poses)
         self._report((s, "color"), color, len(match.times_s))
         for role, (times, _) in streams.items():
             self._report((s, role), times, len(np.unique(match.partner[role])))
         return match
 
-    def _unsynchronised(self, s: int, color: np.ndarray, streams: dict, pose_ok: np.ndarray, track: PoseTrack) -> None:
+    def _unsynchronised(self, s: int, color: np.ndarray, streams: dict, pose_ok: np.ndarray, track: PoseTrack,
+                        poses: str) -> None:
         """Name the stream that no colour frame could be matched with."""
         ctopic = self.plan.roles[(s, "color")]
         span = f"{color.min():.3f}..{color.max():.3f} s" if len(color) else "no frames"
@@ -237,10 +234,10 @@ class ImportRun:
                                       f"raise sync.{role}_tolerance_s in the topics file")
         if not pose_ok.any():
             t = track.times_s
-            poses = f"poses {t.min():.3f}..{t.max():.3f} s" if len(t) else "no poses"
+            span_poses = f"poses {t.min():.3f}..{t.max():.3f} s" if len(t) else "no poses"
             raise DataFormatError(self.reader.path, f"cannot synchronise {ctopic} with the poses: no pose within "
-                                  f"sync.pose_tolerance_s of any colour frame ({poses}{self._pose_origin}, colour "
-                                  f"{span}); check the clocks")
+                                  f"sync.pose_tolerance_s of any colour frame ({span_poses} of --poses {poses}, "
+                                  f"colour {span}); check the clocks")
         raise DataFormatError(self.reader.path, f"stack {s}: no colour frame of {ctopic} has every partner within "
                               "its tolerance (sync section of the topics file)")
 
