@@ -102,6 +102,28 @@ def test_a_stop_file_terminates_the_run_and_keeps_its_folder(tmp_path):
     assert time.perf_counter() - t0 < 20 and s.out.is_dir() and stop_file(s.out).is_file()
 
 
+def test_a_training_slow_to_stop_is_given_its_grace_then_killed_and_the_log_says_so(tmp_path, monkeypatch):
+    """Asked to stop, a training writes its map and checkpoint (seconds, more on a shared CPU):
+    it is killed only after runs.STOP_GRACE_S, and the run's log says it was."""
+    from virus_nerf.experiments import runs
+
+    slow = ("import signal, sys, time, pathlib; o = pathlib.Path(sys.argv[1]); o.mkdir()\n"
+            "def bye(*_): time.sleep(1.0); (o / 'kept').touch(); sys.exit(143)\n"
+            "signal.signal(signal.SIGTERM, bye); time.sleep(60)")
+    monkeypatch.setattr(runs, "STOP_GRACE_S", 5.0)
+    s = spec(tmp_path / "slow", slow)
+    threading.Timer(0.5, request_stop, args=(s.out, "test")).start()
+    res = execute_run(s, poll_s=0.05)
+    assert res.stopped and res.returncode == 143 and (s.out / "kept").is_file()  # 1 s of writing: not cut
+    deaf = "import signal, sys, time, pathlib; pathlib.Path(sys.argv[1]).mkdir(); signal.signal(15, signal.SIG_IGN); time.sleep(60)"
+    monkeypatch.setattr(runs, "STOP_GRACE_S", 0.5)
+    s = spec(tmp_path / "deaf", deaf)
+    threading.Timer(0.5, request_stop, args=(s.out, "test")).start()
+    res = execute_run(s, poll_s=0.05)
+    assert res.stopped and res.returncode == -9
+    assert "did not stop within 0.5 s of SIGTERM; killed" in (tmp_path / "deaf" / "run.log").read_text()
+
+
 # ------------------------------------------------------------------------------ trials: crash, prune
 class FakeExecutor:
     """Runs `fn(spec)` in a thread instead of a training (what the study sees is the same)."""

@@ -114,6 +114,11 @@ def _worker_env(threads: int, shared_cpu: bool = False) -> dict[str, str]:
 
 
 HOLDER_WAIT_S = 600.0  # how long an attempt waits for a training still stopping in its folder
+# how long a training asked to stop (SIGTERM) may take to end its step and write its map and
+# checkpoint before it is killed, which costs the run everything since its last checkpoint: a
+# warehouse run took 5.6 s on an idle 2-core machine; several trainings sharing the cores (an
+# ablation, tune, the tests in parallel) take a multiple of that
+STOP_GRACE_S = 300.0
 
 
 def _wait_for_the_holder(spec: RunSpec, wait_s: float = HOLDER_WAIT_S) -> bool:
@@ -159,10 +164,12 @@ def _attempt(spec: RunSpec, threads: int, poll_s: float, shared_cpu: bool) -> tu
                     continue
             proc.terminate()  # SIGTERM: the run ends its step and keeps its map and checkpoint
             try:
-                proc.wait(timeout=30)
+                proc.wait(timeout=STOP_GRACE_S)
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+                fh.write(f"# {socket.gethostname()} pid {os.getpid()}: the training did not stop within "
+                         f"{STOP_GRACE_S:g} s of SIGTERM; killed\n")
             return proc.returncode, True
 
 
