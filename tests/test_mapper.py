@@ -219,6 +219,65 @@ def test_a_restarted_clock_continues_after_the_newest_frame():
     np.testing.assert_allclose(mapper.store.times, [10.0, 10.5, 10.2, 11.5, 11.6, 12.0])
 
 
+def test_a_restarted_clock_leaves_the_snapshot_the_newest_frames_own_stamp(tmp_path):
+    """snapshot.json's last_frame_time is the newest frame's stamp as the robot sent it, not the
+    store's time that runs on past a restart (the first frame after it at 10.5 + 1 s gap = 11.5)."""
+    mapper = _mapper()
+    for t in (10.0, 10.5):
+        mapper.add_frame(_frame(t))
+    mapper.restart_clock()
+    mapper.add_frame(_frame(0.3))
+    assert mapper.store.times[-1] == pytest.approx(11.5)
+    info = mapper.snapshot(tmp_path / "s", n_rays=8, max_poses=1)
+    assert info.last_frame_time == pytest.approx(0.3)
+    assert json.loads((tmp_path / "s" / "snapshot.json").read_text())["last_frame_time"] == pytest.approx(0.3)
+
+
+def test_a_loaded_state_takes_only_the_frames_it_was_trained_on_in_their_order():
+    """Mapper.state() names its frames (stack, time); frames added again, before or after
+    load_state, must be those in that order: a robot program that restarts its reader one frame
+    late would train on with a field fitted to other frames. Refused in one line, nothing added;
+    frames beyond the state's go on as new ones; a state from before the list loads as before."""
+    a = _mapper()
+    for t, stack in ((0.0, 1), (0.2, 3), (1.0, 1)):
+        a.add_frame(_frame(t, stack=stack))
+    a.train(600.0, steps=1)
+    state = a.state()
+    assert state["frame_stacks"].tolist() == [1, 3, 1] and state["frame_times"].tolist() == [0.0, 0.2, 1.0]
+    b = _mapper()
+    b.load_state(state)
+    b.add_frame(_frame(0.0))
+    with pytest.raises(UsageError, match=r"^Mapper.add_frame: SyncFrame \(time 1.0\): frame 1 is stack 1 at 1.0 s, the "
+                                         r"loaded state's frame 1 was stack 3 at 0.2 s; expected the frames the state "
+                                         r"was trained on, in the same order$"):
+        b.add_frame(_frame(1.0))
+    assert b.frames == 1
+    b.add_frame(_frame(0.2, stack=3))
+    b.add_frame(_frame(1.0))
+    b.add_frame(_frame(1.5))  # the drive goes on: a new frame
+    assert b.frames == 4
+    c = _mapper()  # frames first, then the state: checked as the state loads, the mapper unchanged
+    c.add_frame(_frame(0.5))
+    with pytest.raises(UsageError, match=r"^Mapper.load_state state\['frame_times'\]: frame 0 is stack 1 at 0.5 s, "
+                                         r"the loaded state's frame 0 was stack 1 at 0.0 s"):
+        c.load_state(state)
+    assert c.step == 0
+    store = a.store  # add_store is checked alike
+    d = _mapper()
+    d.load_state(state)
+    with pytest.raises(UsageError, match=r"^Mapper.add_store: add_store: frame 0 is stack 3 at 0.2 s"):
+        d.add_store(store, rows=np.array([1, 0, 2]))
+    d.add_store(store, rows=np.array([0, 1, 2]))
+    legacy = {k: v for k, v in state.items() if k not in ("frame_stacks", "frame_times")}
+    e = _mapper()
+    e.add_frame(_frame(0.5))
+    e.load_state(legacy)  # nothing to check against
+    for broken, message in (({**state, "frame_times": state["frame_times"].float()}, "expected frame_stacks"),
+                            ({**state, "frames": 2}, "holds 3 frames, the state's 'frames' says 2")):
+        with pytest.raises(UsageError, match=r"^Mapper.load_state state\['frame_times'\]: " + message):
+            _mapper().load_state(broken)
+
+
 def test_snapshots_are_written_whole_and_never_overwritten(tmp_path, monkeypatch):
     mapper = _mapper()
     mapper.add_frame(_frame(0.0))

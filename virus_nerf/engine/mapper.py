@@ -48,6 +48,8 @@ from virus_nerf.engine.schedule import Schedules, StepSchedule
 from virus_nerf.engine.state import (
     STATE_KEYS,
     counters_problem,
+    expected_frames,
+    frames_mismatch,
     generators_problem,
     tensors_problem,
 )
@@ -146,6 +148,9 @@ class Mapper(MapViews):
         self._viewed_frames = 0  # frames whose camera views the grid was given (warmup_restart)
         self._time_shift = 0.0  # s added to the frames' times since a `restart_clock` (their order kept)
         self._restarted = False  # `restart_clock` called: the next frame sets `_time_shift`
+        # (N,) stack ids and store times (s) of the frames a loaded state was trained on: the frames
+        # added again must be those, in that order (`load_state`); empty when nothing was loaded
+        self._expected_frames = (np.zeros(0, np.int64), np.zeros(0, np.float64))
         self._seen_at_start = 0  # frames that count as seen at step 0 besides those at the first step
         self.stereo: StereoDepth | None = None  # triangulated depth targets of the store's rows
         self._stereo_feed: StereoFeed | None = None  # fed by track_image (mapping while driving)
@@ -214,6 +219,7 @@ class Mapper(MapViews):
         go by time); returns its row."""
         check_frame(frame, self.intrinsics)
         time_s = self._frame_time(frame)
+        self._check_expected(np.array([frame.stack_id]), np.array([time_s]), f"SyncFrame (time {frame.time!r})")
         small = self.store.intrinsics[frame.stack_id]
         size = (small.width, small.height)
         depth = None
@@ -249,6 +255,14 @@ class Mapper(MapViews):
                              "time order, once each (after a clock reset, call Mapper.restart_clock() first)")
         return t
 
+    def _check_expected(self, stack_ids: np.ndarray, times: np.ndarray, what: str) -> None:
+        """Frames about to become rows `frames`.. must be the loaded state's frames of those rows
+        (same stack, same time): other frames would train on with a field and grid fitted to a
+        drive they are not part of, without a word. A one-line UsageError, nothing added."""
+        problem = frames_mismatch(self._expected_frames, self.frames, stack_ids, times)
+        if problem is not None:
+            raise UsageError(f"Mapper.{'add_frame' if what.startswith('SyncFrame') else what}: {what}: {problem}")
+
     def _grow(self, box: SceneBox | None) -> None:
         """The grid grown to the extent's new box (None: it stayed)."""
         if box is not None:
@@ -279,6 +293,7 @@ class Mapper(MapViews):
         if store.intrinsics != self.store.intrinsics:
             raise ValueError(f"store intrinsics {store.intrinsics} differ from the mapper's {self.store.intrinsics}")
         picked = np.arange(len(store)) if rows is None else np.asarray(rows)
+        self._check_expected(store.stack_ids[picked], store.times[picked], "add_store")
         self.extent.check_inside(store.cam_to_world[picked, :3, 3], store.times[picked])
         self._grow(self.extent.add_frames(store, picked))
         first = self.frames
@@ -558,6 +573,9 @@ class Mapper(MapViews):
             "box": self.box.to_dict(),
             "prior_frames": self._prior_done,
             "frames": self.frames,  # a driving run's loader adds exactly these (not all due at its clock)
+            # which frames those were (load_state checks the frames added again against them)
+            "frame_stacks": torch.from_numpy(self.store.stack_ids[:self.frames].astype(np.int64)),
+            "frame_times": torch.from_numpy(self.store.times[:self.frames].astype(np.float64)),
             "stereo_points": self._stereo_points_done,
             "frames_at_start": self._frames_at_start,
             "viewed_frames": self._viewed_frames,
@@ -596,19 +614,32 @@ class Mapper(MapViews):
                                f"hi={list(box.hi)}; the field would be read in another frame")
         own_grid = {k: v for k, v in self.grid.state_dict().items() if k not in self.grid.optional_state_keys}
         return tensors_problem("grid", state["grid"], own_grid, shapes=not self.extent.growing) \
-            or generators_problem(state)
+            or generators_problem(state) or self._frames_problem(state)
+
+    def _frames_problem(self, state: dict) -> tuple[str, str] | None:
+        """("frame_times", what) when the state's frame list is malformed or the frames present do
+        not begin it (a state written before the list existed: None, nothing to check)."""
+        expected = expected_frames(state)
+        if isinstance(expected, str):
+            return "frame_times", expected
+        n = min(self.frames, len(expected[0]))
+        problem = frames_mismatch(expected, 0, self.store.stack_ids[:n], self.store.times[:n])
+        return None if problem is None else ("frame_times", problem)
 
     @serialised
     def load_state(self, state: dict) -> None:
         """Continue from `state()` (read on the CPU). The frames are not in it: add them again in
-        the same order; the first `prior_frames` of them do not get the sensor prior again. A state
-        this mapper cannot continue from is a one-line UsageError naming the key, the mapper unchanged."""
+        the same order (before or after; a frame that is not the state's frame of its row is refused,
+        by stack and time, with the same `restart_clock` calls); the first `prior_frames` of them do
+        not get the sensor prior again. A state this mapper cannot continue from is a one-line
+        UsageError naming the key, the mapper unchanged."""
         problem = self.state_problem(state)
         if problem is not None:
             raise UsageError(f"Mapper.load_state state[{problem[0]!r}]: {problem[1]}")
         if "box" in state:  # a grown box: the grid grows to it first
             self._grow(self.extent.restore(SceneBox.from_dict(state["box"])))
         self.field.load_state_dict(state["field"])
+        self._expected_frames = expected_frames(state)
         self._check_optimizer_state(state["optimizer"])
         with self._optimizer_lock:
             if self._optimizer is None:

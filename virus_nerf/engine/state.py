@@ -66,3 +66,43 @@ def generators_problem(state: Mapping) -> tuple[str, str] | None:
     except (TypeError, RuntimeError) as exc:
         return "torch_generator", f"not a torch CPU generator state ({type(exc).__name__}: {str(exc).splitlines()[0][:80]})"
     return None
+
+
+def expected_frames(state: Mapping):
+    """(stack ids (N,) int64, store times (N,) float64 s) of the frames the state was trained on,
+    from its "frame_stacks" / "frame_times"; empty arrays for a state written before they were
+    kept; a str saying what is wrong with a malformed pair."""
+    import numpy as np
+    import torch
+
+    stacks, times = state.get("frame_stacks"), state.get("frame_times")
+    if stacks is None and times is None:
+        return np.zeros(0, np.int64), np.zeros(0, np.float64)
+    if not (isinstance(stacks, torch.Tensor) and isinstance(times, torch.Tensor)
+            and stacks.dim() == times.dim() == 1 and len(stacks) == len(times)
+            and not stacks.is_floating_point() and times.dtype == torch.float64):
+        return ("expected frame_stacks (N,) integers and frame_times (N,) float64 seconds, as Mapper.state() "
+                "writes them")
+    if isinstance(state.get("frames"), int) and len(times) != state["frames"]:
+        return f"holds {len(times)} frames, the state's 'frames' says {state['frames']}"
+    return stacks.numpy().astype(np.int64), times.numpy().astype(np.float64)
+
+
+def frames_mismatch(expected, first: int, stack_ids, times) -> str | None:
+    """What is wrong when the frames (stack_ids, times (s)) becoming rows first, first+1, .. are
+    not the expected frames of those rows (rows beyond the expected list: anything goes); None
+    when they are."""
+    import numpy as np
+
+    want_stacks, want_times = expected
+    n = max(0, min(len(times), len(want_times) - first))
+    if n == 0:
+        return None
+    same = (np.asarray(stack_ids[:n]) == want_stacks[first:first + n]) & (np.asarray(times[:n]) == want_times[first:first + n])
+    if same.all():
+        return None
+    k = int(np.argmin(same))
+    row = first + k
+    return (f"frame {row} is stack {int(stack_ids[k])} at {float(times[k])!r} s, the loaded state's frame {row} was "
+            f"stack {int(want_stacks[row])} at {float(want_times[row])!r} s; expected the frames the state was "
+            "trained on, in the same order")

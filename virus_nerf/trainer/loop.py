@@ -289,7 +289,7 @@ class Trainer:
             key, what = problem
             if key == "state":
                 raise DataFormatError(path, "not a complete virus-nerf checkpoint: " + what.split(";")[0])
-            if key == "box":
+            if key in ("box", "frame_times"):
                 what += " (was the recording or its map changed?)"
             raise DataFormatError(path, what, field=key)
         try:
