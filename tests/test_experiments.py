@@ -147,12 +147,12 @@ def test_demo_end_to_end(tmp_path: Path):
     safety = doc["safety"]
     shares = " | ".join(pct(b["free_share"]) for b in safety["zones"].values())
     assert "## Can a planner trust the map?" in report
-    assert (f"| the map (`map.pgm`) | {shares} | {pct(safety['free_recall'])} | "
+    assert (f"| the map (`export`'s `map.pgm`) | {shares} | {pct(safety['free_recall'])} | "
             f"{pct(safety['free_recall_drivable'])} |") in report
     lidar = safety["anchors"]["lidar"]
     assert f"| LiDAR 2D map | {' | '.join(pct(b['free_share']) for b in lidar['zones'].values())} |" in report
     below = " / ".join(pct(b["free_share"]) for b in safety["below_band"].values())
-    assert f"marked free within 1 m / 2 m / all: the map (`map.pgm`) {below}; USS + IRS alone" in report
+    assert f"marked free within 1 m / 2 m / all: the map (`export`'s `map.pgm`) {below}; USS + IRS alone" in report
     assert "(run/plots/map_safety.png)" in report and (out / "run" / "plots" / "map_safety.png").is_file()
     assert "brown: what the body meets below the band; orange: the part of it the map marks free." in report
     assert all(f"**Warning:** {w}" in report for w in doc["warnings"]) and doc["warnings"]

@@ -692,3 +692,25 @@ def test_live_stream_played_twice_keeps_the_mapper_in_time_order(bags, tiny_cfg,
                     if ch.topic == "/map")
     t0 = messages[0][1].time_s
     assert grid.header.stamp.sec + 1e-9 * grid.header.stamp.nanosec == pytest.approx(t0, abs=1e-6)
+
+
+def test_resume_finishes_from_the_newest_snapshot_past_9999(tmp_path):
+    """Snapshot folders are numbered 0001, 0002, ...; the 10000th (14 h at a snapshot every 5 s)
+    has five digits and sorts before 9999 as text: `map-bag --resume` of a killed run takes the
+    newest by its number."""
+    from virus_nerf.mapping.stream import finish_killed
+
+    out = tmp_path / "run"
+    for k, t in ((9998, 49990.0), (9999, 49995.0), (10000, 50000.0)):
+        snap = out / "snapshots" / f"{k:04d}_{t:.1f}s"
+        snap.mkdir(parents=True)
+        (snap / "map.pgm").write_text(f"map of snapshot {k}")
+        (snap / "snapshot.json").write_text(json.dumps({"frames": k, "steps": 2 * k, "seconds": t}))
+    (out / "stream.json").write_text(json.dumps({"running": True}))
+    lines = []
+    report = finish_killed(out, log=lines.append)
+    assert (out / "map" / "map.pgm").read_text() == "map of snapshot 10000"
+    assert report.frames == 10000 and report.steps == 20000
+    assert report.stopped == "killed after snapshot 10000 (10000_50000.0s)"
+    assert lines[0].startswith(f"map-bag: the stream in {out} was stopped after snapshot 10000; final map")
+    assert [Path(p).name for p in report.snapshots] == ["9998_49990.0s", "9999_49995.0s", "10000_50000.0s"]

@@ -809,3 +809,18 @@ def test_a_bad_flag_value_points_at_the_commands_own_help(tmp_path):
     code, _, err = run_cli(["train", "--data", tmp_path, "--room", "office", "--out", tmp_path / "r",
                             "--max-time", "abc"])
     one_line_error(code, err, "--max-time 'abc': expected a number (see virus-nerf train --help)")
+
+
+def test_the_metric_vs_time_plot_names_its_ground_truth(tmp_path, monkeypatch):
+    """plots/metric_vs_time.png's title names the protocol its points were scored against, as every
+    plot's does (usage.md, "Ground truth")."""
+    from types import SimpleNamespace
+
+    from virus_nerf.evaluation import plots
+    from virus_nerf.trainer.report import write_run_plots
+
+    titles = []
+    monkeypatch.setattr(plots, "write_plot_files", lambda result, folder, max_maps: [])
+    monkeypatch.setattr(plots, "plot_metric_vs_time", lambda curves, path, title: titles.append(title))
+    write_run_plots(tmp_path / "run", SimpleNamespace(gt="map"), [])
+    assert titles == ["NeRF zone 3 vs training time; ground truth: map"]

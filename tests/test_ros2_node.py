@@ -274,6 +274,105 @@ def test_ros_names_and_frames_are_refused_before_anything_is_made(tmp_path):
     assert code == 2 and "--topic: expected one or more topic names" in err and "Traceback" not in err
 
 
+def test_a_topics_file_is_checked_as_ros_2_names_and_its_notes_are_said(tmp_path):
+    """A topic in the topics file that no ROS 2 publisher can have ('/a b') is one line naming the
+    file and key, not a node waiting in silence; a folder given as --topics is called a folder; a
+    file without [stacks] says the ETHZ robot's topics are waited for. Nothing is made."""
+    bad = tmp_path / "robot.toml"
+    bad.write_text('[stacks.1]\ncolor = "/a b"\ncamera_in_lidar = { translation = [0, 0, 0], rotation_xyzw = [0, 0, 0, 1] }\n')
+    code, _, err = run_cli(["ros2", "--out", tmp_path / "o", "--tf-child", "rslidar", "--topics", bad])
+    assert code == 2 and err == (f"virus-nerf: error: {bad}, key 'stacks.1.color': '/a b': not a ROS 2 topic name; "
+                                 "' ' is not allowed: expected letters, digits, '_' and '/'\n")
+    code, _, err = run_cli(["ros2", "--out", tmp_path / "o", "--tf-child", "rslidar", "--topics", tmp_path])
+    assert code == 2 and f"--topics {tmp_path}: a folder; expected the importer's topic mapping file" in err
+    assert not (tmp_path / "o").exists()
+    from virus_nerf.data.bags.topics import read_topics
+    from virus_nerf.ros2.command import require_topic_names
+
+    empty = tmp_path / "empty.toml"
+    empty.write_text("")
+    tcfg = read_topics(empty)
+    require_topic_names(tcfg)  # the ETHZ topics are ROS 2 names
+    from virus_nerf.errors import UsageError
+    from virus_nerf.ros2.command import run_node
+
+    lines = []
+    with pytest.raises(UsageError, match="domain id 300: expected 0-232"):  # the note comes before the graph is joined
+        run_node(tmp_path / "n", empty, "tf", "odom", "rslidar", "/odom", None, distro="jazzy", domain=300,
+                 loopback=True, names={}, map_frame="odom", namespace="/", publish_every=1.0, first_map=1.0,
+                 drive=1.0, max_lag=1.0, max_silence=1.0, maps=None, sinks=None, duration=None,
+                 exit_when_idle=None, log=lines.append)
+    assert lines[0].startswith(f"ros2: note: {empty}: no [stacks] section: the ETHZ robot's stacks 1 and 3 are used")
+
+
+def test_ros2_play_offers_a_latched_map_latched(tmp_path):
+    """ros2-play offers each topic as the bag recorded it (`ros2 bag play`): map-bag --out-bag's
+    /map was offered reliable and transient local, depth 1, so a reader asking for that (RViz's Map
+    display set to Transient Local, nav2's static layer, map_saver) gets it; /tf as recorded
+    (reliable, volatile, 100); a bag without recorded QoS keeps the defaults."""
+    import threading
+
+    from virus_nerf.data.bags.reader import BagReader, RecordedQos
+    from virus_nerf.mapping.ros_maps import RosMapBag
+    from virus_nerf.maps.occupancy import OccupancyMap2D
+    from virus_nerf.ros2.play import play, play_qos
+
+    grid = OccupancyMap2D(np.full((4, 5), 254, np.uint8), 0.05, (0.0, 0.0))
+    with RosMapBag(tmp_path / "maps") as bag:
+        pose = np.eye(4)
+        pose[:3, :3] = [[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]]
+        bag.write_pose(1.0, pose)
+        bag.write_maps(1.0, grid, None)
+    with BagReader(tmp_path / "maps") as reader:
+        assert reader.recorded_qos("/map") == RecordedQos(reliable=True, transient_local=True, depth=1)
+        assert reader.recorded_qos("/tf") == RecordedQos(reliable=True, transient_local=False, depth=100)
+    assert play_qos("/map", RecordedQos(True, True, 1)) == dds.LATCHED
+    assert play_qos("/tf_static", None) == dds.STATIC and play_qos("/x", None) == dds.RELIABLE
+    domain = _domain()
+    listener = dds.Participant("jazzy", domain, loopback=True)
+    player = dds.Participant("jazzy", domain, loopback=True)
+    try:
+        reader = listener.reader("/map", GRID, dds.LATCHED)
+        done = threading.Thread(target=play, args=(tmp_path / "maps", player), kwargs={"log": lambda _: None})
+        done.start()
+        t0, got = time.monotonic(), []
+        while not got and time.monotonic() - t0 < 20:
+            got = reader.take()
+            time.sleep(0.05)
+        done.join(timeout=30)
+        assert len(got) == 1
+        msg = types.deserialize(got[0].payload, GRID, types.typestore("jazzy"))
+        assert (msg.info.width, msg.info.height) == (5, 4) and msg.header.stamp.sec == 1
+    finally:
+        listener.close()
+        player.close()
+
+
+def test_a_publisher_that_left_is_forgotten():
+    """A writer gone from the graph (a ros2-play that ended) is no longer a publisher: the node
+    neither subscribes to its topic nor says it did; a second writer of the topic keeps it."""
+    domain = _domain()
+    seen, gone = dds.Participant("jazzy", domain, loopback=True), dds.Participant("jazzy", domain, loopback=True)
+    stays = dds.Participant("jazzy", domain, loopback=True)
+    try:
+        def wait_for(check):
+            t0 = time.monotonic()
+            while not check(seen.discover()) and time.monotonic() - t0 < 20:
+                time.sleep(0.05)
+            return check(seen.discover())
+
+        gone.writer("/left", GRID, dds.LATCHED)
+        gone.writer("/shared", GRID, dds.LATCHED)
+        stays.writer("/shared", GRID, dds.LATCHED)
+        assert wait_for(lambda p: "/left" in p and len(seen.writer_gids.get("/shared", ())) == 2)
+        gone.close()
+        assert wait_for(lambda p: "/left" not in p and len(seen.writer_gids.get("/shared", ())) == 1)
+        assert seen.publishers["/shared"] == {GRID} and "/left" not in seen.writer_gids
+    finally:
+        for p in (seen, gone, stays):
+            p.close()
+
+
 @pytest.mark.skipif(not hasattr(__import__("signal"), "SIGSTOP"), reason="needs SIGSTOP (POSIX)")
 def test_a_reader_that_stops_acknowledging_is_a_timeout_not_a_crash():
     """The node's last act waits for its /map readers' acknowledgements; a reader that left (or

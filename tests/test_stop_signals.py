@@ -192,13 +192,20 @@ def test_map_bag_import_first_holds_its_folder_against_a_resume(drive, tmp_path)
         proc.communicate(timeout=60)
 
 
+def _pgm_size(path) -> tuple[int, int]:
+    """(height, width) from a P5 header."""
+    w, h = path.read_bytes().split(b"\n")[1].split()
+    return int(h), int(w)
+
+
 def test_map_bag_killed_then_resume_writes_the_final_map(drive, tmp_path):
     """SIGKILL after the second snapshot: whole snapshots and the mapper state of the last one; the
     worker dies with its parent; `map-bag --resume --out OUT` makes OUT/map/ from them (that
-    snapshot's map and state) and stream.json; a second --resume and a folder without any snapshot
-    are refused in one line."""
-    out = tmp_path / "out"
-    proc = _start(_map_bag(drive, out), tmp_path)
+    snapshot's map and state) and stream.json, and rebuilds the --out-bag the kill left unfinished
+    (no metadata.yaml) from the snapshots' maps, keeping the unfinished one aside; a second
+    --resume and a folder without any snapshot are refused in one line."""
+    out, ros = tmp_path / "out", tmp_path / "ros"
+    proc = _start([*_map_bag(drive, out), "--out-bag", ros], tmp_path)
     _wait_for(lambda: len(_snapshots(out)) >= 2 and (out / "snapshots" / "mapper.pt").is_file(), proc)
     children = _children(proc.pid)
     proc.send_signal(signal.SIGKILL)
@@ -218,13 +225,26 @@ def test_map_bag_killed_then_resume_writes_the_final_map(drive, tmp_path):
         assert code == 2 and f"{flag}" in stderr and "cannot apply to it: drop it" in stderr, stderr
     assert not (out / "map").exists() and not (tmp_path / "maps_bag").exists()
 
+    assert not (ros / "metadata.yaml").exists()  # killed: the MCAP is finished on close
     code, stdout, stderr = run_cli(["map-bag", "--resume", "--out", out])
     assert code == 0, stderr
     last = snaps[-1]
+    kept = next(tmp_path.glob("ros.incomplete-*"))
     assert stdout == (f"map-bag: the stream in {out} was stopped after snapshot {len(snaps)}; final map (that "
                       f"snapshot's) in {out / 'map'}"
                       f"{'' if state['snapshot'] == last.name else f' (no mapper state of {last.name} was saved)'}"
-                      f", report in {out / 'stream.json'}\n")
+                      f", report in {out / 'stream.json'}; --out-bag {ros} rebuilt from the {len(snaps)} snapshots' "
+                      f"maps (the /tf poses were lost with the killed process; the unfinished bag kept as {kept})\n")
+    from virus_nerf.data.bags.reader import BagReader
+
+    with BagReader(ros) as bag:
+        assert bag.topics["/map"].count == bag.topics["/map_probability"].count == len(snaps)
+        maps = [msg.msg for _, msg in bag.iter_topics(["/map"])]
+    stamp = json.loads((last / "snapshot.json").read_text())["last_frame_time"]
+    newest = maps[-1]
+    assert newest.header.stamp.sec + newest.header.stamp.nanosec * 1e-9 == pytest.approx(stamp, abs=1e-6)
+    h, w = _pgm_size(last / "map.pgm")
+    assert (newest.info.width, newest.info.height) == (w, h) and newest.header.frame_id == "map"
     for name in MAP_FILES:
         assert (out / "map" / name).read_bytes() == (last / name).read_bytes(), name
     if state["snapshot"] == last.name:
@@ -435,7 +455,8 @@ def test_train_stopped_while_scoring_keeps_the_map_and_says_resume_scores_it(tin
     assert not (out / "metrics.json").exists()
     code, stdout, err = run_cli(["train", "--resume", "--out", out, "--quiet"])
     assert code == 0, err
-    assert json.loads((out / "metrics.json").read_text())["train"]["steps"] == 4
+    block = json.loads((out / "metrics.json").read_text())["train"]
+    assert block["steps"] == 4 and block["device"] == "cpu"  # the checkpoint's: where the steps ran
 
 
 def test_after_a_stop_no_exception_ignored_report_follows_the_one_line():

@@ -57,7 +57,8 @@ def safety_markdown(doc: Mapping[str, Any], picture: str | None = None) -> list[
         def pct(v: Any) -> str:
             return "-" if v is None else f"{100 * v:.1f} %"
 
-        rows = [("the map (`map.pgm`)", safety), *((ANCHOR_LABELS.get(k, k), b)
+        # the map judged is the one `virus-nerf export --what map` writes (the demo writes no map.pgm)
+        rows = [("the map (`export`'s `map.pgm`)", safety), *((ANCHOR_LABELS.get(k, k), b)
                                                    for k, b in safety.get("anchors", {}).items())]
         zones = list(safety["zones"])
         lines += ["## Can a planner trust the map?", "",

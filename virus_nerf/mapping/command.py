@@ -302,6 +302,8 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
     require_ros_extra(pose_args["poses"])
     poses = pose_args["poses"]
     tcfg = read_topics(topics) if topics else default_topics()
+    for note in tcfg.notes:  # e.g. no [stacks]: the ETHZ robot's topics are read
+        print(f"map-bag: note: {note}")
     cfg = cfg if cfg is not None else TrainConfig()
     with BagReader(bag) as reader, ExitStack() as owned:
         plan = plan_topics(reader, tcfg, "csv" if poses == "odometry" else poses)

@@ -78,6 +78,9 @@ class StreamReport:
     stopped: str | None = None  # the error (or signal) that stopped the stream
     stopped_at_s: float | None = None  # bag seconds since the first message
     running: bool = False  # true in the report written at each snapshot while the stream runs
+    # --out-bag: {"path", "map_frame", "base_frame"}, so `map-bag --resume` of a killed run can
+    # rebuild the bag the kill left unfinished
+    out_bag: dict | None = None
 
     def as_dict(self, out: Path) -> dict:
         """The stream.json document of the run in OUT: its folders named relative to OUT (where
@@ -150,6 +153,11 @@ class StreamRun:
         # a live source (ros2/node.py): messages arrive stamped with the wall clock (time.time)
         self.live_source = getattr(sync, "on_problem", None) is not None
         self.report = StreamReport()
+        from virus_nerf.mapping.ros_maps import RosMapBag
+
+        if isinstance(ros_bag, RosMapBag):  # (the ROS 2 node's sink is its /map publisher)
+            self.report.out_bag = {"path": str(ros_bag.path.absolute()), "map_frame": ros_bag.map_frame,
+                                   "base_frame": ros_bag.base_frame}
         self._warned: set[str] = set()
 
     # ------------------------------------------------------------------ clock
@@ -453,6 +461,12 @@ def summary(report: StreamReport) -> str:
     return f"{report.frames} frames{without}, {dropped} dropped{f' ({reasons})' if reasons else ''}{lag}"
 
 
+def snapshot_number(folder: Path) -> int:
+    """k of a snapshot folder `kkkk_T.Ts`: the order they were made in (past 9999 the names have
+    five digits and no longer sort as text)."""
+    return int(folder.name.split("_")[0])
+
+
 def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport:
     """The final map of a streaming run that was killed (SIGKILL, a power cut) from what it saved:
     OUT/map/ is a copy of its newest snapshot (map.*, prob.*, snapshot.json) with OUT/snapshots/
@@ -488,7 +502,8 @@ def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport
             if half[f"{FINAL}/{STATE}"] and not (out / FINAL / STATE).is_file() else ""
         raise UsageError(f"--resume --out {out}: the stream ended (final map in {out / FINAL}, {report_path}); "
                          f"nothing to finish{lost}")
-    snaps = sorted(p for p in (out / SNAPSHOTS).glob("[0-9]*") if p.is_dir()) if (out / SNAPSHOTS).is_dir() else []
+    snaps = sorted((p for p in (out / SNAPSHOTS).glob("[0-9]*_*") if p.is_dir() and p.name.split("_")[0].isdigit()),
+                   key=snapshot_number) if (out / SNAPSHOTS).is_dir() else []
     if not snaps:
         raise UsageError(f"--resume --out {out}: the stream was stopped before its first snapshot; there is no map "
                          "to finish (run map-bag again into a new --out)")
@@ -499,7 +514,7 @@ def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport
         report = StreamReport(**{k: v for k, v in doc.items() if k in known})
     report.snapshots = [str(p) for p in snaps]  # every whole snapshot (the report may predate the last)
     report.running = False
-    report.stopped = report.stopped or f"killed after snapshot {len(snaps)} ({last.name})"
+    report.stopped = report.stopped or f"killed after snapshot {snapshot_number(last)} ({last.name})"
     final = out / FINAL
     state_path, state = out / SNAPSHOTS / STATE, None
     if state_path.is_file():
@@ -528,6 +543,39 @@ def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport
         outputs.write(final / STATE, lambda: save_torch_atomic(state, final / STATE))
     outputs.check("free some space and run map-bag --resume again")
     note = "" if (final / STATE).is_file() else f" (no mapper state of {last.name} was saved)"
-    log(f"map-bag: the stream in {out} was stopped after snapshot {len(snaps)}; final map (that snapshot's) in "
-        f"{final}{note}, report in {report_path}")
+    log(f"map-bag: the stream in {out} was stopped after snapshot {snapshot_number(last)}; final map (that snapshot's) in "
+        f"{final}{note}, report in {report_path}{rebuild_out_bag(report.out_bag, snaps)}")
     return report
+
+
+def rebuild_out_bag(out_bag: dict | None, snaps: list[Path]) -> str:
+    """The --out-bag of a killed run, which a kill leaves without its metadata.yaml and most of its
+    messages (an MCAP is finished on close): the unfinished folder is kept aside as
+    PATH.incomplete-<ns>, and PATH rebuilt with /map and /map_probability of every snapshot at
+    its newest frame's stamp, as the run wrote them. The /tf poses were in the run's memory
+    only. Returns what the resume line adds ("" when there is nothing to rebuild)."""
+    import json
+    import time
+
+    from virus_nerf.mapping.ros_maps import RosMapBag
+    from virus_nerf.maps.occupancy import read_map_server
+
+    if not out_bag or (Path(out_bag["path"]) / "metadata.yaml").is_file():
+        return ""
+    path = Path(out_bag["path"])
+    aside = ""
+    if path.exists():
+        kept = path.with_name(f"{path.name}.incomplete-{time.time_ns()}")
+        path.rename(kept)
+        aside = f"; the unfinished bag kept as {kept}"
+    written = 0
+    with RosMapBag(path, map_frame=out_bag["map_frame"], base_frame=out_bag["base_frame"]) as bag:
+        for snap in snaps:
+            stamp = json.loads((snap / "snapshot.json").read_text()).get("last_frame_time")
+            if stamp is None:
+                continue
+            prob = read_map_server(snap / "prob.yaml") if (snap / "prob.yaml").is_file() else None
+            bag.write_maps(float(stamp), read_map_server(snap / "map.yaml"), prob)
+            written += 1
+    return (f"; --out-bag {path} rebuilt from the {written} snapshots' maps (the /tf poses were lost with the "
+            f"killed process{aside})")

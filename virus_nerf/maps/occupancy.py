@@ -237,6 +237,23 @@ def write_map_server(m: OccupancyMap2D, folder: Path, name: str = "map") -> tupl
     return pgm, yaml
 
 
+def read_map_server(yaml_path: Path) -> OccupancyMap2D:
+    """A map written by `write_map_server` (its YAML's image, mode, resolution and origin; the PGM
+    as it is): to publish again what a snapshot folder holds."""
+    from PIL import Image
+
+    yaml_path = Path(yaml_path)
+    fields = {}
+    for line in yaml_path.read_text().splitlines():
+        key, _, value = line.partition(":")
+        fields[key.strip()] = value.strip()
+    x, y, _ = (float(v) for v in fields["origin"].strip("[]").split(","))
+    with Image.open(yaml_path.parent / fields["image"]) as img:
+        image = np.asarray(img, dtype=np.uint8).copy()
+    return OccupancyMap2D(image=image, resolution=float(fields["resolution"]), origin=(x, y),
+                          mode="scale" if fields.get("mode") == "scale" else "trinary")
+
+
 def write_png(path: Path, image: np.ndarray) -> None:
     """8-bit grey/RGB or 16-bit grey (uint16) PNG, atomically."""
     from PIL import Image

@@ -126,7 +126,8 @@ def ros2(
         if value is not None:
             require_number(flag, value, 0.0)
     if topics is not None and not Path(topics).is_file():
-        raise UsageError(f"--topics {topics}: no such file; expected the importer's topic mapping file")
+        what = "a folder" if Path(topics).is_dir() else "no such file"
+        raise UsageError(f"--topics {topics}: {what}; expected the importer's topic mapping file (TOML)")
     out = Path(out)
     require_new_folder("--out", out)
     view.check()
@@ -146,6 +147,21 @@ def ros2(
                  duration=duration, exit_when_idle=exit_when_idle)
 
 
+def require_topic_names(tcfg) -> None:
+    """Every topic the topics file names is a ROS 2 topic name, else one line naming the file and
+    key: a name no publisher can have would be waited for in silence."""
+    from virus_nerf.errors import ConfigError
+    from virus_nerf.ros2.dds import name_problem
+
+    named = [(f"stacks.{s}.{role}", topic) for s, st in sorted(tcfg.stacks.items()) for role, topic in st.roles().items()]
+    named += [("lidar.topic", tcfg.lidar.topic)] if tcfg.lidar.topic else []
+    named += [(f"tf_topics[{i}]", t) for i, t in enumerate(tcfg.tf_topics)]
+    for key, topic in named:
+        problem = name_problem(topic)
+        if problem is not None:
+            raise ConfigError(f"{topic!r}: not a ROS 2 topic name; {problem}", file=tcfg.source, key=key)
+
+
 def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_child: str | None, odometry_topic: str,
              cfg, *, distro: str, domain: int | None, loopback: bool, names: dict, map_frame: str, namespace: str,
              publish_every: float, first_map: float, drive: float, max_lag: float, max_silence: float,
@@ -163,6 +179,9 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
     from virus_nerf.utils.stop import Stopped
 
     tcfg = read_topics(topics) if topics else default_topics()
+    require_topic_names(tcfg)
+    for note in tcfg.notes:  # e.g. no [stacks]: the ETHZ robot's topics are waited for
+        log(f"ros2: note: {note}")
     cfg = cfg if cfg is not None else TrainConfig()
     if "rgbd" not in cfg.sensors:  # live, a depth image the mapper does not use is neither read nor waited for
         tcfg = dataclasses.replace(tcfg, stacks={s: dataclasses.replace(st, depth=None) for s, st in tcfg.stacks.items()})

@@ -257,6 +257,7 @@ class Participant:
         self.publishers: dict[str, set[str]] = {}  # ROS topic -> ROS message types of its remote writers
         self.offered: dict[str, object] = {}  # ROS topic -> the QoS its newest remote writer offers
         self.writer_gids: dict[str, set[bytes]] = {}  # ROS topic -> its remote writers' 16-byte GUIDs
+        self._writers_seen: dict[bytes, tuple[str, str]] = {}  # a remote writer's GUID -> (ROS topic, type)
 
     def endpoint(self, name: str, msgtype: str, kind: QosKind):
         """(the DDS topic of ROS topic `name`, made once, and the QoS of profile `kind` with the
@@ -321,21 +322,46 @@ class Participant:
         self._discovery_writer.write(types.serialize(info, ENTITIES_INFO, store))
 
     def discover(self) -> dict[str, set[str]]:
-        """The publishers seen on the graph so far (other participants'), ROS topic -> message types."""
+        """The publishers on the graph now (other participants'), ROS topic -> message types. A
+        writer that has left (its discovery sample no longer alive: a `ros2-play` that ended, a
+        node that stopped) is forgotten, and its topic with it when it was the last one: nothing
+        is subscribed to, or said to be, on the word of a publisher that is gone."""
+        from cyclonedds.core import InstanceState
+
         from virus_nerf.ros2 import types
 
         for ep in self._publications.take(256):
+            info = getattr(ep, "sample_info", None)
+            if info is not None and info.instance_state != InstanceState.Alive:
+                self._forget(ep.key.bytes)  # the key alone (no topic) once the writer was seen alive
+                continue
             if not getattr(ep, "topic_name", None) or ep.participant_key in self._own:
                 continue
             if not ep.topic_name.startswith(ROS_TOPIC_PREFIX + "/"):
                 continue
             msgtype = types.ros_type_name(ep.type_name)
-            if msgtype is not None:
-                topic = ep.topic_name[len(ROS_TOPIC_PREFIX):]
-                self.publishers.setdefault(topic, set()).add(msgtype)
-                self.offered[topic] = ep.qos
-                self.writer_gids.setdefault(topic, set()).add(ep.key.bytes)
+            if msgtype is None:
+                continue
+            topic = ep.topic_name[len(ROS_TOPIC_PREFIX):]
+            self.publishers.setdefault(topic, set()).add(msgtype)
+            self.offered[topic] = ep.qos
+            self.writer_gids.setdefault(topic, set()).add(ep.key.bytes)
+            self._writers_seen[ep.key.bytes] = (topic, msgtype)
         return self.publishers
+
+    def _forget(self, gid: bytes) -> None:
+        """A remote writer that left: out of `writer_gids`, its type out of `publishers` when no
+        other writer of the topic has it, the topic out when it was the last."""
+        if gid not in self._writers_seen:
+            return
+        topic, _ = self._writers_seen.pop(gid)
+        gids = self.writer_gids.get(topic, set())
+        gids.discard(gid)
+        if not gids:
+            for table in (self.publishers, self.offered, self.writer_gids):
+                table.pop(topic, None)
+            return
+        self.publishers[topic] = {self._writers_seen[g][1] for g in gids if g in self._writers_seen}
 
     def close(self) -> None:
         """Leave the graph now: readers and writers, topics, then the participant deleted (cyclonedds

@@ -4,9 +4,11 @@ Every message of the chosen topics is published on its topic, in the bag's recei
 wall clock scaled by `rate` passes its receive time; its header stamps are left as recorded (a
 node reads them as the robot's clock). A ROS 1 message is converted to the ROS 2 shape of the
 chosen distro (ros2/types.py `to_ros2`: `seq` dropped, CameraInfo's `D, K, R, P` as `d, k, r,
-p`). QoS: `/tf_static` reliable and transient local (a node that joins later still gets the
-static transforms); every other topic reliable and volatile, depth 10 (ROS 2's default profile,
-which `ros2 bag play` offers when the bag records none).
+p`). QoS: what the bag recorded its publishers offering (a ROS 2 bag's offered QoS profiles, a
+ROS 1 topic's latching), as `ros2 bag play` offers it: a latched /map (map-bag --out-bag) reaches
+readers that ask for transient local. Where the bag records none: `/tf_static` reliable and
+transient local (a node that joins later still gets the static transforms), every other topic
+reliable and volatile, depth 10 (ROS 2's default profile).
 
 So the node can be tried on a machine without ROS and without a robot, and tested here.
 """
@@ -29,6 +31,15 @@ class PlayReport:
     behind_s: float = 0.0  # the most a message was published after it was due (wall seconds)
 
 
+def play_qos(topic: str, recorded) -> dds.QosKind:
+    """The QoS a topic is played with: as recorded (data.bags.reader.RecordedQos; a keep-all or
+    unrecorded depth as ROS 2's default, 10), else the module doc's defaults."""
+    if recorded is None:
+        return dds.STATIC if dds.is_tf_static(topic) else dds.RELIABLE
+    return dds.QosKind(reliable=recorded.reliable, transient_local=recorded.transient_local,
+                       depth=recorded.depth or dds.RELIABLE.depth)
+
+
 def play(bag: Path, participant: dds.Participant, *, rate: float = 1.0, topics: list[str] | None = None,
          delay_s: float = 1.0, log: Callable[[str], None] = print) -> PlayReport:
     """Publish `bag`'s messages (of `topics`, default all) on the participant's domain; returns
@@ -47,8 +58,7 @@ def play(bag: Path, participant: dds.Participant, *, rate: float = 1.0, topics: 
                 raise UsageError(f"--topic {t}: not in the bag {bag}; it has {', '.join(sorted(known))}")
         writers = {}
         for t in names:
-            kind = dds.STATIC if dds.is_tf_static(t) else dds.RELIABLE
-            writers[t] = participant.writer(t, known[t].msgtype, kind)
+            writers[t] = participant.writer(t, known[t].msgtype, play_qos(t, reader.recorded_qos(t)))
         report.topics = len(writers)
         log(f"ros2-play: {bag}: {len(writers)} topics on ROS 2 domain {participant.domain_id} "
             f"({participant.distro}), rate {rate:g}")

@@ -94,6 +94,7 @@ class Trainer:
         self._prepared = False
         self.startup_s: float | None = None  # process start -> first step (set by prepare)
         self.checkpoint_error: OSError | None = None  # the final checkpoint did not fit (online)
+        self.trained_on: str | None = None  # a loaded checkpoint's device ("cpu", "cuda"; None before it was kept)
         self.grid_init_s = 0.0
 
     @property
@@ -259,7 +260,7 @@ class Trainer:
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict:
         return {**self.mapper.state(), "eval_history": [dataclasses.asdict(p) for p in self.eval_history],
-                "config": to_dict(self.config)}
+                "config": to_dict(self.config), "device": self.mapper.device.type}
 
     def save_checkpoint(self) -> None:
         """checkpoint.pt, whole or not at all: serialised in memory, then written to a temporary
@@ -295,6 +296,7 @@ class Trainer:
         try:
             self.mapper.load_state(state)
             self.eval_history = [EvalPoint(**e) for e in state.get("eval_history", [])]
+            self.trained_on = state.get("device") if isinstance(state.get("device"), str) else None
             if self.config.online and isinstance(state.get("frames"), int) and self.mapper.frames == 0:
                 self._frames_at_load = state["frames"]
         except (KeyError, ValueError, TypeError, RuntimeError) as exc:  # optimiser, RNG states, history

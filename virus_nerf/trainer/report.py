@@ -27,7 +27,9 @@ def write_run_plots(run_dir: Path, result, eval_history: list[EvalPoint], max_ma
     folder = Path(run_dir) / PLOTS
     with new_output_dir(folder, replace=replace) as tmp:
         names = write_plot_files(result, tmp, max_maps=max_maps)
-        curve = plot_metric_vs_time({"NeRF": eval_history}, tmp / "metric_vs_time.png")
+        # scored during training against the primary ground truth, as the title says (plots.py)
+        curve = plot_metric_vs_time({"NeRF": eval_history}, tmp / "metric_vs_time.png",
+                                    title=f"NeRF zone 3 vs training time; ground truth: {result.gt}")
         if curve is not None:
             names.append(curve.name)
         if safety_picture is not None:

@@ -353,7 +353,9 @@ def _resume(out: Path, recording, cfg, quiet):
         finished = False
     if finished:  # budget reached before the metrics were written: evaluate only (no step, no file rewritten)
         trainer.prepare()  # on the frames and stereo points (cached) it trained on, as `export` does
-        return trainer, TrainSummary(trainer.mapper.step, trainer.mapper.seconds, trainer.mapper.samples)
+        # the steps ran in the process that wrote the checkpoint: its device names their rate
+        return trainer, TrainSummary(trainer.mapper.step, trainer.mapper.seconds, trainer.mapper.samples,
+                                     device=trainer.trained_on)
 
     def started() -> None:  # the first step worked: from now on the run is one of this config
         if to_dict(cfg) != _saved_config(out):

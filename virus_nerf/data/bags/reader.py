@@ -50,6 +50,16 @@ class Message:
     received_s: float | None = None  # the bag's receive (record) time: the order messages arrive in
 
 
+@dataclass(frozen=True)
+class RecordedQos:
+    """How a topic's publishers offered it when the bag was recorded (a player offers the same, as
+    `ros2 bag play` does: a latched /map stays latched for the readers that ask for that)."""
+
+    reliable: bool
+    transient_local: bool
+    depth: int  # KEEP_LAST depth; 0 = keep all or not recorded
+
+
 class BagReader:
     """A ROS 1 or ROS 2 bag open for reading (use as a context manager)."""
 
@@ -103,6 +113,31 @@ class BagReader:
         for name, info in self._reader.topics.items():
             out[name] = TopicInfo(name, m.normalise_type(info.msgtype or "?"), int(info.msgcount))
         return out
+
+    def recorded_qos(self, topic: str) -> RecordedQos | None:
+        """The QoS `topic` was offered with when recorded: a ROS 2 bag's offered_qos_profiles (when
+        its publishers agreed), a ROS 1 connection's latching (latched: reliable, transient local,
+        depth 1, as ROS 1 replays it); None when the bag records none."""
+        from rosbags.interfaces import (
+            ConnectionExtRosbag1,
+            ConnectionExtRosbag2,
+            QosDurability,
+            QosHistory,
+            QosReliability,
+        )
+
+        exts = [c.ext for c in self._reader.connections if c.topic == topic]
+        if any(isinstance(e, ConnectionExtRosbag1) and e.latching for e in exts):
+            return RecordedQos(reliable=True, transient_local=True, depth=1)
+        profiles = {p for e in exts if isinstance(e, ConnectionExtRosbag2) for p in (e.offered_qos_profiles or [])
+                    if not isinstance(p, str)}  # rosbags keeps an unparsed profile list as its YAML text
+        if len({(p.reliability, p.durability) for p in profiles}) != 1:
+            return None
+        first = next(iter(profiles))
+        depths = [p.depth for p in profiles if p.history == QosHistory.KEEP_LAST]
+        return RecordedQos(reliable=first.reliability != QosReliability.BEST_EFFORT,
+                           transient_local=first.durability == QosDurability.TRANSIENT_LOCAL,
+                           depth=max(depths, default=0))
 
     @property
     def span_s(self) -> tuple[float, float]:
