@@ -714,3 +714,64 @@ def test_resume_finishes_from_the_newest_snapshot_past_9999(tmp_path):
     assert report.stopped == "killed after snapshot 10000 (10000_50000.0s)"
     assert lines[0].startswith(f"map-bag: the stream in {out} was stopped after snapshot 10000; final map")
     assert [Path(p).name for p in report.snapshots] == ["9998_49990.0s", "9999_49995.0s", "10000_50000.0s"]
+
+
+def test_a_stop_at_the_end_of_the_bag_keeps_a_finite_stop_time(bags, tiny_cfg, tmp_path):
+    """SIGTERM while the stream decides its last frames (`LiveSync.finish` puts its clock past every
+    message): stream.json says it stopped at the newest message, a number (before: inf, which JSON
+    refuses, so a traceback, `running: true` and no mapper.pt)."""
+    import math
+    import signal
+
+    from virus_nerf.mapping.options import load_stream_config
+    from virus_nerf.mapping.stream import StreamRun
+    from virus_nerf.utils.stop import Stopped
+
+    cfg = default_topics()
+    with BagReader(bags["ros1"]) as reader:
+        sync = LiveSync(cfg, make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"]),
+                        bags["ros1"])
+        messages = list(reader.iter_topics(sync.topics()))
+    finish = sync.finish
+
+    def finish_then_stop():
+        finish()
+        raise Stopped(signal.SIGTERM)
+
+    sync.finish = finish_then_stop
+    (tmp_path / "out").mkdir()
+    run = StreamRun(sync, tmp_path / "out", load_stream_config(tiny_cfg), snapshot_every=1e9, first_snapshot=1e9,
+                    max_lag=math.inf, drive_s=10.0, n_rays=16, max_poses=2, log=lambda line: None)
+    with pytest.raises(Stopped):
+        run.run(messages)
+    doc = json.loads((tmp_path / "out" / "stream.json").read_text())
+    newest = max(m.time_s for t, m in messages if t not in ("/tf_static",))
+    assert doc["stopped"] == "interrupted (SIGTERM)" and doc["running"] is False
+    assert doc["stopped_at_s"] == pytest.approx(newest - messages[0][1].time_s, abs=1e-6)
+    assert (tmp_path / "out" / "map" / "mapper.pt").is_file()
+
+
+def test_resume_sets_aside_a_final_map_a_full_disk_cut_and_clears_cut_snapshots(tmp_path):
+    """A full disk at the end left map/ without its maps (before: with mapper.pt alone, or empty):
+    `--resume` no longer takes it for a finished map; an empty one goes, one with files is kept
+    aside. A snapshot a kill cut short (`.NAME.partial-*`) is cleared."""
+    from virus_nerf.mapping.stream import finish_killed
+
+    for case in ("empty", "with files"):
+        out = tmp_path / case.replace(" ", "_")
+        snap = out / "snapshots" / "0001_10.0s"
+        snap.mkdir(parents=True)
+        (snap / "map.pgm").write_text("map of snapshot 1")
+        (snap / "snapshot.json").write_text(json.dumps({"frames": 5, "steps": 9, "seconds": 3.0}))
+        (out / "snapshots" / ".0002_20.0s.partial-99999999-x").mkdir()
+        (out / "stream.json").write_text(json.dumps({"running": True}))
+        (out / "map").mkdir()
+        if case == "with files":
+            (out / "map" / "mapper.pt").write_text("a state beside no map")
+        finish_killed(out, log=lambda line: None)
+        assert (out / "map" / "map.pgm").read_text() == "map of snapshot 1"
+        assert not list((out / "snapshots").glob(".*partial*"))
+        kept = list(out.glob("map.incomplete-*"))
+        assert len(kept) == (case == "with files")
+        if kept:
+            assert (kept[0] / "mapper.pt").read_text() == "a state beside no map"

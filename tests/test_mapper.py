@@ -354,13 +354,19 @@ def test_online_trainer_gives_the_mapper_only_frames_the_clock_passed(tiny_offic
     assert np.all(np.diff(trainer.mapper.store.times) >= 0), "frames arrive in time order"
 
 
-def test_replay_and_map_bag_write_snapshots_with_progress_lines(tiny_office, tmp_path, capsys):
+def test_replay_and_map_bag_write_snapshots_with_progress_lines(tiny_office, tmp_path, capsys, monkeypatch):
     """map-bag --import-first on a real ROS 1 bag of the simulated office (imported with LiDAR
     odometry, then replayed): the 3 s drive at playback x1 gives snapshots every 0.4 s, each a
-    complete folder with one progress line (the streaming default: test_map_stream.py)."""
+    complete folder with one progress line (the streaming default: test_map_stream.py); its frames
+    spill to OUT beyond the budget, as the stream's do (an hour's drive stays out of memory)."""
     pytest.importorskip("rosbags")
     pytest.importorskip("kiss_icp")
     from virus_nerf.data.bags.writer import write_bag
+
+    spills = []
+    original_spill = Mapper.spill_frames
+    monkeypatch.setattr(Mapper, "spill_frames", lambda self, folder, *a: (spills.append(Path(folder)),
+                                                                        original_spill(self, folder, *a)))
 
     bag = write_bag(tiny_office, tmp_path / "drive.bag", ros_version=1)
     cfg = tmp_path / "cfg.json"
@@ -374,6 +380,7 @@ def test_replay_and_map_bag_write_snapshots_with_progress_lines(tiny_office, tmp
                                     "--config", cfg, "--n-rays", "32", "--max-poses", "3", "--import-first", *sinks])
     assert code == 0, stderr
     assert (out / "recording" / "import_report.json").is_file()
+    assert spills == [out]
     lines = [ln for ln in stdout.splitlines() if ln.startswith(("snapshot", "final map"))]
     snaps = sorted(p for p in (out / "snapshots").iterdir() if p.is_dir())
     assert len(snaps) >= 1 and len(lines) == len(snaps) + 1

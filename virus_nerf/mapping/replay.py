@@ -20,7 +20,13 @@ from pathlib import Path
 from typing import Literal
 
 from virus_nerf.data.playback import FrameFeeder
-from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError, require_number
+from virus_nerf.errors import (
+    DataFormatError,
+    OutputExistsError,
+    UsageError,
+    require_folder,
+    require_number,
+)
 from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS
 
 SNAPSHOTS = "snapshots"
@@ -131,8 +137,11 @@ def replay(
     if live is not None:
         live.start_time = times[0]  # the live view's drive_time 0 is the first frame
 
+    mapper.spill_frames(out)  # a long drive's frames beyond the budget go to disk, as when streaming
+
     def add(k: int) -> None:
         s, i = order[k]
+        require_folder(out)  # removed under the run: its frames (OUT/recording) are gone with it
         frame = recording.stacks[s].frame(i, with_depth=with_depth)
         mapper.add_frame(frame)
         if live is not None:
@@ -141,6 +150,7 @@ def replay(
             ros_bag.write_pose(frame.time, frame.cam_to_world, frame.stack_id)
 
     def snapshot(folder: Path, recording_time: float, with_state: bool = False):
+        require_folder(out)
         maps = _publish(mapper, recording_time, resolution, n_rays, max_poses, live, ros_bag)
         return mapper.snapshot(folder, resolution, n_rays, max_poses, with_state=with_state, maps=maps)
 
@@ -160,7 +170,8 @@ def replay(
         outputs, made = Outputs(), {}
         if outputs.write(out / FINAL, lambda: made.update(info=snapshot(out / FINAL, feeder.last_time))):
             log(_progress_line("final map", wall_s, feeder.last_time - times[0], drive_s, made["info"], out / FINAL))
-        outputs.write(out / FINAL / "mapper.pt", lambda: save_torch_atomic(mapper.state(), out / FINAL / "mapper.pt"))
+            # only beside a whole map: a map/ made for it alone would read as a finished final map
+            outputs.write(out / FINAL / "mapper.pt", lambda: save_torch_atomic(mapper.state(), out / FINAL / "mapper.pt"))
         outputs.check("free some space; the snapshots in " + str(out / SNAPSHOTS) + " are whole")
 
     try:

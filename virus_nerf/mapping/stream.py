@@ -211,7 +211,12 @@ class StreamRun:
             raise
         except KeyboardInterrupt as exc:  # the operator (Ctrl-C) or the robot (SIGTERM) stops it: keep the map
             self.report.stopped = f"interrupted ({exc.name if isinstance(exc, Stopped) else 'Ctrl-C'})"
-            self.report.stopped_at_s = None if self.sync.t0 is None else self.sync.rel(self.sync.clock)
+            # at the end of the bag (`LiveSync.finish`: the clock past every message) the stop came
+            # after the newest message; stream.json holds only finite numbers
+            at = None if self.sync.t0 is None else self.sync.rel(self.sync.clock)
+            if at is not None and not math.isfinite(at):
+                at = self.sync.rel(self.latest) if math.isfinite(self.latest) else None
+            self.report.stopped_at_s = at
             self._close()
             raise
         self._close()
@@ -445,7 +450,7 @@ class StreamRun:
             r.frames, r.steps, r.train_s, r.wall_s = self.mapper.frames, self.mapper.step, self.mapper.seconds, now
         if self.out.is_dir():
             outputs.write(self.out / REPORT, lambda: write_json_atomic(self.out / REPORT, r.as_dict(self.out)))
-        if self.mapper is not None:
+        if self.mapper is not None and r.final is not None:  # beside a map that did not fit: no map/ at all
             state = self.out / FINAL / STATE
             outputs.write(state, lambda: save_torch_atomic(self.mapper.state(), state))
         outputs.check("free some space; the snapshots in " + str(self.out / SNAPSHOTS) + " are whole")
@@ -497,7 +502,17 @@ def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport
     half = {name: remove_stale_temps(out / name)  # left by the killed process (the lock proves it is gone)
             for name in (REPORT, f"{SNAPSHOTS}/{STATE}", f"{FINAL}/{STATE}")}
     remove_stale_partials(out / FINAL, owned=True)
-    if doc is not None and not doc.get("running", False) and (out / FINAL).is_dir():
+    if (out / SNAPSHOTS).is_dir():  # a snapshot the kill cut short (`.NAME.partial-*`), never finished
+        for p in (out / SNAPSHOTS).glob(".*.partial-*"):
+            remove_stale_partials(out / SNAPSHOTS / p.name[1:].split(".partial-")[0], owned=True)
+    final = out / FINAL
+    written = (final / "snapshot.json").is_file()  # the process wrote its final map whole (not its report)
+    if final.is_dir() and not written:  # a map/ the process could not finish (a full disk): set aside
+        if any(final.iterdir()):
+            final.rename(final.with_name(f"{FINAL}.incomplete-{time.time_ns()}"))
+        else:
+            final.rmdir()
+    if doc is not None and not doc.get("running", False) and written:
         lost = f"; its mapper state was not saved (stopped while writing {out / FINAL / STATE})" \
             if half[f"{FINAL}/{STATE}"] and not (out / FINAL / STATE).is_file() else ""
         raise UsageError(f"--resume --out {out}: the stream ended (final map in {out / FINAL}, {report_path}); "
@@ -515,7 +530,6 @@ def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport
     report.snapshots = [str(p) for p in snaps]  # every whole snapshot (the report may predate the last)
     report.running = False
     report.stopped = report.stopped or f"killed after snapshot {snapshot_number(last)} ({last.name})"
-    final = out / FINAL
     state_path, state = out / SNAPSHOTS / STATE, None
     if state_path.is_file():
         try:
@@ -523,7 +537,6 @@ def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport
             state = saved["mapper"] if saved.get("snapshot") == last.name else None
         except Exception:  # noqa: BLE001 - written atomically; a foreign or damaged file is left alone
             state = None
-    written = final.is_dir()  # the killed process wrote its final map whole (not its report)
     info = json.loads(((final if written else last) / "snapshot.json").read_text())
     report.frames, report.steps, report.train_s = info["frames"], info["steps"], info["seconds"]
     outputs = Outputs()
@@ -555,7 +568,6 @@ def rebuild_out_bag(out_bag: dict | None, snaps: list[Path]) -> str:
     its newest frame's stamp, as the run wrote them. The /tf poses were in the run's memory
     only. Returns what the resume line adds ("" when there is nothing to rebuild)."""
     import json
-    import time
 
     from virus_nerf.mapping.ros_maps import RosMapBag
     from virus_nerf.maps.occupancy import read_map_server
