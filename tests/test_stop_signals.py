@@ -531,6 +531,22 @@ def test_a_run_folder_removed_under_train_is_not_rebuilt(tiny_office, tmp_path):
     assert "Traceback" not in stderr and not out.exists()
 
 
+def test_an_import_first_folder_removed_under_map_bag_is_one_line(drive, tmp_path):
+    """`rm -rf OUT` while `map-bag --import-first` replays OUT/recording: one line saying the
+    folder was removed, exit 2 (a review found "OUT/recording/.../img58.png: image file not
+    found"), and OUT is not made again."""
+    out = tmp_path / "out"
+    proc = _start([*_map_bag(drive, out), "--import-first"], tmp_path)
+    _wait_for(lambda: _snapshots(out), proc)
+    subprocess.run(["rm", "-rf", str(out)], check=True)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 2, stderr
+    assert stderr.splitlines()[-1] == (f"virus-nerf: error: {out}: the output folder was removed while the command "
+                                       "ran; nothing more is written (the files it held are gone: run the command "
+                                       "again into a new folder)"), stderr
+    assert "Traceback" not in stderr and not out.exists()
+
+
 def test_a_stop_swallowed_inside_the_block_is_raised_when_it_ends():
     """A signal's Stopped raised where a C callback swallows it (llvmlite's, while numba loads a
     kernel: "Exception ignored") is not lost: the block's work ends, then it raises, exit 143."""

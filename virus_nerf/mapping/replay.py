@@ -30,6 +30,7 @@ from virus_nerf.errors import (
 from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS
 
 SNAPSHOTS = "snapshots"
+REMOVAL_GRACE_S = 0.5  # s a vanished frame file waits for its folder's removal to show (replay's `add`)
 FINAL = "map"
 
 
@@ -142,7 +143,14 @@ def replay(
     def add(k: int) -> None:
         s, i = order[k]
         require_folder(out)  # removed under the run: its frames (OUT/recording) are gone with it
-        frame = recording.stacks[s].frame(i, with_depth=with_depth)
+        try:
+            frame = recording.stacks[s].frame(i, with_depth=with_depth)
+        except DataFormatError:
+            # a frame's file vanished: `rm -rf OUT` empties the folders before it removes OUT, so
+            # give it a moment; OUT gone is one line saying so, else the recording is damaged
+            time.sleep(REMOVAL_GRACE_S)
+            require_folder(out)
+            raise
         mapper.add_frame(frame)
         if live is not None:
             live.log_frame(frame, intrinsics)
