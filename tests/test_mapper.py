@@ -265,7 +265,7 @@ def test_a_loaded_state_takes_only_the_frames_it_was_trained_on_in_their_order()
     store = a.store  # add_store is checked alike
     d = _mapper()
     d.load_state(state)
-    with pytest.raises(UsageError, match=r"^Mapper.add_store: add_store: frame 0 is stack 3 at 0.2 s"):
+    with pytest.raises(UsageError, match=r"^Mapper.add_store: rows \[1, 0, 2\]: frame 0 is stack 3 at 0.2 s"):
         d.add_store(store, rows=np.array([1, 0, 2]))
     d.add_store(store, rows=np.array([0, 1, 2]))
     legacy = {k: v for k, v in state.items() if k not in ("frame_stacks", "frame_times")}

@@ -219,7 +219,7 @@ class Mapper(MapViews):
         go by time); returns its row."""
         check_frame(frame, self.intrinsics)
         time_s = self._frame_time(frame)
-        self._check_expected(np.array([frame.stack_id]), np.array([time_s]), f"SyncFrame (time {frame.time!r})")
+        self._check_expected(np.array([frame.stack_id]), np.array([time_s]), f"add_frame: SyncFrame (time {frame.time!r})")
         small = self.store.intrinsics[frame.stack_id]
         size = (small.width, small.height)
         depth = None
@@ -258,10 +258,11 @@ class Mapper(MapViews):
     def _check_expected(self, stack_ids: np.ndarray, times: np.ndarray, what: str) -> None:
         """Frames about to become rows `frames`.. must be the loaded state's frames of those rows
         (same stack, same time): other frames would train on with a field and grid fitted to a
-        drive they are not part of, without a word. A one-line UsageError, nothing added."""
+        drive they are not part of, without a word. A one-line UsageError ("Mapper.<what>: ..."),
+        nothing added."""
         problem = frames_mismatch(self._expected_frames, self.frames, stack_ids, times)
         if problem is not None:
-            raise UsageError(f"Mapper.{'add_frame' if what.startswith('SyncFrame') else what}: {what}: {problem}")
+            raise UsageError(f"Mapper.{what}: {problem}")
 
     def _grow(self, box: SceneBox | None) -> None:
         """The grid grown to the extent's new box (None: it stayed)."""
@@ -293,7 +294,8 @@ class Mapper(MapViews):
         if store.intrinsics != self.store.intrinsics:
             raise ValueError(f"store intrinsics {store.intrinsics} differ from the mapper's {self.store.intrinsics}")
         picked = np.arange(len(store)) if rows is None else np.asarray(rows)
-        self._check_expected(store.stack_ids[picked], store.times[picked], "add_store")
+        self._check_expected(store.stack_ids[picked], store.times[picked], f"add_store: rows {picked[:3].tolist()}"
+                             f"{'...' if len(picked) > 3 else ''}")
         self.extent.check_inside(store.cam_to_world[picked, :3, 3], store.times[picked])
         self._grow(self.extent.add_frames(store, picked))
         first = self.frames
