@@ -254,10 +254,8 @@ class Participant:
         self.node: tuple[str, str] | None = None  # (name, namespace) once announced
         self._publications = BuiltinDataReader(self.dp, BuiltinTopicDcpsPublication)
         self._own = {self.dp.guid}
-        self.publishers: dict[str, set[str]] = {}  # ROS topic -> ROS message types of its remote writers
         self.offered: dict[str, object] = {}  # ROS topic -> the QoS its newest remote writer offers
-        self.writer_gids: dict[str, set[bytes]] = {}  # ROS topic -> its remote writers' 16-byte GUIDs
-        self._writers_seen: dict[bytes, tuple[str, str]] = {}  # a remote writer's GUID -> (ROS topic, type)
+        self._remote: dict[bytes, tuple[str, str]] = {}  # a remote writer's 16-byte GUID -> (ROS topic, type)
 
     def endpoint(self, name: str, msgtype: str, kind: QosKind):
         """(the DDS topic of ROS topic `name`, made once, and the QoS of profile `kind` with the
@@ -343,25 +341,31 @@ class Participant:
             if msgtype is None:
                 continue
             topic = ep.topic_name[len(ROS_TOPIC_PREFIX):]
-            self.publishers.setdefault(topic, set()).add(msgtype)
             self.offered[topic] = ep.qos
-            self.writer_gids.setdefault(topic, set()).add(ep.key.bytes)
-            self._writers_seen[ep.key.bytes] = (topic, msgtype)
+            self._remote[ep.key.bytes] = (topic, msgtype)
         return self.publishers
 
+    @property
+    def publishers(self) -> dict[str, set[str]]:
+        """ROS topic -> the ROS message types of its remote writers on the graph."""
+        out: dict[str, set[str]] = {}
+        for topic, msgtype in self._remote.values():
+            out.setdefault(topic, set()).add(msgtype)
+        return out
+
+    @property
+    def writer_gids(self) -> dict[str, set[bytes]]:
+        """ROS topic -> its remote writers' 16-byte GUIDs."""
+        out: dict[str, set[bytes]] = {}
+        for gid, (topic, _) in self._remote.items():
+            out.setdefault(topic, set()).add(gid)
+        return out
+
     def _forget(self, gid: bytes) -> None:
-        """A remote writer that left: out of `writer_gids`, its type out of `publishers` when no
-        other writer of the topic has it, the topic out when it was the last."""
-        if gid not in self._writers_seen:
-            return
-        topic, _ = self._writers_seen.pop(gid)
-        gids = self.writer_gids.get(topic, set())
-        gids.discard(gid)
-        if not gids:
-            for table in (self.publishers, self.offered, self.writer_gids):
-                table.pop(topic, None)
-            return
-        self.publishers[topic] = {self._writers_seen[g][1] for g in gids if g in self._writers_seen}
+        """A remote writer that left; its topic's offered QoS goes with the topic's last writer."""
+        topic, _ = self._remote.pop(gid, (None, None))
+        if topic is not None and topic not in self.publishers:
+            self.offered.pop(topic, None)
 
     def close(self) -> None:
         """Leave the graph now: readers and writers, topics, then the participant deleted (cyclonedds
