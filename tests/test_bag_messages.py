@@ -9,7 +9,13 @@ import numpy as np
 import pytest
 
 from virus_nerf.data.bags import messages as m
-from virus_nerf.data.bags.odometry import PoseTrack, Transform, horizontal_planes, tf_track
+from virus_nerf.data.bags.odometry import (
+    PoseTrack,
+    Transform,
+    horizontal_planes,
+    scale_motion,
+    tf_track,
+)
 from virus_nerf.data.bags.sync import match_nearest, match_stack, thin_to_rate
 from virus_nerf.data.bags.topics import default_topics, read_topics
 from virus_nerf.errors import ConfigError, DataFormatError
@@ -135,6 +141,21 @@ def test_floor_found_in_a_scan():
     wall = np.c_[np.full(300, 4.0), rng.uniform(-3, 3, 300), rng.uniform(-0.7, 1.8, 300)]
     lo, hi = horizontal_planes(np.r_[floor, wall])
     assert lo == pytest.approx(-0.71, abs=0.011) and hi == np.inf
+
+
+def test_a_motion_stretched_in_time_turns_and_moves_in_proportion():
+    """10 deg about z and (0.1, -0.2, 0) m over one interval; over 2.5 intervals: 25 deg, (0.25, -0.5, 0)."""
+    a = np.radians(10.0)
+    delta = np.eye(4)
+    delta[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    delta[:3, 3] = [0.1, -0.2, 0.0]
+    out = scale_motion(delta, 2.5)
+    b = np.radians(25.0)
+    np.testing.assert_allclose(out[:3, :3], [[np.cos(b), -np.sin(b), 0], [np.sin(b), np.cos(b), 0], [0, 0, 1]],
+                               atol=1e-12)
+    np.testing.assert_allclose(out[:3, 3], [0.25, -0.5, 0.0], atol=1e-12)
+    np.testing.assert_allclose(out[3], [0, 0, 0, 1])
+    np.testing.assert_allclose(scale_motion(delta, 1.0), delta, atol=1e-12)
 
 
 def test_ate_ignores_a_rigid_offset():

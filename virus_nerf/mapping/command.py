@@ -314,7 +314,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
             child = _lidar_frame(reader, tcfg.lidar.topic)
         source = make_pose_source(poses, tcfg, bag, present=lambda t: t in reader.topics,
                                   poses_file=pose_args["poses_file"], tf_parent=pose_args["tf_parent"],
-                                  tf_child=child, odometry_topic=odometry_topic)
+                                  tf_child=child, odometry_topic=odometry_topic, keep_up=True)
         owned.callback(source.close)  # KISS-ICP's worker process ends with the stream
         sync = LiveSync(tcfg, source, bag, intrinsics=plan.intrinsics, with_depth="rgbd" in cfg.sensors,
                         max_silence_s=max_silence)

@@ -75,6 +75,8 @@ class StreamReport:
     dropped: dict[str, int] = field(default_factory=dict)  # reason -> colour frames
     without: dict[str, int] = field(default_factory=dict)  # live: silent sensor (uss, tof, depth) -> frames made without it
     lag_s: list[float] = field(default_factory=list)  # at each snapshot
+    # --poses lidar-odometry: LiDAR scans KISS-ICP did not register, to keep up with the LiDAR
+    scans_skipped: int = 0
     stopped: str | None = None  # the error (or signal) that stopped the stream
     stopped_at_s: float | None = None  # bag seconds since the first message
     running: bool = False  # true in the report written at each snapshot while the stream runs
@@ -415,7 +417,7 @@ class StreamRun:
         from virus_nerf.utils.io import save_torch_atomic, write_json_atomic
 
         r = self.report
-        r.dropped, r.without = dict(self.sync.dropped_total()), dict(self.sync.without_total())
+        self._count_inputs()
         r.frames, r.steps, r.train_s, r.wall_s = self.mapper.frames, self.mapper.step, self.mapper.seconds, self.now()
         r.running = True
         try:
@@ -425,6 +427,12 @@ class StreamRun:
             self._warn("state", f"{exc.filename}: could not be written ({exc.strerror or exc}); mapping goes on")
         finally:
             r.running = False
+
+    def _count_inputs(self) -> None:
+        """The report's counts of what did not become a frame or a pose."""
+        r = self.report
+        r.dropped, r.without = dict(self.sync.dropped_total()), dict(self.sync.without_total())
+        r.scans_skipped = getattr(self.sync.poses, "skipped", 0)
 
     def _close(self) -> None:
         """The final map of what was made (none when no frame reached the mapper) and the report,
@@ -436,7 +444,7 @@ class StreamRun:
         if self.mapper is None and self.held:  # the bag ended (or stopped) during the start-up wait
             frames, self.held = self.held, []
             self._make_mapper(frames)
-        r.dropped, r.without = dict(self.sync.dropped_total()), dict(self.sync.without_total())
+        self._count_inputs()
         outputs = Outputs()
         if self.mapper is not None:
             now = self.now()
@@ -463,7 +471,8 @@ def summary(report: StreamReport) -> str:
     lag = (f"; lag at snapshots median {statistics.median(report.lag_s):.2f} s, max {max(report.lag_s):.2f} s"
            if report.lag_s else "")
     without = "".join(f", {n} without {role}" for role, n in sorted(report.without.items()))
-    return f"{report.frames} frames{without}, {dropped} dropped{f' ({reasons})' if reasons else ''}{lag}"
+    skipped = f"; {report.scans_skipped} LiDAR scans skipped to keep up" if report.scans_skipped else ""
+    return f"{report.frames} frames{without}, {dropped} dropped{f' ({reasons})' if reasons else ''}{lag}{skipped}"
 
 
 def snapshot_number(folder: Path) -> int:

@@ -191,7 +191,7 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
     with ExitStack() as owned:
         owned.callback(participant.close)
         source = make_pose_source(poses, tcfg, where, present=lambda t: True, tf_parent=tf_parent, tf_child=tf_child,
-                                  odometry_topic=odometry_topic)
+                                  odometry_topic=odometry_topic, keep_up=True)
         owned.callback(source.close)  # KISS-ICP's worker process ends with the node
         sync = LiveSync(tcfg, source, where, with_depth="rgbd" in cfg.sensors, max_silence_s=max_silence,
                         on_problem=lambda line: log(f"ros2: {line}"))

@@ -6,6 +6,15 @@ from training at a 10 Hz LiDAR. In a worker process it runs on the other core wh
 trains. The worker gets the scans in order and answers each with its pose; the same scans in the
 same order give the same poses as an in-process KissICP (it is deterministic).
 
+A robot's LiDAR does not wait for the registration: where a scan takes longer to register than
+the LiDAR's period (a large room on a shared 2-core CPU), the scans queue and every pose comes
+later than the one before (measured: 10 s median and 24 s max behind a 60 s common-area drive at
+playback 1). With `keep_up` the worker registers the newest scan it has and answers each older
+waiting one as skipped (no pose), so a pose is never more than about two registrations behind
+its scan; KISS-ICP's constant-velocity prediction is then stretched to the interval actually
+registered (odometry.ScanRegistration). Without it (the default) every scan is registered, as the
+importer does.
+
 The worker never outlives the mapping process, whatever ends it (issue 39): it is a plain
 subprocess (`python -m virus_nerf.data.bags.kiss_worker PARENT_PID`, no multiprocessing, so no
 resource-tracker process either) that talks over two pipes; on Linux the kernel sends it SIGKILL
@@ -54,23 +63,24 @@ def die_with_parent(parent: int, poll_s: float = 1.0) -> None:
 
 
 def _serve(scans: Connection, poses: Connection) -> None:
-    """Worker loop: KissIcpSettings, then (time, float32 points (N, 3)) from `scans` -> (time,
-    pose (4, 4), error) to `poses`, until None or the end of the pipe."""
+    """Worker loop: (KissIcpSettings, keep_up), then (time, float32 points (N, 3)) from `scans` ->
+    (time, pose (4, 4) or None when skipped, error) to `poses`, until None or the end of the pipe."""
     t = None
     try:
-        settings = scans.recv()
-        from kiss_icp.kiss_icp import KissICP
+        settings, keep_up = scans.recv()
+        from virus_nerf.data.bags.odometry import ScanRegistration
 
-        from virus_nerf.data.bags.odometry import _kiss_config
-
-        icp = KissICP(_kiss_config(settings))
+        registration = ScanRegistration(settings, stretch=keep_up)
         while True:
             item = scans.recv()
+            if keep_up:
+                while item is not None and scans.poll(0):  # a newer scan waits: this one is skipped
+                    poses.send((item[0], None, None))
+                    item = scans.recv()
             if item is None:
                 return
             t, pts = item
-            icp.register_frame(pts.astype(np.float64), np.empty(0))
-            poses.send((t, np.array(icp.last_pose, dtype=np.float64), None))
+            poses.send((t, registration.register(t, pts), None))
     except (EOFError, BrokenPipeError):  # the mapping process is gone
         return
     except Exception as exc:  # noqa: BLE001 - sent to the mapping process, raised there
@@ -90,9 +100,11 @@ def main(argv: list[str]) -> None:
 
 
 class KissWorker:
-    """A KISS-ICP registration process: `send` a scan (returns at once), `poll` the poses done."""
+    """A KISS-ICP registration process: `send` a scan (returns at once), `poll` the poses done.
+    keep_up: register the newest scan waiting and skip the older ones (module doc); `skipped`
+    counts them."""
 
-    def __init__(self, settings: KissIcpSettings) -> None:
+    def __init__(self, settings: KissIcpSettings, keep_up: bool = False) -> None:
         scans_r, scans_w = os.pipe()
         poses_r, poses_w = os.pipe()
         try:
@@ -110,10 +122,11 @@ class KissWorker:
         # a scan is larger than a pipe's buffer: a thread writes them, so `send` never waits on a
         # registration in progress
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
-        self._outbox.put(settings)
+        self._outbox.put((settings, keep_up))
         self._writer = threading.Thread(target=self._write, name="kiss-icp-send", daemon=True)
         self._writer.start()
         self.pending: list[float] = []  # stamps sent, pose not yet received
+        self.skipped = 0  # scans answered without a pose (keep_up)
 
     def _write(self) -> None:
         while True:
@@ -130,8 +143,8 @@ class KissWorker:
         self.pending.append(t)
 
     def poll(self, block: bool = False) -> list[tuple[float, np.ndarray]]:
-        """The poses done so far, in scan order; with `block`, waits for every pending scan.
-        Raises RuntimeError (one line) when the worker failed or died."""
+        """The poses done so far, in scan order (skipped scans left out); with `block`, waits for
+        every pending scan. Raises RuntimeError (one line) when the worker failed or died."""
         out = []
         while self.pending:
             try:
@@ -150,7 +163,10 @@ class KissWorker:
             if error is not None:
                 raise RuntimeError(f"KISS-ICP failed: {error}")
             self.pending.pop(0)
-            out.append((t, pose))
+            if pose is None:
+                self.skipped += 1
+            else:
+                out.append((t, pose))
         return out
 
     def close(self) -> None:

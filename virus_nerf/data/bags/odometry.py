@@ -81,6 +81,17 @@ class KissIcpSettings:
                    initial_threshold_m=2.0, min_motion_m=0.1, refine_start_s=0.0, drop_floor_ceiling_m=0.0)
 
 
+def scale_motion(delta: np.ndarray, factor: float) -> np.ndarray:
+    """The rigid motion `delta` (4, 4) stretched in time by `factor`: its rotation vector and its
+    translation times `factor` (constant velocity over a longer or shorter interval)."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(delta[:3, :3]).as_rotvec() * factor).as_matrix()
+    out[:3, 3] = np.asarray(delta[:3, 3]) * factor
+    return out
+
+
 def horizontal_planes(points: np.ndarray, bin_m: float = 0.02, min_share: float = 0.03) -> tuple[float, float]:
     """Heights (m, sensor frame) of the floor below and the ceiling above the sensor: the densest
     2 cm height bin below -0.1 m and above +0.1 m holding at least `min_share` of the points
@@ -110,13 +121,37 @@ def _kiss_config(s: KissIcpSettings):
     return cfg
 
 
+class ScanRegistration:
+    """KISS-ICP over scans in time order, one `register` call a scan -> its pose (4, 4).
+
+    stretch: scans may be skipped (a stream keeping up, kiss_worker.py): KISS-ICP predicts each
+    pose by repeating the last motion, scan to scan; it is stretched to the interval actually
+    registered (`scale_motion`) when that differs from the last one by more than 1 %. Without it
+    the registration is KISS-ICP's own (the importer's poses)."""
+
+    def __init__(self, settings: KissIcpSettings, stretch: bool = False) -> None:
+        from kiss_icp.kiss_icp import KissICP
+
+        self.icp, self.stretch = KissICP(_kiss_config(settings)), stretch
+        self.last_t: float | None = None  # the last registered scan's time
+        self.last_dt: float | None = None  # the interval icp.last_delta spans
+
+    def register(self, t: float, points: np.ndarray) -> np.ndarray:
+        """points (M, 3), sensor frame -> the scan's pose in the first scan's frame (4, 4)."""
+        if self.stretch and self.last_dt:
+            ratio = (t - self.last_t) / self.last_dt
+            if abs(ratio - 1.0) > 0.01:
+                self.icp.last_delta = scale_motion(self.icp.last_delta, ratio)
+        self.icp.register_frame(np.asarray(points, dtype=np.float64), np.empty(0))
+        self.last_t, self.last_dt = t, (None if self.last_t is None else t - self.last_t)
+        return np.array(self.icp.last_pose, dtype=np.float64)
+
+
 def kiss_icp_track(times_s: np.ndarray, load_scan: Callable[[int], np.ndarray],
                    settings: KissIcpSettings | None = None) -> PoseTrack:
     """Register the scans (k -> (M, 3) points, sensor frame, in time order) with KISS-ICP.
 
     The first scan's pose is the world frame (as in the ETHZ recordings)."""
-    from kiss_icp.kiss_icp import KissICP
-
     s = settings or KissIcpSettings()
     cfg = _kiss_config(s)
     if s.drop_floor_ceiling_m > 0 and len(times_s):
@@ -127,12 +162,10 @@ def kiss_icp_track(times_s: np.ndarray, load_scan: Callable[[int], np.ndarray],
         def load_scan(k: int) -> np.ndarray:  # noqa: F811 - the same scans without the rings
             p = raw_scan(k)
             return p[(p[:, 2] > lo) & (p[:, 2] < hi)]
-    icp = KissICP(cfg)
+    registration = ScanRegistration(s)
     poses = np.empty((len(times_s), 4, 4))
-    no_times = np.empty(0)
     for k in range(len(times_s)):
-        icp.register_frame(np.asarray(load_scan(k), dtype=np.float64), no_times)
-        poses[k] = icp.last_pose
+        poses[k] = registration.register(float(times_s[k]), load_scan(k))
     track = PoseTrack(np.asarray(times_s, dtype=np.float64), poses)
     if s.refine_start_s > 0 and len(times_s) > 1:
         _refine_start(track, load_scan, cfg, s)

@@ -19,6 +19,7 @@ from virus_nerf.data.bags import messages as m
 from virus_nerf.data.bags.odometry import (
     KissIcpSettings,
     PoseTrack,
+    ScanRegistration,
     Transform,
     horizontal_planes,
     tf_track,
@@ -131,26 +132,29 @@ class KissPoses(TrackPoses):
     With `worker` (default) the registration runs in a process of its own (kiss_worker.py): the
     scan is decoded and filtered here, sent, and its pose collected when a frame needs it, so
     the mapper trains while the scan registers. A frame waits for a pose whose scan is still being
-    registered; at the end of the bag every pending pose is collected."""
+    registered; at the end of the bag every pending pose is collected.
+
+    keep_up (a stream in real time: map-bag, the ROS 2 node): the worker registers the newest scan
+    it has and skips the older ones waiting (kiss_worker.py), so the poses keep up with the LiDAR
+    on a machine too slow to register every scan; `skipped` counts them. A frame still waits for
+    the first pose at or after its stamp. Without it every scan is registered (the importer's poses)."""
 
     role = "lidar"
 
     def __init__(self, topic: str, lidar: LidarConfig, settings: KissIcpSettings | None, bag: Path,
-                 worker: bool = True) -> None:
+                 worker: bool = True, keep_up: bool = False) -> None:
         from virus_nerf.data.bags.kiss_worker import KissWorker
 
         super().__init__()
         self.topics, self.describe, self.bag = (topic,), f"KISS-ICP on {topic}", bag
         self.lidar, self.settings = lidar, settings or KissIcpSettings()
-        self.worker = KissWorker(self.settings) if worker else None
-        if self.worker is None:
-            from kiss_icp.kiss_icp import KissICP
-
-            from virus_nerf.data.bags.odometry import _kiss_config
-
-            self.icp = KissICP(_kiss_config(self.settings))
+        if keep_up and not worker:
+            raise ValueError("keep_up needs the worker process (the scans must queue somewhere)")
+        self.worker = KissWorker(self.settings, keep_up) if worker else None
+        self.registration = None if self.worker is not None else ScanRegistration(self.settings)
         self.band: tuple[float, float] | None = None  # drop_floor_ceiling_m: heights kept (first scan)
         self.last_sent = -math.inf
+        self._skipped = 0  # by workers closed
 
     def add(self, topic: str, msg: Message) -> None:
         where = m.Where(self.bag, topic, msg.index)  # the importer's scan (float32, as its PCD holds it)
@@ -165,8 +169,7 @@ class KissPoses(TrackPoses):
             return  # a repeated stamp (the importer keeps one scan per stamp)
         self.last_sent = msg.time_s
         if self.worker is None:
-            self.icp.register_frame(pts, np.empty(0))
-            self.append(msg.time_s, np.array(self.icp.last_pose, dtype=np.float64))
+            self.append(msg.time_s, self.registration.register(msg.time_s, pts))
             return
         self.worker.send(msg.time_s, pts)  # float32-exact values: the worker casts back to float64
         self._collect()
@@ -180,6 +183,11 @@ class KissPoses(TrackPoses):
             raise DataFormatError(self.bag, f"{self.describe}: {exc}") from None
         for t, pose in done:
             self.append(t, pose)
+
+    @property
+    def skipped(self) -> int:
+        """Scans not registered to keep up (keep_up)."""
+        return self._skipped + (self.worker.skipped if self.worker is not None else 0)
 
     def newest_s(self) -> float:
         """Stamp of the newest scan received (its pose may still be registering): the source has
@@ -210,6 +218,7 @@ class KissPoses(TrackPoses):
     def close(self) -> None:
         if self.worker is not None:
             self.worker.close()
+            self._skipped += self.worker.skipped
             self.worker = None
 
 
@@ -290,10 +299,12 @@ class TfPoses(PoseSource):
 
 def make_pose_source(poses: str, cfg: TopicsConfig, bag: Path, *, present: Callable[[str], bool],
                      poses_file: Path | None = None, tf_parent: str = "odom", tf_child: str | None = None,
-                     odometry_topic: str = "/odom", kiss: KissIcpSettings | None = None) -> PoseSource:
-    """The pose source of `--poses` (lidar-odometry, tf, csv, odometry); present(topic): is it in the bag."""
+                     odometry_topic: str = "/odom", kiss: KissIcpSettings | None = None,
+                     keep_up: bool = False) -> PoseSource:
+    """The pose source of `--poses` (lidar-odometry, tf, csv, odometry); present(topic): is it in the
+    bag; keep_up: a stream in real time (KissPoses)."""
     if poses == "lidar-odometry":
-        return KissPoses(cfg.lidar.topic, cfg.lidar, kiss, bag)
+        return KissPoses(cfg.lidar.topic, cfg.lidar, kiss, bag, keep_up=keep_up)
     if poses == "odometry":
         return OdometryPoses(odometry_topic, bag)
     if poses == "csv":
