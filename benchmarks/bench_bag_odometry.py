@@ -37,12 +37,17 @@ from virus_nerf.data.ethz import load_recording
 from virus_nerf.evaluation.trajectory import frame_points, rigid_fit, trajectory_error
 from virus_nerf.sensors.rig import camera_in_lidar
 
+SIX_DOF = KissIcpSettings(drop_floor_ceiling_m=0.0, planar=False)  # the settings before D118
 VARIANTS = {
     "kiss_defaults": KissIcpSettings.library_defaults(),
-    "range30_voxel0.3_no_refine": KissIcpSettings(voxel_size_m=0.3, refine_start_s=0.0),
-    "range30_voxel0.2_no_refine": KissIcpSettings(refine_start_s=0.0),
-    "range30_voxel0.2_drop_floor_no_refine": KissIcpSettings(refine_start_s=0.0, drop_floor_ceiling_m=0.2),
-    "range30_voxel0.2_drop_floor_refine": KissIcpSettings(drop_floor_ceiling_m=0.2),
+    "range30_voxel0.3_no_refine": dataclasses.replace(SIX_DOF, voxel_size_m=0.3, refine_start_s=0.0),
+    "range30_voxel0.2_no_refine": dataclasses.replace(SIX_DOF, refine_start_s=0.0),
+    "range30_voxel0.2_drop_floor_no_refine": dataclasses.replace(SIX_DOF, refine_start_s=0.0, drop_floor_ceiling_m=0.2),
+    "range30_voxel0.2_drop_floor_refine": dataclasses.replace(SIX_DOF, drop_floor_ceiling_m=0.2),
+    "range30_voxel0.2_refine": SIX_DOF,  # import-bag before D118
+    "planar_no_refine": KissIcpSettings(refine_start_s=0.0, drop_floor_ceiling_m=0.0),
+    "drop_floor_planar_no_refine": KissIcpSettings(refine_start_s=0.0),  # a stream's (D118)
+    "drop_floor_planar_refine": KissIcpSettings(),
     "chosen": KissIcpSettings(),
 }
 STREAM = KissIcpSettings(refine_start_s=0.0)  # a stream cannot re-register its start

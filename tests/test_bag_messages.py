@@ -12,7 +12,8 @@ from virus_nerf.data.bags import messages as m
 from virus_nerf.data.bags.odometry import (
     PoseTrack,
     Transform,
-    horizontal_planes,
+    find_floor,
+    planar_pose,
     scale_motion,
     tf_track,
 )
@@ -135,12 +136,69 @@ def test_pose_track_interpolates_and_tf_chain_composes():
         tf_track(trs, "map", "rslidar", "x.bag")
 
 
-def test_floor_found_in_a_scan():
-    rng = np.random.default_rng(0)
-    floor = np.c_[rng.uniform(-3, 3, (400, 2)), np.full(400, -0.71)]
+def _room_points(rng, ceiling: bool) -> np.ndarray:
+    """A floor 0.71 m below the sensor (400 points, 1 cm noise), a wall 4 m ahead, a ceiling 1.9 m above."""
+    floor = np.c_[rng.uniform(-3, 3, (400, 2)), -0.71 + rng.normal(0, 0.01, 400)]
     wall = np.c_[np.full(300, 4.0), rng.uniform(-3, 3, 300), rng.uniform(-0.7, 1.8, 300)]
-    lo, hi = horizontal_planes(np.r_[floor, wall])
-    assert lo == pytest.approx(-0.71, abs=0.011) and hi == np.inf
+    top = np.c_[rng.uniform(-3, 3, (300, 2)), np.full(300, 1.9)] if ceiling else np.empty((0, 3))
+    return np.r_[floor, wall, top]
+
+
+def test_floor_found_in_a_scan_of_a_level_or_tilted_lidar():
+    """Level: the floor at -0.71 m along z, no ceiling. The same room seen by a LiDAR tilted 2 deg
+    about x and 1 deg about y: the floor's normal is that tilt (to 0.1 deg), the heights hold.
+    Walls alone: no floor."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    level = find_floor(_room_points(rng, ceiling=False))
+    assert level.floor_m == pytest.approx(-0.71, abs=0.005) and level.ceiling_m == np.inf
+    np.testing.assert_allclose(level.normal, [0, 0, 1], atol=np.radians(0.1))
+
+    tilt = Rotation.from_euler("xy", [2.0, 1.0], degrees=True)  # world -> sensor
+    room = _room_points(rng, ceiling=True)
+    found = find_floor(tilt.apply(room))
+    up = tilt.apply([0.0, 0.0, 1.0])  # the floor's normal in the sensor's coordinates
+    assert np.degrees(np.arccos(np.clip(found.normal @ up, -1, 1))) < 0.1
+    assert found.floor_m == pytest.approx(-0.71, abs=0.005) and found.ceiling_m == pytest.approx(1.9, abs=0.005)
+    np.testing.assert_allclose(found.level() @ found.normal, [0, 0, 1], atol=1e-12)
+
+    walls = _room_points(rng, ceiling=False)[400:]
+    assert find_floor(walls).floor_m == -np.inf
+
+
+def test_the_floor_of_the_real_office_scan_is_tilted_2_degrees(sample_recording):
+    """The ETHZ office's RS-16: a plane fitted by hand to its points below -0.55 m (three rounds of
+    SVD over the points within 5 cm) is 1.9-2.0 deg off its z axis and 0.76 m below it."""
+    found = find_floor(sample_recording.lidar_scan(0))
+    assert 1.7 < np.degrees(np.arccos(found.normal[2])) < 2.2
+    assert found.floor_m == pytest.approx(-0.76, abs=0.02)
+
+
+def test_a_planar_pose_keeps_the_yaw_and_the_motion_along_the_floor():
+    """Level: 30 deg yaw, 5 deg roll and (1, 2, 0.3) m -> 30 deg yaw and (1, 2, 0). Tilted floor:
+    a motion along it (20 deg about its normal, 1 m along it) stays as it is; lifted 0.1 m off
+    the floor it comes back down."""
+    from scipy.spatial.transform import Rotation
+
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_euler("ZYX", [30.0, 0.0, 5.0], degrees=True).as_matrix()
+    pose[:3, 3] = [1.0, 2.0, 0.3]
+    flat = planar_pose(pose, np.eye(3))
+    np.testing.assert_allclose(flat[:3, :3], Rotation.from_euler("z", 30.0, degrees=True).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(flat[:3, 3], [1.0, 2.0, 0.0], atol=1e-12)
+
+    level = Rotation.from_euler("xy", [2.0, -1.0], degrees=True).as_matrix()  # sensor -> floor frame
+    a = np.eye(4)
+    a[:3, :3] = level
+    along = np.eye(4)
+    along[:3, :3] = Rotation.from_euler("z", 20.0, degrees=True).as_matrix()
+    along[:3, 3] = [1.0, 0.0, 0.0]
+    motion = a.T @ along @ a  # the same motion in the sensor's frame
+    np.testing.assert_allclose(planar_pose(motion, level), motion, atol=1e-12)
+    lifted = motion.copy()
+    lifted[:3, 3] += level.T @ [0.0, 0.0, 0.1]
+    np.testing.assert_allclose(planar_pose(lifted, level), motion, atol=1e-12)
 
 
 def test_a_motion_stretched_in_time_turns_and_moves_in_proportion():
@@ -190,3 +248,20 @@ def test_topics_file_defaults_and_errors(tmp_path):
     f.write_text("[sync\n")
     with pytest.raises(ConfigError, match="not valid TOML"):
         read_topics(f)
+
+
+def test_a_robot_off_one_flat_floor_registers_in_six_degrees_of_freedom(tmp_path):
+    """[lidar] flat_floor (default true) decides KISS-ICP's planar registration; it takes true or
+    false only, named in one line."""
+    from virus_nerf.data.bags.odometry import KissIcpSettings
+
+    assert default_topics().lidar.flat_floor and default_topics().lidar.kiss_settings().planar
+    f = tmp_path / "t.toml"
+    f.write_text("[lidar]\nflat_floor = false\n")
+    lidar = read_topics(f).lidar
+    assert not lidar.flat_floor and not lidar.kiss_settings().planar
+    assert lidar.kiss_settings(KissIcpSettings(voxel_size_m=0.3)) == KissIcpSettings(voxel_size_m=0.3, planar=False)
+    f.write_text("[lidar]\nflat_floor = 1\n")
+    with pytest.raises(ConfigError) as err:
+        read_topics(f)
+    assert str(err.value).endswith("key 'lidar.flat_floor': 1: expected true or false"), str(err.value)

@@ -11,6 +11,7 @@ on simulated office drives (README "Your own robot", benchmarks/bench_bag_odomet
 from __future__ import annotations
 
 import csv
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,12 +57,18 @@ class KissIcpSettings:
     constant-velocity prediction of KISS-ICP is still wrong, against the map of the next seconds.
 
     drop_floor_ceiling_m: registration ignores points within this distance of the floor and the
-    ceiling (found in the first scan, `horizontal_planes`; 0 = keep all). A 16-beam LiDAR draws
+    ceiling (found in the first scan, `find_floor`; 0 = keep all). A 16-beam LiDAR draws
     the floor as rings centred on itself that move with it; matched point to point they pull the
-    estimate back towards standstill (measured: 8 cm lag after 2.5 s of a simulated start, 1 cm
-    without the rings). Off by default: without the floor the 16 beams constrain pitch and roll
-    poorly (20 s office: 1.6 deg median rotation error against 0.26 deg with it); the re-registration
-    of the start (refine_start_s) removes most of the lag instead."""
+    estimate back towards standstill: in a common area, whose walls are far and few, KISS-ICP
+    registered 0.3 m/s for 0.5 m/s and ended 1.4 m behind after 20 s (D118).
+
+    planar: the robot drives on one flat floor. Each pose keeps the first scan's height, roll and
+    pitch over the floor (found in the first scan, `find_floor`; where none is found the scans
+    register in 6 degrees of freedom): only the yaw and the translation along the floor
+    are registered, projected before the scan enters KISS-ICP's map. Without the floor the 16
+    beams constrain pitch and roll poorly (1.1-1.6 deg median rotation error); on the floor they
+    need not be registered. The topics file's `[lidar] flat_floor = false` turns it off (ramps,
+    stairs, outdoors)."""
 
     max_range_m: float = 30.0
     min_range_m: float = 0.3
@@ -71,7 +78,8 @@ class KissIcpSettings:
     min_motion_m: float = 0.1
     refine_start_s: float = 2.0
     refine_window_s: float = 3.0
-    drop_floor_ceiling_m: float = 0.0
+    drop_floor_ceiling_m: float = 0.2
+    planar: bool = True
 
 
     @classmethod
@@ -92,21 +100,89 @@ def scale_motion(delta: np.ndarray, factor: float) -> np.ndarray:
     return out
 
 
-def horizontal_planes(points: np.ndarray, bin_m: float = 0.02, min_share: float = 0.03) -> tuple[float, float]:
-    """Heights (m, sensor frame) of the floor below and the ceiling above the sensor: the densest
-    2 cm height bin below -0.1 m and above +0.1 m holding at least `min_share` of the points
-    (-inf / +inf where none does: outdoors, or a LiDAR that does not see the floor)."""
-    z = np.asarray(points)[:, 2]
-    out = []
-    for part, none in ((z[z < -0.1], -np.inf), (z[z > 0.1], np.inf)):
-        if len(part) == 0:
-            out.append(none)
+def planar_pose(pose: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """`pose` (4, 4, in the first scan's frame) made a motion along the floor: in the frame
+    `level` (3, 3) takes it to (z up from the floor), the rotation about z and the x, y
+    translation kept, the height, roll and pitch of the first scan."""
+    a = np.eye(4)
+    a[:3, :3] = level
+    q = a @ pose @ a.T
+    yaw = np.arctan2(q[1, 0], q[0, 0])
+    flat = np.eye(4)
+    flat[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    flat[:2, 3] = q[:2, 3]
+    return a.T @ flat @ a
+
+
+@dataclass(frozen=True)
+class FloorFrame:
+    """The floor and the ceiling of a scan: heights are measured along `normal` (the floor's
+    upward normal in sensor coordinates; z for a LiDAR mounted level)."""
+
+    normal: np.ndarray  # (3,) unit
+    floor_m: float  # height of the floor below the sensor (negative; -inf: none found)
+    ceiling_m: float  # height of the ceiling (+inf: none found)
+
+    def heights(self, points: np.ndarray) -> np.ndarray:
+        """(M,) m along the normal, from the sensor."""
+        return np.asarray(points, dtype=np.float64) @ self.normal
+
+    def level(self) -> np.ndarray:
+        """Rotation (3, 3) taking sensor coordinates to ones whose z axis is the normal."""
+        from scipy.spatial.transform import Rotation
+
+        return Rotation.align_vectors([[0.0, 0.0, 1.0]], [self.normal])[0].as_matrix()
+
+
+def find_floor(points: np.ndarray, max_tilt_deg: float = 5.0, step_deg: float = 0.5, bin_m: float = 0.1,
+               min_share: float = 0.03, max_below: float = 0.02, search_points: int = 4000) -> FloorFrame:
+    """The floor and ceiling of a LiDAR scan (M, 3), the LiDAR mounted up to `max_tilt_deg` off
+    level: of the normals tilted by whole `step_deg` steps in roll and pitch, the one whose
+    densest `bin_m` height bin below -0.1 m with at most `max_below` of the points under it holds
+    the most points is refined by a least-squares plane through the points near that bin; the
+    floor needs `min_share` of the points in its bin, the ceiling (the densest bin above +0.1 m
+    along the same normal with at most `max_below` of the points over it) too. Measured on the ETHZ
+    office recording: its RS-16 is tilted 1.9 deg, and a height bin of the sensor's own z axis
+    holds too few floor points to find it."""
+    from scipy.spatial.transform import Rotation
+
+    p = np.asarray(points, dtype=np.float64)
+    none = FloorFrame(np.array([0.0, 0.0, 1.0]), -np.inf, np.inf)
+    if len(p) == 0:
+        return none
+    sample = p[:: max(1, len(p) // search_points)]
+    angles = np.radians(np.arange(-max_tilt_deg, max_tilt_deg + 1e-9, step_deg))
+    roll, pitch = (a.ravel() for a in np.meshgrid(angles, angles, indexing="ij"))
+    normals = Rotation.from_euler("xy", np.c_[roll, pitch]).apply([0.0, 0.0, 1.0])  # (C, 3)
+    best_count, best = 0, None
+    for c, h in enumerate((sample @ normals.T).T):  # heights along each candidate normal
+        values, counts = np.unique(np.floor(h[h < -0.1] / bin_m).astype(np.int64), return_counts=True)
+        # the floor is the bottom: a bin with more than `max_below` of the points under it is a
+        # table top or a shelf, however dense
+        bottom = np.flatnonzero(np.cumsum(counts) - counts <= max_below * len(sample))
+        if len(bottom) == 0:
             continue
-        k = np.floor(part / bin_m).astype(np.int64)
-        vals, counts = np.unique(k, return_counts=True)
-        best = int(np.argmax(counts))
-        out.append(float((vals[best] + 0.5) * bin_m) if counts[best] >= min_share * len(z) else none)
-    return out[0], out[1]
+        k = int(bottom[np.argmax(counts[bottom])])
+        if counts[k] > best_count:
+            best_count, best = int(counts[k]), (normals[c], (values[k] + 0.5) * bin_m)
+    if best is None or best_count < min_share * len(sample):
+        return none
+    normal, floor = best
+    for window in (bin_m, bin_m / 2, bin_m / 4):  # the plane through the floor's points, ever nearer
+        near = p[np.abs(p @ normal - floor) < window]
+        normal = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)[2][2]
+        normal = normal if normal[2] > 0 else -normal
+        floor = float(np.median(near @ normal))
+    if np.degrees(np.arccos(min(normal[2], 1.0))) > max_tilt_deg + step_deg:
+        return none  # no plane there: the bottom of a wall, say
+    h = p @ normal
+    above = np.floor(h[h > 0.1] / bin_m).astype(np.int64)
+    ceiling = np.inf
+    values, counts = np.unique(above, return_counts=True)
+    top = np.flatnonzero(np.cumsum(counts[::-1])[::-1] - counts <= max_below * len(p))  # the top, as the floor
+    if len(top) and counts[k := int(top[np.argmax(counts[top])])] >= min_share * len(p):
+        ceiling = float(np.median(h[np.abs(h - (values[k] + 0.5) * bin_m) < bin_m]))
+    return FloorFrame(normal, floor, ceiling)
 
 
 def _kiss_config(s: KissIcpSettings):
@@ -132,19 +208,70 @@ class ScanRegistration:
     def __init__(self, settings: KissIcpSettings, stretch: bool = False) -> None:
         from kiss_icp.kiss_icp import KissICP
 
+        self.settings = settings
         self.icp, self.stretch = KissICP(_kiss_config(settings)), stretch
         self.last_t: float | None = None  # the last registered scan's time
         self.last_dt: float | None = None  # the interval icp.last_delta spans
+        self.started = False
+        self.floor: FloorFrame | None = None  # the first scan's (drop_floor_ceiling_m, planar)
+        self.band: tuple[float, float] | None = None  # heights kept along floor.normal (drop_floor_ceiling_m)
+        self.level: np.ndarray | None = None  # (3, 3) first scan's frame -> the floor's (planar)
+
+    def start(self, points: np.ndarray) -> None:
+        """The first scan's floor and ceiling: the heights kept, the floor's plane."""
+        self.started = True
+        s = self.settings
+        if s.drop_floor_ceiling_m <= 0 and not s.planar:
+            return
+        self.floor = find_floor(points)
+        if s.drop_floor_ceiling_m > 0:
+            self.band = (self.floor.floor_m + s.drop_floor_ceiling_m, self.floor.ceiling_m - s.drop_floor_ceiling_m)
+        if s.planar and math.isfinite(self.floor.floor_m):
+            self.level = self.floor.level()
+
+    def crop(self, points: np.ndarray) -> np.ndarray:
+        """The points registration uses (M', 3) float64: without the floor and ceiling's bands."""
+        p = np.asarray(points, dtype=np.float64)
+        if self.band is None:
+            return p
+        h = self.floor.heights(p)
+        return p[(h > self.band[0]) & (h < self.band[1])]
+
+    def project(self, pose: np.ndarray) -> np.ndarray:
+        """A registered pose as the robot can move (planar: along the floor)."""
+        return pose if self.level is None else planar_pose(pose, self.level)
 
     def register(self, t: float, points: np.ndarray) -> np.ndarray:
         """points (M, 3), sensor frame -> the scan's pose in the first scan's frame (4, 4)."""
+        if not self.started:
+            self.start(points)
+        points = self.crop(points)
         if self.stretch and self.last_dt:
             ratio = (t - self.last_t) / self.last_dt
             if abs(ratio - 1.0) > 0.01:
                 self.icp.last_delta = scale_motion(self.icp.last_delta, ratio)
-        self.icp.register_frame(np.asarray(points, dtype=np.float64), np.empty(0))
+        if self.level is None or self.last_t is None:  # (the first scan is the world frame, as it is)
+            self.icp.register_frame(points, np.empty(0))
+        else:
+            self._register_planar(points)
         self.last_t, self.last_dt = t, (None if self.last_t is None else t - self.last_t)
         return np.array(self.icp.last_pose, dtype=np.float64)
+
+    def _register_planar(self, points: np.ndarray) -> None:
+        """KissICP.register_frame's steps (kiss_icp 1.x) with the registered pose projected
+        along the floor before the map, the threshold and the motion model take it."""
+        icp = self.icp
+        frame = icp.preprocessor.preprocess(points, np.empty(0), icp.last_delta)
+        source, frame_downsample = icp.voxelize(frame)
+        sigma = icp.adaptive_threshold.get_threshold()
+        guess = icp.last_pose @ icp.last_delta
+        pose = self.project(icp.registration.align_points_to_map(
+            points=source, voxel_map=icp.local_map, initial_guess=guess,
+            max_correspondance_distance=3 * sigma, kernel=sigma))
+        icp.adaptive_threshold.update_model_deviation(np.linalg.inv(guess) @ pose)
+        icp.local_map.update(frame_downsample, pose)
+        icp.last_delta = np.linalg.inv(icp.last_pose) @ pose
+        icp.last_pose = pose
 
 
 def kiss_icp_track(times_s: np.ndarray, load_scan: Callable[[int], np.ndarray],
@@ -154,25 +281,17 @@ def kiss_icp_track(times_s: np.ndarray, load_scan: Callable[[int], np.ndarray],
     The first scan's pose is the world frame (as in the ETHZ recordings)."""
     s = settings or KissIcpSettings()
     cfg = _kiss_config(s)
-    if s.drop_floor_ceiling_m > 0 and len(times_s):
-        floor, ceiling = horizontal_planes(load_scan(0))
-        lo, hi = floor + s.drop_floor_ceiling_m, ceiling - s.drop_floor_ceiling_m
-        raw_scan = load_scan
-
-        def load_scan(k: int) -> np.ndarray:  # noqa: F811 - the same scans without the rings
-            p = raw_scan(k)
-            return p[(p[:, 2] > lo) & (p[:, 2] < hi)]
     registration = ScanRegistration(s)
     poses = np.empty((len(times_s), 4, 4))
     for k in range(len(times_s)):
         poses[k] = registration.register(float(times_s[k]), load_scan(k))
     track = PoseTrack(np.asarray(times_s, dtype=np.float64), poses)
     if s.refine_start_s > 0 and len(times_s) > 1:
-        _refine_start(track, load_scan, cfg, s)
+        _refine_start(track, lambda k: registration.crop(load_scan(k)), cfg, s, registration.project)
     return track
 
 
-def _refine_start(track: PoseTrack, load_scan, cfg, s: KissIcpSettings) -> None:
+def _refine_start(track: PoseTrack, load_scan, cfg, s: KissIcpSettings, project=lambda pose: pose) -> None:
     """Re-register the scans of the first refine_start_s seconds, newest first, against a map of
     the scans of the following refine_window_s seconds placed by their (settled) poses."""
     from kiss_icp.mapping import get_voxel_hash_map
@@ -196,7 +315,7 @@ def _refine_start(track: PoseTrack, load_scan, cfg, s: KissIcpSettings) -> None:
     for k in early[::-1]:
         pts = voxel_down_sample(np.asarray(load_scan(k), dtype=np.float64), s.voxel_size_m * 0.5)
         src = voxel_down_sample(pts, s.voxel_size_m * 1.5)
-        guess = reg.align_points_to_map(src, vmap, guess, 3 * sigma, sigma)
+        guess = project(reg.align_points_to_map(src, vmap, guess, 3 * sigma, sigma))
         track.poses[k] = guess
         vmap.add_points(pts @ guess[:3, :3].T + guess[:3, 3])
     # keep the first scan as the world frame

@@ -21,7 +21,6 @@ from virus_nerf.data.bags.odometry import (
     PoseTrack,
     ScanRegistration,
     Transform,
-    horizontal_planes,
     tf_track,
 )
 from virus_nerf.data.bags.reader import Message
@@ -147,24 +146,17 @@ class KissPoses(TrackPoses):
 
         super().__init__()
         self.topics, self.describe, self.bag = (topic,), f"KISS-ICP on {topic}", bag
-        self.lidar, self.settings = lidar, settings or KissIcpSettings()
+        self.lidar, self.settings = lidar, lidar.kiss_settings(settings)
         if keep_up and not worker:
             raise ValueError("keep_up needs the worker process (the scans must queue somewhere)")
         self.worker = KissWorker(self.settings, keep_up) if worker else None
         self.registration = None if self.worker is not None else ScanRegistration(self.settings)
-        self.band: tuple[float, float] | None = None  # drop_floor_ceiling_m: heights kept (first scan)
         self.last_sent = -math.inf
         self._skipped = 0  # by workers closed
 
     def add(self, topic: str, msg: Message) -> None:
         where = m.Where(self.bag, topic, msg.index)  # the importer's scan (float32, as its PCD holds it)
         pts = m.decode_scan(msg.msg, where, self.lidar.min_range_m, self.lidar.max_range_m).astype(np.float64)
-        s = self.settings
-        if s.drop_floor_ceiling_m > 0:
-            if self.band is None:
-                floor, ceiling = horizontal_planes(pts)
-                self.band = (floor + s.drop_floor_ceiling_m, ceiling - s.drop_floor_ceiling_m)
-            pts = pts[(pts[:, 2] > self.band[0]) & (pts[:, 2] < self.band[1])]
         if msg.time_s <= self.last_sent:
             return  # a repeated stamp (the importer keeps one scan per stamp)
         self.last_sent = msg.time_s

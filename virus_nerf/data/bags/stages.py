@@ -185,7 +185,7 @@ class ImportRun:
                 raise DataFormatError(self.reader.path, f"--poses lidar-odometry: topic "
                                       f"{self.plan.roles[(None, 'lidar')]} has {len(self.lidar_times)} "
                                       "usable scans; expected at least 2")
-            settings = kiss or KissIcpSettings()
+            settings = self.cfg.lidar.kiss_settings(kiss)
             paths = self.lidar_paths
             track = kiss_icp_track(np.array(self.lidar_times), lambda k: read_pcd_xyz(paths[k]), settings)
             return track, {"kiss_icp": dataclasses.asdict(settings)}

@@ -9,12 +9,14 @@ is checked and an unknown key is refused naming the file and the dotted key.
 
 from __future__ import annotations
 
+import dataclasses
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 
+from virus_nerf.data.bags.odometry import KissIcpSettings
 from virus_nerf.errors import ConfigError
 from virus_nerf.sensors.geometry import QUATERNION_NORM_TOLERANCE, pose_matrix
 
@@ -59,11 +61,21 @@ class SyncConfig:
 
 @dataclass(frozen=True)
 class LidarConfig:
-    """LiDAR topic and the range filter of the written scans (m; the RS-16's 0.3-30 m)."""
+    """LiDAR topic and the range filter of the written scans (m; the RS-16's 0.3-30 m).
+
+    flat_floor: the robot drives on one flat floor, so KISS-ICP registers the motion along it
+    only (odometry.KissIcpSettings `planar`); false for ramps, stairs or outdoors."""
 
     topic: str | None = "/rslidar_points"
     min_range_m: float = 0.3
     max_range_m: float = 30.0
+    flat_floor: bool = True
+
+    def kiss_settings(self, settings: KissIcpSettings | None = None) -> KissIcpSettings:
+        """KISS-ICP's settings for this LiDAR: `settings` (default KissIcpSettings()), planar only
+        on a flat floor."""
+        s = settings or KissIcpSettings()
+        return s if self.flat_floor or not s.planar else dataclasses.replace(s, planar=False)
 
 
 @dataclass(frozen=True)
@@ -177,9 +189,15 @@ class _Reader:
     def section(self, table, key: str, cls, optional_str: set[str] = frozenset()):
         names = {f.name for f in fields(cls)}
         self.keys(table, key, names)
+        flags = {f.name for f in fields(cls) if f.type in (bool, "bool")}
         values = {}
         for k, v in table.items():
-            values[k] = self.topic(v, f"{key}.{k}") if k in optional_str else self.number(v, f"{key}.{k}")
+            if k in flags:
+                if not isinstance(v, bool):
+                    raise ConfigError(f"{v!r}: expected true or false", file=self.path, key=f"{key}.{k}")
+                values[k] = v
+            else:
+                values[k] = self.topic(v, f"{key}.{k}") if k in optional_str else self.number(v, f"{key}.{k}")
         return cls(**values)
 
     def stack(self, table, key: str) -> StackTopics:
