@@ -9,6 +9,11 @@ the LiDAR scans KISS-ICP skipped to keep up, and the final map's time. Real time
 
     python benchmarks/bench_stream.py --scene office --sim-seeds 61,62,63 --out benchmarks/results/stream.json
 
+--judge also judges each final map (map.pgm / map.yaml as a planner reads them) against the
+recording's LiDAR map, as `bench_safety.py --bag` does: the obstacles it marks free within 1 m /
+2 m of the path / all, and its free recall (the map ground truth; with --poses lidar-odometry the
+map is drawn on KISS-ICP's poses, whose world frame is the first scan's, the simulator's too).
+
 --poses picks the pose source (lidar-odometry: KISS-ICP scan by scan, the default of map-bag;
 tf: the recording's poses on /tf, a robot without LiDAR); --args passes further map-bag flags
 (a variant, e.g. '--max-poses 10').
@@ -50,6 +55,15 @@ def ensure_bag(root: Path, scene: str, seed: int, seconds: float) -> Path:
         bag.parent.mkdir(parents=True, exist_ok=True)
         write_bag(data, bag, ros_version=2, room=scene, storage="mcap", tf=True)
     return bag
+
+
+def judged(out: Path, data: Path, scene: str) -> dict:
+    """The final map's safety figures (bench_safety.judge_files)."""
+    from bench_safety import judge_files
+
+    fig = judge_files(out / "map", data, scene)
+    return {"map_free_1m": fig["1m"], "map_free_2m": fig["2m"], "map_free_all": fig["all"],
+            "map_free_recall": fig["free_recall"]}
 
 
 def run(bag: Path, out: Path, poses: str, extra: list[str]) -> dict:
@@ -94,13 +108,17 @@ def main() -> None:
     ap.add_argument("--args", default="", help="further map-bag flags, one string")
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--out", type=Path)
+    ap.add_argument("--judge", action="store_true", help="judge each final map against the map ground truth")
     args = ap.parse_args()
     new_out(args.out)  # before the run: a result is never overwritten
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for sim_seed in (int(s) for s in args.sim_seeds.split(",")):
             bag = ensure_bag(args.data, args.scene, sim_seed, args.seconds)
-            row = {"sim_seed": sim_seed, **run(bag, Path(tmp) / f"s{sim_seed}", args.poses, shlex.split(args.args))}
+            out = Path(tmp) / f"s{sim_seed}"
+            row = {"sim_seed": sim_seed, **run(bag, out, args.poses, shlex.split(args.args))}
+            if args.judge:
+                row.update(judged(out, args.data / f"{args.scene}{sim_seed}_{args.seconds:.0f}s", args.scene))
             rows.append(row)
             print(json.dumps(row), flush=True)
     frames = sum(r["frames"] for r in rows)
@@ -112,6 +130,9 @@ def main() -> None:
         "first_snapshot_from_start_s_max": max(r["first_snapshot_from_start_s"] or 0.0 for r in rows),
         "steps_mean": round(statistics.mean(r["steps"] for r in rows), 1),
     }
+    if args.judge:
+        mean.update({k: round(statistics.mean(r[k] for r in rows), 4)
+                     for k in ("map_free_1m", "map_free_2m", "map_free_all", "map_free_recall")})
     print(json.dumps(mean, indent=1))
     if args.out:
         doc = {"command": "benchmarks/bench_stream.py " + " ".join(sys.argv[1:]), "scene": args.scene,

@@ -4,8 +4,9 @@ All three give a `PoseTrack` of LiDAR-to-world poses; camera poses are the LiDAR
 interpolated at the camera stamp times the camera-in-LiDAR mounting (docs/method.md 4).
 
 KISS-ICP (Vizzo et al. 2023) ships outdoor defaults: max_range 100 m, from which its map voxel
-is max_range / 100 = 1 m, too coarse for a room. `KissIcpSettings()` are indoor settings measured
-on simulated office drives (README "Your own robot", benchmarks/bench_bag_odometry.py).
+is max_range / 100 = 1 m, too coarse for a room. `KissIcpSettings()` are indoor settings for a
+robot on one flat floor, measured on simulated offices, common areas and warehouses (D118,
+docs/usage.md "KISS-ICP indoors", benchmarks/bench_bag_odometry.py).
 """
 
 from __future__ import annotations
@@ -86,7 +87,8 @@ class KissIcpSettings:
     def library_defaults(cls) -> KissIcpSettings:
         """KISS-ICP 1.x's own (outdoor) defaults, for comparison."""
         return cls(max_range_m=100.0, min_range_m=0.0, voxel_size_m=1.0, deskew=True,
-                   initial_threshold_m=2.0, min_motion_m=0.1, refine_start_s=0.0, drop_floor_ceiling_m=0.0)
+                   initial_threshold_m=2.0, min_motion_m=0.1, refine_start_s=0.0, drop_floor_ceiling_m=0.0,
+                   planar=False)
 
 
 def scale_motion(delta: np.ndarray, factor: float) -> np.ndarray:
@@ -142,7 +144,7 @@ def find_floor(points: np.ndarray, max_tilt_deg: float = 5.0, step_deg: float = 
     the most points is refined by a least-squares plane through the points near that bin; the
     floor needs `min_share` of the points in its bin, the ceiling (the densest bin above +0.1 m
     along the same normal with at most `max_below` of the points over it) too. Measured on the ETHZ
-    office recording: its RS-16 is tilted 1.9 deg, and a height bin of the sensor's own z axis
+    office recording: its RS-16 is tilted about 1.8 deg, and a height bin of the sensor's own z axis
     holds too few floor points to find it."""
     from scipy.spatial.transform import Rotation
 
