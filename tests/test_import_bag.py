@@ -42,6 +42,13 @@ def test_camera_poses_match_the_simulator(imported, tiny_office, ros):
         assert err.median_m < 0.05 and err.median_deg < 1.0, err
 
 
+def test_the_import_report_says_where_kiss_icp_found_the_floor(imported):
+    """The simulator's LiDAR is level, 0.72 m above the floor (sensors/rig.py LIDAR_HEIGHT_M)."""
+    floor = json.loads((imported[1] / "import_report.json").read_text())["pose_settings"]["floor"]
+    assert floor["floor_found"] and floor["motion"] == "along the floor" and "note" not in floor
+    assert floor["tilt_deg"] < 0.1 and floor["floor_m"] == pytest.approx(-0.72, abs=0.02)
+
+
 @pytest.mark.parametrize("ros", [1, 2])
 def test_sensor_values_survive_the_round_trip(imported, tiny_office, ros):
     ref, got = load_recording(tiny_office, "office"), load_recording(imported[ros], "office")

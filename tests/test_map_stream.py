@@ -227,8 +227,8 @@ def test_kiss_icp_in_its_worker_process_gives_the_in_process_poses(bags):
     from virus_nerf.data.bags.poses import KissPoses
 
     cfg = default_topics()
-    local, _ = _stream(bags["ros1"], "lidar-odometry",
-                       source=KissPoses(cfg.lidar.topic, cfg.lidar, None, bags["ros1"], worker=False))
+    in_process = KissPoses(cfg.lidar.topic, cfg.lidar, None, bags["ros1"], worker=False)
+    local, _ = _stream(bags["ros1"], "lidar-odometry", source=in_process)
     worker = KissPoses(cfg.lidar.topic, cfg.lidar, None, bags["ros1"])
     proc = worker.worker._proc
     remote, _ = _stream(bags["ros1"], "lidar-odometry", source=worker)
@@ -237,6 +237,10 @@ def test_kiss_icp_in_its_worker_process_gives_the_in_process_poses(bags):
         assert a.frame.time == b.frame.time and a.frame.stack_id == b.frame.stack_id
         np.testing.assert_array_equal(a.frame.cam_to_world, b.frame.cam_to_world)
     assert proc.poll() is not None
+    # the floor the worker found, kept after it ended (stream.json's lidar_floor): the simulator's
+    # LiDAR is level, 0.72 m above the floor
+    assert worker.floor == in_process.floor and worker.floor["motion"] == "along the floor"
+    assert worker.floor["floor_m"] == pytest.approx(-0.72, abs=0.02)
 
 
 def test_a_dead_kiss_icp_worker_is_one_line_not_a_hang():
@@ -317,6 +321,30 @@ def test_kiss_icp_keeping_up_registers_the_newest_scan_and_skips_the_waiting_one
         k = round(t * 10)
         np.testing.assert_allclose(pose[:3, 3], truth[k] - truth[0], atol=0.01)
         np.testing.assert_allclose(pose[:3, :3], np.eye(3), atol=1e-3)
+
+
+def test_the_registration_says_what_it_did_with_the_floor():
+    """The box room seen 1 m above its floor: floor at -1.0 m, ceiling at +2.0 m, level, the motion
+    kept along the floor. Walls seen only above the sensor (a LiDAR tilted up): no floor, 6 degrees
+    of freedom, and a note."""
+    from virus_nerf.data.bags.odometry import KissIcpSettings, ScanRegistration
+
+    scan = _box_room_scan(np.array([1.5, 2.5, 1.0]))
+    registration = ScanRegistration(KissIcpSettings())
+    registration.register(0.0, scan)
+    got = registration.describe()
+    assert got["floor_found"] and got["motion"] == "along the floor" and "note" not in got
+    assert got["floor_m"] == pytest.approx(-1.0, abs=0.01) and got["ceiling_m"] == pytest.approx(2.0, abs=0.01)
+    assert got["tilt_deg"] < 0.05
+    rng = np.random.default_rng(0)
+    side = rng.uniform(-4.0, 4.0, 2000)
+    walls = np.c_[np.where(np.arange(2000) % 2, side, 4.0), np.where(np.arange(2000) % 2, 4.0, side),
+                  rng.uniform(0.0, 2.0, 2000)]
+    no_floor = ScanRegistration(KissIcpSettings())
+    no_floor.register(0.0, walls)
+    got = no_floor.describe()
+    assert not got["floor_found"] and got["motion"] == "6 degrees of freedom" and "no floor" in got["note"]
+    assert ScanRegistration(KissIcpSettings(drop_floor_ceiling_m=0.0, planar=False)).describe() == {"floor_searched": False}
 
 
 def test_a_stream_keeping_up_gives_every_frame_its_pose_from_the_scans_registered(bags, tiny_office):

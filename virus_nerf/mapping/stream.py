@@ -77,6 +77,8 @@ class StreamReport:
     lag_s: list[float] = field(default_factory=list)  # at each snapshot
     # --poses lidar-odometry: LiDAR scans KISS-ICP did not register, to keep up with the LiDAR
     scans_skipped: int = 0
+    # --poses lidar-odometry: the floor of the first scan registered (odometry.ScanRegistration.describe)
+    lidar_floor: dict | None = None
     stopped: str | None = None  # the error (or signal) that stopped the stream
     stopped_at_s: float | None = None  # bag seconds since the first message
     running: bool = False  # true in the report written at each snapshot while the stream runs
@@ -433,6 +435,9 @@ class StreamRun:
         r = self.report
         r.dropped, r.without = dict(self.sync.dropped_total()), dict(self.sync.without_total())
         r.scans_skipped = getattr(self.sync.poses, "skipped", 0)
+        r.lidar_floor = getattr(self.sync.poses, "floor", None)
+        if r.lidar_floor and "note" in r.lidar_floor:
+            self._warn("floor", r.lidar_floor["note"])
 
     def _close(self) -> None:
         """The final map of what was made (none when no frame reached the mapper) and the report,

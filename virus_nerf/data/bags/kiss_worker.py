@@ -64,7 +64,8 @@ def die_with_parent(parent: int, poll_s: float = 1.0) -> None:
 
 def _serve(scans: Connection, poses: Connection) -> None:
     """Worker loop: (KissIcpSettings, keep_up), then (time, float32 points (N, 3)) from `scans` ->
-    (time, pose (4, 4) or None when skipped, error) to `poses`, until None or the end of the pipe."""
+    (time, pose (4, 4) or None when skipped, error, the floor found: ScanRegistration.describe()
+    with the first pose, else None) to `poses`, until None or the end of the pipe."""
     t = None
     try:
         settings, keep_up = scans.recv()
@@ -75,17 +76,19 @@ def _serve(scans: Connection, poses: Connection) -> None:
             item = scans.recv()
             if keep_up:
                 while item is not None and scans.poll(0):  # a newer scan waits: this one is skipped
-                    poses.send((item[0], None, None))
+                    poses.send((item[0], None, None, None))
                     item = scans.recv()
             if item is None:
                 return
             t, pts = item
-            poses.send((t, registration.register(t, pts), None))
+            first = registration.last_t is None
+            pose = registration.register(t, pts)
+            poses.send((t, pose, None, registration.describe() if first else None))
     except (EOFError, BrokenPipeError):  # the mapping process is gone
         return
     except Exception as exc:  # noqa: BLE001 - sent to the mapping process, raised there
         try:
-            poses.send((t, None, f"{type(exc).__name__}: {exc}"))
+            poses.send((t, None, f"{type(exc).__name__}: {exc}", None))
         except OSError:
             pass
 
@@ -127,6 +130,7 @@ class KissWorker:
         self._writer.start()
         self.pending: list[float] = []  # stamps sent, pose not yet received
         self.skipped = 0  # scans answered without a pose (keep_up)
+        self.floor: dict | None = None  # the first registered scan's floor (ScanRegistration.describe)
 
     def _write(self) -> None:
         while True:
@@ -159,7 +163,9 @@ class KissWorker:
                 if block:
                     continue
                 break
-            t, pose, error = item
+            t, pose, error, floor = item
+            if floor is not None:
+                self.floor = floor
             if error is not None:
                 raise RuntimeError(f"KISS-ICP failed: {error}")
             self.pending.pop(0)

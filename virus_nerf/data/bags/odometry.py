@@ -141,8 +141,8 @@ def find_floor(points: np.ndarray, max_tilt_deg: float = 5.0, step_deg: float = 
     """The floor and ceiling of a LiDAR scan (M, 3), the LiDAR mounted up to `max_tilt_deg` off
     level: of the normals tilted by whole `step_deg` steps in roll and pitch, the one whose
     densest `bin_m` height bin below -0.1 m with at most `max_below` of the points under it holds
-    the most points is refined by a least-squares plane through the points near that bin; the
-    floor needs `min_share` of the points in its bin, the ceiling (the densest bin above +0.1 m
+    the most points is refined by least-squares planes through the points ever nearer to it; the
+    floor needs `min_share` of the points in its bin and within bin_m / 4 of that plane, the ceiling (the densest bin above +0.1 m
     along the same normal with at most `max_below` of the points over it) too. Measured on the ETHZ
     office recording: its RS-16 is tilted about 1.8 deg, and a height bin of the sensor's own z axis
     holds too few floor points to find it."""
@@ -175,8 +175,9 @@ def find_floor(points: np.ndarray, max_tilt_deg: float = 5.0, step_deg: float = 
         normal = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)[2][2]
         normal = normal if normal[2] > 0 else -normal
         floor = float(np.median(near @ normal))
-    if np.degrees(np.arccos(min(normal[2], 1.0))) > max_tilt_deg + step_deg:
-        return none  # no plane there: the bottom of a wall, say
+    if (np.degrees(np.arccos(min(normal[2], 1.0))) > max_tilt_deg + step_deg
+            or len(near) < min_share * len(p)):  # the last window: a floor is a thin plane
+        return none  # no plane there: the bottom of the walls, say
     h = p @ normal
     above = np.floor(h[h > 0.1] / bin_m).astype(np.int64)
     ceiling = np.inf
@@ -231,6 +232,24 @@ class ScanRegistration:
         if s.planar and math.isfinite(self.floor.floor_m):
             self.level = self.floor.level()
 
+    def describe(self) -> dict:
+        """The first scan's floor as the registration used it (JSON-ready; `note` says when the
+        motion could not be kept along the floor it was asked to keep it along)."""
+        if self.floor is None:
+            return {"floor_searched": False}
+        f = self.floor
+        found = math.isfinite(f.floor_m)
+        out = {"floor_found": found,
+               "tilt_deg": round(math.degrees(math.acos(min(float(f.normal[2]), 1.0))), 2) if found else None,
+               "floor_m": round(f.floor_m, 3) if found else None,
+               "ceiling_m": round(f.ceiling_m, 3) if math.isfinite(f.ceiling_m) else None,
+               "motion": "along the floor" if self.level is not None else "6 degrees of freedom"}
+        if self.settings.planar and self.level is None:
+            out["note"] = ("KISS-ICP found no floor in the first LiDAR scan (a LiDAR tilted more than 5 deg, or one "
+                           "that does not see the floor): the scans were registered in 6 degrees of freedom with the "
+                           "floor kept, which lags in large rooms (docs/usage.md, KISS-ICP indoors)")
+        return out
+
     def crop(self, points: np.ndarray) -> np.ndarray:
         """The points registration uses (M', 3) float64: without the floor and ceiling's bands."""
         p = np.asarray(points, dtype=np.float64)
@@ -277,13 +296,16 @@ class ScanRegistration:
 
 
 def kiss_icp_track(times_s: np.ndarray, load_scan: Callable[[int], np.ndarray],
-                   settings: KissIcpSettings | None = None) -> PoseTrack:
-    """Register the scans (k -> (M, 3) points, sensor frame, in time order) with KISS-ICP.
+                   settings: KissIcpSettings | None = None,
+                   registration: ScanRegistration | None = None) -> PoseTrack:
+    """Register the scans (k -> (M, 3) points, sensor frame, in time order) with KISS-ICP
+    (`registration`, a new ScanRegistration of `settings` by default: pass one to read its
+    `describe()` after).
 
     The first scan's pose is the world frame (as in the ETHZ recordings)."""
-    s = settings or KissIcpSettings()
+    s = registration.settings if registration is not None else (settings or KissIcpSettings())
     cfg = _kiss_config(s)
-    registration = ScanRegistration(s)
+    registration = registration or ScanRegistration(s)
     poses = np.empty((len(times_s), 4, 4))
     for k in range(len(times_s)):
         poses[k] = registration.register(float(times_s[k]), load_scan(k))

@@ -153,6 +153,7 @@ class KissPoses(TrackPoses):
         self.registration = None if self.worker is not None else ScanRegistration(self.settings)
         self.last_sent = -math.inf
         self._skipped = 0  # by workers closed
+        self._floor: dict | None = None  # kept from a worker closed
 
     def add(self, topic: str, msg: Message) -> None:
         where = m.Where(self.bag, topic, msg.index)  # the importer's scan (float32, as its PCD holds it)
@@ -175,6 +176,15 @@ class KissPoses(TrackPoses):
             raise DataFormatError(self.bag, f"{self.describe}: {exc}") from None
         for t, pose in done:
             self.append(t, pose)
+
+    @property
+    def floor(self) -> dict | None:
+        """The first registered scan's floor (odometry.ScanRegistration.describe); None before it."""
+        if self.worker is not None:
+            return self.worker.floor
+        if self.registration is not None and self.registration.started:
+            return self.registration.describe()
+        return self._floor
 
     @property
     def skipped(self) -> int:
@@ -211,6 +221,7 @@ class KissPoses(TrackPoses):
         if self.worker is not None:
             self.worker.close()
             self._skipped += self.worker.skipped
+            self._floor = self.worker.floor
             self.worker = None
 
 

@@ -23,6 +23,7 @@ from virus_nerf.data.bags import messages as m
 from virus_nerf.data.bags.odometry import (
     KissIcpSettings,
     PoseTrack,
+    ScanRegistration,
     Transform,
     kiss_icp_track,
     tf_track,
@@ -187,8 +188,13 @@ class ImportRun:
                                       "usable scans; expected at least 2")
             settings = self.cfg.lidar.kiss_settings(kiss)
             paths = self.lidar_paths
-            track = kiss_icp_track(np.array(self.lidar_times), lambda k: read_pcd_xyz(paths[k]), settings)
-            return track, {"kiss_icp": dataclasses.asdict(settings)}
+            registration = ScanRegistration(settings)
+            track = kiss_icp_track(np.array(self.lidar_times), lambda k: read_pcd_xyz(paths[k]),
+                                   registration=registration)
+            floor = registration.describe()
+            if "note" in floor:
+                self.notes.append(floor["note"])
+            return track, {"kiss_icp": dataclasses.asdict(settings), "floor": floor}
         if poses == "tf":
             child = tf_child or self.lidar_frame
             if not child:
