@@ -146,8 +146,8 @@ def _room_points(rng, ceiling: bool) -> np.ndarray:
 
 def test_floor_found_in_a_scan_of_a_level_or_tilted_lidar():
     """Level: the floor at -0.71 m along z, no ceiling. The same room seen by a LiDAR tilted 2 deg
-    about x and 1 deg about y: the floor's normal is that tilt (to 0.1 deg), the heights hold.
-    Walls alone: no floor."""
+    about x and 1 deg about y, or -4 and 10 deg: the floor's normal is that tilt (to 0.1 deg), the
+    heights hold; tilted 20 deg or walls alone: no floor."""
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(0)
@@ -162,6 +162,10 @@ def test_floor_found_in_a_scan_of_a_level_or_tilted_lidar():
     assert np.degrees(np.arccos(np.clip(found.normal @ up, -1, 1))) < 0.1
     assert found.floor_m == pytest.approx(-0.71, abs=0.005) and found.ceiling_m == pytest.approx(1.9, abs=0.005)
     np.testing.assert_allclose(found.level() @ found.normal, [0, 0, 1], atol=1e-12)
+    steep = Rotation.from_euler("xy", [-4.0, 10.0], degrees=True)  # a LiDAR pitched to look at the ground
+    found = find_floor(steep.apply(room))
+    assert np.degrees(np.arccos(np.clip(found.normal @ steep.apply([0.0, 0.0, 1.0]), -1, 1))) < 0.1
+    assert find_floor(Rotation.from_euler("y", 20.0, degrees=True).apply(room)).floor_m == -np.inf  # past 15 deg
 
     walls = _room_points(rng, ceiling=False)[400:]
     assert find_floor(walls).floor_m == -np.inf

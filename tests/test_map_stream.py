@@ -323,6 +323,36 @@ def test_kiss_icp_keeping_up_registers_the_newest_scan_and_skips_the_waiting_one
         np.testing.assert_allclose(pose[:3, :3], np.eye(3), atol=1e-3)
 
 
+def test_kiss_icp_keeping_up_never_skips_the_first_scan():
+    """The world frame is the first scan's: scans 0-3 wait while the worker starts (held by
+    SIGSTOP); it registers 0, skips 1 and 2, registers 3."""
+    import os
+    import signal
+    import time
+
+    from virus_nerf.data.bags.kiss_worker import KissWorker
+    from virus_nerf.data.bags.odometry import KissIcpSettings
+
+    truth = {k: np.array([1.5 + 0.05 * k, 2.5, 1.0]) for k in range(4)}
+    worker = KissWorker(KissIcpSettings(), keep_up=True)
+    try:
+        os.kill(worker._proc.pid, signal.SIGSTOP)
+        try:
+            for k in range(4):
+                worker.send(0.1 * k, _box_room_scan(truth[k]))
+            deadline = time.monotonic() + 10.0
+            while not worker._outbox.empty() and time.monotonic() < deadline:
+                time.sleep(0.01)
+            time.sleep(0.2)
+        finally:
+            os.kill(worker._proc.pid, signal.SIGCONT)
+        got = worker.poll(block=True)
+    finally:
+        worker.close()
+    assert [round(t, 3) for t, _ in got] == [0.0, 0.3] and worker.skipped == 2
+    np.testing.assert_allclose(got[1][1][:3, 3], truth[3] - truth[0], atol=0.01)
+
+
 def test_the_registration_says_what_it_did_with_the_floor():
     """The box room seen 1 m above its floor: floor at -1.0 m, ceiling at +2.0 m, level, the motion
     kept along the floor. Walls seen only above the sensor (a LiDAR tilted up): no floor, 6 degrees

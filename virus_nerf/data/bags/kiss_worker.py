@@ -74,7 +74,7 @@ def _serve(scans: Connection, poses: Connection) -> None:
         registration = ScanRegistration(settings, stretch=keep_up)
         while True:
             item = scans.recv()
-            if keep_up:
+            if keep_up and registration.started:  # (the first scan is the world frame: never skipped)
                 while item is not None and scans.poll(0):  # a newer scan waits: this one is skipped
                     poses.send((item[0], None, None, None))
                     item = scans.recv()

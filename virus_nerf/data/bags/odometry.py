@@ -136,40 +136,52 @@ class FloorFrame:
         return Rotation.align_vectors([[0.0, 0.0, 1.0]], [self.normal])[0].as_matrix()
 
 
-def find_floor(points: np.ndarray, max_tilt_deg: float = 5.0, step_deg: float = 0.5, bin_m: float = 0.1,
-               min_share: float = 0.03, max_below: float = 0.02, search_points: int = 4000) -> FloorFrame:
-    """The floor and ceiling of a LiDAR scan (M, 3), the LiDAR mounted up to `max_tilt_deg` off
-    level: of the normals tilted by whole `step_deg` steps in roll and pitch, the one whose
-    densest `bin_m` height bin below -0.1 m with at most `max_below` of the points under it holds
-    the most points is refined by least-squares planes through the points ever nearer to it; the
-    floor needs `min_share` of the points in its bin and within bin_m / 4 of that plane, the ceiling (the densest bin above +0.1 m
-    along the same normal with at most `max_below` of the points over it) too. Measured on the ETHZ
-    office recording: its RS-16 is tilted about 1.8 deg, and a height bin of the sensor's own z axis
-    holds too few floor points to find it."""
+def _bottom_plane(sample: np.ndarray, roll_pitch: np.ndarray, bin_m: float, max_below: float):
+    """Of the normals tilted by (C, 2) roll and pitch (rad): (points, normal (3,), height) of the
+    one whose densest `bin_m` height bin below -0.1 m with at most `max_below` of the points
+    under it (the floor is the bottom: a table top or a shelf has the floor under it, however
+    dense) holds the most points; (0, None, None) when no bin qualifies."""
     from scipy.spatial.transform import Rotation
 
+    normals = Rotation.from_euler("xy", roll_pitch).apply([0.0, 0.0, 1.0])  # (C, 3)
+    best = (0, None, None)
+    for c, h in enumerate((sample @ normals.T).T):  # heights along each candidate normal
+        values, counts = np.unique(np.floor(h[h < -0.1] / bin_m).astype(np.int64), return_counts=True)
+        bottom = np.flatnonzero(np.cumsum(counts) - counts <= max_below * len(sample))
+        if len(bottom) == 0:
+            continue
+        k = int(bottom[np.argmax(counts[bottom])])
+        if counts[k] > best[0]:
+            best = (int(counts[k]), normals[c], (values[k] + 0.5) * bin_m)
+    return best
+
+
+def find_floor(points: np.ndarray, max_tilt_deg: float = 15.0, step_deg: float = 1.0, bin_m: float = 0.1,
+               min_share: float = 0.03, max_below: float = 0.02, search_points: int = 4000) -> FloorFrame:
+    """The floor and ceiling of a LiDAR scan (M, 3), the LiDAR mounted up to `max_tilt_deg` off
+    level: the normal (roll and pitch in `step_deg` steps, then quarter steps around the best)
+    whose densest `bin_m` height bin at the bottom holds the most points (`_bottom_plane`), refined
+    by least-squares planes through the points ever nearer to it. The floor needs `min_share` of
+    the points in its bin and within bin_m / 4 of that plane; the ceiling (the densest bin above
+    +0.1 m along the same normal with at most `max_below` of the points over it) `min_share` too.
+    Measured on the ETHZ office recording: its RS-16 is tilted about 1.8 deg, and a height bin of
+    the sensor's own z axis holds too few floor points to find it."""
     p = np.asarray(points, dtype=np.float64)
     none = FloorFrame(np.array([0.0, 0.0, 1.0]), -np.inf, np.inf)
     if len(p) == 0:
         return none
     sample = p[:: max(1, len(p) // search_points)]
     angles = np.radians(np.arange(-max_tilt_deg, max_tilt_deg + 1e-9, step_deg))
-    roll, pitch = (a.ravel() for a in np.meshgrid(angles, angles, indexing="ij"))
-    normals = Rotation.from_euler("xy", np.c_[roll, pitch]).apply([0.0, 0.0, 1.0])  # (C, 3)
-    best_count, best = 0, None
-    for c, h in enumerate((sample @ normals.T).T):  # heights along each candidate normal
-        values, counts = np.unique(np.floor(h[h < -0.1] / bin_m).astype(np.int64), return_counts=True)
-        # the floor is the bottom: a bin with more than `max_below` of the points under it is a
-        # table top or a shelf, however dense
-        bottom = np.flatnonzero(np.cumsum(counts) - counts <= max_below * len(sample))
-        if len(bottom) == 0:
-            continue
-        k = int(bottom[np.argmax(counts[bottom])])
-        if counts[k] > best_count:
-            best_count, best = int(counts[k]), (normals[c], (values[k] + 0.5) * bin_m)
-    if best is None or best_count < min_share * len(sample):
+    grid = np.stack([a.ravel() for a in np.meshgrid(angles, angles, indexing="ij")], axis=1)
+    count, normal, _ = _bottom_plane(sample, grid, bin_m, max_below)
+    if normal is None:
         return none
-    normal, floor = best
+    roll, pitch = np.arcsin(-normal[1]), np.arctan2(normal[0], normal[2])  # of Rotation.from_euler("xy")
+    fine = np.radians(np.arange(-step_deg, step_deg + 1e-9, step_deg / 4))
+    grid = np.stack([a.ravel() for a in np.meshgrid(roll + fine, pitch + fine, indexing="ij")], axis=1)
+    best_count, normal, floor = _bottom_plane(sample, grid, bin_m, max_below)
+    if normal is None or best_count < min_share * len(sample):
+        return none
     for window in (bin_m, bin_m / 2, bin_m / 4):  # the plane through the floor's points, ever nearer
         near = p[np.abs(p @ normal - floor) < window]
         normal = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)[2][2]
@@ -245,7 +257,7 @@ class ScanRegistration:
                "ceiling_m": round(f.ceiling_m, 3) if math.isfinite(f.ceiling_m) else None,
                "motion": "along the floor" if self.level is not None else "6 degrees of freedom"}
         if self.settings.planar and self.level is None:
-            out["note"] = ("KISS-ICP found no floor in the first LiDAR scan (a LiDAR tilted more than 5 deg, or one "
+            out["note"] = ("KISS-ICP found no floor in the first LiDAR scan (a LiDAR tilted more than 15 deg, or one "
                            "that does not see the floor): the scans were registered in 6 degrees of freedom with the "
                            "floor kept, which lags in large rooms (docs/usage.md, KISS-ICP indoors)")
         return out
