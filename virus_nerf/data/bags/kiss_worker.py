@@ -81,7 +81,7 @@ def _serve(scans: Connection, poses: Connection) -> None:
             if item is None:
                 return
             t, pts = item
-            first = registration.last_t is None
+            first = not registration.started
             pose = registration.register(t, pts)
             poses.send((t, pose, None, registration.describe() if first else None))
     except (EOFError, BrokenPipeError):  # the mapping process is gone

@@ -136,23 +136,30 @@ class FloorFrame:
         return Rotation.align_vectors([[0.0, 0.0, 1.0]], [self.normal])[0].as_matrix()
 
 
+def _bottom_bin(h: np.ndarray, bin_m: float, max_below: float, n: int) -> tuple[int, float]:
+    """(points, centre height) of the densest `bin_m` bin of heights `h` (M,) below -0.1 m with at
+    most `max_below` x `n` of the heights under it (the floor is the bottom: a table top or a shelf
+    has the floor under it, however dense); (0, nan) when no bin qualifies. The ceiling is the
+    bottom of -h."""
+    values, counts = np.unique(np.floor(h[h < -0.1] / bin_m).astype(np.int64), return_counts=True)
+    bottom = np.flatnonzero(np.cumsum(counts) - counts <= max_below * n)
+    if len(bottom) == 0:
+        return 0, math.nan
+    k = int(bottom[np.argmax(counts[bottom])])
+    return int(counts[k]), float((values[k] + 0.5) * bin_m)
+
+
 def _bottom_plane(sample: np.ndarray, roll_pitch: np.ndarray, bin_m: float, max_below: float):
     """Of the normals tilted by (C, 2) roll and pitch (rad): (points, normal (3,), height) of the
-    one whose densest `bin_m` height bin below -0.1 m with at most `max_below` of the points
-    under it (the floor is the bottom: a table top or a shelf has the floor under it, however
-    dense) holds the most points; (0, None, None) when no bin qualifies."""
+    one whose `_bottom_bin` holds the most points; (0, None, None) when no bin qualifies."""
     from scipy.spatial.transform import Rotation
 
     normals = Rotation.from_euler("xy", roll_pitch).apply([0.0, 0.0, 1.0])  # (C, 3)
     best = (0, None, None)
     for c, h in enumerate((sample @ normals.T).T):  # heights along each candidate normal
-        values, counts = np.unique(np.floor(h[h < -0.1] / bin_m).astype(np.int64), return_counts=True)
-        bottom = np.flatnonzero(np.cumsum(counts) - counts <= max_below * len(sample))
-        if len(bottom) == 0:
-            continue
-        k = int(bottom[np.argmax(counts[bottom])])
-        if counts[k] > best[0]:
-            best = (int(counts[k]), normals[c], (values[k] + 0.5) * bin_m)
+        count, height = _bottom_bin(h, bin_m, max_below, len(sample))
+        if count > best[0]:
+            best = (count, normals[c], height)
     return best
 
 
@@ -173,7 +180,7 @@ def find_floor(points: np.ndarray, max_tilt_deg: float = 15.0, step_deg: float =
     sample = p[:: max(1, len(p) // search_points)]
     angles = np.radians(np.arange(-max_tilt_deg, max_tilt_deg + 1e-9, step_deg))
     grid = np.stack([a.ravel() for a in np.meshgrid(angles, angles, indexing="ij")], axis=1)
-    count, normal, _ = _bottom_plane(sample, grid, bin_m, max_below)
+    _, normal, _ = _bottom_plane(sample, grid, bin_m, max_below)
     if normal is None:
         return none
     roll, pitch = np.arcsin(-normal[1]), np.arctan2(normal[0], normal[2])  # of Rotation.from_euler("xy")
@@ -191,12 +198,8 @@ def find_floor(points: np.ndarray, max_tilt_deg: float = 15.0, step_deg: float =
             or len(near) < min_share * len(p)):  # the last window: a floor is a thin plane
         return none  # no plane there: the bottom of the walls, say
     h = p @ normal
-    above = np.floor(h[h > 0.1] / bin_m).astype(np.int64)
-    ceiling = np.inf
-    values, counts = np.unique(above, return_counts=True)
-    top = np.flatnonzero(np.cumsum(counts[::-1])[::-1] - counts <= max_below * len(p))  # the top, as the floor
-    if len(top) and counts[k := int(top[np.argmax(counts[top])])] >= min_share * len(p):
-        ceiling = float(np.median(h[np.abs(h - (values[k] + 0.5) * bin_m) < bin_m]))
+    count, top = _bottom_bin(-h, bin_m, max_below, len(p))
+    ceiling = float(np.median(h[np.abs(h + top) < bin_m])) if count >= min_share * len(p) else np.inf
     return FloorFrame(normal, floor, ceiling)
 
 
