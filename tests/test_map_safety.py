@@ -428,6 +428,33 @@ def test_the_safety_picture_shows_what_the_body_meets_below_the_band():
     assert tuple(plain[0, 0]) == (255, 255, 255) and tuple(plain[4, 4]) == (0, 0, 0)
 
 
+def test_the_safety_picture_file_has_metres_a_title_and_a_legend(tmp_path, monkeypatch):
+    """plots/map_safety.png: a 40 x 20 picture at 0.05 m with its lower left corner at (-1, 2) m
+    spans x -1..1 m and y 2..3 m, drawn pixel for pixel; the title names the ground truth and the
+    legend every colour (8 with what the body meets below the band)."""
+    from virus_nerf.evaluation import plots
+
+    drawn = {}
+    real_save = plots.save_png
+
+    def spy(fig, path, dpi=110, tight=True):
+        ax = fig.axes[0]
+        drawn.update(extent=ax.images[0].get_extent(), title=ax.get_title(), xlabel=ax.get_xlabel(),
+                     legend=[t.get_text() for t in ax.get_legend().get_texts()],
+                     interpolation=ax.images[0].get_interpolation(), dpi=dpi)
+        return real_save(fig, path, dpi, tight)
+
+    monkeypatch.setattr(plots, "save_png", spy)
+    picture = np.zeros((20, 40, 3), dtype=np.uint8)
+    out = plots.plot_safety_picture(picture, (-1.0, 2.0), 0.05, tmp_path / "map_safety.png", gt="map", body=True)
+    assert out.is_file() and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert drawn["extent"] == pytest.approx((-1.0, 1.0, 2.0, 3.0)) and drawn["interpolation"] == "nearest"
+    assert "map ground truth" in drawn["title"] and "0.05 m pixels" in drawn["title"] and drawn["xlabel"] == "x [m]"
+    assert len(drawn["legend"]) == 8 and "obstacle the map marks free" in drawn["legend"]
+    plots.plot_safety_picture(picture, (-1.0, 2.0), 0.05, tmp_path / "plain.png", gt="scan")
+    assert len(drawn["legend"]) == 6 and "scan ground truth" in drawn["title"]
+
+
 def test_distances_on_the_pixel_lattice_keep_their_boundary_pixels():
     """At 0.05 m every radius, clearance and tolerance is a whole number of pixels, and floating
     point must not decide the pixels on it (0.3 - 0.1 = 0.19999999999999998 < 4 * 0.05;

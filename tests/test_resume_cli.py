@@ -56,6 +56,17 @@ def run_copy(finished_run, tmp_path) -> Path:
     return dst
 
 
+def test_the_metrics_over_time_name_their_ground_truth(finished_run):
+    """metrics_vs_time.csv's last row is the final evaluation: its zone-3 NeRF accuracy and its
+    ground truth are metrics.json's."""
+    from virus_nerf.trainer.run_folder import read_eval_history
+
+    doc = json.loads((finished_run / "metrics.json").read_text())
+    last = read_eval_history(finished_run / "metrics_vs_time.csv")[-1]
+    assert last.ground_truth == doc["gt"] == "map"
+    assert last.acc_mean == pytest.approx(doc["sensors"]["NeRF"]["zone3"]["acc_mean"])
+
+
 # ------------------------------------------------------------------------------ item 1: resume
 def test_resume_of_a_finished_run_is_refused_and_touches_nothing(run_copy, tiny_office):
     before = snapshot(run_copy)

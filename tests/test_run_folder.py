@@ -12,13 +12,21 @@ from virus_nerf.trainer.train_log import Every, LogRow, psnr_db, truncate_log
 
 
 def test_eval_history_round_trips_with_missing_values(tmp_path):
-    points = [EvalPoint(10, 1.5, 0.25, 0.5, 0.4, None, 2), EvalPoint(20, 3.0, None, None, None, None, 0)]
+    points = [EvalPoint(10, 1.5, 0.25, 0.5, 0.4, None, 2, "map"), EvalPoint(20, 3.0, None, None, None, None, 0, "map")]
     path = tmp_path / "metrics_vs_time.csv"
     write_eval_history(path, points)
-    assert path.read_text().splitlines()[0] == ",".join(EvalPoint.FIELDS)
-    assert path.read_text().splitlines()[2] == "20,3.0,,,,,0"  # None is an empty cell
+    assert path.read_text().splitlines()[0] == ("step,seconds,acc_mean,cov_mean,acc_inlier,cov_inlier,"
+                                                "n_test_points,ground_truth")
+    assert path.read_text().splitlines()[2] == "20,3.0,,,,,0,map"  # None is an empty cell
     assert read_eval_history(path) == points
     assert read_eval_history(tmp_path / "absent.csv") == []
+
+
+def test_eval_history_written_before_the_ground_truth_column_reads(tmp_path):
+    """A run made before the column (resumed, or read by `tune`): its ground truth is unknown."""
+    path = tmp_path / "metrics_vs_time.csv"
+    path.write_text("step,seconds,acc_mean,cov_mean,acc_inlier,cov_inlier,n_test_points\n10,1.5,0.25,,,,2\n")
+    assert read_eval_history(path) == [EvalPoint(10, 1.5, 0.25, None, None, None, 2, None)]
 
 
 def test_eval_history_with_a_foreign_header_or_row_is_named(tmp_path):

@@ -218,6 +218,35 @@ def plot_metric_vs_time(curves: Mapping[str, Sequence], path: Path, key: str = "
     return save_png(fig, path)
 
 
+def plot_safety_picture(picture: np.ndarray, origin: tuple[float, float], resolution: float, path: Path,
+                        gt: str = "map", body: bool = False) -> Path:
+    """The safety picture (evaluation.safety.safety_picture: (H, W, 3) uint8, row 0 = largest y)
+    with axes in metres, a title naming the ground truth and a legend of its colours (`body`:
+    with what the body meets below the band). Drawn pixel for pixel (nearest), at least one
+    image pixel a map pixel."""
+    from matplotlib.patches import Patch
+
+    from virus_nerf.evaluation import safety as s
+
+    h, w = picture.shape[:2]
+    x0, y0 = origin
+    plt = pyplot()
+    width_in = 8.0
+    fig, ax = plt.subplots(figsize=(width_in, width_in * h / w + 1.6))
+    ax.imshow(picture, extent=(x0, x0 + w * resolution, y0, y0 + h * resolution), interpolation="nearest")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"2D map ({resolution:g} m pixels) and the {gt} ground truth's obstacles at camera height", fontsize=9)
+    items = [(s.MAP_FREE_RGB, "map: free"), (s.MAP_UNKNOWN_RGB, "map: unknown"), (s.MAP_OCCUPIED_RGB, "map: occupied"),
+             (s.OBSTACLE_RGB, "obstacle (ground truth)"), (s.MISSED_RGB, "obstacle the map marks free"),
+             (s.PATH_RGB, "path")]
+    if body:
+        items += [(s.BODY_RGB, "body meets below the band"), (s.BODY_MISSED_RGB, "... the map marks it free")]
+    ax.legend(handles=[Patch(facecolor=np.array(c) / 255, edgecolor="0.4", label=t) for c, t in items],
+              fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=4)
+    return save_png(fig, path, dpi=int(max(110, np.ceil(w / (width_in * 0.8)))))
+
+
 def plots_dir_for(out: Path) -> Path:
     """Plot folder beside a metrics file: results/metrics.json -> results/metrics_plots/."""
     out = Path(out)

@@ -43,7 +43,10 @@ PLANNER_RADIUS_M = 0.3  # the robot's radius for the planner's check
 # away is 4 px, where 4 * 0.05 = 0.2 but 0.3 - 0.1 = 0.19999999999999998 (floating point would
 # otherwise decide the boundary pixels of every radius, clearance and tolerance)
 PIXEL_EPS = 1e-9
-# `safety_picture`'s colours for what the body meets below the band: held (or unknown), marked free
+# `safety_picture`'s colours: the map (free, unknown, occupied), the ground truth's obstacles (held
+# or unknown, marked free), the path, what the body meets below the band (held or unknown, marked free)
+MAP_FREE_RGB, MAP_UNKNOWN_RGB, MAP_OCCUPIED_RGB = (255, 255, 255), (190, 190, 190), (0, 0, 0)
+OBSTACLE_RGB, MISSED_RGB, PATH_RGB = (40, 80, 255), (255, 0, 0), (0, 160, 0)
 BODY_RGB, BODY_MISSED_RGB = (150, 110, 60), (255, 150, 0)
 
 
@@ -322,9 +325,10 @@ def safety_picture(image: np.ndarray, origin: tuple[float, float], resolution: f
     from virus_nerf.maps.occupancy import FREE, OCCUPIED
 
     image = np.asarray(image)
-    rgb = np.full(image.shape + (3,), 190, dtype=np.uint8)
-    rgb[image == FREE] = 255
-    rgb[image == OCCUPIED] = 0
+    rgb = np.empty(image.shape + (3,), dtype=np.uint8)
+    rgb[:] = MAP_UNKNOWN_RGB
+    rgb[image == FREE] = MAP_FREE_RGB
+    rgb[image == OCCUPIED] = MAP_OCCUPIED_RGB
     obst = obstacle_pixels(obstacles_xy, origin, resolution, image.shape)
     sure_free = free_for_sure(image, FREE, resolution, tolerance)
     missed = obst & sure_free
@@ -332,9 +336,9 @@ def safety_picture(image: np.ndarray, origin: tuple[float, float], resolution: f
         body = obstacle_pixels(body_xy, origin, resolution, image.shape) & ~obst
         rgb[body] = BODY_RGB
         rgb[body & sure_free] = BODY_MISSED_RGB
-    rgb[obst] = (40, 80, 255)
-    rgb[missed] = (255, 0, 0)
-    rgb[obstacle_pixels(path_xy, origin, resolution, image.shape)] = (0, 160, 0)
+    rgb[obst] = OBSTACLE_RGB
+    rgb[missed] = MISSED_RGB
+    rgb[obstacle_pixels(path_xy, origin, resolution, image.shape)] = PATH_RGB
     return rgb
 
 
@@ -360,10 +364,13 @@ def lidar_rays_2d(recording, times: np.ndarray, height: float, band: float):
 
 @dataclass
 class RunSafety:
-    """A trained mapper's safety block (metrics.json) and its picture (`safety_picture`)."""
+    """A trained mapper's safety block (metrics.json) and its picture (`safety_picture`) on the
+    map's raster (its lower left corner `origin`, m, and `resolution`, m a pixel)."""
 
     document: dict
-    picture: np.ndarray  # (H, W, 3) uint8
+    picture: np.ndarray  # (H, W, 3) uint8, row 0 = largest y
+    origin: tuple[float, float] = (0.0, 0.0)
+    resolution: float = 0.05
 
 
 def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> RunSafety | None:
@@ -401,7 +408,8 @@ def mapper_safety(mapper, recording, band: float, resolution: float = 0.05) -> R
     doc = safety_document(judge_map(m.image, m.origin, resolution, obstacles, path, extent=extent, body_xy=body),
                           observed_share(seen), "map", resolution, anchors)
     doc["planner"] = planner_check(m.image, m.origin, resolution, obstacles, path_xy=path, body_xy=body).block()
-    return RunSafety(doc, safety_picture(m.image, m.origin, resolution, obstacles, path, body_xy=body))
+    return RunSafety(doc, safety_picture(m.image, m.origin, resolution, obstacles, path, body_xy=body),
+                     (float(m.origin[0]), float(m.origin[1])), resolution)
 
 
 # 100 starts, 10 goals each: up to 1000 paths. A thin obstacle the map lost lies on a few paths

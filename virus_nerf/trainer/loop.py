@@ -374,7 +374,7 @@ class Trainer:
         point = EvalPoint(step=self.mapper.step, seconds=round(self.mapper.seconds, 3),
                           acc_mean=z3.acc_mean, cov_mean=z3.cov_mean,
                           acc_inlier=z3.acc_inlier, cov_inlier=z3.cov_inlier,
-                          n_test_points=result.n_points)
+                          n_test_points=result.n_points, ground_truth=result.gt)
         self.eval_history.append(point)
         from virus_nerf.errors import require_folder
 

@@ -13,9 +13,9 @@ RUN_SCAN_MAPS = 4
 
 
 def write_run_plots(run_dir: Path, result, eval_history: list[EvalPoint], max_maps: int = RUN_SCAN_MAPS,
-                    replace: bool = False, safety_picture=None) -> list[Path]:
+                    replace: bool = False, safety=None) -> list[Path]:
     """RUN/plots/: scan maps at up to `max_maps` test points, metric bars, metric vs time and,
-    given, the map's safety picture ((H, W, 3) uint8, evaluation.safety.safety_picture).
+    given, the map's safety picture (`safety`, an evaluation.safety.RunSafety).
 
     Built in a temporary folder and renamed into place when every plot is written, so
     RUN/plots/ is never half made. An existing RUN/plots/ is refused unless `replace` (a
@@ -32,10 +32,11 @@ def write_run_plots(run_dir: Path, result, eval_history: list[EvalPoint], max_ma
                                     title=f"NeRF zone 3 vs training time; ground truth: {result.gt}")
         if curve is not None:
             names.append(curve.name)
-        if safety_picture is not None:
-            from virus_nerf.maps.occupancy import write_png
+        if safety is not None:
+            from virus_nerf.evaluation.plots import plot_safety_picture
 
-            k = int(min(4, max(1, -(-800 // safety_picture.shape[1]))))  # whole pixels, ~800 px wide
-            write_png(tmp / SAFETY_PICTURE, safety_picture.repeat(k, axis=0).repeat(k, axis=1))
+            body = (safety.document.get("planner") or {}).get("crossing_below") is not None
+            plot_safety_picture(safety.picture, safety.origin, safety.resolution, tmp / SAFETY_PICTURE,
+                                gt=safety.document.get("gt", result.gt), body=body)
             names.append(SAFETY_PICTURE)
     return [folder / n for n in names]

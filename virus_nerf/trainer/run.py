@@ -222,8 +222,7 @@ def _write_results(trainer, out: Path, cfg, summary, result, run_safety, warning
     if (out / MAP_DIR).is_dir():  # the map an interrupted online run left: this run's map now
         trainer.mapper.snapshot(out / MAP_DIR, replace=True)
     if cfg.plots:  # plots first: metrics.json marks the end
-        write_run_plots(out, result, trainer.eval_history, replace=resume,
-                        safety_picture=None if run_safety is None else run_safety.picture)
+        write_run_plots(out, result, trainer.eval_history, replace=resume, safety=run_safety)
     _keep_resumed_config(out, cfg, resume)  # a finished run's resume: evaluated with it
     return write_run_metrics(out, result, cfg, summary, safety=None if run_safety is None else run_safety.document,
                              warnings=warnings)

@@ -71,7 +71,8 @@ class RunInfo:
 
 @dataclass(frozen=True)
 class EvalPoint:
-    """One evaluation of the NeRF's scans during training (zone 3 of the primary ground truth)."""
+    """One evaluation of the NeRF's scans during training (zone 3 of the primary ground truth,
+    named in `ground_truth`: "map", "scan", ...; None in a file written before it was recorded)."""
 
     step: int
     seconds: float  # training clock
@@ -80,8 +81,9 @@ class EvalPoint:
     acc_inlier: float | None  # share in [0, 1]
     cov_inlier: float | None
     n_test_points: int  # test points scored (online: those the drive has reached)
+    ground_truth: str | None = None  # the protocol the figures are scored against (metrics.json "gt")
 
-    FIELDS = ("step", "seconds", "acc_mean", "cov_mean", "acc_inlier", "cov_inlier", "n_test_points")
+    FIELDS = ("step", "seconds", "acc_mean", "cov_mean", "acc_inlier", "cov_inlier", "n_test_points", "ground_truth")
 
 
 def write_eval_history(path: Path, points: list[EvalPoint]) -> None:
@@ -95,13 +97,14 @@ def write_eval_history(path: Path, points: list[EvalPoint]) -> None:
 
 
 def read_eval_history(path: Path) -> list[EvalPoint]:
-    """metrics_vs_time.csv -> EvalPoints ([] when the file is absent)."""
+    """metrics_vs_time.csv -> EvalPoints ([] when the file is absent; a file written before the
+    `ground_truth` column gives None there)."""
     path = Path(path)
     if not path.is_file():
         return []
     lines = path.read_text().strip().splitlines()
     keys = lines[0].split(",") if lines else []
-    if tuple(keys) != EvalPoint.FIELDS:
+    if tuple(keys) not in (EvalPoint.FIELDS, EvalPoint.FIELDS[:-1]):
         raise DataFormatError(path, f"header {keys}: expected {list(EvalPoint.FIELDS)}")
     points = []
     for row_no, line in enumerate(lines[1:], start=2):
@@ -111,10 +114,10 @@ def read_eval_history(path: Path) -> list[EvalPoint]:
                 step=int(cells["step"]), seconds=float(cells["seconds"]),
                 acc_mean=_opt(cells["acc_mean"]), cov_mean=_opt(cells["cov_mean"]),
                 acc_inlier=_opt(cells["acc_inlier"]), cov_inlier=_opt(cells["cov_inlier"]),
-                n_test_points=int(cells["n_test_points"]),
+                n_test_points=int(cells["n_test_points"]), ground_truth=cells.get("ground_truth") or None,
             ))
         except (KeyError, ValueError):
-            raise DataFormatError(path, f"expected {len(keys)} numbers", row=row_no) from None
+            raise DataFormatError(path, f"expected {len(keys)} values ({', '.join(keys)})", row=row_no) from None
     return points
 
 
