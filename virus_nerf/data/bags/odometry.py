@@ -149,30 +149,49 @@ def _bottom_bin(h: np.ndarray, bin_m: float, max_below: float, n: int) -> tuple[
     return int(counts[k]), float((values[k] + 0.5) * bin_m)
 
 
-def _bottom_plane(sample: np.ndarray, roll_pitch: np.ndarray, bin_m: float, max_below: float):
-    """Of the normals tilted by (C, 2) roll and pitch (rad): (points, normal (3,), height) of the
-    one whose `_bottom_bin` holds the most points; (0, None, None) when no bin qualifies."""
+def _bottom_planes(sample: np.ndarray, roll_pitch: np.ndarray, bin_m: float, max_below: float) -> list:
+    """Of the normals tilted by (C, 2) roll and pitch (rad): (points, normal (3,), height) of each
+    one's `_bottom_bin`, those that have one, the most points first."""
     from scipy.spatial.transform import Rotation
 
     normals = Rotation.from_euler("xy", roll_pitch).apply([0.0, 0.0, 1.0])  # (C, 3)
-    best = (0, None, None)
+    out = []
     for c, h in enumerate((sample @ normals.T).T):  # heights along each candidate normal
         count, height = _bottom_bin(h, bin_m, max_below, len(sample))
-        if count > best[0]:
-            best = (count, normals[c], height)
-    return best
+        if count > 0:
+            out.append((count, normals[c], height))
+    return sorted(out, key=lambda row: -row[0])  # stable: of equals, the first normal
+
+
+def _refined_floor(p: np.ndarray, normal: np.ndarray, floor: float, bin_m: float) -> tuple[np.ndarray, float, int]:
+    """The least-squares plane through the points (M, 3) ever nearer to the plane (`normal`,
+    height `floor`): its upward normal, its height and the points within bin_m / 4 of it."""
+    for window in (bin_m, bin_m / 2, bin_m / 4):
+        near = p[np.abs(p @ normal - floor) < window]
+        if len(near) < 3:
+            return normal, floor, 0
+        normal = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)[2][2]
+        normal = normal if normal[2] > 0 else -normal
+        floor = float(np.median(near @ normal))
+    return normal, floor, len(near)
 
 
 def find_floor(points: np.ndarray, max_tilt_deg: float = 15.0, step_deg: float = 1.0, bin_m: float = 0.1,
-               min_share: float = 0.03, max_below: float = 0.02, search_points: int = 4000) -> FloorFrame:
+               min_share: float = 0.03, max_below: float = 0.02, search_points: int = 4000,
+               candidates: int = 4) -> FloorFrame:
     """The floor and ceiling of a LiDAR scan (M, 3), the LiDAR mounted up to `max_tilt_deg` off
-    level: the normal (roll and pitch in `step_deg` steps, then quarter steps around the best)
-    whose densest `bin_m` height bin at the bottom holds the most points (`_bottom_plane`), refined
-    by least-squares planes through the points ever nearer to it. The floor needs `min_share` of
-    the points in its bin and within bin_m / 4 of that plane; the ceiling (the densest bin above
-    +0.1 m along the same normal with at most `max_below` of the points over it) `min_share` too.
-    Measured on the ETHZ office recording: its RS-16 is tilted about 1.8 deg, and a height bin of
-    the sensor's own z axis holds too few floor points to find it."""
+    level. The normals (roll and pitch in `step_deg` steps) whose densest `bin_m` height bin at the
+    bottom holds the most points (`_bottom_bin`) are the `candidates`, at least 2 steps apart;
+    each is searched in quarter steps around it and refined by least-squares planes through the
+    points ever nearer to it (`_refined_floor`), and the plane that holds the most points within
+    bin_m / 4 with at most `max_below` of the points more than bin_m / 2 under it is the floor
+    (none when it is tilted more than max_tilt_deg + step_deg).
+    The floor needs `min_share` of the points in its bin and within bin_m / 4 of its plane; the
+    ceiling (the densest bin above +0.1 m along the same normal with at most `max_below` of the
+    points over it) `min_share` too. Measured on the ETHZ office recording: its RS-16 is tilted
+    about 2 deg, and a height bin of the sensor's own z axis holds too few floor points to find
+    it; its floor holds 7 % of a scan's points, and a wall's 10 deg plane held as many in one bin
+    in 6 of its 11 scans when the densest bin alone chose (the thin plane's count decides)."""
     p = np.asarray(points, dtype=np.float64)
     none = FloorFrame(np.array([0.0, 0.0, 1.0]), -np.inf, np.inf)
     if len(p) == 0:
@@ -180,23 +199,29 @@ def find_floor(points: np.ndarray, max_tilt_deg: float = 15.0, step_deg: float =
     sample = p[:: max(1, len(p) // search_points)]
     angles = np.radians(np.arange(-max_tilt_deg, max_tilt_deg + 1e-9, step_deg))
     grid = np.stack([a.ravel() for a in np.meshgrid(angles, angles, indexing="ij")], axis=1)
-    _, normal, _ = _bottom_plane(sample, grid, bin_m, max_below)
-    if normal is None:
-        return none
-    roll, pitch = np.arcsin(-normal[1]), np.arctan2(normal[0], normal[2])  # of Rotation.from_euler("xy")
+    apart = math.cos(np.radians(2 * step_deg))
+    starts: list[np.ndarray] = []
+    for _, normal, _ in _bottom_planes(sample, grid, bin_m, max_below):
+        if all(normal @ other < apart for other in starts):
+            starts.append(normal)
+            if len(starts) == candidates:
+                break
     fine = np.radians(np.arange(-step_deg, step_deg + 1e-9, step_deg / 4))
-    grid = np.stack([a.ravel() for a in np.meshgrid(roll + fine, pitch + fine, indexing="ij")], axis=1)
-    best_count, normal, floor = _bottom_plane(sample, grid, bin_m, max_below)
-    if normal is None or best_count < min_share * len(sample):
-        return none
-    for window in (bin_m, bin_m / 2, bin_m / 4):  # the plane through the floor's points, ever nearer
-        near = p[np.abs(p @ normal - floor) < window]
-        normal = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)[2][2]
-        normal = normal if normal[2] > 0 else -normal
-        floor = float(np.median(near @ normal))
-    if (np.degrees(np.arccos(min(normal[2], 1.0))) > max_tilt_deg + step_deg
-            or len(near) < min_share * len(p)):  # the last window: a floor is a thin plane
-        return none  # no plane there: the bottom of the walls, say
+    best = (0, None, None)
+    for start in starts:
+        roll, pitch = np.arcsin(-start[1]), np.arctan2(start[0], start[2])  # of Rotation.from_euler("xy")
+        near_grid = np.stack([a.ravel() for a in np.meshgrid(roll + fine, pitch + fine, indexing="ij")], axis=1)
+        rows = _bottom_planes(sample, near_grid, bin_m, max_below)
+        if not rows or rows[0][0] < min_share * len(sample):
+            continue
+        _, normal, floor = rows[0]
+        normal, floor, thin = _refined_floor(p, normal, floor, bin_m)
+        if thin > best[0] and np.sum(p @ normal < floor - bin_m / 2) <= max_below * len(p):
+            best = (thin, normal, floor)
+    thin, normal, floor = best
+    if (normal is None or thin < min_share * len(p)  # a floor is a thin plane: not the bottom of the walls
+            or np.degrees(np.arccos(min(normal[2], 1.0))) > max_tilt_deg + step_deg):
+        return none  # none, or one tilted more than the search covers
     h = p @ normal
     count, top = _bottom_bin(-h, bin_m, max_below, len(p))
     ceiling = float(np.median(h[np.abs(h + top) < bin_m])) if count >= min_share * len(p) else np.inf
