@@ -348,6 +348,45 @@ def test_ros2_play_offers_a_latched_map_latched(tmp_path):
         player.close()
 
 
+def test_ros2_play_publishes_the_bags_time_on_clock(office_bag):
+    """`ros2-play --clock 20 --rate 2` (as `ros2 bag play --clock`): /clock carries the bag's time,
+    from its first message's receive time, rising 2 bag seconds a wall second: 20 ticks a second
+    are 0.1 s of bag time apart, each within the bag's span (the last may be a sleep's overshoot
+    past the last message's time)."""
+    import threading
+
+    from virus_nerf.data.bags.reader import BagReader
+    from virus_nerf.ros2.play import CLOCK_TOPIC, CLOCK_TYPE, play
+
+    with BagReader(office_bag) as bag:
+        received = [m.received_s if m.received_s is not None else m.time_s for _, m in bag.iter_topics(list(bag.topics))]
+    domain = _domain()
+    listener = dds.Participant("jazzy", domain, loopback=True)
+    player = dds.Participant("jazzy", domain, loopback=True)
+    store = types.typestore("jazzy")
+    try:
+        reader = listener.reader(CLOCK_TOPIC, CLOCK_TYPE, dds.QosKind(reliable=False, transient_local=False, depth=1000))
+        report = {}
+        done = threading.Thread(target=lambda: report.update(r=play(office_bag, player, rate=2.0, clock_hz=20.0,
+                                                                       log=lambda _: None)))
+        done.start()
+        got = []
+        while done.is_alive():
+            got += reader.take()
+            time.sleep(0.05)
+        done.join()
+        got += reader.take()
+    finally:
+        listener.close()
+        player.close()
+    clocks = np.array([(m.clock.sec + m.clock.nanosec * 1e-9) for m in
+                       (types.deserialize(s.payload, CLOCK_TYPE, store) for s in got)])
+    assert report["r"].clock_ticks >= len(clocks) >= 0.5 * (received[-1] - received[0]) / 2.0 * 20
+    assert np.all(np.diff(clocks) > 0)
+    assert received[0] - 1e-6 <= clocks[0] <= received[0] + 0.3 and clocks[-1] <= received[-1] + 0.2
+    assert np.median(np.diff(clocks)) == pytest.approx(0.1, rel=0.15)
+
+
 def test_a_publisher_that_left_is_forgotten():
     """A writer gone from the graph (a ros2-play that ended) is no longer a publisher: the node
     neither subscribes to its topic nor says it did; a second writer of the topic keeps it."""

@@ -252,6 +252,7 @@ def ros2_play(
     domain_id: int | None = None,
     localhost_only: bool = False,
     delay: float = 1.0,
+    clock: float = 0.0,
 ) -> None:
     """Play a ROS 1 or ROS 2 bag onto a ROS 2 graph over DDS, as `ros2 bag play` (no ROS install).
 
@@ -268,6 +269,8 @@ def ros2_play(
         localhost_only: Use the loopback interface only, no multicast (also ROS_LOCALHOST_ONLY=1 or
             ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST).
         delay: Seconds between joining the graph and the first message (discovery).
+        clock: Also publish /clock (rosgraph_msgs/Clock) with the bag's time this many times a
+            second, as `ros2 bag play --clock`, for nodes run with use_sim_time (0: no /clock).
     """
     from virus_nerf.ros2.dds import Participant, require_dds
     from virus_nerf.ros2.play import play
@@ -278,14 +281,15 @@ def ros2_play(
         raise UsageError("--topic: expected one or more topic names (--topic /tf /CAM1/color/image_raw); "
                          "leave --topic out to play every topic")
     require_number("--delay", delay, 0.0, lo_open=False)
+    require_number("--clock", clock, 0.0, lo_open=False)
     if not Path(bag).exists():
         raise UsageError(f"BAG {bag}: no such file or folder; expected a ROS bag")
     require_dds()
     participant = Participant(distro, domain_id, loopback=_localhost_only(localhost_only))
     try:
         with stop_on_signals():
-            report = play(Path(bag), participant, rate=rate, topics=topic, delay_s=delay)
+            report = play(Path(bag), participant, rate=rate, topics=topic, delay_s=delay, clock_hz=clock)
     finally:
         participant.close()
     print(f"ros2-play: {report.messages} messages on {report.topics} topics in {report.wall_s:.1f} s "
-          f"(at most {report.behind_s:.2f} s late)")
+          f"(at most {report.behind_s:.2f} s late)" + (f", {report.clock_ticks} /clock ticks" if clock else ""))

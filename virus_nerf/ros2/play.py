@@ -10,6 +10,11 @@ readers that ask for transient local. Where the bag records none: `/tf_static` r
 transient local (a node that joins later still gets the static transforms), every other topic
 reliable and volatile, depth 10 (ROS 2's default profile).
 
+With `clock_hz` it also publishes `/clock` (rosgraph_msgs/Clock), as `ros2 bag play --clock`: the
+bag's time (its receive times, from the first message's, advancing at `rate`) that many times a
+wall-clock second, best effort and depth 1 as rclcpp's clock subscription asks, so nodes run
+with use_sim_time follow the bag.
+
 So the node can be tried on a machine without ROS and without a robot, and tested here.
 """
 
@@ -29,6 +34,33 @@ class PlayReport:
     topics: int = 0
     wall_s: float = 0.0
     behind_s: float = 0.0  # the most a message was published after it was due (wall seconds)
+    clock_ticks: int = 0  # /clock messages published
+
+
+CLOCK_TOPIC, CLOCK_TYPE = "/clock", "rosgraph_msgs/msg/Clock"
+CLOCK_QOS = dds.QosKind(reliable=False, transient_local=False, depth=1)  # rclcpp's ClockQoS
+
+
+class _Clock:
+    """/clock at `hz` wall-clock ticks a second: the bag's time at wall second w of the play is
+    t0 + w * rate."""
+
+    def __init__(self, participant: dds.Participant, store, hz: float, rate: float) -> None:
+        self.writer = participant.writer(CLOCK_TOPIC, CLOCK_TYPE, CLOCK_QOS)
+        self.store, self.period, self.rate = store, 1.0 / hz, rate
+        self.t0: float | None = None
+        self.next_s = 0.0  # the next tick (wall seconds of the play)
+        self.ticks = 0
+
+    def tick(self, now_s: float) -> float:
+        """Publish the bag's time if a tick is due at wall second `now_s`; the next tick's second."""
+        if self.t0 is not None and now_s >= self.next_s:
+            ns = round((self.t0 + now_s * self.rate) * 1e9)
+            stamp = self.store.types["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+            self.writer.write(types.serialize(self.store.types[CLOCK_TYPE](clock=stamp), CLOCK_TYPE, self.store))
+            self.ticks += 1
+            self.next_s = max(self.next_s + self.period, now_s)  # late: no burst of ticks to catch up
+        return self.next_s
 
 
 def play_qos(topic: str, recorded) -> dds.QosKind:
@@ -41,10 +73,11 @@ def play_qos(topic: str, recorded) -> dds.QosKind:
 
 
 def play(bag: Path, participant: dds.Participant, *, rate: float = 1.0, topics: list[str] | None = None,
-         delay_s: float = 1.0, log: Callable[[str], None] = print) -> PlayReport:
+         delay_s: float = 1.0, clock_hz: float = 0.0, log: Callable[[str], None] = print) -> PlayReport:
     """Publish `bag`'s messages (of `topics`, default all) on the participant's domain; returns
     after the last one. delay_s: wall seconds between the publishers' creation and the first
-    message, for discovery (`ros2 bag play --delay`)."""
+    message, for discovery (`ros2 bag play --delay`); clock_hz: /clock ticks a wall-clock second
+    (0: no /clock)."""
     from virus_nerf.data.bags.reader import BagReader
     from virus_nerf.errors import UsageError
 
@@ -60,8 +93,9 @@ def play(bag: Path, participant: dds.Participant, *, rate: float = 1.0, topics: 
         for t in names:
             writers[t] = participant.writer(t, known[t].msgtype, play_qos(t, reader.recorded_qos(t)))
         report.topics = len(writers)
+        clock = _Clock(participant, store, clock_hz, rate) if clock_hz > 0 else None
         log(f"ros2-play: {bag}: {len(writers)} topics on ROS 2 domain {participant.domain_id} "
-            f"({participant.distro}), rate {rate:g}")
+            f"({participant.distro}), rate {rate:g}" + (f", /clock at {clock_hz:g} Hz" if clock else ""))
         time.sleep(delay_s)
         start = time.monotonic()
         r0 = None
@@ -69,14 +103,28 @@ def play(bag: Path, participant: dds.Participant, *, rate: float = 1.0, topics: 
             received = msg.received_s if msg.received_s is not None else msg.time_s
             if r0 is None:
                 r0 = received
+                if clock is not None:
+                    clock.t0 = r0
             due = (received - r0) / rate
-            wait = due - (time.monotonic() - start)
-            if wait > 0:
-                time.sleep(wait)
-            else:
+            wait = _wait_until(start, due, clock)
+            if wait < 0:
                 report.behind_s = max(report.behind_s, -wait)
             msgtype = msg.msgtype
             writers[topic].write(types.serialize(types.to_ros2(msg.msg, msgtype, store), msgtype, store))
             report.messages += 1
     report.wall_s = time.monotonic() - start if r0 is not None else 0.0
+    report.clock_ticks = clock.ticks if clock is not None else 0
     return report
+
+
+def _wait_until(start: float, due_s: float, clock: _Clock | None) -> float:
+    """Sleep until `due_s` wall seconds after `start` (monotonic), ticking the clock meanwhile;
+    how long it waited (negative: how late it already was)."""
+    now = time.monotonic() - start
+    first = due_s - now
+    while True:
+        next_tick = clock.tick(now) if clock is not None else float("inf")
+        if now >= due_s:
+            return first
+        time.sleep(min(due_s, next_tick) - now)
+        now = time.monotonic() - start
