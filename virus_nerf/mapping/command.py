@@ -155,7 +155,8 @@ def map_bag(
     view.check()
     from virus_nerf.data.bags.topics import default_topics, read_topics
 
-    mounts = {s: st.camera_in_lidar() for s, st in (read_topics(topics) if topics else default_topics()).stacks.items()}
+    tcfg = read_topics(topics) if topics else default_topics()  # read once: the stream and the sinks agree
+    mounts = {s: st.camera_in_lidar() for s, st in tcfg.stacks.items()}
     sinks = Sinks(view, out_bag, map_frame, base_frame, mounts)  # base_link: the frame the poses are in
     pose_args = dict(poses=poses, poses_file=poses_file, tf_parent=tf_parent, tf_child=tf_child)
     from virus_nerf.utils.stop import stop_on_signals
@@ -164,7 +165,7 @@ def map_bag(
         if import_first:
             _import_then_replay(bag, out, playback, snapshot_every, topics, cfg, pose_args, maps, sinks)
             return
-        stream_map_bag(bag, out, playback, snapshot_every, topics, cfg, pose_args, maps, sinks,
+        stream_map_bag(bag, out, playback, snapshot_every, tcfg, cfg, pose_args, maps, sinks,
                        odometry_topic=odometry_topic, first_snapshot=first_snapshot, max_lag=max_lag,
                        max_silence=max_silence)
 
@@ -284,16 +285,16 @@ def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: f
           f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}{sinks.note()}")
 
 
-def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float, topics: Path | None, cfg,
+def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float, tcfg, cfg,
                    pose_args: dict, maps: MapRaster, sinks: Sinks, *, odometry_topic: str = "/odom",
                    first_snapshot: float = 1.0, max_lag: float = 2.0, max_silence: float = 2.0) -> None:
-    """The streaming path (mapping/stream.py): topics checked against the bag before OUT is made;
-    OUT removed again when the stream stops before its first frame (nothing was mapped)."""
+    """The streaming path (mapping/stream.py) with the topic mapping `tcfg` (data.bags.topics
+    TopicsConfig, read once by the command): topics checked against the bag before OUT is made; OUT removed again when the
+    stream stops before its first frame (nothing was mapped)."""
     from virus_nerf.data.bags.importer import plan_topics, require_ros_extra
     from virus_nerf.data.bags.live import LiveSync
     from virus_nerf.data.bags.poses import make_pose_source
     from virus_nerf.data.bags.reader import BagReader
-    from virus_nerf.data.bags.topics import default_topics, read_topics
     from virus_nerf.mapping.stream import StreamRun, summary, warm_up
     from virus_nerf.trainer.config import TrainConfig
     from virus_nerf.trainer.run_folder import RunLock
@@ -301,7 +302,6 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
 
     require_ros_extra(pose_args["poses"])
     poses = pose_args["poses"]
-    tcfg = read_topics(topics) if topics else default_topics()
     for note in tcfg.notes:  # e.g. no [stacks]: the ETHZ robot's topics are read
         print(f"map-bag: note: {note}")
     cfg = cfg if cfg is not None else TrainConfig()
