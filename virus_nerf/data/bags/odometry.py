@@ -68,8 +68,9 @@ class KissIcpSettings:
     register in 6 degrees of freedom): only the yaw and the translation along the floor
     are registered, projected before the scan enters KISS-ICP's map. Without the floor the 16
     beams constrain pitch and roll poorly (1.1-1.6 deg median rotation error); on the floor they
-    need not be registered. The topics file's `[lidar] flat_floor = false` turns it off (ramps,
-    stairs, outdoors)."""
+    need not be registered. On a ramp the poses keep the first floor's height; turned off (the
+    topics file's `[lidar] flat_floor = false`) they follow it only in part and drift in height
+    on a flat floor (D119, benchmarks/bench_ramp_odometry.py)."""
 
     max_range_m: float = 30.0
     min_range_m: float = 0.3

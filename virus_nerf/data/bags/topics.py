@@ -64,7 +64,8 @@ class LidarConfig:
     """LiDAR topic and the range filter of the written scans (m; the RS-16's 0.3-30 m).
 
     flat_floor: the robot drives on one flat floor, so KISS-ICP registers the motion along it
-    only (odometry.KissIcpSettings `planar`); false for ramps, stairs or outdoors."""
+    only (odometry.KissIcpSettings `planar`); false registers in 6 degrees of freedom, for a floor
+    that is no plane at all (not measured; on a ramp it does no better, D119)."""
 
     topic: str | None = "/rslidar_points"
     min_range_m: float = 0.3
