@@ -348,11 +348,12 @@ def test_ros2_play_offers_a_latched_map_latched(tmp_path):
         player.close()
 
 
-def test_ros2_play_publishes_the_bags_time_on_clock(office_bag):
+def test_ros2_play_publishes_the_bags_time_on_clock_and_loops(office_bag):
     """`ros2-play --clock 20 --rate 2` (as `ros2 bag play --clock`): /clock carries the bag's time,
     from its first message's receive time, rising 2 bag seconds a wall second: 20 ticks a second
     are 0.1 s of bag time apart, each within the bag's span (the last may be a sleep's overshoot
-    past the last message's time)."""
+    past the last message's time). Played twice (`loops`, as --loop until stopped): every message
+    twice, and the clock goes back to the bag's start once."""
     import threading
 
     from virus_nerf.data.bags.reader import BagReader
@@ -368,7 +369,7 @@ def test_ros2_play_publishes_the_bags_time_on_clock(office_bag):
         reader = listener.reader(CLOCK_TOPIC, CLOCK_TYPE, dds.QosKind(reliable=False, transient_local=False, depth=1000))
         report = {}
         done = threading.Thread(target=lambda: report.update(r=play(office_bag, player, rate=2.0, clock_hz=20.0,
-                                                                       log=lambda _: None)))
+                                                                       loops=2, log=lambda _: None)))
         done.start()
         got = []
         while done.is_alive():
@@ -381,10 +382,37 @@ def test_ros2_play_publishes_the_bags_time_on_clock(office_bag):
         player.close()
     clocks = np.array([(m.clock.sec + m.clock.nanosec * 1e-9) for m in
                        (types.deserialize(s.payload, CLOCK_TYPE, store) for s in got)])
-    assert report["r"].clock_ticks >= len(clocks) >= 0.5 * (received[-1] - received[0]) / 2.0 * 20
-    assert np.all(np.diff(clocks) > 0)
-    assert received[0] - 1e-6 <= clocks[0] <= received[0] + 0.3 and clocks[-1] <= received[-1] + 0.2
-    assert np.median(np.diff(clocks)) == pytest.approx(0.1, rel=0.15)
+    assert report["r"].passes == 2 and report["r"].messages == 2 * len(received)
+    back = np.flatnonzero(np.diff(clocks) <= 0)
+    assert len(back) == 1  # the second pass
+    for part in (clocks[:back[0] + 1], clocks[back[0] + 1:]):
+        assert len(part) >= 0.5 * (received[-1] - received[0]) / 2.0 * 20
+        assert np.all(np.diff(part) > 0)
+        assert received[0] - 1e-6 <= part[0] <= received[0] + 0.3 and part[-1] <= received[-1] + 0.2
+        assert np.median(np.diff(part)) == pytest.approx(0.1, rel=0.15)
+    assert report["r"].clock_ticks >= len(clocks)
+
+
+def test_ros2_play_loop_plays_until_a_stop(office_bag):
+    """`ros2-play --loop` plays on until SIGINT (the 3 s bag at rate 4: 0.75 s a pass, still
+    playing after 3 s), then exits 130 with one line and no traceback."""
+    import signal
+
+    argv = ["ros2-play", str(office_bag), "--loop", "--rate", "4", "--delay", "0", "--localhost-only",
+            "--domain-id", str(_domain())]
+    proc = subprocess.Popen([sys.executable, "-c", "from virus_nerf.cli import main; main()", *argv],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        first = proc.stdout.readline()
+        assert first.startswith("ros2-play: ") and "topics on ROS 2 domain" in first
+        time.sleep(3.0)
+        assert proc.poll() is None  # still playing
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130 and "Traceback" not in err and len(err.strip().splitlines()) <= 1, err
 
 
 def test_a_publisher_that_left_is_forgotten():

@@ -253,6 +253,7 @@ def ros2_play(
     localhost_only: bool = False,
     delay: float = 1.0,
     clock: float = 0.0,
+    loop: bool = False,
 ) -> None:
     """Play a ROS 1 or ROS 2 bag onto a ROS 2 graph over DDS, as `ros2 bag play` (no ROS install).
 
@@ -271,6 +272,8 @@ def ros2_play(
         delay: Seconds between joining the graph and the first message (discovery).
         clock: Also publish /clock (rosgraph_msgs/Clock) with the bag's time this many times a
             second, as `ros2 bag play --clock`, for nodes run with use_sim_time (0: no /clock).
+        loop: Play the bag again and again until Ctrl-C or SIGTERM, each pass from its start with
+            its recorded stamps (`ros2 bag play --loop`; the node restarts its clock).
     """
     from virus_nerf.ros2.dds import Participant, require_dds
     from virus_nerf.ros2.play import play
@@ -288,7 +291,8 @@ def ros2_play(
     participant = Participant(distro, domain_id, loopback=_localhost_only(localhost_only))
     try:
         with stop_on_signals():
-            report = play(Path(bag), participant, rate=rate, topics=topic, delay_s=delay, clock_hz=clock)
+            report = play(Path(bag), participant, rate=rate, topics=topic, delay_s=delay, clock_hz=clock,
+                          loops=0 if loop else 1)
     finally:
         participant.close()
     print(f"ros2-play: {report.messages} messages on {report.topics} topics in {report.wall_s:.1f} s "

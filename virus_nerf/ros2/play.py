@@ -15,6 +15,10 @@ bag's time (its receive times, from the first message's, advancing at `rate`) th
 wall-clock second, best effort and depth 1 as rclcpp's clock subscription asks, so nodes run
 with use_sim_time follow the bag.
 
+With `loops` 0 (`--loop`) it plays the bag again and again until stopped, each pass from the
+bag's start, its stamps and /clock as recorded (`ros2 bag play --loop`): a node sees its clock go
+back (the virus-nerf node takes it as a restart and keeps mapping, data/bags/live.py `restart`).
+
 So the node can be tried on a machine without ROS and without a robot, and tested here.
 """
 
@@ -35,6 +39,7 @@ class PlayReport:
     wall_s: float = 0.0
     behind_s: float = 0.0  # the most a message was published after it was due (wall seconds)
     clock_ticks: int = 0  # /clock messages published
+    passes: int = 0  # plays of the bag begun
 
 
 CLOCK_TOPIC, CLOCK_TYPE = "/clock", "rosgraph_msgs/msg/Clock"
@@ -73,11 +78,12 @@ def play_qos(topic: str, recorded) -> dds.QosKind:
 
 
 def play(bag: Path, participant: dds.Participant, *, rate: float = 1.0, topics: list[str] | None = None,
-         delay_s: float = 1.0, clock_hz: float = 0.0, log: Callable[[str], None] = print) -> PlayReport:
+         delay_s: float = 1.0, clock_hz: float = 0.0, loops: int = 1,
+         log: Callable[[str], None] = print) -> PlayReport:
     """Publish `bag`'s messages (of `topics`, default all) on the participant's domain; returns
     after the last one. delay_s: wall seconds between the publishers' creation and the first
     message, for discovery (`ros2 bag play --delay`); clock_hz: /clock ticks a wall-clock second
-    (0: no /clock)."""
+    (0: no /clock); loops: plays of the bag (0: until stopped)."""
     from virus_nerf.data.bags.reader import BagReader
     from virus_nerf.errors import UsageError
 
@@ -97,24 +103,36 @@ def play(bag: Path, participant: dds.Participant, *, rate: float = 1.0, topics: 
         log(f"ros2-play: {bag}: {len(writers)} topics on ROS 2 domain {participant.domain_id} "
             f"({participant.distro}), rate {rate:g}" + (f", /clock at {clock_hz:g} Hz" if clock else ""))
         time.sleep(delay_s)
-        start = time.monotonic()
-        r0 = None
-        for topic, msg in reader.iter_topics(names):
-            received = msg.received_s if msg.received_s is not None else msg.time_s
-            if r0 is None:
-                r0 = received
-                if clock is not None:
-                    clock.t0 = r0
-            due = (received - r0) / rate
-            wait = _wait_until(start, due, clock)
-            if wait < 0:
-                report.behind_s = max(report.behind_s, -wait)
-            msgtype = msg.msgtype
-            writers[topic].write(types.serialize(types.to_ros2(msg.msg, msgtype, store), msgtype, store))
-            report.messages += 1
-    report.wall_s = time.monotonic() - start if r0 is not None else 0.0
+        first = time.monotonic()
+        while loops == 0 or report.passes < loops:
+            report.passes += 1
+            if not _play_once(reader, names, writers, store, rate, clock, report):
+                break  # nothing to play
+        report.wall_s = time.monotonic() - first
     report.clock_ticks = clock.ticks if clock is not None else 0
     return report
+
+
+def _play_once(reader, names: list[str], writers: dict, store, rate: float, clock: _Clock | None,
+               report: PlayReport) -> bool:
+    """One pass over the bag's messages at their pace (the clock from the bag's start); False when
+    there were none."""
+    start = time.monotonic()
+    r0 = None
+    for topic, msg in reader.iter_topics(names):
+        received = msg.received_s if msg.received_s is not None else msg.time_s
+        if r0 is None:
+            r0 = received
+            if clock is not None:
+                clock.t0, clock.next_s = r0, 0.0
+        due = (received - r0) / rate
+        wait = _wait_until(start, due, clock)
+        if wait < 0:
+            report.behind_s = max(report.behind_s, -wait)
+        msgtype = msg.msgtype
+        writers[topic].write(types.serialize(types.to_ros2(msg.msg, msgtype, store), msgtype, store))
+        report.messages += 1
+    return r0 is not None
 
 
 def _wait_until(start: float, due_s: float, clock: _Clock | None) -> float:
