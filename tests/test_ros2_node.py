@@ -393,6 +393,50 @@ def test_ros2_play_publishes_the_bags_time_on_clock_and_loops(office_bag):
     assert report["r"].clock_ticks >= len(clocks)
 
 
+def test_ros2_play_clock_leaves_out_the_bags_own_clock(tmp_path):
+    """A simulator's bag records /clock (1000.0 s on) beside its data (receive times 50-51 s): with
+    --clock the bag's /clock is not played (rosbag2 does the same), so /clock carries one time,
+    the bag's (50-51 s), never 1000 s."""
+    import threading
+
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from virus_nerf.ros2.play import CLOCK_TOPIC, CLOCK_TYPE, play
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    stamp = store.types["builtin_interfaces/msg/Time"]
+    with Writer(tmp_path / "sim_bag", version=Writer.VERSION_LATEST) as w:
+        clock, chatter = w.add_connection(CLOCK_TOPIC, CLOCK_TYPE, typestore=store), \
+            w.add_connection("/chatter", "std_msgs/msg/String", typestore=store)
+        for k in range(11):  # 50.0 ... 51.0 s received, the simulator's clock at 1000.0 ...
+            t_ns = 50_000_000_000 + k * 100_000_000
+            w.write(clock, t_ns, store.serialize_cdr(store.types[CLOCK_TYPE](clock=stamp(sec=1000, nanosec=k * 100_000_000)),
+                                                     CLOCK_TYPE))
+            w.write(chatter, t_ns, store.serialize_cdr(store.types["std_msgs/msg/String"](data=str(k)), "std_msgs/msg/String"))
+    domain = _domain()
+    listener, player = dds.Participant("jazzy", domain, loopback=True), dds.Participant("jazzy", domain, loopback=True)
+    lines = []
+    try:
+        reader = listener.reader(CLOCK_TOPIC, CLOCK_TYPE, dds.QosKind(reliable=False, transient_local=False, depth=1000))
+        done = threading.Thread(target=play, args=(tmp_path / "sim_bag", player),
+                                kwargs={"clock_hz": 20.0, "delay_s": 0.5, "log": lines.append})
+        done.start()
+        got = []
+        while done.is_alive():
+            got += reader.take()
+            time.sleep(0.05)
+        done.join()
+        got += reader.take()
+    finally:
+        listener.close()
+        player.close()
+    clocks = np.array([m.clock.sec + m.clock.nanosec * 1e-9 for m in
+                       (types.deserialize(s.payload, CLOCK_TYPE, types.typestore("jazzy")) for s in got)])
+    assert len(clocks) >= 5 and np.all((clocks >= 50.0 - 1e-6) & (clocks <= 51.2)) and np.all(np.diff(clocks) > 0)
+    assert any("/clock is not played" in line for line in lines)
+
+
 def test_ros2_play_loop_plays_until_a_stop(office_bag):
     """`ros2-play --loop` plays on until SIGINT (the 3 s bag at rate 4: 0.75 s a pass, still
     playing after 3 s), then exits 130 with one line and no traceback."""

@@ -252,7 +252,8 @@ def ros2_play(
     domain_id: int | None = None,
     localhost_only: bool = False,
     delay: float = 1.0,
-    clock: float = 0.0,
+    clock: bool = False,
+    clock_hz: float = 40.0,
     loop: bool = False,
 ) -> None:
     """Play a ROS 1 or ROS 2 bag onto a ROS 2 graph over DDS, as `ros2 bag play` (no ROS install).
@@ -270,8 +271,9 @@ def ros2_play(
         localhost_only: Use the loopback interface only, no multicast (also ROS_LOCALHOST_ONLY=1 or
             ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST).
         delay: Seconds between joining the graph and the first message (discovery).
-        clock: Also publish /clock (rosgraph_msgs/Clock) with the bag's time this many times a
-            second, as `ros2 bag play --clock`, for nodes run with use_sim_time (0: no /clock).
+        clock: Also publish /clock (rosgraph_msgs/Clock) with the bag's time, as `ros2 bag play
+            --clock`, for nodes run with use_sim_time (a /clock recorded in the bag is then not played).
+        clock_hz: /clock messages a second with --clock (`ros2 bag play --clock 40`).
         loop: Play the bag again and again until Ctrl-C or SIGTERM, each pass from its start with
             its recorded stamps (`ros2 bag play --loop`; the node restarts its clock).
     """
@@ -284,14 +286,15 @@ def ros2_play(
         raise UsageError("--topic: expected one or more topic names (--topic /tf /CAM1/color/image_raw); "
                          "leave --topic out to play every topic")
     require_number("--delay", delay, 0.0, lo_open=False)
-    require_number("--clock", clock, 0.0, lo_open=False)
+    require_number("--clock-hz", clock_hz, 0.0)
     if not Path(bag).exists():
         raise UsageError(f"BAG {bag}: no such file or folder; expected a ROS bag")
     require_dds()
     participant = Participant(distro, domain_id, loopback=_localhost_only(localhost_only))
     try:
         with stop_on_signals():
-            report = play(Path(bag), participant, rate=rate, topics=topic, delay_s=delay, clock_hz=clock,
+            report = play(Path(bag), participant, rate=rate, topics=topic, delay_s=delay,
+                          clock_hz=clock_hz if clock else 0.0,
                           loops=0 if loop else 1)
     finally:
         participant.close()

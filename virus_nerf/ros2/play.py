@@ -13,7 +13,8 @@ reliable and volatile, depth 10 (ROS 2's default profile).
 With `clock_hz` it also publishes `/clock` (rosgraph_msgs/Clock), as `ros2 bag play --clock`: the
 bag's time (its receive times, from the first message's, advancing at `rate`) that many times a
 wall-clock second, best effort and depth 1 as rclcpp's clock subscription asks, so nodes run
-with use_sim_time follow the bag.
+with use_sim_time follow the bag; a /clock recorded in the bag (a simulator's) is then not played,
+as rosbag2 does, so there is one clock.
 
 With `loops` 0 (`--loop`) it plays the bag again and again until stopped, each pass from the
 bag's start, its stamps and /clock as recorded (`ros2 bag play --loop`): a node sees its clock go
@@ -64,7 +65,9 @@ class _Clock:
             stamp = self.store.types["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
             self.writer.write(types.serialize(self.store.types[CLOCK_TYPE](clock=stamp), CLOCK_TYPE, self.store))
             self.ticks += 1
-            self.next_s = max(self.next_s + self.period, now_s)  # late: no burst of ticks to catch up
+            self.next_s += self.period
+            if self.next_s <= now_s:  # late: the next a period on, no burst of ticks to catch up
+                self.next_s = now_s + self.period
         return self.next_s
 
 
@@ -95,6 +98,9 @@ def play(bag: Path, participant: dds.Participant, *, rate: float = 1.0, topics: 
         for t in names:
             if t not in known:
                 raise UsageError(f"--topic {t}: not in the bag {bag}; it has {', '.join(sorted(known))}")
+        if clock_hz > 0 and CLOCK_TOPIC in names:  # one clock: ours (rosbag2 does the same)
+            names = [t for t in names if t != CLOCK_TOPIC]
+            log(f"ros2-play: the bag's own {CLOCK_TOPIC} is not played: --clock publishes the bag's time")
         writers = {}
         for t in names:
             writers[t] = participant.writer(t, known[t].msgtype, play_qos(t, reader.recorded_qos(t)))
