@@ -163,7 +163,7 @@ def map_bag(
 
     with stop_on_signals():  # SIGINT/SIGTERM: the final map, stream.json, one line, exit 130/143
         if import_first:
-            _import_then_replay(bag, out, playback, snapshot_every, topics, cfg, pose_args, maps, sinks)
+            _import_then_replay(bag, out, playback, snapshot_every, tcfg, cfg, pose_args, maps, sinks)
             return
         stream_map_bag(bag, out, playback, snapshot_every, tcfg, cfg, pose_args, maps, sinks,
                        odometry_topic=odometry_topic, first_snapshot=first_snapshot, max_lag=max_lag,
@@ -256,9 +256,10 @@ class Sinks:
                                                         ("ROS maps in", self.out_bag)) if p)
 
 
-def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: float, topics: Path | None, cfg,
+def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: float, tcfg, cfg,
                         pose_args: dict, maps: MapRaster, sinks: Sinks) -> None:
-    """The whole bag imported into OUT/recording, then replayed (--import-first)."""
+    """The whole bag imported into OUT/recording with the topic mapping `tcfg` (the command's
+    TopicsConfig), then replayed (--import-first)."""
     from virus_nerf.mapping.replay import replay
     from virus_nerf.trainer.run_folder import RunLock
     from virus_nerf.utils.stop import Stopped
@@ -267,7 +268,7 @@ def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: f
     made = make_out(out)
     with RunLock(out, "--out"):  # one process writes into OUT: map-bag --resume waits for this one to end
         try:
-            imported = import_bag(bag, out / "recording", topics=topics, **pose_args)
+            imported = import_bag(bag, out / "recording", topics=tcfg, **pose_args)
         except BaseException:
             made.remove()  # nothing written yet but the partial import
             raise
