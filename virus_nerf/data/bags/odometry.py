@@ -179,20 +179,23 @@ def _refined_floor(p: np.ndarray, normal: np.ndarray, floor: float, bin_m: float
 
 def find_floor(points: np.ndarray, max_tilt_deg: float = 15.0, step_deg: float = 1.0, bin_m: float = 0.1,
                min_share: float = 0.03, max_below: float = 0.02, search_points: int = 4000,
-               candidates: int = 4) -> FloorFrame:
+               candidates: int = 6, apart_steps: float = 2.0, max_under: float = 0.005) -> FloorFrame:
     """The floor and ceiling of a LiDAR scan (M, 3), the LiDAR mounted up to `max_tilt_deg` off
     level. The normals (roll and pitch in `step_deg` steps) whose densest `bin_m` height bin at the
-    bottom holds the most points (`_bottom_bin`) are the `candidates`, at least 2 steps apart;
-    each is searched in quarter steps around it and refined by least-squares planes through the
-    points ever nearer to it (`_refined_floor`), and the plane that holds the most points within
-    bin_m / 4 with at most `max_below` of the points more than bin_m / 2 under it is the floor
-    (none when it is tilted more than max_tilt_deg + step_deg).
+    bottom holds the most points (`_bottom_bin`) are the `candidates`, at least `apart_steps`
+    steps apart; each is searched in quarter steps around it and refined by least-squares planes
+    through the points ever nearer to it (`_refined_floor`), and the plane that holds the most
+    points within bin_m / 4 with at most `max_under` of the points more than bin_m / 2 under it
+    is the floor (none when it is tilted more than max_tilt_deg + step_deg: a steep slope ahead
+    that outnumbers the floor leaves the floor unknown rather than wrong).
     The floor needs `min_share` of the points in its bin and within bin_m / 4 of its plane; the
     ceiling (the densest bin above +0.1 m along the same normal with at most `max_below` of the
     points over it) `min_share` too. Measured on the ETHZ office recording: its RS-16 is tilted
     about 2 deg, and a height bin of the sensor's own z axis holds too few floor points to find
     it; its floor holds 7 % of a scan's points, and a wall's 10 deg plane held as many in one bin
-    in 6 of its 11 scans when the densest bin alone chose (the thin plane's count decides)."""
+    in 6 of its 11 scans when the densest bin alone chose (the thin plane's count decides). The
+    real floor has no point more than 5 cm under it; a wall's slice along a tilted normal 1-2 %
+    (the sample's rear half cut away, D119), hence `max_under` 0.5 %."""
     p = np.asarray(points, dtype=np.float64)
     none = FloorFrame(np.array([0.0, 0.0, 1.0]), -np.inf, np.inf)
     if len(p) == 0:
@@ -200,7 +203,7 @@ def find_floor(points: np.ndarray, max_tilt_deg: float = 15.0, step_deg: float =
     sample = p[:: max(1, len(p) // search_points)]
     angles = np.radians(np.arange(-max_tilt_deg, max_tilt_deg + 1e-9, step_deg))
     grid = np.stack([a.ravel() for a in np.meshgrid(angles, angles, indexing="ij")], axis=1)
-    apart = math.cos(np.radians(2 * step_deg))
+    apart = math.cos(np.radians(apart_steps * step_deg))
     starts: list[np.ndarray] = []
     for _, normal, _ in _bottom_planes(sample, grid, bin_m, max_below):
         if all(normal @ other < apart for other in starts):
@@ -217,7 +220,7 @@ def find_floor(points: np.ndarray, max_tilt_deg: float = 15.0, step_deg: float =
             continue
         _, normal, floor = rows[0]
         normal, floor, thin = _refined_floor(p, normal, floor, bin_m)
-        if thin > best[0] and np.sum(p @ normal < floor - bin_m / 2) <= max_below * len(p):
+        if thin > best[0] and np.sum(p @ normal < floor - bin_m / 2) <= max_under * len(p):
             best = (thin, normal, floor)
     thin, normal, floor = best
     if (normal is None or thin < min_share * len(p)  # a floor is a thin plane: not the bottom of the walls
