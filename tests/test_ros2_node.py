@@ -348,30 +348,21 @@ def test_ros2_play_offers_a_latched_map_latched(tmp_path):
         player.close()
 
 
-def test_ros2_play_publishes_the_bags_time_on_clock_and_loops(office_bag):
-    """`ros2-play --clock 20 --rate 2` (as `ros2 bag play --clock`): /clock carries the bag's time,
-    from its first message's receive time, rising 2 bag seconds a wall second: 20 ticks a second
-    are 0.1 s of bag time apart, each within the bag's span (the last may be a sleep's overshoot
-    past the last message's time). Played twice (`loops`, as --loop until stopped): every message
-    twice, and the clock goes back to the bag's start once."""
+def _play_reading_clock(bag: Path, **play_args) -> tuple[dict, np.ndarray]:
+    """ros2.play.play(bag, **play_args) on a loopback domain while a best-effort reader takes
+    /clock: ({"r": the PlayReport}, the times it read (s))."""
     import threading
 
-    from virus_nerf.data.bags.reader import BagReader
     from virus_nerf.ros2.play import CLOCK_TOPIC, CLOCK_TYPE, play
 
-    with BagReader(office_bag) as bag:
-        received = [m.received_s if m.received_s is not None else m.time_s for _, m in bag.iter_topics(list(bag.topics))]
+    play_args.setdefault("log", lambda _: None)
     domain = _domain()
-    listener = dds.Participant("jazzy", domain, loopback=True)
-    player = dds.Participant("jazzy", domain, loopback=True)
-    store = types.typestore("jazzy")
+    listener, player = dds.Participant("jazzy", domain, loopback=True), dds.Participant("jazzy", domain, loopback=True)
+    report, got = {}, []
     try:
         reader = listener.reader(CLOCK_TOPIC, CLOCK_TYPE, dds.QosKind(reliable=False, transient_local=False, depth=1000))
-        report = {}
-        done = threading.Thread(target=lambda: report.update(r=play(office_bag, player, rate=2.0, clock_hz=20.0,
-                                                                       loops=2, log=lambda _: None)))
+        done = threading.Thread(target=lambda: report.update(r=play(bag, player, **play_args)))
         done.start()
-        got = []
         while done.is_alive():
             got += reader.take()
             time.sleep(0.05)
@@ -380,8 +371,22 @@ def test_ros2_play_publishes_the_bags_time_on_clock_and_loops(office_bag):
     finally:
         listener.close()
         player.close()
-    clocks = np.array([(m.clock.sec + m.clock.nanosec * 1e-9) for m in
-                       (types.deserialize(s.payload, CLOCK_TYPE, store) for s in got)])
+    store = types.typestore("jazzy")
+    msgs = (types.deserialize(s.payload, CLOCK_TYPE, store) for s in got)
+    return report, np.array([m.clock.sec + m.clock.nanosec * 1e-9 for m in msgs])
+
+
+def test_ros2_play_publishes_the_bags_time_on_clock_and_loops(office_bag):
+    """`ros2-play --clock 20 --rate 2` (as `ros2 bag play --clock`): /clock carries the bag's time,
+    from its first message's receive time, rising 2 bag seconds a wall second: 20 ticks a second
+    are 0.1 s of bag time apart, each within the bag's span (the last may be a sleep's overshoot
+    past the last message's time). Played twice (`loops`, as --loop until stopped): every message
+    twice, and the clock goes back to the bag's start once."""
+    from virus_nerf.data.bags.reader import BagReader
+
+    with BagReader(office_bag) as bag:
+        received = [m.received_s if m.received_s is not None else m.time_s for _, m in bag.iter_topics(list(bag.topics))]
+    report, clocks = _play_reading_clock(office_bag, rate=2.0, clock_hz=20.0, loops=2)
     assert report["r"].passes == 2 and report["r"].messages == 2 * len(received)
     back = np.flatnonzero(np.diff(clocks) <= 0)
     assert len(back) == 1  # the second pass
@@ -397,12 +402,10 @@ def test_ros2_play_clock_leaves_out_the_bags_own_clock(tmp_path):
     """A simulator's bag records /clock (1000.0 s on) beside its data (receive times 50-51 s): with
     --clock the bag's /clock is not played (rosbag2 does the same), so /clock carries one time,
     the bag's (50-51 s), never 1000 s."""
-    import threading
-
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from virus_nerf.ros2.play import CLOCK_TOPIC, CLOCK_TYPE, play
+    from virus_nerf.ros2.play import CLOCK_TOPIC, CLOCK_TYPE
 
     store = get_typestore(Stores.ROS2_JAZZY)
     stamp = store.types["builtin_interfaces/msg/Time"]
@@ -414,25 +417,8 @@ def test_ros2_play_clock_leaves_out_the_bags_own_clock(tmp_path):
             w.write(clock, t_ns, store.serialize_cdr(store.types[CLOCK_TYPE](clock=stamp(sec=1000, nanosec=k * 100_000_000)),
                                                      CLOCK_TYPE))
             w.write(chatter, t_ns, store.serialize_cdr(store.types["std_msgs/msg/String"](data=str(k)), "std_msgs/msg/String"))
-    domain = _domain()
-    listener, player = dds.Participant("jazzy", domain, loopback=True), dds.Participant("jazzy", domain, loopback=True)
     lines = []
-    try:
-        reader = listener.reader(CLOCK_TOPIC, CLOCK_TYPE, dds.QosKind(reliable=False, transient_local=False, depth=1000))
-        done = threading.Thread(target=play, args=(tmp_path / "sim_bag", player),
-                                kwargs={"clock_hz": 20.0, "delay_s": 0.5, "log": lines.append})
-        done.start()
-        got = []
-        while done.is_alive():
-            got += reader.take()
-            time.sleep(0.05)
-        done.join()
-        got += reader.take()
-    finally:
-        listener.close()
-        player.close()
-    clocks = np.array([m.clock.sec + m.clock.nanosec * 1e-9 for m in
-                       (types.deserialize(s.payload, CLOCK_TYPE, types.typestore("jazzy")) for s in got)])
+    _, clocks = _play_reading_clock(tmp_path / "sim_bag", clock_hz=20.0, delay_s=0.5, log=lines.append)
     assert len(clocks) >= 5 and np.all((clocks >= 50.0 - 1e-6) & (clocks <= 51.2)) and np.all(np.diff(clocks) > 0)
     assert any("/clock is not played" in line for line in lines)
 
