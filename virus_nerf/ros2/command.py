@@ -271,11 +271,13 @@ def ros2_play(
         localhost_only: Use the loopback interface only, no multicast (also ROS_LOCALHOST_ONLY=1 or
             ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST).
         delay: Seconds between joining the graph and the first message (discovery).
-        clock: Also publish /clock (rosgraph_msgs/Clock) with the bag's time, as `ros2 bag play
-            --clock`, for nodes run with use_sim_time (a /clock recorded in the bag is then not played).
+        clock: Also publish /clock (rosgraph_msgs/Clock) with the bag's time, as the --clock of
+            `ros2 bag play`, for nodes run with use_sim_time (a /clock recorded in the bag is then
+            not played).
         clock_hz: /clock messages a second with --clock (`ros2 bag play --clock 40`).
-        loop: Play the bag again and again until Ctrl-C or SIGTERM, each pass from its start with
-            its recorded stamps (`ros2 bag play --loop`; the node restarts its clock).
+        loop: Play the bag again and again until Ctrl-C or SIGTERM, each pass from its start
+            with its recorded stamps (`ros2 bag play --loop`; the node takes the jump back as a
+            restart and keeps mapping).
     """
     from virus_nerf.ros2.dds import Participant, require_dds
     from virus_nerf.ros2.play import play
