@@ -3,8 +3,9 @@
 Simulates an office drive (or reads an existing simulated recording with --data), registers its
 LiDAR scans with each settings variant and prints JSON: the camera-1 pose error against the
 simulator's exact poses (median ATE after a rigid best fit, translation m and rotation deg) over
-the whole drive and over the first second. Camera poses are derived as import-bag derives them
-(LiDAR pose interpolated at the camera stamp x camera-in-LiDAR).
+the whole drive and over the first second, and without the fit (`unaligned`: the simulator's world
+frame is the first scan's, as KISS-ICP's; a map is judged in it). Camera poses are derived as
+import-bag derives them (LiDAR pose interpolated at the camera stamp x camera-in-LiDAR).
 
 The `skip*` variants register only some scans, as a stream keeping up with a LiDAR faster than
 the registration does (map-bag, the ROS 2 node: kiss_worker.py keep_up): every 2nd, or with
@@ -37,7 +38,7 @@ from virus_nerf.data.ethz import load_recording
 from virus_nerf.evaluation.trajectory import frame_points, rigid_fit, trajectory_error
 from virus_nerf.sensors.rig import camera_in_lidar
 
-SIX_DOF = KissIcpSettings(drop_floor_ceiling_m=0.0, planar=False)  # the settings before D118
+SIX_DOF = KissIcpSettings(drop_floor_ceiling_m=0.0, planar=False, refine_start_s=2.0)  # the settings before D118
 VARIANTS = {
     "kiss_defaults": KissIcpSettings.library_defaults(),
     "range30_voxel0.3_no_refine": dataclasses.replace(SIX_DOF, voxel_size_m=0.3, refine_start_s=0.0),
@@ -47,8 +48,10 @@ VARIANTS = {
     "range30_voxel0.2_refine": SIX_DOF,  # import-bag before D118
     "planar_no_refine": KissIcpSettings(refine_start_s=0.0, drop_floor_ceiling_m=0.0),
     "drop_floor_planar_no_refine": KissIcpSettings(refine_start_s=0.0),  # a stream's (D118)
-    "drop_floor_planar_refine": KissIcpSettings(),
+    "drop_floor_planar_refine": KissIcpSettings(refine_start_s=2.0),  # import-bag's, D118
     "chosen": KissIcpSettings(),
+    "refine_start5": KissIcpSettings(refine_start_s=5.0),
+    "refine_start8": KissIcpSettings(refine_start_s=8.0),  # import-bag's, D120
 }
 STREAM = KissIcpSettings(refine_start_s=0.0)  # a stream cannot re-register its start
 SKIPPING = {  # name -> (scans from one registered to the next, in turn; stretch the predicted motion)
@@ -87,10 +90,11 @@ def evaluate(rec, settings: KissIcpSettings | None, skipping: tuple[tuple[int, .
     full = trajectory_error(est[ok], ref[ok], align=align)
     first = (st.times[ok] - rec.lidar_times[0]) <= 1.0
     start = trajectory_error(est[ok], ref[ok], mask=first, align=align)
+    unaligned = trajectory_error(est[ok], ref[ok], align=np.eye(4))  # both frames are the first scan's
     return {"settings": dataclasses.asdict(settings), "seconds": round(seconds, 2),
             "scans_registered": len(track.times_s),
             **({"gaps": list(skipping[0]), "stretch": skipping[1]} if skipping else {}),
-            "full": full.as_dict(), "first_second": start.as_dict()}
+            "full": full.as_dict(), "first_second": start.as_dict(), "unaligned": unaligned.as_dict()}
 
 
 def main() -> None:
@@ -119,7 +123,7 @@ def main() -> None:
         for name in args.variants.split(","):
             out["variants"][name] = evaluate(rec, VARIANTS.get(name), SKIPPING.get(name))
             print(name, json.dumps(out["variants"][name]["full"]), json.dumps(out["variants"][name]["first_second"]),
-                  flush=True)
+                  json.dumps(out["variants"][name]["unaligned"]), flush=True)
     print(json.dumps(out, indent=1))
 
 
