@@ -356,6 +356,7 @@ def _play_reading_clock(bag: Path, **play_args) -> tuple[dict, np.ndarray]:
     from virus_nerf.ros2.play import CLOCK_TOPIC, CLOCK_TYPE, play
 
     play_args.setdefault("log", lambda _: None)
+    play_args.setdefault("delay_s", 0.3)
     domain = _domain()
     listener, player = dds.Participant("jazzy", domain, loopback=True), dds.Participant("jazzy", domain, loopback=True)
     report, got = {}, []
@@ -418,14 +419,14 @@ def test_ros2_play_clock_leaves_out_the_bags_own_clock(tmp_path):
                                                      CLOCK_TYPE))
             w.write(chatter, t_ns, store.serialize_cdr(store.types["std_msgs/msg/String"](data=str(k)), "std_msgs/msg/String"))
     lines = []
-    _, clocks = _play_reading_clock(tmp_path / "sim_bag", clock_hz=20.0, delay_s=0.5, log=lines.append)
+    _, clocks = _play_reading_clock(tmp_path / "sim_bag", clock_hz=20.0, log=lines.append)
     assert len(clocks) >= 5 and np.all((clocks >= 50.0 - 1e-6) & (clocks <= 51.2)) and np.all(np.diff(clocks) > 0)
     assert any("/clock is not played" in line for line in lines)
 
 
 def test_ros2_play_loop_plays_until_a_stop(office_bag):
     """`ros2-play --loop` plays on until SIGINT (the 3 s bag at rate 4: 0.75 s a pass, still
-    playing after 3 s), then exits 130 with one line and no traceback."""
+    playing after 2 s), then exits 130 with one line and no traceback."""
     import signal
 
     argv = ["ros2-play", str(office_bag), "--loop", "--rate", "4", "--delay", "0", "--localhost-only",
@@ -435,7 +436,7 @@ def test_ros2_play_loop_plays_until_a_stop(office_bag):
     try:
         first = proc.stdout.readline()
         assert first.startswith("ros2-play: ") and "topics on ROS 2 domain" in first
-        time.sleep(3.0)
+        time.sleep(2.0)
         assert proc.poll() is None  # still playing
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=30)
