@@ -195,10 +195,10 @@ def find_floor(points: np.ndarray, max_tilt_deg: float = 15.0, step_deg: float =
     ceiling (the densest bin above +0.1 m along the same normal with at most `max_below` of the
     points over it) `min_share` too. Measured on the ETHZ office recording: its RS-16 is tilted
     about 2 deg, and a height bin of the sensor's own z axis holds too few floor points to find
-    it; its floor holds 7 % of a scan's points, and a wall's 10 deg plane held as many in one bin
-    in 6 of its 11 scans when the densest bin alone chose (the thin plane's count decides). The
-    real floor has no point more than 5 cm under it; a wall's slice along a tilted normal 1-2 %
-    (the sample's rear half cut away, D119), hence `max_under` 0.5 %."""
+    it; its floor holds 7 % of a scan's points, and other points along a 10 deg normal held as
+    many in one bin in 6 of its 11 scans when the densest bin alone chose (the thin plane's count
+    decides). The real floor has no point more than 5 cm under it, such a tilted plane 1-2 % (the
+    sample's rear half cut away, D119), hence `max_under` 0.5 %."""
     p = np.asarray(points, dtype=np.float64)
     none = FloorFrame(np.array([0.0, 0.0, 1.0]), -np.inf, np.inf)
     if len(p) == 0:
