@@ -290,8 +290,8 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
                    pose_args: dict, maps: MapRaster, sinks: Sinks, *, odometry_topic: str = "/odom",
                    first_snapshot: float = 1.0, max_lag: float = 2.0, max_silence: float = 2.0) -> None:
     """The streaming path (mapping/stream.py) with the topic mapping `tcfg` (data.bags.topics
-    TopicsConfig, read once by the command): topics checked against the bag before OUT is made; OUT removed again when the
-    stream stops before its first frame (nothing was mapped)."""
+    TopicsConfig, read once by the command): topics checked against the bag before OUT is made;
+    OUT removed again when the stream stops before its first frame (nothing was mapped)."""
     from virus_nerf.data.bags.importer import plan_topics, require_ros_extra
     from virus_nerf.data.bags.live import LiveSync
     from virus_nerf.data.bags.poses import make_pose_source
