@@ -161,7 +161,7 @@ def test_a_stopped_command_stops_its_trainings_and_the_same_command_continues_th
     cfg = tmp_path / "tiny.json"
     cfg.write_text(json.dumps(to_dict(tiny_train_config())))
     out = tmp_path / "runs" / "r"
-    spec = RunSpec("r", tiny_office, "office", out, ("--config", str(cfg), "--max-steps", "300"))
+    spec = RunSpec("r", tiny_office, "office", out, ("--config", str(cfg), "--max-steps", "100"))
 
     def interrupt_once_training() -> None:
         t0 = time.monotonic()  # a few steps in: train_log.csv has a row every 2 steps (flushed)
@@ -194,7 +194,7 @@ def test_a_stopped_command_stops_its_trainings_and_the_same_command_continues_th
             run(cluster.scheduler_address)
     assert not stop_file(out).exists()
     doc = json.loads((out / "metrics.json").read_text())
-    assert doc["train"]["steps"] == 300
+    assert doc["train"]["steps"] == 100
     assert "--resume" in log_text(out)
 
 

@@ -357,7 +357,7 @@ def test_train_offline_stopped_resumes_exactly_as_the_run_never_stopped(tiny_off
     from virus_nerf.config_io import to_dict
 
     cfg = tmp_path / "offline.json"
-    cfg.write_text(json.dumps(to_dict(tiny_train_config(sensors=("camera", "uss", "irs"), max_steps=120,
+    cfg.write_text(json.dumps(to_dict(tiny_train_config(sensors=("camera", "uss", "irs"), max_steps=60,
                                                         checkpoint_every=1000.0))))
     args = ["train", "--data", tiny_office, "--room", "office", "--config", cfg, "--quiet"]
     # every part in a process of its own, as a user runs them: this test process's torch threads
@@ -373,12 +373,12 @@ def test_train_offline_stopped_resumes_exactly_as_the_run_never_stopped(tiny_off
     assert proc.returncode == 128 + sig and stderr == "", stderr
     assert stdout.startswith(f"train: stopped by {signal.Signals(sig).name} at step ") and stdout.count("\n") == 1
     step = int(stdout.split(" at step ")[1].split()[0])
-    assert 6 <= step < 120, stdout
+    assert 6 <= step < 60, stdout
     assert MAP_FILES == {p.name for p in (out / "map").iterdir()} and not (out / "metrics.json").exists()
     resume = _start(["train", "--resume", "--out", out, "--quiet"], tmp_path)
     assert resume.wait(timeout=300) == 0, resume.stderr.read()
     resumed, whole = (json.loads((d / "metrics.json").read_text()) for d in (out, tmp_path / "whole"))
-    assert resumed["train"]["steps"] == whole["train"]["steps"] == 120
+    assert resumed["train"]["steps"] == whole["train"]["steps"] == 60
     assert resumed["sensors"] == whole["sensors"] and resumed["safety"] == whole["safety"]
 
 
