@@ -383,6 +383,58 @@ def test_evaluate_and_export_wait_for_no_one_in_the_run(trained_run, tmp_path):
     assert not (tmp_path / "metrics.json").exists() and not (tmp_path / "export").exists()
 
 
+_READ_ONLY_COMMANDS = """
+import contextlib, io, json, sys
+from virus_nerf.cli import main
+run, out = sys.argv[1], sys.argv[2]
+codes = {}
+for name, argv in (("export", ["export", "--run", run, "--out", out + "/export", "--max-poses", "2", "--n-rays", "16"]),
+                   ("evaluate", ["evaluate", "--run", run, "--out", out + "/eval/metrics.json", "--n-rays", "32",
+                                 "--no-plots"]),
+                   ("evaluate_into_run", ["evaluate", "--run", run, "--no-plots"])):
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            main(argv)
+        codes[name] = [0, err.getvalue()]
+    except SystemExit as exc:
+        codes[name] = [exc.code, err.getvalue()]
+print(json.dumps(codes))
+"""
+
+
+def test_a_run_on_read_only_media_exports_and_evaluates_elsewhere(trained_run, tmp_path):
+    """A run copied to read-only media (an archive, a share mounted read-only; here a read-only bind
+    mount in a mount namespace of its own, gone with the process): export and evaluate --out
+    elsewhere read it (before: 'run.lock: Read-only file system', exit 2); evaluate into the run
+    names --out in one line."""
+    import shutil
+    import subprocess
+    import sys
+
+    if shutil.which("unshare") is None:
+        pytest.skip("needs util-linux unshare for a private read-only mount")
+    src, ro, out = tmp_path / "src", tmp_path / "ro", tmp_path / "out"
+    shutil.copytree(trained_run, src / "run")
+    ro.mkdir()
+    out.mkdir()
+    mount = f"mount --bind '{src}' '{ro}' && mount -o remount,bind,ro '{ro}'"
+    probe = subprocess.run(["unshare", "--mount", "--map-root-user", "sh", "-c", f"{mount} && ! touch '{ro}/x' 2>/dev/null"],
+                           capture_output=True)
+    if probe.returncode != 0:
+        pytest.skip(f"no private read-only mount here (user namespaces off?): {probe.stderr.decode().strip()}")
+    proc = subprocess.run(["unshare", "--mount", "--map-root-user", "sh", "-c",
+                           f'{mount} && exec "$0" -c "$1" "$2" "$3"', sys.executable, _READ_ONLY_COMMANDS,
+                           str(ro / "run"), str(out)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    codes = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert codes["export"][0] == 0 and (out / "export" / "map.pgm").read_bytes().startswith(b"P5"), codes
+    assert codes["evaluate"][0] == 0 and json.loads((out / "eval" / "metrics.json").read_text())["train"]["steps"] == 5
+    code, err = codes["evaluate_into_run"]
+    assert code == 2 and err.count("\n") == 1 and "--out " in err and "Read-only file system" in err, err
+    assert sorted(p.name for p in (src / "run").iterdir()) == sorted(p.name for p in trained_run.iterdir())
+
+
 def test_default_map_is_the_snapshots_map_and_scans_stay_fine(trained_run, tmp_path):
     """Without --n-rays / --max-poses, map.pgm is scanned as every snapshot's map (360 rays from
     30 positions: the counts its safety is measured at, D75) and the scans keep 720 rays."""

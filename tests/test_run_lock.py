@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import subprocess
@@ -87,3 +88,59 @@ def test_every_experiment_tells_its_runs_to_die_with_it(monkeypatch):
     assert env[PARENT_ENV] == str(os.getpid())
     assert env["OMP_NUM_THREADS"] == "1"
     assert PARENT_ENV not in os.environ  # the experiment's own environment is left alone
+
+
+def _holding(folder: Path, shared: bool) -> subprocess.Popen:
+    """Another process holding FOLDER's run lock (shared: as `export` does) until killed."""
+    script = ("import sys, time\nfrom virus_nerf.trainer.run_folder import RunLock\n"
+              f"RunLock(sys.argv[1], shared={shared}).acquire()\nprint('locked', flush=True)\ntime.sleep(60)")
+    proc = subprocess.Popen([sys.executable, "-c", script, str(folder)], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "locked"
+    return proc
+
+
+def test_readers_share_the_lock_write_nothing_and_a_writer_is_refused_naming_the_reader(tmp_path):
+    """export reads a run under a shared lock: other readers go on beside it, nothing is written
+    into the run, and a writer (train --resume) is refused naming the reader's pid as the kernel
+    lists it, not the pid the last writer left in the file."""
+    (tmp_path / LOCK).write_text("1\n")  # the last writer's pid, long gone
+    before = (tmp_path / LOCK).stat().st_mtime_ns
+    reader = _holding(tmp_path, shared=True)
+    try:
+        with RunLock(tmp_path, "--run", shared=True):  # a second export
+            pass
+        with pytest.raises(UsageError, match=rf"--resume {tmp_path}: the run is in use by another virus-nerf "
+                                             rf"process \(pid {reader.pid}\)"):
+            RunLock(tmp_path, "--resume").acquire()
+    finally:
+        reader.kill()
+        reader.wait()
+    assert (tmp_path / LOCK).read_text() == "1\n" and (tmp_path / LOCK).stat().st_mtime_ns == before
+    writer = _holding(tmp_path, shared=False)
+    try:  # and a reader waits for no writer
+        with pytest.raises(UsageError, match=rf"--run {tmp_path}: the run is in use by another virus-nerf "
+                                             rf"process \(pid {writer.pid}\)"):
+            RunLock(tmp_path, "--run", shared=True).acquire()
+    finally:
+        writer.kill()
+        writer.wait()
+
+
+@pytest.mark.parametrize("errno_", [errno.EROFS, errno.EACCES])
+def test_a_lock_file_that_cannot_be_written_is_no_lock(tmp_path, monkeypatch, errno_):
+    """A run on read-only media (EROFS) or without write permission (EACCES): nobody can train in
+    it, so reading it needs no lock (before: EROFS ended export and evaluate in one line)."""
+    real_open = os.open
+
+    def refused(path, flags, *args):
+        if Path(path).name == LOCK:
+            raise OSError(errno_, os.strerror(errno_), str(path))
+        return real_open(path, flags, *args)
+
+    monkeypatch.setattr(os, "open", refused)
+    for shared in (False, True):
+        with RunLock(tmp_path, "--run", shared=shared):
+            pass
+    monkeypatch.setattr(os, "open", lambda *a: (_ for _ in ()).throw(OSError(errno.EIO, "I/O error")))
+    with pytest.raises(OSError, match="I/O error"):  # any other error is not swallowed
+        RunLock(tmp_path).acquire()

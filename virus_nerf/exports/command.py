@@ -93,8 +93,9 @@ def export(
         raise OutputExistsError(out)  # before any work
     cfg, _ = open_run(run, "--run")
     kinds = parse_what(what, cfg.grid)
-    # not while a `train` works in the run (its checkpoint would be a moment of a moving run)
-    with RunLock(Path(run), "--run"), new_output_dir(out) as tmp:  # OUT made (and checked writable) first
+    # not while a `train` works in the run (its checkpoint would be a moment of a moving run);
+    # shared with other exports, and nothing written into the run
+    with RunLock(Path(run), "--run", shared=True), new_output_dir(out) as tmp:  # OUT made (and checked writable) first
         trainer, cfg, _ = load_trained(run, "--run", poses="odometry" if cfg.odometry_poses else "optimised")
         if pose_set is not None:
             _check_poses_in_box(Path(poses), pose_set, trainer.mapper.box)

@@ -25,6 +25,7 @@ damaged or foreign folder is refused the same way.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -212,18 +213,21 @@ def check_counters(path: Path, state: dict) -> None:
 
 # ---------------------------------------------------------------------------- the run's lock
 class RunLock:
-    """An exclusive lock on a run folder: one process trains in it at a time.
+    """A lock on a run folder: one process writes in it at a time, and nobody reads it meanwhile.
 
     `fcntl.flock` on RUN/run.lock; the kernel releases it when the process exits or is killed,
-    so there is never a stale lock to remove. The holder writes its pid into the file, and a
-    second process is refused with a one-line UsageError naming the folder, that pid and, where
-    the system tells (Linux), what it does ("the run is still training").
-    Where flock does not exist (Windows) the lock is a no-op.
+    so there is never a stale lock to remove. A writer (train, evaluate, map-bag) takes it
+    exclusively and writes its pid into the file; a reader (`shared`: export) shares it with other
+    readers and writes nothing. A process the lock refuses gets a one-line UsageError naming the
+    folder, the holder's pid and, where the system tells (Linux), what it does ("the run is still
+    training"). A run on read-only media (an archive, a share mounted read-only) has no writer:
+    there the lock is a no-op, as it is where flock does not exist (Windows).
     """
 
-    def __init__(self, folder: Path, flag: str = "--out"):
+    def __init__(self, folder: Path, flag: str = "--out", shared: bool = False):
         self.folder = Path(folder)
         self.flag = flag
+        self.shared = shared
         self._fd: int | None = None
 
     def acquire(self) -> RunLock:
@@ -235,15 +239,17 @@ class RunLock:
             return self
         path = self.folder / LOCK
         try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        except PermissionError:  # a run on read-only media (e.g. evaluated from an archive): nobody trains there
-            return self
+            fd = os.open(path, (os.O_RDONLY if self.shared else os.O_RDWR) | os.O_CREAT, 0o644)
+        except OSError as exc:
+            if exc.errno in _UNWRITABLE:  # read-only media or no write permission: nobody trains there
+                return self
+            raise
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, (fcntl.LOCK_SH if self.shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except OSError:
             self._refuse(fd)
         mine = f"{os.getpid()}\n".encode()
-        if os.pread(fd, 64, 0) != mine:  # unchanged when this process held it before
+        if not self.shared and os.pread(fd, 64, 0) != mine:  # unchanged when this process held it before
             os.ftruncate(fd, 0)
             os.pwrite(fd, mine, 0)
         self._fd = fd
@@ -294,12 +300,15 @@ class RunLock:
         os.close(fd)  # drops the shared lock
 
     def _refuse(self, fd: int):
-        """The one-line refusal naming the holder's pid and command (closes `fd`)."""
+        """The one-line refusal naming the holder's pid and command (closes `fd`): the holder as
+        the kernel lists it (a reader writes no pid), else the pid the last writer wrote."""
         import os
 
-        holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+        pid = next(iter(_flock_holders(fd)), None)
+        if pid is None:
+            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+            pid = int(holder) if holder.isdigit() else None
         os.close(fd)
-        pid = int(holder) if holder.isdigit() else None
         who = f"pid {pid}" if pid else "another process"
         command = _command_of(pid) if pid else None
         doing = _DOING.get(command or "")
@@ -322,7 +331,36 @@ class RunLock:
 
 
 # what a lock holder's command does, for the refusal ("the run is still training (...)")
-_DOING = {"train": "still training", "map-bag": "still being mapped"}
+_DOING = {"train": "still training", "map-bag": "still being mapped", "export": "being exported",
+          "evaluate": "being evaluated"}
+# the errors of a lock file that cannot be opened for writing: read-only media, no permission
+_UNWRITABLE = {errno.EROFS, errno.EACCES, errno.EPERM}
+
+
+def _flock_holders(fd: int) -> list[int]:
+    """The pids holding a flock on `fd`'s file, from /proc/locks (Linux: "1: FLOCK ADVISORY READ
+    PID MAJ:MIN:INODE 0 EOF", device numbers in hex); [] where it cannot be told."""
+    import os
+
+    st = os.fstat(fd)
+    try:
+        lines = Path("/proc/locks").read_text().splitlines()
+    except OSError:
+        return []
+    pids = []
+    for line in lines:
+        fields = line.split()
+        if "FLOCK" not in fields:
+            continue
+        k = fields.index("FLOCK")
+        try:
+            pid, (major, minor, inode) = int(fields[k + 3]), fields[k + 4].split(":")
+            same = (int(major, 16), int(minor, 16), int(inode)) == (os.major(st.st_dev), os.minor(st.st_dev), st.st_ino)
+        except (IndexError, ValueError):
+            continue
+        if same:
+            pids.append(pid)
+    return pids
 
 
 def _command_of(pid: int) -> str | None:
