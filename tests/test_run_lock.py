@@ -144,3 +144,29 @@ def test_a_lock_file_that_cannot_be_written_is_no_lock(tmp_path, monkeypatch, er
     monkeypatch.setattr(os, "open", lambda *a: (_ for _ in ()).throw(OSError(errno.EIO, "I/O error")))
     with pytest.raises(OSError, match="I/O error"):  # any other error is not swallowed
         RunLock(tmp_path).acquire()
+
+
+def test_a_file_system_without_locks_is_used_unlocked_and_said_once(tmp_path, monkeypatch, capsys):
+    """NFS without its lock service answers flock with ENOLCK (some FUSE mounts with EOPNOTSUPP):
+    the run is used as where flock does not exist, with one warning naming the folder (before:
+    'the run is in use by another virus-nerf process', so no run could ever train there)."""
+    import fcntl
+
+    def no_locks(fd, op):
+        raise OSError(errno.ENOLCK, os.strerror(errno.ENOLCK))
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    run, other = tmp_path / "run", tmp_path / "other"
+    run.mkdir()
+    other.mkdir()
+    (tmp_path / "link").symlink_to(run)
+    with RunLock(run, "--out") as lock:
+        assert lock.holds(run) and (run / LOCK).read_text() == f"{os.getpid()}\n"
+    for folder in (run, tmp_path / "link", other):  # the run again, by another name, another run
+        with RunLock(folder, "--run", shared=True):
+            pass
+    out = capsys.readouterr().out
+    assert out == (f"warning: --out {run}: its file system offers no file locks (No locks available); nothing "
+                   "stops another process writing this run at the same time\n"
+                   f"warning: --run {other}: its file system offers no file locks (No locks available); nothing "
+                   "stops another process writing this run at the same time\n"), out

@@ -221,7 +221,8 @@ class RunLock:
     readers and writes nothing. A process the lock refuses gets a one-line UsageError naming the
     folder, the holder's pid and, where the system tells (Linux), what it does ("the run is still
     training"). A run on read-only media (an archive, a share mounted read-only) has no writer:
-    there the lock is a no-op, as it is where flock does not exist (Windows).
+    there the lock is a no-op, as it is where flock does not exist (Windows). On a file system
+    that keeps no locks (NFS without its lock service) the run is used unlocked, said once.
     """
 
     def __init__(self, folder: Path, flag: str = "--out", shared: bool = False):
@@ -246,8 +247,15 @@ class RunLock:
             raise
         try:
             fcntl.flock(fd, (fcntl.LOCK_SH if self.shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
-        except OSError:
-            self._refuse(fd)
+        except OSError as exc:
+            if exc.errno not in _NO_LOCKS:
+                self._refuse(fd)  # held (EWOULDBLOCK)
+            # a file system without locks (NFS without its lock service: ENOLCK; some FUSE mounts):
+            # the run is used unlocked, as where flock does not exist, and the user is told once
+            if self.folder.resolve() not in _TOLD_NO_LOCKS:
+                _TOLD_NO_LOCKS.add(self.folder.resolve())
+                print(f"warning: {self.flag} {self.folder}: its file system offers no file locks "
+                      f"({exc.strerror or exc}); nothing stops another process writing this run at the same time")
         mine = f"{os.getpid()}\n".encode()
         if not self.shared and os.pread(fd, 64, 0) != mine:  # unchanged when this process held it before
             os.ftruncate(fd, 0)
@@ -335,6 +343,9 @@ _DOING = {"train": "still training", "map-bag": "still being mapped", "export": 
           "evaluate": "being evaluated"}
 # the errors of a lock file that cannot be opened for writing: read-only media, no permission
 _UNWRITABLE = {errno.EROFS, errno.EACCES, errno.EPERM}
+# flock's errors on a file system that keeps no locks (not: EWOULDBLOCK, the lock is held)
+_NO_LOCKS = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL}
+_TOLD_NO_LOCKS: set[Path] = set()  # folders whose missing locks were said (once a process)
 
 
 def _flock_holders(fd: int) -> list[int]:
