@@ -52,6 +52,8 @@ VARIANTS = {
     "chosen": KissIcpSettings(),
     "refine_start5": KissIcpSettings(refine_start_s=5.0),
     "refine_start8": KissIcpSettings(refine_start_s=8.0),  # import-bag's, D120
+    "refine_start12": KissIcpSettings(refine_start_s=12.0),
+    "refine_start16": KissIcpSettings(refine_start_s=16.0),
 }
 STREAM = KissIcpSettings(refine_start_s=0.0)  # a stream cannot re-register its start
 SKIPPING = {  # name -> (scans from one registered to the next, in turn; stretch the predicted motion)
