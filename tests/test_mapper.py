@@ -233,6 +233,116 @@ def test_a_restarted_clock_leaves_the_snapshot_the_newest_frames_own_stamp(tmp_p
     assert json.loads((tmp_path / "s" / "snapshot.json").read_text())["last_frame_time"] == pytest.approx(0.3)
 
 
+def test_a_frame_of_the_old_clock_arriving_after_a_restart_keeps_the_old_clock():
+    """A library user's review: after restart_clock, a stack-3 frame still stamped on the old clock
+    (its driver's queue) took the new shift, landed 100 s ahead and shut out every later stack-3
+    frame. It continues its stack's old clock (stamped within OLD_CLOCK_LATE_S after that stack's
+    newest frame) and keeps the old shift; by hand: newest 100.1, the new clock's first frame at
+    0.0 -> 101.1, the late 100.2 -> 100.2, then 0.05 -> 101.15 and 0.1 -> 101.2."""
+    pose = _frame(0.0).cam_to_world
+
+    def at(t, stack):
+        return _frame(t, stack=stack, cam_to_world=pose)
+
+    mapper = _mapper()
+    mapper.add_frame(at(100.0, 1))
+    mapper.add_frame(at(100.1, 3))
+    mapper.restart_clock()
+    for t, stack in ((0.0, 1), (100.2, 3), (0.05, 3), (0.1, 1)):
+        mapper.add_frame(at(t, stack))
+    np.testing.assert_allclose(mapper.store.times, [100.0, 100.1, 101.1, 100.2, 101.15, 101.2])
+    # the late frame may also come first: the restart waits for the new clock's first frame
+    other = _mapper()
+    other.add_frame(at(100.0, 1))
+    other.add_frame(at(100.1, 3))
+    other.restart_clock()
+    for t, stack in ((100.2, 3), (0.0, 1), (0.05, 3)):
+        other.add_frame(at(t, stack))
+    np.testing.assert_allclose(other.store.times, [100.0, 100.1, 100.2, 101.2, 101.25])
+
+
+def test_a_refused_frame_leaves_the_clock_as_it_was(tmp_path):
+    """The first frame after restart_clock refused (its camera 50 m outside the box): the clock is
+    not restarted by it, so the next good frame follows the newest 1 s on (before: the refused
+    frame's stamp set the shift and the good frames were refused as out of order)."""
+    mapper = _mapper()
+    for t in (10.0, 10.5):
+        mapper.add_frame(_frame(t))
+    mapper.restart_clock()
+    far = _frame(5000.0)  # the pose moves 0.1 m a second: x = 500 m
+    with pytest.raises(UsageError, match="lies outside the Mapper's box"):
+        mapper.add_frame(far)
+    mapper.add_frame(_frame(0.2))
+    mapper.add_frame(_frame(0.3, stack=3))
+    np.testing.assert_allclose(mapper.store.times, [10.0, 10.5, 11.5, 11.6])
+    assert mapper.snapshot(tmp_path / "s", n_rays=8, max_poses=1).last_frame_time == pytest.approx(0.3)
+
+
+def test_a_float32_epoch_stamp_and_a_depth_the_store_cannot_hold_are_refused():
+    """np.float32(1700000070.0) is 1700000128.0 (float32 holds such a time only to 128 s): refused
+    in one line, not stored 58 s late; a float32 stamp fine to the millisecond is taken. A depth of
+    70 m (over the store's uint16 millimetres, 65.534 m) is refused, not stored as 65.534 m."""
+    mapper = _mapper()
+    with pytest.raises(UsageError, match=r"SyncFrame.time 1700000128.0: a float32 holds a time this large only to "
+                                         r"128 s; expected seconds as a Python float or float64"):
+        mapper.add_frame(_frame(np.float32(1700000070.0)))
+    assert mapper.frames == 0
+    mapper.add_frame(_frame(np.float32(12.5)))
+    depth = np.full((INTR.height, INTR.width), 70.0, dtype=np.float32)
+    rgbd = Mapper(tiny_train_config(sensors=("camera", "rgbd")), {1: INTR}, BOX)
+    with pytest.raises(UsageError, match=r"SyncFrame.depth \(stack 1\): 70 m is beyond 65.534 m"):
+        rgbd.add_frame(_frame(0.0, depth=depth))
+    rgbd.add_frame(_frame(0.0, depth=np.full_like(depth, np.nan)))  # no valid pixel: nothing to bound
+
+
+def test_the_state_is_a_copy_and_train_counts_its_own_steps():
+    """state() is the state of its moment while training goes on (a timer thread trains while
+    another writes it out; before: the live tensors, saved a step later); train(steps=3) runs and
+    reports 3 steps when a load_state lands between two of them (before: counted from the step
+    counter that load_state set back, 4 steps run)."""
+    mapper = _mapper(device="cpu")
+    mapper.add_frame(_frame(0.0))
+    mapper.add_frame(_frame(1.0))
+    mapper.train(600.0, steps=2)
+    saved = mapper.state()
+    at_save = [p.detach().clone() for p in mapper.field.parameters()]
+    mapper.train(600.0, steps=1)
+    assert all(torch.equal(a, b) for a, b in zip(saved["field"].values(), at_save, strict=True))
+    assert not torch.equal(next(iter(saved["field"].values())), next(mapper.field.parameters()).detach())
+    real = Mapper._timed_step
+    calls = []
+
+    def then_load(self, progress=None):
+        out = real(self, progress)
+        calls.append(self.step)
+        if len(calls) == 1:
+            self.load_state(saved)  # as another thread would, between two steps (step 4 -> 2)
+        return out
+
+    Mapper._timed_step = then_load
+    try:
+        report = mapper.train(600.0, steps=3)
+    finally:
+        Mapper._timed_step = real
+    assert (report.steps, calls, report.total_steps) == (3, [4, 3, 4], 4)
+
+
+def test_small_public_inputs_named_as_the_others(tmp_path):
+    """write_map_server takes a str folder as snapshot does; a SceneBox of NaN is one line naming it."""
+    from virus_nerf import warm_up
+    from virus_nerf.maps.occupancy import read_map_server, write_map_server
+
+    assert callable(warm_up)  # the start-up the live commands run, public for a robot's program
+    mapper = _mapper()
+    mapper.add_frame(_frame(0.0))
+    grid_map = mapper.update_map()
+    pgm, yaml = write_map_server(grid_map, str(tmp_path), "map")
+    back = read_map_server(yaml)
+    assert pgm == tmp_path / "map.pgm" and np.array_equal(back.image, grid_map.image) and back.origin == grid_map.origin
+    with pytest.raises(ValueError, match=r"SceneBox lo=\(nan, 0.0, 0.0\) hi=\(1.0, 1.0, 1.0\): expected finite metres"):
+        SceneBox((float("nan"), 0, 0), (1, 1, 1))
+
+
 def test_a_loaded_state_takes_only_the_frames_it_was_trained_on_in_their_order():
     """Mapper.state() names its frames (stack, time); frames added again, before or after
     load_state, must be those in that order: a robot program that restarts its reader one frame

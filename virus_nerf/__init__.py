@@ -15,6 +15,7 @@ __version__ = "0.1.0"
 # `import virus_nerf` (and the command line's error path) does not pull in torch.
 _PUBLIC = {
     "Mapper": "virus_nerf.engine.mapper",
+    "warm_up": "virus_nerf.engine.mapper",
     "TrainSlice": "virus_nerf.engine.mapper",
     "MapperConfig": "virus_nerf.engine.config",
     "StepSchedule": "virus_nerf.engine.schedule",

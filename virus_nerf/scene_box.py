@@ -20,6 +20,8 @@ class SceneBox:
         # plain floats: numpy scalars would print as np.float64(...) in messages and configs
         object.__setattr__(self, "lo", tuple(float(v) for v in self.lo))
         object.__setattr__(self, "hi", tuple(float(v) for v in self.hi))
+        if not all(np.isfinite(self.lo + self.hi)):  # one line naming the fields, as other inputs are
+            raise ValueError(f"SceneBox lo={self.lo} hi={self.hi}: expected finite metres")
         if not all(hi > lo for lo, hi in zip(self.lo, self.hi, strict=True)):
             raise ValueError(f"scene box needs hi > lo on every axis, got lo={self.lo} hi={self.hi}")
 

@@ -20,6 +20,8 @@ from virus_nerf.errors import UsageError
 from virus_nerf.sensors.camera import Intrinsics, image_side_problem, intrinsics_problem
 from virus_nerf.sensors.irs import IRS_MAX_PLAUSIBLE_MM, IRS_MIN_VALID_M
 
+MAX_DEPTH_M = 65.534  # the frame store keeps depth as uint16 millimetres (sampler.frames.resize_depth_mm)
+TIME_RESOLUTION_S = 1e-3  # a stamp's type must hold it at least this finely (a float32 epoch time holds 128 s)
 MAX_RANGE_M = IRS_MAX_PLAUSIBLE_MM / 1000  # no USS, IRS or depth camera of a robot reads 100 m: millimetres
 # A camera whose optical axis lies within this of the vertical sees no room at camera height: its
 # pose is in another axis convention (a ROS body frame: x forward, z up), as ros_maps.base_pose says
@@ -77,6 +79,9 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
     if abs(t) > MAX_TIME_S:
         raise UsageError(f"SyncFrame.time {t!r}: beyond {MAX_TIME_S:g} s (the year 5138); expected seconds, "
                          "not milli-, micro- or nanoseconds")
+    if isinstance(t, np.floating) and np.spacing(t) > TIME_RESOLUTION_S:  # a float32 epoch time: 128 s steps
+        raise UsageError(f"SyncFrame.time {float(t)!r}: a {t.dtype} holds a time this large only to {float(np.spacing(t)):g} s; "
+                         "expected seconds as a Python float or float64")
     rgb = frame.rgb
     want = (intr.height, intr.width, 3)
     if not isinstance(rgb, np.ndarray) or rgb.shape != want or rgb.dtype != np.uint8:
@@ -90,7 +95,11 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
         if not np.issubdtype(np.asarray(frame.depth).dtype, np.floating):
             raise UsageError(f"SyncFrame.depth (stack {sid}): {np.asarray(frame.depth).dtype} values; expected "
                              "floating-point metres (NaN = invalid): a 16UC1 image in millimetres divided by 1000")
-        _check_ranges(f"SyncFrame.depth (stack {sid})", np.asarray(frame.depth, dtype=np.float64), "z-depths")
+        depth = np.asarray(frame.depth, dtype=np.float64)
+        _check_ranges(f"SyncFrame.depth (stack {sid})", depth, "z-depths")
+        if (far := np.nanmax(depth, initial=0.0)) > MAX_DEPTH_M:
+            raise UsageError(f"SyncFrame.depth (stack {sid}): {far:g} m is beyond {MAX_DEPTH_M} m, the most the "
+                             "frame store's millimetres hold; expected metres (NaN = invalid)")
     if (problem := _pose_problem(frame.cam_to_world)) is not None:
         raise UsageError(f"SyncFrame.cam_to_world (stack {sid}, time {frame.time}): {problem}; expected a finite "
                          "(4, 4) rigid transform (rotation with det +1, translation in metres, last row 0 0 0 1)")

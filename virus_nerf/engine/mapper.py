@@ -28,6 +28,7 @@ Example, in a ROS node or a script (metres, seconds, RGB; OpenCV camera axes)::
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import numbers
@@ -81,6 +82,9 @@ class TrainSlice:
     total_seconds: float  # training clock since the mapper was made
 
 RESTART_GAP_S = 1.0  # s between the newest frame and the first after `Mapper.restart_clock`
+# a frame stamped up to this after its stack's newest frame of the clock before a restart is that
+# clock's, arrived late (a driver's queue): it keeps that clock's shift, not the new one's
+OLD_CLOCK_LATE_S = 30.0
 MAX_BOX_SIDE_M = 1000.0  # a room or a hall a robot maps; a larger box is a unit mistake
 
 
@@ -148,6 +152,7 @@ class Mapper(MapViews):
         self._viewed_frames = 0  # frames whose camera views the grid was given (warmup_restart)
         self._time_shift = 0.0  # s added to the frames' times since a `restart_clock` (their order kept)
         self._restarted = False  # `restart_clock` called: the next frame sets `_time_shift`
+        self._stack_clocks: dict[int, tuple[float, float]] = {}  # stack -> its newest frame's (stamp, shift)
         # (N,) stack ids and store times (s) of the frames a loaded state was trained on: the frames
         # added again must be those, in that order (`load_state`); empty when nothing was loaded
         self._expected_frames = (np.zeros(0, np.int64), np.zeros(0, np.float64))
@@ -218,7 +223,7 @@ class Mapper(MapViews):
         the stack's previous frame: the newest frames' share of each batch and the stereo tracker
         go by time); returns its row."""
         check_frame(frame, self.intrinsics)
-        time_s = self._frame_time(frame)
+        time_s, shift, restart_taken = self._frame_time(frame)
         self._check_expected(np.array([frame.stack_id]), np.array([time_s]), f"add_frame: SyncFrame (time {frame.time!r})")
         small = self.store.intrinsics[frame.stack_id]
         size = (small.width, small.height)
@@ -228,6 +233,10 @@ class Mapper(MapViews):
         self.extent.check_inside(np.asarray(frame.cam_to_world, dtype=np.float64)[None, :3, 3], np.array([frame.time]))
         row = self.store.append(frame.stack_id, self.frames, time_s, np.asarray(frame.cam_to_world),
                                 resize_rgb(frame.rgb, size), depth, *valid_ranges(frame.uss_range, frame.irs_range))
+        # the clock's state changes only with a frame kept (a refused one leaves it as it was)
+        self._stack_clocks[int(frame.stack_id)] = (float(frame.time), shift)
+        if restart_taken:
+            self._time_shift, self._restarted = shift, False
         self._grow(self.extent.add_frames(self.store, np.array([row])))
         self.track_image(row, frame.rgb)
         return row
@@ -239,21 +248,33 @@ class Mapper(MapViews):
         (RESTART_GAP_S on), so the order of arrival stays the order in time."""
         self._restarted = True
 
-    def _frame_time(self, frame: SyncFrame) -> float:
-        """The frame's time in the store: its own plus `_time_shift`; refused when not after its
-        stack's previous frame."""
+    def _frame_time(self, frame: SyncFrame) -> tuple[float, float, bool]:
+        """The frame's time in the store (its own plus a shift), that shift, and whether it is the
+        first frame of a restarted clock (it sets the new shift); refused when not after its
+        stack's previous frame. Changes nothing: `add_frame` keeps the clock's state once the frame
+        is in. A frame that continues its stack's clock from before a restart (stamped up to
+        OLD_CLOCK_LATE_S after that stack's newest frame, which carries an older shift) arrived
+        late from the old clock and keeps the old shift: with the new one it would lie decades
+        ahead and shut its stack's later frames out."""
+        stamp = float(frame.time)
         mine = self.store.times[self.store.stack_ids == frame.stack_id]
         newest = float(mine.max()) if len(mine) else -math.inf  # the stack's previous frame, in the store
-        if self._restarted:
+        last = self._stack_clocks.get(int(frame.stack_id))  # its (stamp, shift)
+        shift, restart_taken = self._time_shift, False
+        before_restart = last is not None and (self._restarted or last[1] != self._time_shift)
+        if before_restart and last[0] < stamp <= last[0] + OLD_CLOCK_LATE_S:
+            shift = last[1]  # the old clock's, arrived late
+        elif self._restarted:
+            restart_taken = True
             if self.frames:  # before the first frame there is nothing to follow
-                self._time_shift = float(self.store.times.max()) + RESTART_GAP_S - float(frame.time)
-            self._restarted = False
-        t = float(frame.time) + self._time_shift
+                shift = float(self.store.times.max()) + RESTART_GAP_S - stamp
+        t = stamp + shift
         if t <= newest:
+            previous = last[0] if last is not None else newest - shift
             raise UsageError(f"SyncFrame.time {frame.time!r} (stack {frame.stack_id}): not after the stack's "
-                             f"previous frame at {newest - self._time_shift!r} s; expected each stack's frames in "
+                             f"previous frame at {previous!r} s; expected each stack's frames in "
                              "time order, once each (after a clock reset, call Mapper.restart_clock() first)")
-        return t
+        return t, shift, restart_taken
 
     def _check_expected(self, stack_ids: np.ndarray, times: np.ndarray, what: str) -> None:
         """Frames about to become rows `frames`.. must be the loaded state's frames of those rows
@@ -303,6 +324,9 @@ class Mapper(MapViews):
             self._sampler = BatchSampler(store, self.config.sensors, self.config.shares, self.stereo)
         else:
             self.store.append_rows(store, picked)
+        for sid in np.unique(store.stack_ids[picked]):  # each stack's newest frame, on the clock as it is
+            newest = float(store.times[picked][store.stack_ids[picked] == sid].max())
+            self._stack_clocks[int(sid)] = (newest - self._time_shift, self._time_shift)
         if images is not None and "stereo" in self.config.sensors:
             for row, src in enumerate(picked, start=first):
                 self.track_image(row, images(int(src)))
@@ -400,17 +424,22 @@ class Mapper(MapViews):
         """Share of the learning-rate horizon (`schedules.horizon`) used: drives the lr decay."""
         return self.schedules.horizon.share(self.step, self.seconds)
 
-    @serialised
     def train_step(self, progress: float | None = None) -> LossTerms:
         """The one training step, on the training clock: every frame added so far (the prior of
         new frames first); `progress` in [0, 1] of the budget sets the learning rate (the
         schedule's lr * lr_decay_to ** progress; default `self.progress()`)."""
+        return self._timed_step(progress)[0]
+
+    @serialised
+    def _timed_step(self, progress: float | None = None) -> tuple[LossTerms, float]:
+        """`train_step` and the seconds it added to the training clock."""
         self.build_optimizer()  # before the clock starts: the first one imports torch._dynamo
         t_start = time.perf_counter()
         terms = self._step(progress)
-        self.seconds += time.perf_counter() - t_start
+        took = time.perf_counter() - t_start
+        self.seconds += took
         self.last_loss = float(terms.total.detach())
-        return terms
+        return terms, took
 
     def _step(self, progress: float | None) -> LossTerms:
         """`train_step` off the clock, as named steps: the step's start-up, the learning rate,
@@ -548,23 +577,24 @@ class Mapper(MapViews):
             raise UsageError(f"Mapper.train seconds {seconds!r}: expected a finite number >= 0")
         if steps is not None and (isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 0):
             raise UsageError(f"Mapper.train steps {steps!r}: expected an integer >= 0 or None")
+        import torch._dynamo  # noqa: F401  torch's optimisers import it at their first use (2 s): here, not under the lock
         self.prepare()
-        step0, clock0 = self.step, self.seconds
-        loss = None
-        while self.seconds - clock0 < seconds and (steps is None or self.step - step0 < steps):
-            loss = float(self.train_step().total.detach())
-        return TrainSlice(steps=self.step - step0, seconds=self.seconds - clock0, loss=loss, frames=self.frames,
-                          total_steps=self.step, total_seconds=self.seconds)
+        done, spent, loss = 0, 0.0, None  # this call's own steps and clock (another thread may load_state meanwhile)
+        while spent < seconds and (steps is None or done < steps):
+            terms, took = self._timed_step()
+            done, spent, loss = done + 1, spent + took, float(terms.total.detach())
+        return TrainSlice(steps=done, seconds=spent, loss=loss, frames=self.frames, total_steps=self.step,
+                          total_seconds=self.seconds)
 
     # ------------------------------------------------------------------ state
     @serialised
     def state(self) -> dict:
-        """Everything to continue training (not the frames): the live tensors, so write it out
-        (torch.save) before training on."""
+        """Everything to continue training (not the frames), copied: a timer thread may train on
+        while another writes it out (torch.save) and it stays the state of this moment."""
         return {
-            "field": self.field.state_dict(),
-            "optimizer": self._optimizer_state_dict(),
-            "grid": self.grid.state_dict(),
+            "field": copy.deepcopy(self.field.state_dict()),
+            "optimizer": copy.deepcopy(self._optimizer_state_dict()),
+            "grid": copy.deepcopy(self.grid.state_dict()),
             "step": self.step,
             "seconds": self.seconds,
             "samples": self.samples,
@@ -723,3 +753,32 @@ def step_loss(config: MapperConfig, batch: RayBatch, out, samples, rgb_rays: tor
                                    stereo_sigma=batch.stereo_sigma if stereo else None)
         terms = dataclasses.replace(terms, total=terms.total + free)
     return terms
+
+
+def warm_up(config: MapperConfig) -> float:
+    """Load torch's optimiser machinery and the mapper's kernels on a throwaway mapper (one small
+    synthetic frame, one step) before the drive's clock starts, as a robot starts its mapper before
+    it drives off: the first real frame is then not seconds late, and a callback adding frames
+    does not wait for the first `train` (measured on 2 shared cores: the optimiser's first
+    construction imports torch._dynamo, 1-2 s; the first render 0.2-0.8 s, tens of seconds when
+    numba compiles the kernels, the first time after an install; the first snapshot 0.2 s).
+    Returns the seconds of its training step (a first step on one small frame)."""
+    import tempfile
+
+    from virus_nerf.sensors.camera import Intrinsics
+
+    intr = Intrinsics(fx=40.0, fy=40.0, cx=32.0, cy=24.0, width=64, height=48)
+    cfg = dataclasses.replace(config, max_steps=1, max_time=None)
+    mapper = Mapper(cfg, {0: intr}, SceneBox((-3.0, -3.0, -1.0), (3.0, 3.0, 2.0)))
+    pose = np.eye(4)
+    pose[:3, :3] = [[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]]  # level, looking along +x
+    rgb = np.full((intr.height, intr.width, 3), 128, dtype=np.uint8)
+    depth = np.full((intr.height, intr.width), 2.0, dtype=np.float32) if "rgbd" in cfg.sensors else None
+    mapper.add_frame(SyncFrame(time=0.0, stack_id=0, rgb=rgb, cam_to_world=pose, uss_range=2.0,
+                               irs_range=np.full((8, 8), 2.0), depth=depth))
+    t = time.perf_counter()
+    mapper.train(1.0, steps=1)  # the optimiser's and backward's first calls: longer than a later step
+    step_s = time.perf_counter() - t
+    with tempfile.TemporaryDirectory() as tmp:  # the map code's first call (imports)
+        mapper.snapshot(Path(tmp) / "warm", n_rays=8, max_poses=1)
+    return step_s

@@ -30,7 +30,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import statistics
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -104,30 +103,10 @@ def _relative(path: str, out: Path) -> str:
 
 
 def warm_up(config) -> float:
-    """Load torch's optimiser machinery and the mapper's kernels on a throwaway mapper (one small
-    synthetic frame, one step) before the drive's clock starts, as a robot starts its mapper before
-    it drives off: the first real frame is then not seconds late (measured on 2 shared cores: the
-    optimiser's first construction imports torch._dynamo, 1-2 s; the first render 0.2-0.8 s; the
-    first snapshot 0.2 s). Returns the seconds of its training step (a first step on one small frame)."""
-    from virus_nerf.data.frame import SyncFrame
-    from virus_nerf.engine.mapper import Mapper
-    from virus_nerf.sensors.camera import Intrinsics
+    """`engine.mapper.warm_up`, imported when called (the stream's module loads no torch)."""
+    from virus_nerf.engine.mapper import warm_up as load_kernels
 
-    intr = Intrinsics(fx=40.0, fy=40.0, cx=32.0, cy=24.0, width=64, height=48)
-    cfg = dataclasses.replace(config, max_steps=1, max_time=None)
-    mapper = Mapper(cfg, {0: intr}, SceneBox((-3.0, -3.0, -1.0), (3.0, 3.0, 2.0)))
-    pose = np.eye(4)
-    pose[:3, :3] = [[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]]  # level, looking along +x
-    rgb = np.full((intr.height, intr.width, 3), 128, dtype=np.uint8)
-    depth = np.full((intr.height, intr.width), 2.0, dtype=np.float32) if "rgbd" in cfg.sensors else None
-    mapper.add_frame(SyncFrame(time=0.0, stack_id=0, rgb=rgb, cam_to_world=pose, uss_range=2.0,
-                               irs_range=np.full((8, 8), 2.0), depth=depth))
-    t = time.perf_counter()
-    mapper.train(1.0, steps=1)  # the optimiser's and backward's first calls: longer than a later step
-    step_s = time.perf_counter() - t
-    with tempfile.TemporaryDirectory() as tmp:  # the map code's first call (imports)
-        mapper.snapshot(Path(tmp) / "warm", n_rays=8, max_poses=1)
-    return step_s
+    return load_kernels(config)
 
 
 class StreamRun:

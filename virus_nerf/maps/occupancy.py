@@ -231,7 +231,7 @@ def write_map_server(m: OccupancyMap2D, folder: Path, name: str = "map") -> tupl
     """PGM (binary P5) + YAML, atomically."""
     from virus_nerf.utils.io import write_text_atomic
 
-    pgm, yaml = folder / f"{name}.pgm", folder / f"{name}.yaml"
+    pgm, yaml = Path(folder) / f"{name}.pgm", Path(folder) / f"{name}.yaml"  # a str folder as well
     write_pgm(pgm, m.image)
     write_text_atomic(yaml, map_yaml(pgm.name, m.resolution, m.origin, m.mode))
     return pgm, yaml
