@@ -481,11 +481,14 @@ def test_distances_on_the_pixel_lattice_keep_their_boundary_pixels():
 
 
 @pytest.mark.slow
-def test_evaluate_scores_a_driving_run_on_the_frames_it_trained_on(tiny_office, tmp_path):
+def test_evaluate_scores_a_driving_run_on_the_frames_it_trained_on(tiny_office, tmp_path, monkeypatch):
     """A driving run (train --online) adds frames as its clock passes them, at each step's start:
     frames that come due during the last step were never the mapper's. `evaluate` loads the
     checkpoint with exactly the frames its mapper held, so it gives the run's own figures (it
-    added every frame due by the final clock, and judged another map, with more camera positions)."""
+    added every frame due by the final clock, and judged another map, with more camera positions).
+    Neither it nor `export` writes into the run, even with no user cache (a review: both decoded
+    the frames into RUN/cache/images.npy, which failed on read-only media, and two exports sharing
+    the run's lock truncated the same file)."""
     import json
 
     import torch
@@ -502,8 +505,19 @@ def test_evaluate_scores_a_driving_run_on_the_frames_it_trained_on(tiny_office, 
     assert code == 0, err
     held = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)["frames"]
     assert 1 < held < 30  # a 3 s drive at half speed in 4 s of training: the drive is not over
+    monkeypatch.setenv("VIRUS_NERF_CACHE_DIR", "off")  # every frame decoded again
+    (run / "run.lock").unlink()  # the readers: none makes it again (evaluate, a writer, would)
+
+    def files():
+        return {str(p.relative_to(run)): p.stat().st_mtime_ns for p in run.rglob("*")}
+
+    before = files()
+    code, _, err = run_cli(["export", "--run", run, "--out", tmp_path / "export", "--what", "map"])
+    assert code == 0, err
+    assert files() == before
     code, _, err = run_cli(["evaluate", "--run", run, "--out", tmp_path / "again.json", "--no-plots"])
     assert code == 0, err
+    assert {k: v for k, v in files().items() if k != "run.lock"} == before
     own, again = (json.loads(p.read_text()) for p in (run / "metrics.json", tmp_path / "again.json"))
     assert again["safety"] == own["safety"]
     assert again["sensors"]["NeRF"] == own["sensors"]["NeRF"]

@@ -236,9 +236,11 @@ def test_a_restarted_clock_leaves_the_snapshot_the_newest_frames_own_stamp(tmp_p
 def test_a_frame_of_the_old_clock_arriving_after_a_restart_keeps_the_old_clock():
     """A library user's review: after restart_clock, a stack-3 frame still stamped on the old clock
     (its driver's queue) took the new shift, landed 100 s ahead and shut out every later stack-3
-    frame. It continues its stack's old clock (stamped within OLD_CLOCK_LATE_S after that stack's
-    newest frame) and keeps the old shift; by hand: newest 100.1, the new clock's first frame at
-    0.0 -> 101.1, the late 100.2 -> 100.2, then 0.05 -> 101.15 and 0.1 -> 101.2."""
+    frame. Nearer the old clock's newest stamp than the new one's, it keeps the old shift; by hand:
+    newest 100.1, the new clock's first frame at 0.0 -> 101.1, the late 100.2 -> 100.2, then 0.05
+    -> 101.15 and 0.1 -> 101.2. A second review's cases: a stack silent for 30 s that comes back
+    on a clock reset 10 s back takes the new clock (not the old one, 11 s behind), and a restart
+    whose frames go on forward keeps one clock for every stack."""
     pose = _frame(0.0).cam_to_world
 
     def at(t, stack):
@@ -259,6 +261,20 @@ def test_a_frame_of_the_old_clock_arriving_after_a_restart_keeps_the_old_clock()
     for t, stack in ((100.2, 3), (0.0, 1), (0.05, 3)):
         other.add_frame(at(t, stack))
     np.testing.assert_allclose(other.store.times, [100.0, 100.1, 100.2, 101.2, 101.25])
+    silent = _mapper()  # stack 3 last at 100, stack 1 on to 130; reset to 120: shift 130 + 1 - 120 = 11
+    for t, stack in ((100.0, 3), (130.0, 1)):
+        silent.add_frame(at(t, stack))
+    silent.restart_clock()
+    for t, stack in ((120.0, 1), (120.05, 3), (120.5, 1), (120.55, 3)):
+        silent.add_frame(at(t, stack))
+    np.testing.assert_allclose(silent.store.times, [100.0, 130.0, 131.0, 131.05, 131.5, 131.55])
+    forward = _mapper()  # restart_clock, but the clock never goes back: one clock, no shift
+    forward.add_frame(at(10.0, 1))
+    forward.add_frame(at(10.05, 3))
+    forward.restart_clock()
+    for t, stack in ((20.0, 1), (20.05, 3), (61.55, 3), (62.0, 1)):
+        forward.add_frame(at(t, stack))
+    np.testing.assert_allclose(forward.store.times, [10.0, 10.05, 20.0, 20.05, 61.55, 62.0])
 
 
 def test_a_refused_frame_leaves_the_clock_as_it_was(tmp_path):
@@ -287,6 +303,8 @@ def test_a_float32_epoch_stamp_and_a_depth_the_store_cannot_hold_are_refused():
                                          r"128 s; expected seconds as a Python float or float64"):
         mapper.add_frame(_frame(np.float32(1700000070.0)))
     assert mapper.frames == 0
+    with pytest.raises(UsageError, match=r"SyncFrame.time -20000.0: a float32 holds"):  # negative alike
+        mapper.add_frame(_frame(np.float32(-20000.0)))
     mapper.add_frame(_frame(np.float32(12.5)))
     depth = np.full((INTR.height, INTR.width), 70.0, dtype=np.float32)
     rgbd = Mapper(tiny_train_config(sensors=("camera", "rgbd")), {1: INTR}, BOX)

@@ -159,6 +159,7 @@ def test_a_file_system_without_locks_is_used_unlocked_and_said_once(tmp_path, mo
     run, other = tmp_path / "run", tmp_path / "other"
     run.mkdir()
     other.mkdir()
+    (other / LOCK).write_text("")  # a reader makes none
     (tmp_path / "link").symlink_to(run)
     with RunLock(run, "--out") as lock:
         assert lock.holds(run) and (run / LOCK).read_text() == f"{os.getpid()}\n"
@@ -170,3 +171,31 @@ def test_a_file_system_without_locks_is_used_unlocked_and_said_once(tmp_path, mo
                    "stops another process writing this run at the same time\n"
                    f"warning: --run {other}: its file system offers no file locks (No locks available); nothing "
                    "stops another process writing this run at the same time\n"), out
+
+
+def test_a_writers_probe_sees_a_reader_and_a_gone_writers_pid_is_not_named(tmp_path, monkeypatch):
+    """A review: `held_by_another` and `probe` (the experiment runner's wait, evaluate's early check)
+    took the lock shared and so passed while an export read the run; and where /proc/locks cannot
+    be read, a writer refused by an export was named the pid a long-gone writer left in the file."""
+    from virus_nerf.trainer import run_folder
+
+    (tmp_path / LOCK).write_text(f"{_dead_pid()}\n")
+    reader = _holding(tmp_path, shared=True)
+    try:
+        assert RunLock(tmp_path).held_by_another()
+        with pytest.raises(UsageError, match=rf"\(pid {reader.pid}\)"):
+            RunLock(tmp_path, "--run").probe()
+        RunLock(tmp_path, "--run", shared=True).probe()  # another reader may go on
+        monkeypatch.setattr(run_folder, "_flock_holders", lambda fd: None)  # no /proc/locks
+        with pytest.raises(UsageError, match=r"in use by another virus-nerf process \(another process\)"):
+            RunLock(tmp_path, "--resume").acquire()
+    finally:
+        reader.kill()
+        reader.wait()
+    assert not RunLock(tmp_path).held_by_another()
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid

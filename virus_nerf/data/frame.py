@@ -79,7 +79,7 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
     if abs(t) > MAX_TIME_S:
         raise UsageError(f"SyncFrame.time {t!r}: beyond {MAX_TIME_S:g} s (the year 5138); expected seconds, "
                          "not milli-, micro- or nanoseconds")
-    if isinstance(t, np.floating) and np.spacing(t) > TIME_RESOLUTION_S:  # a float32 epoch time: 128 s steps
+    if isinstance(t, np.floating) and abs(np.spacing(t)) > TIME_RESOLUTION_S:  # a float32 epoch time: 128 s steps
         raise UsageError(f"SyncFrame.time {float(t)!r}: a {t.dtype} holds a time this large only to {float(np.spacing(t)):g} s; "
                          "expected seconds as a Python float or float64")
     rgb = frame.rgb

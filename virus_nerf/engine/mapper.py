@@ -82,9 +82,6 @@ class TrainSlice:
     total_seconds: float  # training clock since the mapper was made
 
 RESTART_GAP_S = 1.0  # s between the newest frame and the first after `Mapper.restart_clock`
-# a frame stamped up to this after its stack's newest frame of the clock before a restart is that
-# clock's, arrived late (a driver's queue): it keeps that clock's shift, not the new one's
-OLD_CLOCK_LATE_S = 30.0
 MAX_BOX_SIDE_M = 1000.0  # a room or a hall a robot maps; a larger box is a unit mistake
 
 
@@ -153,6 +150,8 @@ class Mapper(MapViews):
         self._time_shift = 0.0  # s added to the frames' times since a `restart_clock` (their order kept)
         self._restarted = False  # `restart_clock` called: the next frame sets `_time_shift`
         self._stack_clocks: dict[int, tuple[float, float]] = {}  # stack -> its newest frame's (stamp, shift)
+        self._clock_newest: dict[float, float] = {}  # a clock's shift -> the newest stamp on it
+        self._newest_stamp: float | None = None  # the stamp of the frame with the newest time in the store
         # (N,) stack ids and store times (s) of the frames a loaded state was trained on: the frames
         # added again must be those, in that order (`load_state`); empty when nothing was loaded
         self._expected_frames = (np.zeros(0, np.int64), np.zeros(0, np.float64))
@@ -234,7 +233,11 @@ class Mapper(MapViews):
         row = self.store.append(frame.stack_id, self.frames, time_s, np.asarray(frame.cam_to_world),
                                 resize_rgb(frame.rgb, size), depth, *valid_ranges(frame.uss_range, frame.irs_range))
         # the clock's state changes only with a frame kept (a refused one leaves it as it was)
-        self._stack_clocks[int(frame.stack_id)] = (float(frame.time), shift)
+        stamp = float(frame.time)
+        self._stack_clocks[int(frame.stack_id)] = (stamp, shift)
+        self._clock_newest[shift] = max(self._clock_newest.get(shift, -math.inf), stamp)
+        if time_s >= float(self.store.times.max()):
+            self._newest_stamp = stamp
         if restart_taken:
             self._time_shift, self._restarted = shift, False
         self._grow(self.extent.add_frames(self.store, np.array([row])))
@@ -244,30 +247,37 @@ class Mapper(MapViews):
     @serialised
     def restart_clock(self) -> None:
         """The robot's clock restarted (a bag played again, a clock reset): the next frames may be
-        stamped before those already added. Their times then continue after the newest frame's
-        (RESTART_GAP_S on), so the order of arrival stays the order in time."""
+        stamped before those already added. From the first frame stamped at or before its stack's
+        previous one, times continue after the newest frame's (RESTART_GAP_S on), so the order of
+        arrival stays the order in time (`_frame_time`)."""
         self._restarted = True
 
     def _frame_time(self, frame: SyncFrame) -> tuple[float, float, bool]:
         """The frame's time in the store (its own plus a shift), that shift, and whether it is the
         first frame of a restarted clock (it sets the new shift); refused when not after its
         stack's previous frame. Changes nothing: `add_frame` keeps the clock's state once the frame
-        is in. A frame that continues its stack's clock from before a restart (stamped up to
-        OLD_CLOCK_LATE_S after that stack's newest frame, which carries an older shift) arrived
-        late from the old clock and keeps the old shift: with the new one it would lie decades
-        ahead and shut its stack's later frames out."""
+        is in.
+
+        After `restart_clock` the new clock starts with the first frame stamped at or before its
+        stack's previous frame (the clock went back); one stamped after it is still the old
+        clock's (queued before the reset). Later, a frame of a stack whose newest frame is on an
+        older clock takes the clock whose newest stamp is nearer its own: a late frame of the old
+        clock keeps the old shift (with the new one it would lie a clock's jump ahead and shut its
+        stack's next frames out), a stack's first frame of the new clock takes the new one."""
         stamp = float(frame.time)
         mine = self.store.times[self.store.stack_ids == frame.stack_id]
         newest = float(mine.max()) if len(mine) else -math.inf  # the stack's previous frame, in the store
         last = self._stack_clocks.get(int(frame.stack_id))  # its (stamp, shift)
         shift, restart_taken = self._time_shift, False
-        before_restart = last is not None and (self._restarted or last[1] != self._time_shift)
-        if before_restart and last[0] < stamp <= last[0] + OLD_CLOCK_LATE_S:
-            shift = last[1]  # the old clock's, arrived late
-        elif self._restarted:
-            restart_taken = True
-            if self.frames:  # before the first frame there is nothing to follow
-                shift = float(self.store.times.max()) + RESTART_GAP_S - stamp
+        if self._restarted:
+            if last is None or stamp <= last[0]:  # the clock went back: the new clock starts here
+                restart_taken = True
+                if self.frames:  # before the first frame there is nothing to follow
+                    shift = float(self.store.times.max()) + RESTART_GAP_S - stamp
+        elif last is not None and last[1] != shift and last[1] in self._clock_newest:
+            old, new = self._clock_newest[last[1]], self._clock_newest.get(shift, -math.inf)
+            if abs(stamp - old) < abs(stamp - new):
+                shift = last[1]  # nearer the old clock's stamps: its frame, arrived late
         t = stamp + shift
         if t <= newest:
             previous = last[0] if last is not None else newest - shift
@@ -327,6 +337,10 @@ class Mapper(MapViews):
         for sid in np.unique(store.stack_ids[picked]):  # each stack's newest frame, on the clock as it is
             newest = float(store.times[picked][store.stack_ids[picked] == sid].max())
             self._stack_clocks[int(sid)] = (newest - self._time_shift, self._time_shift)
+            clock = self._clock_newest.get(self._time_shift, -math.inf)
+            self._clock_newest[self._time_shift] = max(clock, newest - self._time_shift)
+        if self.frames:
+            self._newest_stamp = float(self.store.times.max()) - self._time_shift
         if images is not None and "stereo" in self.config.sensors:
             for row, src in enumerate(picked, start=first):
                 self.track_image(row, images(int(src)))

@@ -70,10 +70,14 @@ class TrainSummary:
 class Trainer:
     """Owns one run folder: config.json, train_log.csv, checkpoint.pt, metrics.json, plots/."""
 
-    def __init__(self, recording: Recording, config: TrainConfig, run_dir: Path, quiet: bool | None = None):
+    def __init__(self, recording: Recording, config: TrainConfig, run_dir: Path, quiet: bool | None = None,
+                 scratch: Path | None = None):
         self.recording = recording
         self.config = config
         self.run_dir = Path(run_dir)
+        # where a large frame store is memory-mapped and spilled: the run folder, or for a reader of
+        # the run (evaluate, export) a folder of its own, so that it writes nothing into the run
+        self.scratch = self.run_dir if scratch is None else Path(scratch)
         self.quiet = (not sys.stderr.isatty()) if quiet is None else quiet
         box = start_box(recording, config)
         # the learning rate decays over the budget; online over the drive, whose frames arrive as
@@ -83,7 +87,7 @@ class Trainer:
         self.mapper = Mapper(config, {s: st.intrinsics for s, st in recording.stacks.items()}, box,
                              Schedules.of(config, horizon))
         if config.online:  # the frames arrive one by one: a long drive's beyond the budget go to disk
-            self.mapper.spill_frames(self.run_dir)
+            self.mapper.spill_frames(self.scratch)
         self._source: FrameStore | None = None  # every training frame, decoded on first use
         self._feeder: FrameFeeder | None = None  # online: releases the source rows as the clock passes them
         # online, from a checkpoint: how many frames its mapper held (the first sync adds exactly these:
@@ -104,7 +108,7 @@ class Trainer:
         if self._source is None:
             store = build_frame_store(
                 self.recording, ("train",), self.config.image_scale, with_depth="rgbd" in self.config.sensors,
-                cache_dir=self.run_dir / "cache", progress=not self.quiet,
+                cache_dir=self.scratch / "cache", progress=not self.quiet,
                 # online, the mapper copies each frame as it arrives: the source stays on disk
                 mmap_above_bytes=0 if self.config.online else MMAP_ABOVE_BYTES,
             )

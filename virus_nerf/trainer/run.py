@@ -9,6 +9,7 @@ import dataclasses
 import json
 import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 from virus_nerf.engine.memory import check_batch_memory
@@ -68,7 +69,11 @@ def load_trained(run: Path, flag: str, *, poses: str | None = None, quiet: bool 
     read_checkpoint_header(Path(run) / CHECKPOINT, cfg)
     source, _ = resolve_pose_source(Path(info.data) / info.room, poses or "optimised")  # no LiDAR: odometry only
     recording = load_recording(info.data, info.room, poses=source)
-    trainer = Trainer(recording, cfg, run, quiet=quiet)
+    # the frames a large or driving run decodes go to a folder of this process's own, removed with
+    # the trainer: nothing is written into the run (it may lie on read-only media; exports share it)
+    scratch = tempfile.TemporaryDirectory(prefix="virus-nerf-frames-")  # $TMPDIR, removed with the trainer
+    trainer = Trainer(recording, cfg, run, quiet=quiet, scratch=Path(scratch.name))
+    trainer.scratch_folder = scratch  # kept as long as the trainer
     trainer.load_checkpoint(Path(run) / CHECKPOINT)
     return trainer, cfg, info
 

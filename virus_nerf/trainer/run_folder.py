@@ -239,8 +239,12 @@ class RunLock:
         except ImportError:  # pragma: no cover - not POSIX
             return self
         path = self.folder / LOCK
-        try:
-            fd = os.open(path, (os.O_RDONLY if self.shared else os.O_RDWR) | os.O_CREAT, 0o644)
+        try:  # a reader makes no lock file: a run without one has no writer at work
+            fd = os.open(path, os.O_RDONLY if self.shared else os.O_RDWR | os.O_CREAT, 0o644)
+        except FileNotFoundError:
+            if self.shared:
+                return self
+            raise
         except OSError as exc:
             if exc.errno in _UNWRITABLE:  # read-only media or no write permission: nobody trains there
                 return self
@@ -292,7 +296,9 @@ class RunLock:
 
     def probe(self) -> None:
         """Refuse as `acquire` would while another process holds the lock, but take nothing and
-        write nothing (a command that only reads the run checks this before it reads)."""
+        write nothing (a command checks this before it reads the run for seconds): a writer's
+        probe is refused by readers (an export) too, as the kernel lists them; where it cannot
+        be told (no /proc/locks), by writers alone."""
         import os
 
         try:
@@ -300,6 +306,12 @@ class RunLock:
 
             fd = os.open(self.folder / LOCK, os.O_RDONLY)
         except (ImportError, OSError):  # not POSIX, or no lock file: nobody works in the run
+            return
+        holders = _flock_holders(fd)
+        if holders is not None:
+            if any(not (self.shared and shared) for _, shared in holders):
+                self._refuse(fd)
+            os.close(fd)
             return
         try:
             fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
@@ -309,13 +321,14 @@ class RunLock:
 
     def _refuse(self, fd: int):
         """The one-line refusal naming the holder's pid and command (closes `fd`): the holder as
-        the kernel lists it (a reader writes no pid), else the pid the last writer wrote."""
+        the kernel lists it (a reader writes no pid), else the pid the last writer wrote while that
+        process still runs (a reader's refusal would name a writer long gone)."""
         import os
 
-        pid = next(iter(_flock_holders(fd)), None)
+        pid = next((p for p, _ in _flock_holders(fd) or () if p > 0), None)
         if pid is None:
             holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
-            pid = int(holder) if holder.isdigit() else None
+            pid = int(holder) if holder.isdigit() and _running(int(holder)) else None
         os.close(fd)
         who = f"pid {pid}" if pid else "another process"
         command = _command_of(pid) if pid else None
@@ -348,20 +361,21 @@ _NO_LOCKS = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL}
 _TOLD_NO_LOCKS: set[Path] = set()  # folders whose missing locks were said (once a process)
 
 
-def _flock_holders(fd: int) -> list[int]:
-    """The pids holding a flock on `fd`'s file, from /proc/locks (Linux: "1: FLOCK ADVISORY READ
-    PID MAJ:MIN:INODE 0 EOF", device numbers in hex); [] where it cannot be told."""
+def _flock_holders(fd: int) -> list[tuple[int, bool]] | None:
+    """(pid, shared) of each flock held on `fd`'s file, from /proc/locks (Linux: "1: FLOCK ADVISORY
+    READ PID MAJ:MIN:INODE 0 EOF", device numbers in hex; pid 0: a process this namespace does not
+    see); None where it cannot be told (no /proc/locks)."""
     import os
 
     st = os.fstat(fd)
     try:
         lines = Path("/proc/locks").read_text().splitlines()
     except OSError:
-        return []
-    pids = []
+        return None
+    holders = []
     for line in lines:
         fields = line.split()
-        if "FLOCK" not in fields:
+        if "FLOCK" not in fields or "->" in fields:  # "->": a process waiting for the lock, not holding it
             continue
         k = fields.index("FLOCK")
         try:
@@ -370,8 +384,21 @@ def _flock_holders(fd: int) -> list[int]:
         except (IndexError, ValueError):
             continue
         if same:
-            pids.append(pid)
-    return pids
+            holders.append((pid, fields[k + 2] == "READ"))
+    return holders
+
+
+def _running(pid: int) -> bool:
+    """Whether process `pid` exists (it may be another program by now: the message says "pid")."""
+    import os
+
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, another user's
+        return True
+    return True
 
 
 def _command_of(pid: int) -> str | None:
