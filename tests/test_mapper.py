@@ -243,38 +243,27 @@ def test_a_frame_of_the_old_clock_arriving_after_a_restart_keeps_the_old_clock()
     whose frames go on forward keeps one clock for every stack."""
     pose = _frame(0.0).cam_to_world
 
-    def at(t, stack):
-        return _frame(t, stack=stack, cam_to_world=pose)
+    def times(before, after):
+        """The store's times after frames (stamp, stack) `before`, restart_clock, then `after`."""
+        mapper = _mapper()
+        for i, frames in enumerate((before, after)):
+            if i:
+                mapper.restart_clock()
+            for t, stack in frames:
+                mapper.add_frame(_frame(t, stack=stack, cam_to_world=pose))
+        return mapper.store.times
 
-    mapper = _mapper()
-    mapper.add_frame(at(100.0, 1))
-    mapper.add_frame(at(100.1, 3))
-    mapper.restart_clock()
-    for t, stack in ((0.0, 1), (100.2, 3), (0.05, 3), (0.1, 1)):
-        mapper.add_frame(at(t, stack))
-    np.testing.assert_allclose(mapper.store.times, [100.0, 100.1, 101.1, 100.2, 101.15, 101.2])
+    np.testing.assert_allclose(times([(100.0, 1), (100.1, 3)], [(0.0, 1), (100.2, 3), (0.05, 3), (0.1, 1)]),
+                               [100.0, 100.1, 101.1, 100.2, 101.15, 101.2])
     # the late frame may also come first: the restart waits for the new clock's first frame
-    other = _mapper()
-    other.add_frame(at(100.0, 1))
-    other.add_frame(at(100.1, 3))
-    other.restart_clock()
-    for t, stack in ((100.2, 3), (0.0, 1), (0.05, 3)):
-        other.add_frame(at(t, stack))
-    np.testing.assert_allclose(other.store.times, [100.0, 100.1, 100.2, 101.2, 101.25])
-    silent = _mapper()  # stack 3 last at 100, stack 1 on to 130; reset to 120: shift 130 + 1 - 120 = 11
-    for t, stack in ((100.0, 3), (130.0, 1)):
-        silent.add_frame(at(t, stack))
-    silent.restart_clock()
-    for t, stack in ((120.0, 1), (120.05, 3), (120.5, 1), (120.55, 3)):
-        silent.add_frame(at(t, stack))
-    np.testing.assert_allclose(silent.store.times, [100.0, 130.0, 131.0, 131.05, 131.5, 131.55])
-    forward = _mapper()  # restart_clock, but the clock never goes back: one clock, no shift
-    forward.add_frame(at(10.0, 1))
-    forward.add_frame(at(10.05, 3))
-    forward.restart_clock()
-    for t, stack in ((20.0, 1), (20.05, 3), (61.55, 3), (62.0, 1)):
-        forward.add_frame(at(t, stack))
-    np.testing.assert_allclose(forward.store.times, [10.0, 10.05, 20.0, 20.05, 61.55, 62.0])
+    np.testing.assert_allclose(times([(100.0, 1), (100.1, 3)], [(100.2, 3), (0.0, 1), (0.05, 3)]),
+                               [100.0, 100.1, 100.2, 101.2, 101.25])
+    # stack 3 last at 100, stack 1 on to 130; reset to 120: shift 130 + 1 - 120 = 11
+    np.testing.assert_allclose(times([(100.0, 3), (130.0, 1)], [(120.0, 1), (120.05, 3), (120.5, 1), (120.55, 3)]),
+                               [100.0, 130.0, 131.0, 131.05, 131.5, 131.55])
+    # restart_clock, but the clock never goes back: one clock, no shift
+    np.testing.assert_allclose(times([(10.0, 1), (10.05, 3)], [(20.0, 1), (20.05, 3), (61.55, 3), (62.0, 1)]),
+                               [10.0, 10.05, 20.0, 20.05, 61.55, 62.0])
 
 
 def test_a_refused_frame_leaves_the_clock_as_it_was(tmp_path):
