@@ -608,7 +608,7 @@ class Mapper(MapViews):
         return {
             "field": copy.deepcopy(self.field.state_dict()),
             "optimizer": copy.deepcopy(self._optimizer_state_dict()),
-            "grid": copy.deepcopy(self.grid.state_dict()),
+            "grid": self.grid.state_dict(),  # copies already
             "step": self.step,
             "seconds": self.seconds,
             "samples": self.samples,
