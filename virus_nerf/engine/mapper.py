@@ -12,9 +12,10 @@ map-bag` streams a bag through one in real time (mapping/stream.py; mapping/repl
 
 Example, in a ROS node or a script (metres, seconds, RGB; OpenCV camera axes)::
 
-    from virus_nerf import Intrinsics, Mapper, MapperConfig, SceneBox, SyncFrame
+    from virus_nerf import Intrinsics, Mapper, MapperConfig, SceneBox, SyncFrame, warm_up
 
     intr = Intrinsics(fx=386.0, fy=386.0, cx=320.0, cy=240.0, width=640, height=480)
+    warm_up(MapperConfig())               # at start-up: kernels and torch's optimiser loaded here
     mapper = Mapper(MapperConfig(), {1: intr, 3: intr}, SceneBox((-5, -5, -1), (5, 5, 2)))
     # on every synchronised set of messages:
     mapper.add_frame(SyncFrame(time=t, stack_id=1, rgb=rgb, cam_to_world=pose,
