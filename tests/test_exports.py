@@ -435,6 +435,29 @@ def test_a_run_on_read_only_media_exports_and_evaluates_elsewhere(trained_run, t
     assert sorted(p.name for p in (src / "run").iterdir()) == sorted(p.name for p in trained_run.iterdir())
 
 
+def test_a_readers_frames_go_to_the_user_cache_and_a_killed_readers_are_removed(trained_run, tmp_path, monkeypatch):
+    """evaluate and export decode a run's frames into a folder of their own under the user cache (a
+    disk: a /tmp in memory would hold an hour's drive in RAM), gone with the trainer; one a killed
+    reader left (its pid dead) is removed by the next."""
+    import gc
+    import subprocess
+    import sys
+
+    from virus_nerf.trainer.run import READER_FRAMES, load_trained
+
+    monkeypatch.setenv("VIRUS_NERF_CACHE_DIR", str(tmp_path / "cache"))
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / "cache" / f".{READER_FRAMES}.partial-{dead.pid}-abc"
+    stale.mkdir(parents=True)
+    trainer, _, _ = load_trained(trained_run, "--run")
+    scratch = trainer.scratch
+    assert scratch.parent == tmp_path / "cache" and scratch.is_dir() and not stale.exists()
+    del trainer
+    gc.collect()
+    assert not scratch.exists()
+
+
 def test_default_map_is_the_snapshots_map_and_scans_stay_fine(trained_run, tmp_path):
     """Without --n-rays / --max-poses, map.pgm is scanned as every snapshot's map (360 rays from
     30 positions: the counts its safety is measured at, D75) and the scans keep 720 rays."""

@@ -71,11 +71,35 @@ def load_trained(run: Path, flag: str, *, poses: str | None = None, quiet: bool 
     recording = load_recording(info.data, info.room, poses=source)
     # the frames a large or driving run decodes go to a folder of this process's own, removed with
     # the trainer: nothing is written into the run (it may lie on read-only media; exports share it)
-    scratch = tempfile.TemporaryDirectory(prefix="virus-nerf-frames-")  # $TMPDIR, removed with the trainer
+    scratch = _reader_scratch()
     trainer = Trainer(recording, cfg, run, quiet=quiet, scratch=Path(scratch.name))
     trainer.scratch_folder = scratch  # kept as long as the trainer
     trainer.load_checkpoint(Path(run) / CHECKPOINT)
     return trainer, cfg, info
+
+
+READER_FRAMES = "reader-frames"  # the user cache's folders of the frames evaluate and export decode
+
+
+def _reader_scratch() -> tempfile.TemporaryDirectory:
+    """A folder of this process's own for the frames a reader of a run decodes (memory-mapped
+    beyond 1 GiB, and a driving run's spilled frames): under the user cache, on a disk, where
+    frames beyond memory belong (a /tmp in memory would hold them in RAM), and one a killed
+    process left is removed by the next; else in $TMPDIR."""
+    import os
+
+    from virus_nerf.utils.cache import cache_root
+    from virus_nerf.utils.io import remove_stale_partials
+
+    root = cache_root()
+    if root is not None:
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+            remove_stale_partials(root / READER_FRAMES)
+            return tempfile.TemporaryDirectory(prefix=f".{READER_FRAMES}.partial-{os.getpid()}-", dir=root)
+        except OSError:
+            pass
+    return tempfile.TemporaryDirectory(prefix="virus-nerf-frames-")
 
 
 # ---------------------------------------------------------------------------- training
