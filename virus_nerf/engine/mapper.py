@@ -152,7 +152,6 @@ class Mapper(MapViews):
         self._restarted = False  # `restart_clock` called: the next frame sets `_time_shift`
         self._stack_clocks: dict[int, tuple[float, float]] = {}  # stack -> its newest frame's (stamp, shift)
         self._clock_newest: dict[float, float] = {}  # a clock's shift -> the newest stamp on it
-        self._newest_stamp: float | None = None  # the stamp of the frame with the newest time in the store
         # (N,) stack ids and store times (s) of the frames a loaded state was trained on: the frames
         # added again must be those, in that order (`load_state`); empty when nothing was loaded
         self._expected_frames = (np.zeros(0, np.int64), np.zeros(0, np.float64))
@@ -237,13 +236,19 @@ class Mapper(MapViews):
         stamp = float(frame.time)
         self._stack_clocks[int(frame.stack_id)] = (stamp, shift)
         self._clock_newest[shift] = max(self._clock_newest.get(shift, -math.inf), stamp)
-        if time_s >= float(self.store.times.max()):
-            self._newest_stamp = stamp
         if restart_taken:
             self._time_shift, self._restarted = shift, False
         self._grow(self.extent.add_frames(self.store, np.array([row])))
         self.track_image(row, frame.rgb)
         return row
+
+    @property
+    def newest_stamp(self) -> float | None:
+        """The stamp, as the robot sent it, of the frame newest in the store's time (each stack's
+        newest frame is its last: the newest of those, by stamp plus its clock's shift)."""
+        if not self._stack_clocks:
+            return None
+        return max(self._stack_clocks.values(), key=lambda clock: clock[0] + clock[1])[0]
 
     @serialised
     def restart_clock(self) -> None:
@@ -340,8 +345,6 @@ class Mapper(MapViews):
             self._stack_clocks[int(sid)] = (newest - self._time_shift, self._time_shift)
             clock = self._clock_newest.get(self._time_shift, -math.inf)
             self._clock_newest[self._time_shift] = max(clock, newest - self._time_shift)
-        if self.frames:
-            self._newest_stamp = float(self.store.times.max()) - self._time_shift
         if images is not None and "stereo" in self.config.sensors:
             for row, src in enumerate(picked, start=first):
                 self.track_image(row, images(int(src)))

@@ -229,7 +229,7 @@ class MapViews:
             info = SnapshotInfo(
                 frames=self.frames, steps=self.step, seconds=round(self.seconds, 3),
                 # the newest frame's own stamp (the store's times run on past a `restart_clock`)
-                last_frame_time=self._newest_stamp if self.frames else None,
+                last_frame_time=self.newest_stamp if self.frames else None,
                 loss=self.last_loss,
                 map_occupied=occupied / known if known else 0.0, map_known=known / m.image.size,
                 grid_occupied=round(self.grid.occupancy_share(), 4),

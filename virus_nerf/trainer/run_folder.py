@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from virus_nerf.errors import DataFormatError, UsageError, one_line
-from virus_nerf.utils.io import write_json_atomic, write_text_atomic
+from virus_nerf.utils.io import pid_alive, write_json_atomic, write_text_atomic
 
 CONFIG = "config.json"
 RUN_INFO = "run.json"
@@ -328,7 +328,7 @@ class RunLock:
         pid = next((p for p, _ in _flock_holders(fd) or () if p > 0), None)
         if pid is None:
             holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
-            pid = int(holder) if holder.isdigit() and _running(int(holder)) else None
+            pid = int(holder) if holder.isdigit() and pid_alive(int(holder)) else None
         os.close(fd)
         who = f"pid {pid}" if pid else "another process"
         command = _command_of(pid) if pid else None
@@ -386,19 +386,6 @@ def _flock_holders(fd: int) -> list[tuple[int, bool]] | None:
         if same:
             holders.append((pid, fields[k + 2] == "READ"))
     return holders
-
-
-def _running(pid: int) -> bool:
-    """Whether process `pid` exists (it may be another program by now: the message says "pid")."""
-    import os
-
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:  # exists, another user's
-        return True
-    return True
 
 
 def _command_of(pid: int) -> str | None:
