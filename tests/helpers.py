@@ -24,6 +24,20 @@ def run_cli(argv) -> tuple[int, str, str]:
     return code, out.getvalue(), err.getvalue()
 
 
+@contextlib.contextmanager
+def ctrl_c_raises():
+    """SIGINT raises KeyboardInterrupt in this process while inside, as in a terminal: a shell
+    without job control starts a background command (`pytest &`) with SIGINT ignored, and Python
+    then keeps it ignored, so a test that sends itself SIGINT would wait in vain."""
+    import signal
+
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
 def tiny_train_config(**changes):
     """A 5-step training of 128 rays on a coarse grid: enough to write every file of a run but
     plots/ (~5 s of matplotlib a run; the tests of the plots pass plots=True)."""

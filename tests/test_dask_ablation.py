@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 import pytest
-from helpers import tiny_train_config
+from helpers import ctrl_c_raises, tiny_train_config
 
 from virus_nerf.config_io import to_dict
 
@@ -174,7 +174,7 @@ def test_a_stopped_command_stops_its_trainings_and_the_same_command_continues_th
 
     def run(address):
         threading.Thread(target=interrupt_once_training, daemon=True).start()
-        with pytest.raises(KeyboardInterrupt):
+        with ctrl_c_raises(), pytest.raises(KeyboardInterrupt):
             run_all([spec], workers=1, threads_per_worker=1, scheduler=address)
         t0 = time.monotonic()  # the training ends its step on its own (the cluster is still up)
         while RunLock(out).held_by_another() and time.monotonic() - t0 < STOP_GRACE_S + 30:

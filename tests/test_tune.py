@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from helpers import run_cli, tiny_train_config
+from helpers import ctrl_c_raises, run_cli, tiny_train_config
 
 from virus_nerf.config_io import load_json_config, to_dict
 from virus_nerf.experiments import search_space as ss
@@ -221,10 +221,11 @@ def test_a_stopped_tune_stops_its_trials_trainings_and_asks_no_more(tmp_path):
         return RunResult(spec, 0, 1)
 
     ctx = _context(tmp_path, training)
-    threading.Timer(0.5, os.kill, args=(os.getpid(), signal.SIGINT)).start()
-    t0 = time.monotonic()
-    with pytest.raises(KeyboardInterrupt):
-        run_trials(ctx, 3, parallel=1)
+    with ctrl_c_raises():
+        threading.Timer(0.5, os.kill, args=(os.getpid(), signal.SIGINT)).start()
+        t0 = time.monotonic()
+        with pytest.raises(KeyboardInterrupt):
+            run_trials(ctx, 3, parallel=1)
     assert time.monotonic() - t0 < 10  # not the 20 s the training would run unasked
     assert [t.state for t in ctx.study.trials] == [optuna.trial.TrialState.FAIL]
     assert stop_file(tmp_path / "trials" / "0000").read_text().strip() == STOPPED_WITH_CALLER
