@@ -219,6 +219,28 @@ def test_a_restarted_clock_continues_after_the_newest_frame():
     np.testing.assert_allclose(mapper.store.times, [10.0, 10.5, 10.2, 11.5, 11.6, 12.0])
 
 
+def test_the_frame_clock_by_hand():
+    """engine/clock.FrameClock alone: a restart's first frame (stamped back) continues 1 s after the
+    store's newest time; a stack's late frame of the old clock keeps the old shift; a frame the
+    store refused (not kept) changes nothing."""
+    from virus_nerf.engine.clock import FrameClock
+
+    clock = FrameClock()
+    for stack, stamp in ((1, 100.0), (3, 100.1)):
+        clock.keep(clock.place(stack, stamp, None))
+    clock.restart()
+    late = clock.place(3, 100.15, 100.1)  # after stack 3's previous: still the old clock
+    assert (late.time, late.starts_clock) == (100.15, False)
+    first = clock.place(1, 0.0, 100.1)  # stack 1 went back: the new clock, 100.1 + 1 s
+    assert first.starts_clock and first.time == pytest.approx(101.1)
+    assert clock.shift == 0.0 and clock.restarted  # placed, not kept
+    clock.keep(first)
+    assert clock.shift == pytest.approx(101.1) and not clock.restarted
+    assert clock.place(3, 100.2, 101.1).time == pytest.approx(100.2)  # nearer 100.1 than 0.0
+    assert clock.place(3, 0.05, 101.1).time == pytest.approx(101.15)  # nearer the new clock's 0.0
+    assert clock.newest_stamp == 0.0 and clock.previous_stamp(3) == 100.1 and clock.previous_stamp(2) is None
+
+
 def test_a_restarted_clock_leaves_the_snapshot_the_newest_frames_own_stamp(tmp_path):
     """snapshot.json's last_frame_time is the newest frame's stamp as the robot sent it, not the
     store's time that runs on past a restart (the first frame after it at 10.5 + 1 s gap = 11.5)."""

@@ -3,6 +3,7 @@ command line or evaluation.
 
 config: `MapperConfig`, every knob the engine reads
 mapper: `Mapper`, frames in, training steps, map queries out (its public API)
+clock: `FrameClock`, the frames' stamps made one forward time per stack across clock restarts
 extent: `MapExtent`, the map's bounds the Mapper holds (fitted, or grown as frames arrive)
 model: `SceneModel` (field + occupancy grid + marcher), the grid and device it runs on
 schedule: how long and how wide a step is, offline or while driving, and the learning-rate
@@ -13,4 +14,4 @@ memory: what a training step needs, checked before any work (`check_batch_memory
 """
 
 # its public modules; none is imported here, so `import virus_nerf.engine` loads nothing else
-__all__ = ["config", "extent", "mapper", "memory", "model", "schedule", "state", "views"]
+__all__ = ["clock", "config", "extent", "mapper", "memory", "model", "schedule", "state", "views"]

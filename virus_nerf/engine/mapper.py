@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from virus_nerf.data.frame import SyncFrame, check_frame, check_intrinsics, valid_ranges
+from virus_nerf.engine.clock import FrameClock, PlacedFrame
 from virus_nerf.engine.config import MapperConfig
 from virus_nerf.engine.extent import MapExtent
 from virus_nerf.engine.model import SceneModel, build_grid, resolve_device, start_box
@@ -82,7 +83,6 @@ class TrainSlice:
     total_steps: int  # steps since the mapper was made
     total_seconds: float  # training clock since the mapper was made
 
-RESTART_GAP_S = 1.0  # s between the newest frame and the first after `Mapper.restart_clock`
 MAX_BOX_SIDE_M = 1000.0  # a room or a hall a robot maps; a larger box is a unit mistake
 
 
@@ -148,10 +148,7 @@ class Mapper(MapViews):
         self._warm = False
         self._frames_at_start: int | None = None  # frames present at the first step
         self._viewed_frames = 0  # frames whose camera views the grid was given (warmup_restart)
-        self._time_shift = 0.0  # s added to the frames' times since a `restart_clock` (their order kept)
-        self._restarted = False  # `restart_clock` called: the next frame sets `_time_shift`
-        self._stack_clocks: dict[int, tuple[float, float]] = {}  # stack -> its newest frame's (stamp, shift)
-        self._clock_newest: dict[float, float] = {}  # a clock's shift -> the newest stamp on it
+        self.clock = FrameClock()  # the frames' stamps -> the store's times, across `restart_clock`
         # (N,) stack ids and store times (s) of the frames a loaded state was trained on: the frames
         # added again must be those, in that order (`load_state`); empty when nothing was loaded
         self._expected_frames = (np.zeros(0, np.int64), np.zeros(0, np.float64))
@@ -222,7 +219,8 @@ class Mapper(MapViews):
         the stack's previous frame: the newest frames' share of each batch and the stereo tracker
         go by time); returns its row."""
         check_frame(frame, self.intrinsics)
-        time_s, shift, restart_taken = self._frame_time(frame)
+        placed = self._place(frame)
+        time_s = placed.time
         self._check_expected(np.array([frame.stack_id]), np.array([time_s]), f"add_frame: SyncFrame (time {frame.time!r})")
         small = self.store.intrinsics[frame.stack_id]
         size = (small.width, small.height)
@@ -232,65 +230,38 @@ class Mapper(MapViews):
         self.extent.check_inside(np.asarray(frame.cam_to_world, dtype=np.float64)[None, :3, 3], np.array([frame.time]))
         row = self.store.append(frame.stack_id, self.frames, time_s, np.asarray(frame.cam_to_world),
                                 resize_rgb(frame.rgb, size), depth, *valid_ranges(frame.uss_range, frame.irs_range))
-        # the clock's state changes only with a frame kept (a refused one leaves it as it was)
-        stamp = float(frame.time)
-        self._stack_clocks[int(frame.stack_id)] = (stamp, shift)
-        self._clock_newest[shift] = max(self._clock_newest.get(shift, -math.inf), stamp)
-        if restart_taken:
-            self._time_shift, self._restarted = shift, False
+        self.clock.keep(placed)  # only with a frame kept: a refused one leaves the clock as it was
         self._grow(self.extent.add_frames(self.store, np.array([row])))
         self.track_image(row, frame.rgb)
         return row
 
     @property
     def newest_stamp(self) -> float | None:
-        """The stamp, as the robot sent it, of the frame newest in the store's time (each stack's
-        newest frame is its last: the newest of those, by stamp plus its clock's shift)."""
-        if not self._stack_clocks:
-            return None
-        return max(self._stack_clocks.values(), key=lambda clock: clock[0] + clock[1])[0]
+        """The stamp, as the robot sent it, of the frame newest in the store's time."""
+        return self.clock.newest_stamp
 
     @serialised
     def restart_clock(self) -> None:
         """The robot's clock restarted (a bag played again, a clock reset): the next frames may be
         stamped before those already added. From the first frame stamped at or before its stack's
-        previous one, times continue after the newest frame's (RESTART_GAP_S on), so the order of
-        arrival stays the order in time (`_frame_time`)."""
-        self._restarted = True
+        previous one, times continue after the newest frame's (engine/clock.RESTART_GAP_S on), so
+        the order of arrival stays the order in time (engine/clock.FrameClock)."""
+        self.clock.restart()
 
-    def _frame_time(self, frame: SyncFrame) -> tuple[float, float, bool]:
-        """The frame's time in the store (its own plus a shift), that shift, and whether it is the
-        first frame of a restarted clock (it sets the new shift); refused when not after its
-        stack's previous frame. Changes nothing: `add_frame` keeps the clock's state once the frame
-        is in.
-
-        After `restart_clock` the new clock starts with the first frame stamped at or before its
-        stack's previous frame (the clock went back); one stamped after it is still the old
-        clock's (queued before the reset). Later, a frame of a stack whose newest frame is on an
-        older clock takes the clock whose newest stamp is nearer its own: a late frame of the old
-        clock keeps the old shift (with the new one it would lie a clock's jump ahead and shut its
-        stack's next frames out), a stack's first frame of the new clock takes the new one."""
-        stamp = float(frame.time)
+    def _place(self, frame: SyncFrame) -> PlacedFrame:
+        """The frame's place on the store's clock; refused when not after its stack's previous
+        frame. Changes nothing: `add_frame` keeps the clock's state once the frame is in."""
+        store_newest = float(self.store.times.max()) if self.frames else None
+        placed = self.clock.place(int(frame.stack_id), float(frame.time), store_newest)
         mine = self.store.times[self.store.stack_ids == frame.stack_id]
         newest = float(mine.max()) if len(mine) else -math.inf  # the stack's previous frame, in the store
-        last = self._stack_clocks.get(int(frame.stack_id))  # its (stamp, shift)
-        shift, restart_taken = self._time_shift, False
-        if self._restarted:
-            if last is None or stamp <= last[0]:  # the clock went back: the new clock starts here
-                restart_taken = True
-                if self.frames:  # before the first frame there is nothing to follow
-                    shift = float(self.store.times.max()) + RESTART_GAP_S - stamp
-        elif last is not None and last[1] != shift and last[1] in self._clock_newest:
-            old, new = self._clock_newest[last[1]], self._clock_newest.get(shift, -math.inf)
-            if abs(stamp - old) < abs(stamp - new):
-                shift = last[1]  # nearer the old clock's stamps: its frame, arrived late
-        t = stamp + shift
-        if t <= newest:
-            previous = last[0] if last is not None else newest - shift
+        if placed.time <= newest:
+            previous = self.clock.previous_stamp(placed.stack_id)
+            previous = newest - placed.shift if previous is None else previous
             raise UsageError(f"SyncFrame.time {frame.time!r} (stack {frame.stack_id}): not after the stack's "
                              f"previous frame at {previous!r} s; expected each stack's frames in "
                              "time order, once each (after a clock reset, call Mapper.restart_clock() first)")
-        return t, shift, restart_taken
+        return placed
 
     def _check_expected(self, stack_ids: np.ndarray, times: np.ndarray, what: str) -> None:
         """Frames about to become rows `frames`.. must be the loaded state's frames of those rows
@@ -341,10 +312,7 @@ class Mapper(MapViews):
         else:
             self.store.append_rows(store, picked)
         for sid in np.unique(store.stack_ids[picked]):  # each stack's newest frame, on the clock as it is
-            newest = float(store.times[picked][store.stack_ids[picked] == sid].max())
-            self._stack_clocks[int(sid)] = (newest - self._time_shift, self._time_shift)
-            clock = self._clock_newest.get(self._time_shift, -math.inf)
-            self._clock_newest[self._time_shift] = max(clock, newest - self._time_shift)
+            self.clock.keep_newest(int(sid), float(store.times[picked][store.stack_ids[picked] == sid].max()))
         if images is not None and "stereo" in self.config.sensors:
             for row, src in enumerate(picked, start=first):
                 self.track_image(row, images(int(src)))
