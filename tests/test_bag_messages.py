@@ -108,6 +108,99 @@ def test_uss_range_and_custom_fields():
         m.decode_uss(NS(range=150.0, max_range=0.0), m.RANGE, WHERE)  # no max_range given
     assert err.value.field == "range" and "150 m is beyond any ultrasonic reading (> 100 m)" in str(err.value)
     assert np.isnan(m.decode_uss(NS(range=75.0, max_range=90.0), m.RANGE, WHERE).range_m)  # within 100 m: beyond 8 m
+    # a review: a driver's max_range itself (nothing answered) was an echo at 4 m, and a reading
+    # below min_range one at 1 cm; Range.msg discards both (no echo claims nothing)
+    for r in (4.0, 4.0001, 0.01):
+        assert np.isnan(m.decode_uss(NS(range=r, min_range=0.02, max_range=4.0), m.RANGE, WHERE).range_m), r
+    assert m.decode_uss(NS(range=3.9999, min_range=0.02, max_range=4.0), m.RANGE, WHERE).range_m == \
+        pytest.approx(3.9999)
+    assert m.decode_uss(NS(range=0.02, min_range=0.02, max_range=4.0), m.RANGE, WHERE).range_m == pytest.approx(0.02)
+
+
+def _cloud(points: np.ndarray, height: int, point_step: int, row_pad: int, big: bool = False) -> NS:
+    """An organised PointCloud2 of float32 x y z (height rows of len(points) / height), each point
+    padded to point_step bytes and each row by row_pad bytes (a driver's alignment)."""
+    width = len(points) // height
+    order = ">" if big else "<"
+    rows = []
+    for r in range(height):
+        row = b"".join(p.astype(order + "f4").tobytes() + bytes(point_step - 12) for p in points[r * width:(r + 1) * width])
+        rows.append(row + bytes(row_pad))
+    fields = [NS(name=n, offset=4 * i, datatype=7) for i, n in enumerate("xyz")]
+    return NS(fields=fields, is_bigendian=big, width=width, height=height, point_step=point_step,
+              row_step=width * point_step + row_pad, data=np.frombuffer(b"".join(rows), dtype=np.uint8))
+
+
+def test_an_organised_cloud_with_padded_rows_keeps_its_points():
+    """A review: rows padded past width * point_step were read on from the padding, so the second
+    row's x, y, z came out shifted ([0, 0, 4] for [4, 0, 0]). Each row starts at its row_step."""
+    pts = np.arange(1, 19, dtype=np.float64).reshape(6, 3)
+    for height, step, pad, big in ((2, 12, 8, False), (3, 16, 4, True), (1, 12, 0, False), (2, 20, 0, False)):
+        assert m.decode_cloud(_cloud(pts, height, step, pad, big), WHERE).tolist() == pts.tolist(), (height, step, pad)
+    short = _cloud(pts, 2, 12, 8)
+    short.data = short.data[:-9]  # the last row's 8 padding bytes may be missing, not a point's byte
+    with pytest.raises(m.MessageError, match=r"2 rows of 3 points \(12 bytes a point, 44 a row\) need 80 bytes; "
+                                             r"the message has 79") as err:
+        m.decode_cloud(short, WHERE)
+    assert err.value.field == "data"
+    assert m.decode_cloud(NS(**{**_cloud(pts, 2, 12, 8).__dict__, "data": _cloud(pts, 2, 12, 8).data[:-8]}),
+                          WHERE).tolist() == pts.tolist()
+    narrow = _cloud(pts, 1, 12, 0)
+    narrow.point_step = 8  # a traceback before (numpy's itemsize), now one line naming the field
+    with pytest.raises(m.MessageError, match="point_step 8 bytes; the fields x, y, z end at byte 12 of a point") as err:
+        m.decode_cloud(narrow, WHERE)
+    assert err.value.field == "point_step"
+
+
+def test_camera_info_with_binning_and_a_region_of_interest():
+    """REP 104: K, width and height are the full sensor's; a ROI crops, binning divides (0: none).
+    By hand: 640x480, fx 615, cx 320.5; binning 2 -> 320x240, fx 307.5, cx 160.25; ROI 320x240 at
+    (100, 50) -> cx 220.5, cy 190.5; both -> 160x120, cx 110.25, cy 95.25."""
+    def info(binning=0, roi=(0, 0, 0, 0)):
+        x0, y0, w, h = roi
+        return NS(k=[615.0, 0, 320.5, 0, 616.0, 240.5, 0, 0, 1], d=[], width=640, height=480, binning_x=binning,
+                  binning_y=binning, roi=NS(x_offset=x0, y_offset=y0, width=w, height=h, do_rectify=False))
+
+    def pinhole(msg):
+        i = m.decode_camera_info(msg, WHERE).intrinsics
+        return (i.fx, i.fy, i.cx, i.cy, i.width, i.height)
+
+    assert pinhole(info()) == pinhole(info(binning=1)) == (615.0, 616.0, 320.5, 240.5, 640, 480)
+    assert pinhole(info(binning=2)) == (307.5, 308.0, 160.25, 120.25, 320, 240)
+    assert pinhole(info(roi=(100, 50, 320, 240))) == (615.0, 616.0, 220.5, 190.5, 320, 240)
+    assert pinhole(info(binning=2, roi=(100, 50, 320, 240))) == (307.5, 308.0, 110.25, 95.25, 160, 120)
+    with pytest.raises(m.MessageError, match=r"region of interest 320x240 at \(400, 50\) reaches outside the "
+                                             r"640x480 sensor") as err:
+        m.decode_camera_info(info(roi=(400, 50, 320, 240)), WHERE)
+    assert err.value.field == "roi"
+    # the binned image is accepted at the size the camera info now says
+    px = np.zeros((240, 320, 3), np.uint8)
+    msg = NS(encoding="rgb8", height=240, width=320, step=960, is_bigendian=0, data=px.reshape(-1))
+    size = m.decode_camera_info(info(binning=2), WHERE).intrinsics
+    assert m.decode_color(msg, m.IMAGE, WHERE, size=(size.width, size.height)).shape == (240, 320, 3)
+
+
+def test_a_16_bit_png_on_a_colour_topic_keeps_its_top_byte():
+    """image_transport's compressed mono16 is a 16-bit grey PNG: it kept the low byte (value mod
+    256), where a 16-bit RGB PNG keeps the top one. By hand: 0xD8B6 -> 0xD8 = 216."""
+    msg = NS(format="mono16; png compressed", data=np.frombuffer(_png16([[0xD8B6, 0x6166, 0x0782]]), dtype=np.uint8))
+    assert m.decode_color(msg, m.COMPRESSED, WHERE).tolist() == [[[216] * 3, [97] * 3, [7] * 3]]
+
+
+def test_an_images_size_problem_is_named_and_far_depth_is_no_reading():
+    """A review: a step shorter than a row said "holds 105 bytes; expected 100", an empty image
+    "holds 0 bytes; expected 0". And 32FC1 depth of 70 m became 65.534 m (clipped to the layout's
+    uint16 mm), where inf or NaN become no reading."""
+    msg = NS(encoding="rgb8", height=5, width=7, step=20, is_bigendian=0, data=np.zeros(105, np.uint8))
+    with pytest.raises(m.MessageError, match=r"step 20 bytes is shorter than a row of 7 pixels of 3 bytes \(21\)") as err:
+        m.decode_color(msg, m.IMAGE, WHERE)
+    assert err.value.field == "step"
+    with pytest.raises(m.MessageError, match="image of 7x0; expected a width and height of at least 1 pixel"):
+        m.decode_color(NS(encoding="rgb8", height=0, width=7, step=21, is_bigendian=0, data=np.zeros(0, np.uint8)),
+                       m.IMAGE, WHERE)
+    f = np.array([[70.0, 65.534, 65.5345, 0.0004]], dtype="<f4")
+    msg = NS(encoding="32FC1", height=1, width=4, step=16, is_bigendian=0, data=f.view(np.uint8).reshape(-1))
+    assert m.decode_depth(msg, m.IMAGE, WHERE).mm.tolist() == [[0, 65534, 0, 0]]
     assert m.normalise_type("sensors/uss") == m.USS_TYPE and m.normalise_type("sensors/TOF") == m.TOF_TYPE
 
 
@@ -285,6 +378,13 @@ def test_topics_file_defaults_and_errors(tmp_path):
     f.write_text("[sync\n")
     with pytest.raises(ConfigError, match="not valid TOML"):
         read_topics(f)
+    # a review: [stacks.1] and [stacks.01] are one stack; the second replaced the first unsaid
+    mount = "camera_in_lidar = { translation = [0, 0, 0], rotation_xyzw = [0, 0, 0, 1] }\n"
+    f.write_text(f"[stacks.1]\ncolor = '/front'\n{mount}[stacks.01]\ncolor = '/back'\n{mount}")
+    with pytest.raises(ConfigError) as err:
+        read_topics(f)
+    assert str(err.value).endswith("key 'stacks.01': stack 1 is given twice (stacks.1 and stacks.01); expected one "
+                                   "table per stack"), str(err.value)
 
 
 def test_a_robot_off_one_flat_floor_registers_in_six_degrees_of_freedom(tmp_path):

@@ -138,6 +138,8 @@ def decode_color(msg, msgtype: str, where: Where, size: tuple[int, int] | None =
     refused when the image differs."""
     if msgtype == COMPRESSED:
         rgb = _decompress(msg, where)
+        if rgb.dtype == np.uint16:  # a 16-bit PNG (mono16 through image_transport): its top byte, as PIL's RGB
+            rgb = (rgb >> 8).astype(np.uint8)
         if rgb.ndim == 2:
             rgb = np.repeat(rgb[..., None], 3, axis=2)
         rgb = np.ascontiguousarray(rgb[..., :3].astype(np.uint8))
@@ -184,8 +186,7 @@ def decode_depth(msg, msgtype: str, where: Where, size: tuple[int, int] | None =
         if enc in ("16uc1", "mono16"):
             mm = _pixels(msg, np.uint16, 1, where)[..., 0]
         elif enc == "32fc1":
-            m = _pixels(msg, np.float32, 1, where)[..., 0].astype(np.float64)
-            mm = np.clip(np.where(np.isfinite(m) & (m > 0), np.round(m * 1000.0), 0.0), 0, 65534).astype(np.uint16)
+            mm = _mm_from_metres(_pixels(msg, np.float32, 1, where)[..., 0].astype(np.float64))
         else:
             raise where.error(f"depth encoding {msg.encoding!r}; expected 16UC1 (mm) or 32FC1 (m)", field="encoding")
     if size is not None and (mm.shape[1], mm.shape[0]) != tuple(size):
@@ -199,7 +200,12 @@ def _pixels(msg, dtype, channels: int, where: Where) -> np.ndarray:
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     item = np.dtype(dtype).itemsize
     data = np.asarray(msg.data, dtype=np.uint8)
-    if h <= 0 or w <= 0 or step < w * channels * item or data.size < h * step:
+    if h <= 0 or w <= 0:
+        raise where.error(f"image of {w}x{h}; expected a width and height of at least 1 pixel", field="width")
+    if step < w * channels * item:
+        raise where.error(f"step {step} bytes is shorter than a row of {w} pixels of {channels * item} bytes "
+                          f"({w * channels * item})", field="step")
+    if data.size < h * step:
         raise where.error(f"image of {w}x{h}, step {step} holds {data.size} bytes; expected {h * step}", field="data")
     rows = data[: h * step].reshape(h, step)[:, : w * channels * item]
     dt = np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<")
@@ -247,8 +253,16 @@ def _compressed_depth_mm(msg, where: Where) -> np.ndarray:
     v = raw.astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         metres = np.where(v > 0, quant_a / (v - quant_b), np.nan)
-    ok = np.isfinite(metres) & (metres > 0)
-    return np.clip(np.where(ok, np.round(metres * 1000.0), 0.0), 0, 65534).astype(np.uint16)
+    return _mm_from_metres(metres)
+
+
+def _mm_from_metres(metres: np.ndarray) -> np.ndarray:
+    """(H, W) z-depth in metres -> uint16 mm, 0 (invalid) where not finite, not positive or beyond
+    the layout's 65534 mm (a reading out of its range is no reading, not one at its end)."""
+    with np.errstate(invalid="ignore"):
+        mm = np.round(metres * 1000.0)
+        ok = np.isfinite(mm) & (mm > 0) & (mm <= 65534)
+    return np.where(ok, mm, 0.0).astype(np.uint16)
 
 
 @dataclass(frozen=True)
@@ -265,19 +279,31 @@ class CameraInfo:
 
 
 def decode_camera_info(msg, where: Where) -> CameraInfo:
-    """CameraInfo K (ROS 1 'K', ROS 2 'k') and D -> the intrinsics, refused as an implausible
-    intrinsics file is (sensors/camera.py `intrinsics_problem`)."""
+    """CameraInfo K (ROS 1 'K', ROS 2 'k') and D -> the intrinsics of the images published with
+    it, refused as an implausible intrinsics file is (sensors/camera.py `intrinsics_problem`).
+    REP 104: K, width and height are the full sensor's; a region of interest crops the image and
+    binning divides it (0 and 1: none), as image_geometry's camera model applies them."""
     k = np.asarray(msg.K if hasattr(msg, "K") else msg.k, dtype=np.float64).ravel()
     if k.size != 9 or not np.isfinite(k).all() or k[0] <= 0 or k[4] <= 0 or msg.width <= 0 or msg.height <= 0:
         raise where.error(f"camera matrix {k.tolist()} at {msg.width}x{msg.height} is not a valid pinhole camera",
                           field="K")
-    problem = intrinsics_problem(float(k[0]), float(k[4]), float(k[2]), float(k[5]), int(msg.width), int(msg.height))
+    fx, fy, cx, cy = float(k[0]), float(k[4]), float(k[2]), float(k[5])
+    width, height = int(msg.width), int(msg.height)
+    roi = getattr(msg, "roi", None)
+    if roi is not None and int(roi.width) > 0 and int(roi.height) > 0:
+        x0, y0 = int(roi.x_offset), int(roi.y_offset)
+        if x0 + int(roi.width) > width or y0 + int(roi.height) > height:
+            raise where.error(f"region of interest {roi.width}x{roi.height} at ({x0}, {y0}) reaches outside the "
+                              f"{width}x{height} sensor", field="roi")
+        cx, cy, width, height = cx - x0, cy - y0, int(roi.width), int(roi.height)
+    bx, by = max(1, int(getattr(msg, "binning_x", 0))), max(1, int(getattr(msg, "binning_y", 0)))
+    fx, fy, cx, cy, width, height = fx / bx, fy / by, cx / bx, cy / by, width // bx, height // by
+    problem = intrinsics_problem(fx, fy, cx, cy, width, height)
     if problem is not None:  # e.g. a camera driver that publishes K of another resolution, or zeros
         name, what = problem
         raise where.error(f"camera matrix {name}: {what}", field="K")
     d = np.asarray(getattr(msg, "D", getattr(msg, "d", ())), dtype=np.float64).ravel()
-    return CameraInfo(Intrinsics(fx=float(k[0]), fy=float(k[4]), cx=float(k[2]), cy=float(k[5]),
-                                 width=int(msg.width), height=int(msg.height)), tuple(float(v) for v in d))
+    return CameraInfo(Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=width, height=height), tuple(float(v) for v in d))
 
 
 # ------------------------------------------------------------------------- range sensors
@@ -304,7 +330,9 @@ class UssReading:
 def decode_uss(msg, msgtype: str, where: Where) -> UssReading:
     """sensors/msg/USS (echo time in us, as is) or sensor_msgs/Range (m * 5000). REP 117: -Inf is
     something nearer than min_range, an echo there (the datasheet's 2 cm without a min_range);
-    +Inf (nothing within max_range), NaN, <= 0 or beyond max_range is no echo. A finite range or
+    +Inf (nothing within max_range), NaN and <= 0 are no echo. A finite range outside
+    [min_range, max_range) is no echo too: Range.msg discards it, and drivers publish max_range
+    itself when nothing answered (no echo claims nothing: `maps/evidence.py`). A finite range or
     max_range beyond uss.USS_MAX_PLAUSIBLE_M is refused (centimetres)."""
     if msgtype == USS_TYPE:
         return UssReading(float(_field(msg, "meas", where)))
@@ -316,7 +344,8 @@ def decode_uss(msg, msgtype: str, where: Where) -> UssReading:
     if r == -np.inf:
         near = float(msg.min_range)
         return UssReading((near if np.isfinite(near) and near > 0 else uss.USS_MIN_RANGE_M) * uss.USS_RAW_PER_M)
-    if not np.isfinite(r) or r <= 0 or (msg.max_range > 0 and r > float(msg.max_range)):
+    far, near = float(msg.max_range), float(getattr(msg, "min_range", 0.0))
+    if not np.isfinite(r) or r <= 0 or (far > 0 and r >= far) or (near > 0 and r < near):
         return UssReading(uss.USS_NO_ECHO_RAW)
     return UssReading(r * uss.USS_RAW_PER_M)
 
@@ -391,19 +420,28 @@ def decode_cloud(msg, where: Where) -> np.ndarray:
     if missing:
         raise where.error(f"point fields {sorted(fields)}; expected x, y, z", field="fields")
     order = ">" if msg.is_bigendian else "<"
-    n = int(msg.width) * int(msg.height)
-    step = int(msg.point_step)
+    width, height, step = int(msg.width), int(msg.height), int(msg.point_step)
+    formats = [order + _PCL_TYPES.get(int(fields[c].datatype), "f4") for c in "xyz"]
+    offsets = [int(fields[c].offset) for c in "xyz"]
+    end = max(o + np.dtype(f).itemsize for o, f in zip(offsets, formats, strict=True))
+    if step < end:
+        raise where.error(f"point_step {step} bytes; the fields x, y, z end at byte {end} of a point",
+                          field="point_step")
+    row_step = int(msg.row_step) if height > 1 and int(msg.row_step) else width * step  # one row, or unset
+    if row_step < width * step:
+        raise where.error(f"row_step {row_step} bytes; a row of {width} points of {step} bytes needs "
+                          f"{width * step}", field="row_step")
     data = np.asarray(msg.data, dtype=np.uint8)
-    if n and data.size < n * step:
-        raise where.error(f"{n} points of {step} bytes need {n * step} bytes; the message has {data.size}",
-                          field="data")
-    dtype = np.dtype({
-        "names": ["x", "y", "z"],
-        "formats": [order + _PCL_TYPES.get(int(fields[c].datatype), "f4") for c in "xyz"],
-        "offsets": [int(fields[c].offset) for c in "xyz"],
-        "itemsize": step,
-    })
-    pts = np.frombuffer(data[: n * step].tobytes(), dtype=dtype, count=n)
+    need = (height - 1) * row_step + width * step if width and height else 0
+    if data.size < need:
+        raise where.error(f"{height} rows of {width} points ({step} bytes a point, {row_step} a row) need {need} "
+                          f"bytes; the message has {data.size}", field="data")
+    dtype = np.dtype({"names": ["x", "y", "z"], "formats": formats, "offsets": offsets, "itemsize": step})
+    if not need:
+        return np.zeros((0, 3))
+    # (height, row_step) bytes, each row's points the first width * point_step of its bytes (padding after)
+    rows = np.frombuffer(data[:need].tobytes() + bytes(height * row_step - need), np.uint8).reshape(height, row_step)
+    pts = np.ascontiguousarray(rows[:, : width * step]).view(dtype).ravel()
     xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1).astype(np.float64)
     return xyz[np.isfinite(xyz).all(axis=1)]
 

@@ -135,6 +135,11 @@ def read_topics(path: str | Path) -> TopicsConfig:
             key = f"stacks.{sid}"
             if not (sid.isascii() and sid.isdigit()):  # not '¹' or '٣', which isdigit() accepts and int() not
                 raise ConfigError(f"stack id {sid!r}: expected a non-negative integer (digits 0-9)", file=path, key=key)
+            if int(sid) in stacks:  # [stacks.1] and [stacks.01]: the second would replace the first unsaid
+                first = next(other for other in stacks_doc if other.isascii() and other.isdigit()
+                             and int(other) == int(sid))
+                raise ConfigError(f"stack {int(sid)} is given twice (stacks.{first} and stacks.{sid}); expected one "
+                                  "table per stack", file=path, key=key)
             stacks[int(sid)] = r.stack(table, key)
     lidar = r.section(doc.get("lidar", {}), "lidar", LidarConfig, optional_str={"topic"})
     sync = r.section(doc.get("sync", {}), "sync", SyncConfig)
