@@ -196,13 +196,14 @@ def _base_config(config: Path | None, max_steps: int | None, max_time: float | N
     """The config every trial starts from (None: nothing asked, reuse the study's)."""
     import dataclasses
 
-    from virus_nerf.config_io import load_json_config, to_dict
+    from virus_nerf.config_io import to_dict
     from virus_nerf.errors import UsageError, one_line
     from virus_nerf.trainer.config import TrainConfig
+    from virus_nerf.trainer.run_folder import load_config_file
 
     if config is None and max_steps is None and max_time is None and eval_interval is None:
         return None
-    cfg = load_json_config(TrainConfig, config) if config is not None else TrainConfig()
+    cfg = load_config_file(config) if config is not None else TrainConfig()
     changes: dict = {}
     if max_steps is not None:
         changes["max_steps"] = max_steps

@@ -29,11 +29,12 @@ from virus_nerf.mapping.options import (
 from virus_nerf.utils.io import require_new_folder
 
 
-def _importer():
-    """`import_bag`, after the one-line check that the optional ROS dependencies are installed."""
+def _importer(poses: str):
+    """`import_bag`, after the one-line check that the optional ROS dependencies `--poses` needs
+    are installed."""
     from virus_nerf.data.bags.importer import import_bag, require_ros_extra
 
-    require_ros_extra()
+    require_ros_extra(poses, "map-bag")
     return import_bag
 
 
@@ -264,7 +265,7 @@ def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: f
     from virus_nerf.trainer.run_folder import RunLock
     from virus_nerf.utils.stop import Stopped
 
-    import_bag = _importer()
+    import_bag = _importer(pose_args["poses"])
     made = make_out(out)
     with RunLock(out, "--out"):  # one process writes into OUT: map-bag --resume waits for this one to end
         try:
@@ -301,7 +302,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
     from virus_nerf.trainer.run_folder import RunLock
     from virus_nerf.utils.stop import Stopped
 
-    require_ros_extra(pose_args["poses"])
+    require_ros_extra(pose_args["poses"], "map-bag")
     poses = pose_args["poses"]
     for note in tcfg.notes:  # e.g. no [stacks]: the ETHZ robot's topics are read
         print(f"map-bag: note: {note}")

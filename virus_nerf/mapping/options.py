@@ -85,10 +85,9 @@ def load_stream_config(config: Path | None):
     it: the file's keys and values, and that a step's samples fit in memory."""
     if config is None:
         return None
-    from virus_nerf.config_io import load_json_config
     from virus_nerf.engine.memory import check_batch_memory
-    from virus_nerf.trainer.config import TrainConfig
+    from virus_nerf.trainer.run_folder import load_config_file
 
-    cfg = load_json_config(TrainConfig, config)
+    cfg = load_config_file(config)
     check_batch_memory(cfg, what=f"--config {config}: batch_size")
     return cfg

@@ -81,14 +81,6 @@ def train_flags(knobs: dict, gt: str | None = None, playback_speed: float | None
     return given, flags
 
 
-def _is_run_config(path: Path) -> bool:
-    """`path` is a run folder's config.json (every key of the version that wrote it), not a file
-    of a few keys: passed back with --config, it rebuilds that run (config_io.ADDED_KEYS)."""
-    from virus_nerf.trainer.run_folder import CONFIG, RUN_INFO
-
-    return path.name == CONFIG and (path.parent / RUN_INFO).is_file()
-
-
 def _layered(below: dict, above: dict) -> dict:
     """`above`'s keys over `below`'s, section by section (nested dicts merged, other values replaced)."""
     out = dict(below)
@@ -103,11 +95,12 @@ def _resolve_config(config: Path | None, given: dict, flags: dict, base=None) ->
     over the defaults, with the fields the flags give on top; a key or flag not given keeps the
     value below it."""
     from virus_nerf.config_io import from_dict, read_json_config, to_dict, with_added_keys
+    from virus_nerf.trainer.run_folder import is_run_config
 
     file_sets_time = False
     if config is not None:
         data = read_json_config(config)
-        if _is_run_config(Path(config)):  # a run's own: a key added since loads as the run was made
+        if is_run_config(config):  # a run's own: a key added since loads as the run was made
             data = with_added_keys(data)
         if base is not None and isinstance(data, dict):  # --resume: the file changes what it names, as flags do
             data = _layered(to_dict(base), data)

@@ -152,6 +152,23 @@ def write_run_metrics(run_dir: Path, result, config, summary, **extra) -> dict:
 
 
 # ---------------------------------------------------------------------------- opening a run
+def is_run_config(path: str | Path) -> bool:
+    """`path` is a run folder's own config.json (with run.json beside it: every key of the version
+    that wrote it), not a file of a few keys: a key it lacks was added since and loads at the value
+    the run was made with (config_io.ADDED_KEYS). A copy elsewhere reads as any config file."""
+    path = Path(path)
+    return path.name == CONFIG and (path.parent / RUN_INFO).is_file()
+
+
+def load_config_file(path: str | Path):
+    """A `--config` file -> TrainConfig: a run's own config.json as that run was made
+    (`is_run_config`), any other file over today's defaults. train, map-bag and tune read it alike."""
+    from virus_nerf.config_io import load_json_config
+    from virus_nerf.trainer.config import TrainConfig
+
+    return load_json_config(TrainConfig, path, saved=is_run_config(path))
+
+
 def open_run(run: Path, flag: str):
     """A finished or interrupted run folder -> (TrainConfig, RunInfo); every problem named."""
     from virus_nerf.config_io import load_json_config

@@ -30,12 +30,13 @@ PoseMode = Literal["lidar-odometry", "tf", "csv", "odometry"]
 ROS_EXTRA = install_extra("ros")
 
 
-def require_ros_extra(poses: str = "lidar-odometry") -> None:
-    """One-line error when the optional ROS dependencies are missing."""
+def require_ros_extra(poses: str = "lidar-odometry", command: str = "import-bag") -> None:
+    """One-line error naming `command` when the optional ROS dependencies are missing (KISS-ICP
+    only for --poses lidar-odometry)."""
     needed = ["rosbags"] + (["kiss_icp"] if poses == "lidar-odometry" else [])
     missing = [n for n in needed if importlib.util.find_spec(n) is None]
     if missing:
-        raise UsageError(f"import-bag needs {' and '.join(missing)} (not installed): {ROS_EXTRA}")
+        raise UsageError(f"{command} needs {' and '.join(missing)} (not installed): {ROS_EXTRA}")
 
 
 def room_name(bag: Path) -> str:
