@@ -281,7 +281,9 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
                          "give --gt map, exact or paper to score it")
     check_ground_truth_inputs(trainer.recording, cfg.evaluation.gt)
     result = final_evaluation(trainer, run)
-    summary = TrainSummary(trainer.mapper.step, trainer.mapper.seconds, trainer.mapper.samples)
+    # the run's steps and rate, from its checkpoint: its device names where they ran
+    summary = TrainSummary(trainer.mapper.step, trainer.mapper.seconds, trainer.mapper.samples,
+                           device=trainer.trained_on)
     from virus_nerf.evaluation.safety import mapper_safety, safety_line
 
     trainer.prepare()  # the frames the run trained on and its stereo points (cached): the map `train` judged
