@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -63,3 +64,20 @@ def test_uss_raw_conversion_and_cone():
     assert ay.max() <= 17.5 + 1e-9 and ay.min() >= -17.5 - 1e-9
     assert uss.in_cone(np.array([[np.tan(np.radians(27)), 0, 1.0]]))[0]
     assert not uss.in_cone(np.array([[0, np.tan(np.radians(20)), 1.0]]))[0]
+
+
+def test_every_written_quaternion_has_w_not_negative():
+    """matrix_to_quat (scipy's canonical form): w >= 0, so the recording's pose files, the bags and
+    export's poses.csv write one sign (a review: poses.csv took scipy's plain as_quat, w < 0 for
+    38 % of random rotations). By hand: 350 deg about z is q = (0, 0, sin 175, cos 175) = -(0, 0,
+    sin 5, cos 5) -> (0, 0, -0.0872, 0.9962); 180 deg about z has w = 0 -> (0, 0, 1, 0)."""
+    from virus_nerf.exports.views import PoseSet
+
+    a = np.deg2rad(350.0)
+    rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+    np.testing.assert_allclose(matrix_to_quat(rz), [0, 0, -np.sin(np.deg2rad(5)), np.cos(np.deg2rad(5))], atol=1e-12)
+    np.testing.assert_allclose(matrix_to_quat(np.diag([-1.0, -1.0, 1.0])), [0, 0, 1, 0], atol=1e-12)
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    poses[0, :3, :3] = rz
+    rows = PoseSet(np.array([0.0, 1.0]), poses, "test").csv().splitlines()[1:]
+    assert [float(r.split(",")[-1]) for r in rows] == pytest.approx([np.cos(np.deg2rad(5)), 1.0])

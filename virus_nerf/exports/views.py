@@ -36,9 +36,9 @@ class PoseSet:
 
     def csv(self) -> str:
         """index,time,x,y,z,qx,qy,qz,qw lines (the poses as rendered)."""
-        from scipy.spatial.transform import Rotation
+        from virus_nerf.sensors.geometry import matrix_to_quat
 
-        q = Rotation.from_matrix(self.cam_to_world[:, :3, :3]).as_quat() if len(self) else np.zeros((0, 4))
+        q = matrix_to_quat(self.cam_to_world[:, :3, :3])  # w >= 0, as the recording's pose files
         rows = ["index,time,x,y,z,qx,qy,qz,qw"]
         for i, (t, m) in enumerate(zip(self.times, self.cam_to_world, strict=True)):
             # time to the microsecond (a float64 epoch stamp holds no finer): 9 significant digits kept whole seconds only
