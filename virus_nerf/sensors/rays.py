@@ -1,4 +1,5 @@
-"""The `Rays` value that crosses from sensors to the sampler and renderer."""
+"""World-frame rays of a sensor's pixels (`camera.pixel_rays`), in numpy: what the exports render
+from a pose. Training batches are built in torch by the sampler (`sampler.batch.RayBatch`)."""
 
 from __future__ import annotations
 
@@ -16,10 +17,6 @@ class Rays:
 
     def __len__(self) -> int:
         return self.origins.shape[0]
-
-    def at(self, t: np.ndarray) -> np.ndarray:
-        """Points at distances t (N,) along the rays -> (N, 3)."""
-        return self.origins + self.directions * np.asarray(t)[:, None]
 
 
 def rays_to_world(pose: np.ndarray, dirs_cam: np.ndarray) -> Rays:
