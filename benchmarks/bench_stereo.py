@@ -67,8 +67,8 @@ def _errors(depth, truth: np.ndarray) -> dict:
 def filters_for(rec, filters: str):
     """(StereoConfig, its name) for `--filters` and the recording `rec`."""
     from virus_nerf.engine.config import MapperConfig
-    from virus_nerf.engine.mapper import stereo_line_of_sight
     from virus_nerf.engine.model import start_box
+    from virus_nerf.engine.step_loss import stereo_line_of_sight
     from virus_nerf.stereo.depth import StereoConfig, small_room_config
 
     cfg = StereoConfig()

@@ -357,7 +357,7 @@ def test_stereo_line_of_sight_only_offline_in_a_fitted_room_up_to_its_size():
     longest horizontal side is at most weights.free_stereo_room_m (12 m): a 9 x 8 m office yes; an
     18 m common area, a grown box, driving or no stereo sensor no."""
     from virus_nerf.engine.config import MapperConfig
-    from virus_nerf.engine.mapper import stereo_line_of_sight
+    from virus_nerf.engine.step_loss import stereo_line_of_sight
     from virus_nerf.scene_box import SceneBox
 
     config = MapperConfig()

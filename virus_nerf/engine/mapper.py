@@ -29,7 +29,6 @@ Example, in a ROS node or a script (metres, seconds, RGB; OpenCV camera axes)::
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import numbers
@@ -43,25 +42,22 @@ import numpy as np
 import torch
 
 from virus_nerf.data.frame import SyncFrame, check_frame, check_intrinsics, valid_ranges
+from virus_nerf.engine.checkpoint import MapperCheckpoint
 from virus_nerf.engine.clock import FrameClock, PlacedFrame
 from virus_nerf.engine.config import MapperConfig
 from virus_nerf.engine.extent import MapExtent
 from virus_nerf.engine.model import SceneModel, build_grid, resolve_device, start_box
 from virus_nerf.engine.schedule import Schedules, StepSchedule
 from virus_nerf.engine.state import (
-    STATE_KEYS,
-    counters_problem,
-    expected_frames,
     frames_mismatch,
-    generators_problem,
-    tensors_problem,
 )
+from virus_nerf.engine.step_loss import colour_rays, step_loss, stereo_line_of_sight
 from virus_nerf.engine.views import MapViews, serialised
 from virus_nerf.errors import UsageError
 from virus_nerf.field.field import NerfField
 from virus_nerf.grid.base import GridUpdateBatch
 from virus_nerf.grid.extent import first_box
-from virus_nerf.losses import LossTerms, distortion_loss, line_of_sight_terms, total_loss
+from virus_nerf.losses import LossTerms
 from virus_nerf.maps.observed import frames_observed
 from virus_nerf.render.marching import ray_box_interval
 from virus_nerf.sampler.batch import BatchSampler, RayBatch, recent_frame_odds
@@ -86,7 +82,7 @@ class TrainSlice:
 MAX_BOX_SIDE_M = 1000.0  # a room or a hall a robot maps; a larger box is a unit mistake
 
 
-class Mapper(MapViews):
+class Mapper(MapViews, MapperCheckpoint):
     """A VIRUS-NeRF (or Instant-NGP) map trained on frames as they arrive.
 
     config: the training configuration (`train` decides how long to train). intrinsics: stack
@@ -571,174 +567,6 @@ class Mapper(MapViews):
             done, spent, loss = done + 1, spent + took, float(terms.total.detach())
         return TrainSlice(steps=done, seconds=spent, loss=loss, frames=self.frames, total_steps=self.step,
                           total_seconds=self.seconds)
-
-    # ------------------------------------------------------------------ state
-    @serialised
-    def state(self) -> dict:
-        """Everything to continue training (not the frames), copied: a timer thread may train on
-        while another writes it out (torch.save) and it stays the state of this moment."""
-        return {
-            "field": copy.deepcopy(self.field.state_dict()),
-            "optimizer": copy.deepcopy(self._optimizer_state_dict()),
-            "grid": self.grid.state_dict(),  # copies already
-            "step": self.step,
-            "seconds": self.seconds,
-            "samples": self.samples,
-            "rays": self.rays,
-            "last_samples_per_ray": self.last_samples_per_ray,  # sets the next step's ray count
-            "numpy_rng": self.rng.bit_generator.state,
-            "torch_generator": self.generator.get_state(),
-            "box": self.box.to_dict(),
-            "prior_frames": self._prior_done,
-            "frames": self.frames,  # a driving run's loader adds exactly these (not all due at its clock)
-            # which frames those were (load_state checks the frames added again against them)
-            "frame_stacks": torch.from_numpy(self.store.stack_ids[:self.frames].astype(np.int64)),
-            "frame_times": torch.from_numpy(self.store.times[:self.frames].astype(np.float64)),
-            "stereo_points": self._stereo_points_done,
-            "frames_at_start": self._frames_at_start,
-            "viewed_frames": self._viewed_frames,
-            "visible_share": self.visible_share,  # picks the next step's render path
-        }
-
-    def _optimizer_state_dict(self) -> dict:
-        """Adam's state: a checkpoint's still pending (Adam not built yet), else Adam's own."""
-        pending = self._optimizer_state  # read once: another thread may build Adam meanwhile
-        return pending if pending is not None else self.optimizer.state_dict()
-
-    def state_problem(self, state: dict) -> tuple[str, str] | None:
-        """(key, what is wrong) of a state this mapper cannot continue from, checked whole before
-        `load_state` touches anything; None when it can (engine/state.py)."""
-        if not isinstance(state, Mapping):
-            return "state", f"expected the dict of Mapper.state(), got a {type(state).__name__}"
-        missing = [k for k in STATE_KEYS if k not in state]
-        if missing:
-            return "state", f"lacks {missing}; expected the dict of Mapper.state()"
-        problem = counters_problem(state) or tensors_problem("field", state["field"], self.field.state_dict())
-        if problem:
-            return problem
-        try:
-            self._check_optimizer_state(state["optimizer"])
-        except ValueError as exc:
-            return "optimizer", str(exc).removeprefix("optimizer: ")
-        if "box" in state:
-            try:
-                saved = SceneBox.from_dict(state["box"])
-            except (TypeError, ValueError, KeyError) as exc:
-                return "box", f"expected {{'lo': [x, y, z], 'hi': [x, y, z]}} in metres ({type(exc).__name__}: {exc})"
-            box = self.box
-            if not self.extent.growing and not (np.allclose(saved.lo, box.lo, atol=1e-6)
-                                                and np.allclose(saved.hi, box.hi, atol=1e-6)):
-                return "box", (f"lo={list(saved.lo)} hi={list(saved.hi)} does not match this mapper's lo={list(box.lo)} "
-                               f"hi={list(box.hi)}; the field would be read in another frame")
-        own_grid = {k: v for k, v in self.grid.state_dict().items() if k not in self.grid.optional_state_keys}
-        return tensors_problem("grid", state["grid"], own_grid, shapes=not self.extent.growing) \
-            or generators_problem(state) or self._frames_problem(state)
-
-    def _frames_problem(self, state: dict) -> tuple[str, str] | None:
-        """("frame_times", what) when the state's frame list is malformed or the frames present do
-        not begin it (a state written before the list existed: None, nothing to check)."""
-        expected = expected_frames(state)
-        if isinstance(expected, str):
-            return "frame_times", expected
-        n = min(self.frames, len(expected[0]))
-        problem = frames_mismatch(expected, 0, self.store.stack_ids[:n], self.store.times[:n])
-        return None if problem is None else ("frame_times", problem)
-
-    @serialised
-    def load_state(self, state: dict) -> None:
-        """Continue from `state()` (read on the CPU). The frames are not in it: add them again in
-        the same order (before or after; a frame that is not the state's frame of its row is refused,
-        by stack and time, with the same `restart_clock` calls); the first `prior_frames` of them do
-        not get the sensor prior again. A state this mapper cannot continue from is a one-line
-        UsageError naming the key, the mapper unchanged."""
-        problem = self.state_problem(state)
-        if problem is not None:
-            raise UsageError(f"Mapper.load_state state[{problem[0]!r}]: {problem[1]}")
-        if "box" in state:  # a grown box: the grid grows to it first
-            self._grow(self.extent.restore(SceneBox.from_dict(state["box"])))
-        self.field.load_state_dict(state["field"])
-        self._expected_frames = expected_frames(state)
-        self._check_optimizer_state(state["optimizer"])
-        with self._optimizer_lock:
-            if self._optimizer is None:
-                self._optimizer_state = state["optimizer"]  # Adam takes it when first asked for (`optimizer`)
-            else:
-                self._optimizer.load_state_dict(state["optimizer"])
-        self.grid.load_state_dict(state["grid"])
-        self.step = int(state["step"])
-        self.seconds = float(state["seconds"])
-        self.samples = int(state["samples"])
-        self.rays = int(state.get("rays", self.step * self.config.batch_size))
-        self.last_samples_per_ray = float(state.get("last_samples_per_ray", 0.0))
-        self.rng.bit_generator.state = state["numpy_rng"]
-        self.generator.set_state(state["torch_generator"])
-        self.visible_share = float(state.get("visible_share", 1.0))
-        self._stereo_points_done = int(state.get("stereo_points", 0))  # its grid has had these
-        self._frames_at_start = state.get("frames_at_start")
-        # a state without it (written before the restart existed): the frames it was trained on
-        # count as seen at step 0 when the grid first hears of them
-        self._viewed_frames = int(state.get("viewed_frames", 0))
-        self._seen_at_start = 0 if "viewed_frames" in state else int(state.get("prior_frames") or 0)
-        if "prior_frames" in state:
-            self._prior_done, self._prior_skip = int(state["prior_frames"]), False
-        else:  # written before the count existed: the grid had the prior of every frame present
-            self._prior_done, self._prior_skip = 0, True
-
-
-def colour_rays(config: MapperConfig, batch: RayBatch) -> torch.Tensor | None:
-    """(R,) bool: the rays that render and learn colour; None = all. With
-    `density_only_depth_rays` the depth-supervised rays (IRS, RGB-D) train the density alone."""
-    if not config.density_only_depth_rays:
-        return None
-    has_depth = torch.zeros(len(batch), dtype=torch.bool, device=batch.origins.device)
-    if "irs" in config.sensors:
-        has_depth |= torch.isfinite(batch.irs_range)
-    if "rgbd" in config.sensors:
-        has_depth |= torch.isfinite(batch.rgbd_range)
-    return ~has_depth
-
-
-def stereo_line_of_sight(config: MapperConfig, box: SceneBox, growing: bool, driving: bool) -> bool:
-    """Whether the stereo targets' line-of-sight term trains (`weights.free_stereo`): the stereo
-    sensor trained, offline (while driving it marked more obstacles near the path free), in a
-    fitted box (a grown one's room size is not known when the drive starts) whose longest
-    horizontal side is at most `weights.free_stereo_room_m` (docs/decisions.md D77)."""
-    w = config.weights
-    side = float(max(box.hi[0] - box.lo[0], box.hi[1] - box.lo[1]))
-    return (w.free_stereo > 0 and "stereo" in config.sensors and not growing and not driving
-            and side <= w.free_stereo_room_m)
-
-
-def step_loss(config: MapperConfig, batch: RayBatch, out, samples, rgb_rays: torch.Tensor | None,
-              stereo_free: bool = False) -> LossTerms:
-    """A step's loss from its rays' targets (`batch`), the render (`out`: rgb, depth, weights)
-    and its packed samples: the weighted sum of docs/method.md 3.2 over the sensors trained,
-    then the distortion and the line-of-sight terms when their weights are on (the stereo
-    targets' when `stereo_free`: `stereo_line_of_sight`). Pure: no state."""
-    sensors, w = config.sensors, config.weights
-    terms = total_loss(
-        w,
-        pred_rgb=out.rgb,
-        target_rgb=batch.rgb,
-        pred_depth=out.depth,
-        irs_depth=batch.irs_range if "irs" in sensors else None,
-        uss_range=batch.uss_range if "uss" in sensors else None,
-        rgbd_depth=batch.rgbd_range if "rgbd" in sensors else None,
-        rgb_mask=rgb_rays,
-        stereo_depth=batch.stereo_range if "stereo" in sensors else None,
-        stereo_sigma=batch.stereo_sigma if "stereo" in sensors else None,
-    )
-    if w.distortion > 0:
-        ld = distortion_loss(out.weights, samples.t_starts, samples.t_ends, samples.ray_offsets)
-        terms = dataclasses.replace(terms, total=terms.total + w.distortion * ld, distortion=ld)
-    uss = batch.uss_range if w.free_uss > 0 and "uss" in sensors else None
-    stereo = stereo_free and batch.stereo_range is not None
-    if uss is not None or stereo:
-        free = line_of_sight_terms(w, out.weights, samples.t_ends, samples.ray_offsets, uss_range=uss,
-                                   stereo_range=batch.stereo_range if stereo else None,
-                                   stereo_sigma=batch.stereo_sigma if stereo else None)
-        terms = dataclasses.replace(terms, total=terms.total + free)
-    return terms
 
 
 def warm_up(config: MapperConfig) -> float:

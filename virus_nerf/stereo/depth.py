@@ -39,7 +39,7 @@ class StereoConfig:
     max_range: float = 12.0  # m from the camera
     max_rel_sigma: float = 0.03  # range standard deviation / range; small_room_max_rel_sigma where it applies
     # offline in a fitted room small enough for the stereo targets' line-of-sight term
-    # (weights.free_stereo_room_m, engine/mapper.stereo_line_of_sight) these two filters instead
+    # (weights.free_stereo_room_m, engine/step_loss.stereo_line_of_sight) these two filters instead
     # (`small_room_config`): 29 % more points (office 84), and the term empties more of the density sheets
     # the colour leaves beside the path (offices 81-86: free recall 89.31 -> 90.12 %, fewer
     # obstacles marked free; docs/decisions.md D112); the larger rooms and every drive keep the above

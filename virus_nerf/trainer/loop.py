@@ -26,9 +26,10 @@ import torch
 from virus_nerf.config_io import to_dict
 from virus_nerf.data.ethz import Recording
 from virus_nerf.data.playback import FrameFeeder, Playback
-from virus_nerf.engine.mapper import Mapper, stereo_line_of_sight
+from virus_nerf.engine.mapper import Mapper
 from virus_nerf.engine.model import start_box
 from virus_nerf.engine.schedule import Horizon, Schedules
+from virus_nerf.engine.step_loss import stereo_line_of_sight
 from virus_nerf.evaluation.evaluate import EvaluationResult, build_ground_truth, evaluate
 from virus_nerf.losses import LossTerms
 from virus_nerf.sampler.batch import BatchSampler
@@ -171,7 +172,7 @@ class Trainer:
     def stereo_config(self) -> StereoConfig:
         """The stereo pass's settings: the run's, offline with the small room's filters where the
         stereo targets' line-of-sight term trains (a fitted room up to weights.free_stereo_room_m,
-        engine/mapper.stereo_line_of_sight; docs/decisions.md D112). A drive's tracker keeps the
+        engine/step_loss.stereo_line_of_sight; docs/decisions.md D112). A drive's tracker keeps the
         run's own (the term does not train while driving)."""
         mapper = self.mapper
         if not self.config.online and stereo_line_of_sight(self.config, mapper.box, mapper.extent.growing,
