@@ -130,3 +130,45 @@ def test_furniture_varies_with_the_seed():
     c = build_room("office", np.random.default_rng(1)).scene.to_dict()
     assert a == b
     assert a != c
+
+
+@pytest.mark.parametrize("kind", ["office", "warehouse"])
+def test_the_camera_renderer_is_the_scenes_ray_cast_per_pixel(kind):
+    """render_camera (the fused, tile-culled kernel) against Scene.cast of every pixel's ray:
+    the same primitive, z = t * d_z, the cosine of incidence -normal . d; without noise the colour
+    is shade_kernel's (the hit points' albedo lit as the camera lights them) to a rounding step; and the
+    tile size is speed only (a tile of 5 px and one of the whole image give the same frame)."""
+    import dataclasses
+
+    from virus_nerf.sensors.camera import Intrinsics, pixel_directions
+    from virus_nerf.sim import kernels
+    from virus_nerf.sim.sensors import CameraModel, render_camera
+
+    room = build_room(kind, np.random.default_rng(5))
+    intr = Intrinsics(fx=60.0, fy=60.0, cx=39.5, cy=29.5, width=80, height=60)
+    pose = np.eye(4)
+    yaw = 0.4
+    pose[:3, :3] = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1.0]]) @ \
+        np.array([[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]])  # level, looking 0.4 rad left of +x
+    pose[:3, 3] = [0.5, 0.2, 0.55]
+    model = CameraModel(noise_amp=0.0, tile=5)
+    frame = render_camera(room.scene, intr, pose, model, frame_seed=1)
+    u, v = np.meshgrid(np.arange(intr.width), np.arange(intr.height))
+    d = pixel_directions(intr, u.ravel(), v.ravel()) @ pose[:3, :3].T  # (N, 3) world, unit
+    hit = room.scene.cast(np.broadcast_to(pose[:3, 3], d.shape), d, 100.0)
+    prim = frame.prim.ravel()
+    assert (prim >= 0).mean() > 0.99 and (prim == hit.prim_id).mean() > 0.999  # shared faces may tie
+    same = prim == hit.prim_id
+    d_z = pixel_directions(intr, u.ravel(), v.ravel())[:, 2]
+    np.testing.assert_allclose(frame.z.ravel()[same], (hit.t * d_z)[same], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(frame.cos_incidence.ravel()[same], -np.sum(hit.normal * d, axis=1)[same], atol=1e-9)
+    points = pose[:3, 3] + hit.t[:, None] * d
+    shaded = np.zeros((len(d), 3))
+    pk = room.scene.packed
+    kernels.shade_kernel(points, np.ascontiguousarray(hit.normal), hit.prim_id.astype(np.int64), d, pk.pcen, pk.prot,
+                         pk.mcol, pk.mpat, pk.mscale, pk.mseed, model.light_array, model.ambient, shaded)
+    expected = np.floor(shaded * 255.0 + 0.5)
+    assert np.abs(frame.rgb.reshape(-1, 3)[same].astype(float) - expected[same]).max() <= 1
+    whole = render_camera(room.scene, intr, pose, dataclasses.replace(model, tile=max(intr.width, intr.height)), 1)
+    for a, b in ((frame.rgb, whole.rgb), (frame.z, whole.z), (frame.prim, whole.prim)):
+        np.testing.assert_array_equal(a, b)

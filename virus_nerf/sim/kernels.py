@@ -258,7 +258,8 @@ def albedo(k, hx, hy, hz, nx, ny, nz, pcen, prot, mcol, mpat, mscale, mseed, out
 
 @njit(cache=True, parallel=True)
 def shade_kernel(pts, normals, prim, dirs, pcen, prot, mcol, mpat, mscale, mseed, lights, ambient, out):
-    """Lambertian + ambient colour (N, 3) in [0, 1] of hit points; background black."""
+    """Lambertian + ambient colour (N, 3) in [0, 1] of hit points; background black. The camera
+    renderer's shading, point by point: its reference in tests/test_sim_scene.py."""
     n = pts.shape[0]
     for i in prange(n):
         k = prim[i]

@@ -209,17 +209,6 @@ class Scene:
         t = self.cast(origins, directions).t
         return np.where(np.isfinite(t), t, np.nan)
 
-    def albedo_at(self, points: np.ndarray, prim_id: np.ndarray) -> np.ndarray:
-        """Texture colour (N, 3) in [0, 1] of points on primitives prim_id (N,), -1 -> 0."""
-        pk = self.packed
-        pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-        out = np.zeros((pts.shape[0], 3))
-        normals = np.zeros_like(pts)
-        lights = np.zeros((0, 4))
-        kernels.shade_kernel(pts, normals, np.ascontiguousarray(prim_id, dtype=np.int64), pts, pk.pcen,
-                             pk.prot, pk.mcol, pk.mpat, pk.mscale, pk.mseed, lights, 1.0, out)
-        return out
-
     # ------------------------------------------------------------------ persistence
     def to_dict(self) -> dict:
         return {
