@@ -115,6 +115,19 @@ def test_depth_in_metres_follows_the_npy_maps_invalid_rule(tmp_path):
         m.decode_depth(msg, m.IMAGE, WHERE, size=(4, 1))
 
 
+def test_one_rule_from_metres_to_the_depth_maps_millimetres():
+    """data/images.depth_to_mm, used by the frame store, the exports and depth messages: by hand,
+    1.2344 m -> 1234 mm; 0.6 mm -> 1; 65.534 m -> 65534; NaN, inf, <= 0, under 0.5 mm and beyond
+    65.534 m -> 0 (invalid); and back through depth_from_mm (1234 mm -> 1.234 m, 0 -> NaN)."""
+    from virus_nerf.data.images import depth_from_mm, depth_to_mm
+    from virus_nerf.sampler.frames import resize_depth_mm
+
+    metres = np.array([1.2344, 0.0006, 65.534, np.nan, np.inf, -1.0, 0.0, 0.0004, 65.5346, 70.0])
+    assert depth_to_mm(metres).tolist() == [1234, 1, 65534, 0, 0, 0, 0, 0, 0, 0]
+    assert depth_from_mm(depth_to_mm(metres))[0] == pytest.approx(1.234) and np.isnan(depth_from_mm(depth_to_mm(metres))[3])
+    assert resize_depth_mm(metres[None, :], (10, 1)).tolist() == [depth_to_mm(metres).tolist()]
+
+
 def test_colour_size_and_camera_info_distortion():
     px = np.arange(6, dtype=np.uint8)
     msg = NS(encoding="rgb8", height=1, width=2, step=6, is_bigendian=0, data=px)

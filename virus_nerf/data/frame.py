@@ -16,11 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from virus_nerf.data.csvtable import MAX_TIME_S
+from virus_nerf.data.images import DEPTH_MAX_MM
 from virus_nerf.errors import UsageError
 from virus_nerf.sensors.camera import Intrinsics, image_side_problem, intrinsics_problem
 from virus_nerf.sensors.irs import IRS_MAX_PLAUSIBLE_MM, IRS_MIN_VALID_M
 
-MAX_DEPTH_M = 65.534  # the frame store keeps depth as uint16 millimetres (sampler.frames.resize_depth_mm)
+MAX_DEPTH_M = DEPTH_MAX_MM / 1000.0  # the frame store keeps depth as uint16 millimetres (data/images.depth_to_mm)
 TIME_RESOLUTION_S = 1e-3  # a stamp's type must hold it at least this finely (a float32 epoch time holds 128 s)
 MAX_RANGE_M = IRS_MAX_PLAUSIBLE_MM / 1000  # no USS, IRS or depth camera of a robot reads 100 m: millimetres
 # A camera whose optical axis lies within this of the vertical sees no room at camera height: its

@@ -81,6 +81,19 @@ def read_depth(path: Path, intr: Intrinsics) -> np.ndarray:
     return depth_from_mm(raw)
 
 
+DEPTH_MAX_MM = 65534  # the largest valid reading of a uint16 depth map (65535 and 0 are invalid)
+
+
+def depth_to_mm(metres: np.ndarray) -> np.ndarray:
+    """z-depth in metres -> uint16 millimetres, 0 (invalid) where not finite, not positive once
+    rounded, or beyond DEPTH_MAX_MM (a reading out of the map's range is no reading, not one at its
+    end): the inverse of `depth_from_mm`, for the frame store, the exports and depth messages."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        mm = np.round(np.asarray(metres, dtype=np.float64) * 1000.0)
+        ok = np.isfinite(mm) & (mm > 0) & (mm <= DEPTH_MAX_MM)
+    return np.where(ok, mm, 0.0).astype(np.uint16)
+
+
 def depth_from_mm(mm: np.ndarray) -> np.ndarray:
     """Depth in integer millimetres -> float32 metres, NaN where invalid (DEPTH_INVALID_MM): the one
     rule for a .npy map here and for a depth message (data/bags/messages.py)."""

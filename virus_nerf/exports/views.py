@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-MAX_DEPTH_MM = 65534  # 65535 and 0 mean "invalid" in the recording's depth maps
+from virus_nerf.data.images import depth_to_mm
 
 
 @dataclass
@@ -136,5 +136,4 @@ def render_image(model, intr, cam_to_world: np.ndarray) -> tuple[np.ndarray, np.
     origins = np.broadcast_to(np.asarray(cam_to_world)[:3, 3], dirs.shape).copy()
     depth, rgb = render_rays(model, origins, dirs)
     z = depth * dirs_cam[:, 2]
-    mm = np.where(np.isfinite(z) & (z > 0), np.clip(np.rint(z * 1000.0), 1, MAX_DEPTH_MM), 0).astype(np.uint16)
-    return rgb.reshape(intr.height, intr.width, 3), mm.reshape(intr.height, intr.width)
+    return rgb.reshape(intr.height, intr.width, 3), depth_to_mm(z).reshape(intr.height, intr.width)

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.data.ethz import Recording, common_image_size
+from virus_nerf.data.images import depth_to_mm
 from virus_nerf.sampler import frame_cache
 from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics, pixel_directions
@@ -273,13 +274,12 @@ def resize_rgb(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 def resize_depth_mm(depth_m: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Nearest-neighbour resize (never mixes valid and invalid pixels) -> uint16 mm, 0 invalid."""
+    """Nearest-neighbour resize (never mixes valid and invalid pixels) -> uint16 mm, 0 invalid
+    (data/images.depth_to_mm)."""
     h, w = depth_m.shape
     ys = ((np.arange(size[1]) + 0.5) * h / size[1]).astype(int)
     xs = ((np.arange(size[0]) + 0.5) * w / size[0]).astype(int)
-    d = depth_m[np.ix_(ys, xs)]
-    mm = np.where(np.isfinite(d), np.clip(np.round(d * 1000), 1, 65534), 0)
-    return mm.astype(np.uint16)
+    return depth_to_mm(depth_m[np.ix_(ys, xs)])
 
 
 def _decode(recording: Recording, entries: list[tuple[int, int]], size: tuple[int, int], with_depth: bool,

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from virus_nerf.data.bags.odometry import Transform
-from virus_nerf.data.images import depth_from_mm
+from virus_nerf.data.images import depth_from_mm, depth_to_mm
 from virus_nerf.errors import DataFormatError
 from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import Intrinsics, intrinsics_problem
@@ -186,7 +186,7 @@ def decode_depth(msg, msgtype: str, where: Where, size: tuple[int, int] | None =
         if enc in ("16uc1", "mono16"):
             mm = _pixels(msg, np.uint16, 1, where)[..., 0]
         elif enc == "32fc1":
-            mm = _mm_from_metres(_pixels(msg, np.float32, 1, where)[..., 0].astype(np.float64))
+            mm = depth_to_mm(_pixels(msg, np.float32, 1, where)[..., 0])
         else:
             raise where.error(f"depth encoding {msg.encoding!r}; expected 16UC1 (mm) or 32FC1 (m)", field="encoding")
     if size is not None and (mm.shape[1], mm.shape[0]) != tuple(size):
@@ -253,16 +253,7 @@ def _compressed_depth_mm(msg, where: Where) -> np.ndarray:
     v = raw.astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         metres = np.where(v > 0, quant_a / (v - quant_b), np.nan)
-    return _mm_from_metres(metres)
-
-
-def _mm_from_metres(metres: np.ndarray) -> np.ndarray:
-    """(H, W) z-depth in metres -> uint16 mm, 0 (invalid) where not finite, not positive or beyond
-    the layout's 65534 mm (a reading out of its range is no reading, not one at its end)."""
-    with np.errstate(invalid="ignore"):
-        mm = np.round(metres * 1000.0)
-        ok = np.isfinite(mm) & (mm > 0) & (mm <= 65534)
-    return np.where(ok, mm, 0.0).astype(np.uint16)
+    return depth_to_mm(metres)
 
 
 @dataclass(frozen=True)
