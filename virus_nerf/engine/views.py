@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import json
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +48,18 @@ class SnapshotInfo:
     map_known: float  # share of the map's pixels that are known (free or occupied)
     grid_occupied: float  # share of the occupancy grid's cells the marcher samples
     observed: float = 0.0  # share of the map's pixels some sensor looked at (maps/observed.py)
+
+    FILE = "snapshot.json"
+
+    @classmethod
+    def read(cls, folder: Path) -> SnapshotInfo:
+        """The snapshot.json of a snapshot folder: frames, steps and seconds; the map's figures and
+        stamps as far as it holds them (null and 0 when not: a file of an older version)."""
+        doc = json.loads((Path(folder) / cls.FILE).read_text())
+        names = {f.name for f in dataclasses.fields(cls)}
+        given = {k: v for k, v in doc.items() if k in names}
+        return cls(**{"last_frame_time": None, "loss": None, "map_occupied": 0.0, "map_known": 0.0,
+                      "grid_occupied": 0.0, **given})
 
 
 def serialised(method):
@@ -235,7 +248,7 @@ class MapViews:
                 grid_occupied=round(self.grid.occupancy_share(), 4),
                 observed=round(observed_share(self.observed(resolution)), 4),
             )
-            write_json_atomic(tmp / "snapshot.json", dataclasses.asdict(info))
+            write_json_atomic(tmp / SnapshotInfo.FILE, dataclasses.asdict(info))
             if with_state:
                 torch.save(self.state(), tmp / "mapper.pt")
         return info

@@ -476,6 +476,7 @@ def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport
 
     import torch
 
+    from virus_nerf.engine.views import SnapshotInfo
     from virus_nerf.errors import UsageError
     from virus_nerf.utils.io import (
         Outputs,
@@ -530,8 +531,8 @@ def finish_killed(out: Path, log: Callable[[str], None] = print) -> StreamReport
             state = saved["mapper"] if saved.get("snapshot") == last.name else None
         except Exception:  # noqa: BLE001 - written atomically; a foreign or damaged file is left alone
             state = None
-    info = json.loads(((final if written else last) / "snapshot.json").read_text())
-    report.frames, report.steps, report.train_s = info["frames"], info["steps"], info["seconds"]
+    info = SnapshotInfo.read(final if written else last)
+    report.frames, report.steps, report.train_s = info.frames, info.steps, info.seconds
     outputs = Outputs()
 
     def copy_map() -> None:
@@ -560,8 +561,7 @@ def rebuild_out_bag(out_bag: dict | None, snaps: list[Path]) -> str:
     PATH.incomplete-<ns>, and PATH rebuilt with /map and /map_probability of every snapshot at
     its newest frame's stamp, as the run wrote them. The /tf poses were in the run's memory
     only. Returns what the resume line adds ("" when there is nothing to rebuild)."""
-    import json
-
+    from virus_nerf.engine.views import SnapshotInfo
     from virus_nerf.mapping.ros_maps import RosMapBag
     from virus_nerf.maps.occupancy import read_map_server
 
@@ -576,7 +576,7 @@ def rebuild_out_bag(out_bag: dict | None, snaps: list[Path]) -> str:
     written = 0
     with RosMapBag(path, map_frame=out_bag["map_frame"], base_frame=out_bag["base_frame"]) as bag:
         for snap in snaps:
-            stamp = json.loads((snap / "snapshot.json").read_text()).get("last_frame_time")
+            stamp = SnapshotInfo.read(snap).last_frame_time
             if stamp is None:
                 continue
             prob = read_map_server(snap / "prob.yaml") if (snap / "prob.yaml").is_file() else None
