@@ -23,8 +23,8 @@ from virus_nerf.stereo.depth import StereoConfig
 class MarchConfig:
     """Ray marching along training and scan rays (metres)."""
 
-    step_size: float = 0.03  # constant step; 1 cm - 5 cm suits rooms
-    near: float = 0.05  # start of every ray, in front of the lens
+    step_size: float = 0.03  # m, constant step; 0.01-0.05 m suits rooms
+    near: float = 0.05  # m, start of every ray, in front of the lens
     max_samples: int = 256  # per ray, after occupancy skipping
     # training: samples behind a transmittance below this get no gradient pass (a density-only
     # pass finds them first). 0 renders every sample with gradients; 1e-4 is Instant-NGP's early
