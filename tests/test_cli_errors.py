@@ -303,6 +303,7 @@ def write_config(tmp_path: Path, doc) -> Path:
         ({"batch_size": 2048.5}, "key 'batch_size': expected an integer, got float 2048.5"),
         ({"max_steps": None, "max_time": None}, "set max_steps or max_time"),
         ({"device": "tpu"}, "device 'tpu': expected 'auto', 'cpu', 'cuda'"),
+        ({"threads": 0}, "threads 0: expected an integer in [1, 4096] or None"),
         ([1, 2], "expected a JSON object with the keys of TrainConfig, got list [1, 2]"),
         ("{not json", "not valid JSON: Expecting property name enclosed in double quotes at line 1 column 2"),
         ('{"max_time": NaN}', "key 'max_time': expected a number or null, got float NaN"),

@@ -357,8 +357,9 @@ def test_train_offline_stopped_resumes_exactly_as_the_run_never_stopped(tiny_off
     from virus_nerf.config_io import to_dict
 
     cfg = tmp_path / "offline.json"
+    # one thread (--threads in the config): the numbers are the same only at the same thread count
     cfg.write_text(json.dumps(to_dict(tiny_train_config(sensors=("camera", "uss", "irs"), max_steps=60,
-                                                        checkpoint_every=1000.0))))
+                                                        checkpoint_every=1000.0, threads=1))))
     args = ["train", "--data", tiny_office, "--room", "office", "--config", cfg, "--quiet"]
     # every part in a process of its own, as a user runs them: this test process's torch threads
     # (set by earlier tests) would sum in another order and differ in the last bits
@@ -379,6 +380,7 @@ def test_train_offline_stopped_resumes_exactly_as_the_run_never_stopped(tiny_off
     assert resume.wait(timeout=300) == 0, resume.stderr.read()
     resumed, whole = (json.loads((d / "metrics.json").read_text()) for d in (out, tmp_path / "whole"))
     assert resumed["train"]["steps"] == whole["train"]["steps"] == 60
+    assert resumed["train"]["threads"] == whole["train"]["threads"] == 1  # what the steps ran on
     assert resumed["sensors"] == whole["sensors"] and resumed["safety"] == whole["safety"]
 
 

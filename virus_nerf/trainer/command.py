@@ -39,7 +39,8 @@ TRAIN_FLAG_SPECS: dict[str, FlagSpec | None] = {
     "sensors": FlagSpec(type=str, metavar="NAMES", help=f"Sensors to train on, comma-separated, of {','.join(SENSORS)}."),
     "max_steps": FlagSpec(help="Training steps. With no time budget given (no --max-time, no max_time in the "
                                "--config file, no --resume) it also sets max_time None: a run bounded by steps, "
-                               "bit-reproducible on CPU."),
+                               "bit-reproducible on CPU at the same --threads (not --online: its frames follow "
+                               "the training clock)."),
     "playback_speed": FlagSpec(name="playback", help="Online mode: recording seconds per training second (the "
                                                      "frame feeder's speed, as map-bag's --playback on the wall clock)."),
     "evaluation.gt": None,

@@ -12,7 +12,7 @@ from virus_nerf.evaluation.config import SENSOR_NAMES, EvaluationConfig
 
 # `train --help`'s knobs: the engine's product knobs and the run's own a user sets
 PRODUCT_KNOBS = MAPPER_PRODUCT_KNOBS + ("online", "playback_speed", "odometry_poses", "eval_interval",
-                                        "checkpoint_every")
+                                        "checkpoint_every", "threads")
 
 
 @dataclass
@@ -29,6 +29,9 @@ class TrainConfig(MapperConfig):
     # matplotlib on a 2-core CPU, which a study of many runs or a test may not want; metrics.json,
     # the map and the checkpoint are written either way
     plots: bool = True
+    # CPU threads of torch and the numba kernels (None: the machine's cores; at most those). A run is
+    # bit-identical for the same seed only at the same thread count (torch sums in another order)
+    threads: int | None = None
     evaluation: EvaluationConfig = dc_field(default_factory=EvaluationConfig)
 
     def __post_init__(self) -> None:
@@ -45,6 +48,7 @@ class TrainConfig(MapperConfig):
         number("playback_speed", 0.0)
         number("eval_interval", 0.0, lo_open=False)
         integer("log_every", 1)
+        integer("threads", 1, 4096, optional=True)
         number("checkpoint_every", 0.0)
         integer("evaluation.n_rays", 1, 1_000_000)
         for name in ("height_band_m", "raster_res_m", "uss_arc_step_deg", "inlier_m"):

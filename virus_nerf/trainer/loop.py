@@ -58,6 +58,7 @@ class TrainSummary:
     startup_s: float | None = None  # process start to the first training step (this process)
     wall_s: float | None = None  # process start to the end of training (this process)
     device: str | None = None  # where the steps ran ("cpu", "cuda"), so a rate names its machine
+    threads: int | None = None  # torch's CPU threads of this process's steps (the numbers depend on it)
 
     @property
     def steps_per_s(self) -> float:
@@ -351,7 +352,7 @@ class Trainer:
         finally:
             log.close()
         return TrainSummary(self.mapper.step, self.mapper.seconds, self.mapper.samples, self.startup_s, wall_s,
-                            self.mapper.device.type)
+                            self.mapper.device.type, torch.get_num_threads())
 
     def _evaluate_during_training(self, log: TrainLog) -> None:
         result = self.evaluate(with_sensors=False, keep_scans=0)  # the metrics alone

@@ -63,9 +63,11 @@ def load_trained(run: Path, flag: str, *, poses: str | None = None, quiet: bool 
     """
     from virus_nerf.data.ethz import load_recording, resolve_pose_source
     from virus_nerf.trainer.loop import Trainer
+    from virus_nerf.utils.seeding import use_threads
 
     cfg, info = open_run(run, flag)
     check_device(cfg)
+    use_threads(cfg.threads)  # the run's: its scans are rendered as it rendered them
     read_checkpoint_header(Path(run) / CHECKPOINT, cfg)
     source, _ = resolve_pose_source(Path(info.data) / info.room, poses or "optimised")  # no LiDAR: odometry only
     recording = load_recording(info.data, info.room, poses=source)
@@ -170,10 +172,11 @@ def _prepare(data: Path, room: str, cfg, auto_gt: bool):
     no LiDAR), no ground truth when `auto_gt` finds no LiDAR map, the recording's split and
     ground-truth inputs."""
     from virus_nerf.data.ethz import load_recording, resolve_pose_source
-    from virus_nerf.utils.seeding import seed_everything
+    from virus_nerf.utils.seeding import seed_everything, use_threads
 
     check_device(cfg)
     check_batch_memory(cfg)
+    use_threads(cfg.threads)
     seed_everything(cfg.seed)
     source, note = resolve_pose_source(Path(data) / room, "odometry" if cfg.odometry_poses else "optimised")
     if note:

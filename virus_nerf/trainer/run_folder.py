@@ -137,6 +137,7 @@ def train_summary_block(config, summary) -> dict:
         "startup_s": None if summary.startup_s is None else round(summary.startup_s, 3),
         "wall_s": None if summary.wall_s is None else round(summary.wall_s, 3),
         "device": summary.device,
+        "threads": summary.threads,
         "grid": config.grid,
         "sensors": list(config.sensors),
         "seed": config.seed,
