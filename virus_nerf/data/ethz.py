@@ -393,84 +393,98 @@ def load_recording(
     if not room_dir.is_dir():
         raise DataFormatError(room_dir, f"room folder not found under {root}")
     intrinsics = read_intrinsics(root / "camera_intrinsics.CSV")
-    stack_ids = stacks or available_stacks(room_dir)
-    meas = room_dir / "measurements"
-
-    loaded: dict[int, dict] = {}
-    for s in stack_ids:
+    read = {}
+    for s in stacks or available_stacks(room_dir):
         if s not in intrinsics:
             raise DataFormatError(root / "camera_intrinsics.CSV", f"no row for CAM{s}", field="cam_id")
-        intr = intrinsics[s]
-        cam_path = _pose_file(room_dir / "poses", "cam", s, poses)
-        lidar_path = _pose_file(room_dir / "poses", "lidar", s, poses)
-        t_cam, cam_to_world = read_poses(cam_path)
-        if lidar_path.is_file():
-            t_lidar, lidar_to_world = read_poses(lidar_path)
-        else:  # a robot without a LiDAR: its LiDAR poses are unknown (NaN), never used for mapping
-            t_lidar, lidar_to_world = t_cam, np.full_like(cam_to_world, np.nan)
-        t_uss, uss_range = read_uss(meas / f"USS{s}.csv")
-        t_tof, irs_range = read_tof(meas / f"TOF{s}.csv")
-        images = _numbered_files(meas / f"CAM{s}_color_image_raw", ".png")
-        depth_dir = meas / f"CAM{s}_aligned_depth_to_color_image_raw"
-        depths = _numbered_files(depth_dir, ".npy") if depth_dir.is_dir() else []  # no depth camera: none
-        counts = {
-            cam_path.name: len(t_cam),
-            lidar_path.name: len(t_lidar),
-            f"USS{s}.csv": len(uss_range),
-            f"TOF{s}.csv": len(irs_range),
-            f"CAM{s}_color_image_raw/": len(images),
-        }
-        if depths:  # a robot without a depth camera has none
-            counts[f"CAM{s}_aligned_depth_to_color_image_raw/"] = len(depths)
-        if len(set(counts.values())) != 1:
-            raise DataFormatError(
-                room_dir, f"stack {s} files disagree in sample count (row i of each is one sample): {counts}"
-            )
-        check_same_times(meas / f"USS{s}.csv", t_uss, t_cam, cam_path.name)
-        check_same_times(meas / f"TOF{s}.csv", t_tof, t_cam, cam_path.name)
-        check_pose_jumps(cam_path, t_cam, cam_to_world)
-        if check_images and images:
-            for p in images:
-                size = image_size(p)
-                if size != (intr.width, intr.height):
-                    raise DataFormatError(
-                        p, f"image is {size[0]}x{size[1]}; the intrinsics of CAM{s} expect {intr.width}x{intr.height}"
-                    )
-            for p in depths:
-                check_depth_header(p, intr)
-        loaded[s] = dict(
-            intrinsics=intr, times=t_cam, cam_to_world=cam_to_world, lidar_to_world=lidar_to_world,
-            uss_range=uss_range, irs_range=irs_range, image_paths=images, depth_paths=depths,
-        )
+        read[s] = _read_stack(room_dir, s, intrinsics[s], poses, check_images)
+    splits = _splits(room_dir, {s: len(st) for s, st in read.items()}, write_split)
+    lidar_entries = _lidar_scans(room_dir)
+    return Recording(
+        root=root,
+        room=room,
+        stacks={s: dataclasses.replace(st, split=splits[s]) for s, st in read.items()},
+        lidar_times=np.array([t for t, _ in lidar_entries]),
+        lidar_paths=[p for _, p in lidar_entries],
+        map_path=_map_path(room_dir),
+        pose_source=poses,
+    )
 
+
+def _read_stack(room_dir: Path, s: int, intr: Intrinsics, poses: PoseSource, check_images: bool) -> SensorStack:
+    """Stack `s`'s poses, USS, TOF and image lists, checked against each other (one sample per
+    row, the same times, no pose jumps, images of the intrinsics' size); its split comes later."""
+    meas = room_dir / "measurements"
+    cam_path = _pose_file(room_dir / "poses", "cam", s, poses)
+    lidar_path = _pose_file(room_dir / "poses", "lidar", s, poses)
+    t_cam, cam_to_world = read_poses(cam_path)
+    if lidar_path.is_file():
+        t_lidar, lidar_to_world = read_poses(lidar_path)
+    else:  # a robot without a LiDAR: its LiDAR poses are unknown (NaN), never used for mapping
+        t_lidar, lidar_to_world = t_cam, np.full_like(cam_to_world, np.nan)
+    t_uss, uss_range = read_uss(meas / f"USS{s}.csv")
+    t_tof, irs_range = read_tof(meas / f"TOF{s}.csv")
+    images = _numbered_files(meas / f"CAM{s}_color_image_raw", ".png")
+    depth_dir = meas / f"CAM{s}_aligned_depth_to_color_image_raw"
+    depths = _numbered_files(depth_dir, ".npy") if depth_dir.is_dir() else []  # no depth camera: none
+    counts = {
+        cam_path.name: len(t_cam),
+        lidar_path.name: len(t_lidar),
+        f"USS{s}.csv": len(uss_range),
+        f"TOF{s}.csv": len(irs_range),
+        f"CAM{s}_color_image_raw/": len(images),
+    }
+    if depths:  # a robot without a depth camera has none
+        counts[f"CAM{s}_aligned_depth_to_color_image_raw/"] = len(depths)
+    if len(set(counts.values())) != 1:
+        raise DataFormatError(
+            room_dir, f"stack {s} files disagree in sample count (row i of each is one sample): {counts}"
+        )
+    check_same_times(meas / f"USS{s}.csv", t_uss, t_cam, cam_path.name)
+    check_same_times(meas / f"TOF{s}.csv", t_tof, t_cam, cam_path.name)
+    check_pose_jumps(cam_path, t_cam, cam_to_world)
+    if check_images and images:
+        for p in images:
+            size = image_size(p)
+            if size != (intr.width, intr.height):
+                raise DataFormatError(
+                    p, f"image is {size[0]}x{size[1]}; the intrinsics of CAM{s} expect {intr.width}x{intr.height}"
+                )
+        for p in depths:
+            check_depth_header(p, intr)
+    return SensorStack(stack_id=s, intrinsics=intr, times=t_cam, cam_to_world=cam_to_world,
+                       lidar_to_world=lidar_to_world, uss_range=uss_range, irs_range=irs_range,
+                       image_paths=images, depth_paths=depths, split=np.empty(0, dtype=object))
+
+
+def _splits(room_dir: Path, lengths: dict[int, int], write_split: bool) -> dict[int, np.ndarray]:
+    """Each stack's split labels: split/split.csv, else made from split_description.csv (or
+    60/0/40), written only if `write_split`."""
     split_path = room_dir / "split" / "split.csv"
     if split_path.is_file():
-        splits = read_split(split_path, {s: len(v["times"]) for s, v in loaded.items()})
-    else:
-        ratios = read_split_ratios(room_dir / "split" / "split_description.csv")
-        splits = {s: make_split(len(v["times"]), ratios) for s, v in loaded.items()}
-        if write_split:
-            write_split_file(split_path, splits)
+        return read_split(split_path, lengths)
+    ratios = read_split_ratios(room_dir / "split" / "split_description.csv")
+    splits = {s: make_split(n, ratios) for s, n in lengths.items()}
+    if write_split:
+        write_split_file(split_path, splits)
+    return splits
 
+
+def _lidar_scans(room_dir: Path) -> list[tuple[float, Path]]:
+    """(time s, path) of lidars/filtered/<seconds>.<nanoseconds>.pcd, in time order."""
     lidar_dir = room_dir / "lidars" / "filtered"
-    lidar_entries: list[tuple[float, Path]] = []
+    entries: list[tuple[float, Path]] = []
     if lidar_dir.is_dir():
         for p in lidar_dir.glob("*.pcd"):
             m = re.fullmatch(r"(\d+)\.(\d{9})\.pcd", p.name)
             if not m:  # "1700000000.5.pcd" would read as 5 ns: refused, not guessed
                 raise DataFormatError(p, "LiDAR scan name: expected <seconds>.<nanoseconds, 9 digits>.pcd "
                                          "(e.g. 1702374040.067347336.pcd), the scan's time")
-            lidar_entries.append((int(m.group(1)) + int(m.group(2)) * 1e-9, p))
-    lidar_entries.sort()
-    maps = sorted((room_dir / "maps").glob("map*.pcd")) if (room_dir / "maps").is_dir() else []
-    map_path = next((p for p in maps if p.name == "map_balm.pcd"), maps[0] if maps else None)
+            entries.append((int(m.group(1)) + int(m.group(2)) * 1e-9, p))
+    return sorted(entries)
 
-    return Recording(
-        root=root,
-        room=room,
-        stacks={s: SensorStack(stack_id=s, split=splits[s], **v) for s, v in loaded.items()},
-        lidar_times=np.array([t for t, _ in lidar_entries]),
-        lidar_paths=[p for _, p in lidar_entries],
-        map_path=map_path,
-        pose_source=poses,
-    )
+
+def _map_path(room_dir: Path) -> Path | None:
+    """The room's LiDAR map: maps/map_balm.pcd, else the first maps/map*.pcd; None without one."""
+    maps = sorted((room_dir / "maps").glob("map*.pcd")) if (room_dir / "maps").is_dir() else []
+    return next((p for p in maps if p.name == "map_balm.pcd"), maps[0] if maps else None)
