@@ -16,4 +16,5 @@ memory: what a training step needs, checked before any work (`check_batch_memory
 """
 
 # its public modules; none is imported here, so `import virus_nerf.engine` loads nothing else
-__all__ = ["checkpoint", "clock", "config", "extent", "mapper", "memory", "model", "schedule", "state", "step_loss", "views"]
+__all__ = ["checkpoint", "clock", "config", "extent", "mapper", "memory", "model", "schedule", "state",
+           "step_loss", "views"]
