@@ -144,7 +144,7 @@ def test_traversal_of_a_ray_from_outside_starts_at_the_box():
     assert len(cells_along_ray(spec, [-1.0, 0.5, 0.5], [-1.0, 0.0, 0.0], t_end=100.0)[0]) == 0
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=150, deadline=None, derandomize=True)  # the same rays on every machine
 @given(origin=st.tuples(*[st.floats(-1.0, 3.0) for _ in range(3)]),
        direction=st.tuples(*[st.sampled_from([0.0, 1.0, -1.0]) | st.floats(-1.0, 1.0) for _ in range(3)]),
        t_start=st.floats(0.0, 1.0), length=st.floats(0.0, 4.0))
@@ -182,7 +182,7 @@ def test_traversal_against_dense_sampling_of_random_rays(origin, direction, t_st
         assert inside.sum() <= 2, "no segment: the ray misses the box (or grazes it for a sample)"
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60, deadline=None, derandomize=True)
 @given(origin=st.tuples(st.floats(0.05, 1.95), st.floats(0.05, 1.45), st.floats(0.05, 0.95)),
        direction=st.tuples(*[st.sampled_from([0.0, 1.0, -1.0]) | st.floats(-1.0, 1.0) for _ in range(3)]),
        measured=st.floats(0.05, 2.5))
