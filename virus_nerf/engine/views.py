@@ -100,8 +100,8 @@ class MapViews:
     @serialised
     def map2d(self, resolution: float = 0.05, n_rays: int = MAP_RAYS, max_poses: int = MAP_POSES):
         """The current 2D occupancy map (maps.occupancy.OccupancyMap2D, trinary, over the box's
-        x, y; `resolution` in metres per pixel, `n_rays` per 360 deg scan): NeRF scans from up to `max_poses` camera positions of the frames added so far
-        (evenly spread), cells a scan passed free, end cells occupied, the rest unknown; and
+        x, y; `resolution` in metres per pixel, `n_rays` per 360 deg scan): NeRF scans from up to
+        `max_poses` camera positions of the frames added so far (evenly spread), cells a scan passed free, end cells occupied, the rest unknown; and
         unknown wherever no sensor looked (`observed`), whatever the NeRF says there; then
         occupied where the frames' IRS hits and unexplained USS echoes lie (maps/planner.py). The same
         extraction as `virus-nerf export` (maps/extract.py). A query: the map `update_map` made
