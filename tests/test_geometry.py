@@ -9,7 +9,13 @@ from hypothesis import strategies as st
 
 from virus_nerf.sensors import uss
 from virus_nerf.sensors.camera import Intrinsics, pixel_directions, pixel_rays, project
-from virus_nerf.sensors.geometry import invert_pose, matrix_to_quat, pose_matrix, quat_to_matrix
+from virus_nerf.sensors.geometry import (
+    interpolate_poses,
+    invert_pose,
+    matrix_to_quat,
+    pose_matrix,
+    quat_to_matrix,
+)
 
 INTR = Intrinsics(388.0, 388.4, 327.6, 244.3)
 
@@ -81,3 +87,38 @@ def test_every_written_quaternion_has_w_not_negative():
     poses[0, :3, :3] = rz
     rows = PoseSet(np.array([0.0, 1.0]), poses, "test").csv().splitlines()[1:]
     assert [float(r.split(",")[-1]) for r in rows] == pytest.approx([np.cos(np.deg2rad(5)), 1.0])
+
+
+def _yaw_pose(yaw_rad: float, x: float) -> np.ndarray:
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s, 0, x], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+
+
+def test_pose_interpolation_by_hand():
+    """Identity at 0 s, a quarter turn about z 2 m along x at 2 s: at 1 s half of each; outside the
+    track its end; at a time two samples share (two stacks) the first."""
+    times = np.array([0.0, 2.0, 2.0, 3.0])
+    poses = np.stack([_yaw_pose(0, 0), _yaw_pose(np.pi / 2, 2), _yaw_pose(np.pi / 2, 2.2), _yaw_pose(np.pi, 2.2)])
+    out = interpolate_poses(times, poses, np.array([1.0, 0.5, -4.0, 2.5, 9.0, 2.0, 3.0]))
+    np.testing.assert_allclose(out[0], _yaw_pose(np.pi / 4, 1.0), atol=1e-12)
+    np.testing.assert_allclose(out[1], _yaw_pose(np.pi / 8, 0.5), atol=1e-12)
+    np.testing.assert_array_equal(out[2], poses[0])
+    np.testing.assert_allclose(out[3], _yaw_pose(3 * np.pi / 4, 2.2), atol=1e-12)
+    np.testing.assert_array_equal(out[4], poses[-1])
+    np.testing.assert_array_equal(out[5:], poses[[1, 3]])  # at a sample: that sample, bit for bit
+    np.testing.assert_allclose(interpolate_poses(times[:1], poses[:1], np.array([5.0, -1.0])), poses[[0, 0]])
+
+
+@settings(max_examples=30, deadline=None, derandomize=True)
+@given(st.lists(st.tuples(quats, vec3), min_size=2, max_size=6), st.floats(0, 1))
+def test_pose_interpolation_matches_scipy_slerp(samples, where):
+    """Against scipy's Slerp and numpy's interp over a track of strictly increasing times."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    poses = np.stack([pose_matrix(np.array(t), np.array(q)) for q, t in samples])
+    times = np.cumsum(np.linspace(0.5, 1.5, len(samples)))
+    t = np.array([times[0] + where * (times[-1] - times[0])])
+    out = interpolate_poses(times, poses, t)[0]
+    np.testing.assert_allclose(out[:3, :3], Slerp(times, Rotation.from_matrix(poses[:, :3, :3]))(t).as_matrix()[0],
+                               atol=1e-9)
+    np.testing.assert_allclose(out[:3, 3], [np.interp(t[0], times, poses[:, k, 3]) for k in range(3)], atol=1e-9)

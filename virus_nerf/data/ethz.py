@@ -124,21 +124,9 @@ class Recording:
 
     def lidar_pose_at(self, t: float) -> np.ndarray:
         """LiDAR-to-world (4, 4) at time t, interpolated (slerp) between the stacks' samples."""
-        from scipy.spatial.transform import Rotation, Slerp
+        from virus_nerf.sensors.geometry import interpolate_poses
 
-        times, poses = self._lidar_pose_track
-        if t <= times[0]:
-            return poses[0].copy()
-        if t >= times[-1]:
-            return poses[-1].copy()
-        j = int(np.searchsorted(times, t))
-        t0, t1 = times[j - 1], times[j]
-        a = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
-        rot = Slerp([0.0, 1.0], Rotation.from_matrix(poses[j - 1 : j + 1, :3, :3]))([a])
-        out = np.eye(4)
-        out[:3, :3] = rot.as_matrix()[0]
-        out[:3, 3] = (1 - a) * poses[j - 1, :3, 3] + a * poses[j, :3, 3]
-        return out
+        return interpolate_poses(*self._lidar_pose_track, np.array([t]))[0]
 
     def camera_poses(self, label: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Camera-to-world (N, 4, 4) and stack id (N,) of every sample (or of those with split

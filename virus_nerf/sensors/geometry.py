@@ -43,6 +43,35 @@ def pose_matrix(translation: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
     return out
 
 
+def interpolate_poses(times_s: np.ndarray, poses: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    """Poses (N, 4, 4) at times (N,) s along a track of (K,) non-decreasing times and (K, 4, 4)
+    poses: the rotation slerped, the translation linear between the two samples around each time.
+    A time at a sample, before the first or after the last takes that sample's pose bit for bit
+    (a time two samples share: the first), so a stream gives the same poses whether or not the
+    track has grown past it yet."""
+    from scipy.spatial.transform import Rotation
+
+    times_s = np.asarray(times_s, dtype=np.float64)
+    poses = np.asarray(poses, dtype=np.float64)
+    t_s = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    if len(times_s) == 1:
+        return np.repeat(poses[:1], len(t_s), axis=0)
+    tc = np.clip(t_s, times_s[0], times_s[-1])
+    j = np.clip(np.searchsorted(times_s, tc), 1, len(times_s) - 1)  # (N,) upper sample
+    t0, t1 = times_s[j - 1], times_s[j]
+    span = t1 - t0
+    a = np.divide(tc - t0, span, out=np.zeros_like(tc), where=span > 0)  # (N,) in [0, 1]
+    r0 = Rotation.from_matrix(poses[j - 1, :3, :3])
+    turn = (r0.inv() * Rotation.from_matrix(poses[j, :3, :3])).as_rotvec()  # (N, 3) rad
+    out = np.zeros((len(t_s), 4, 4))
+    out[:, :3, :3] = (r0 * Rotation.from_rotvec(turn * a[:, None])).as_matrix()
+    out[:, :3, 3] = (1 - a)[:, None] * poses[j - 1, :3, 3] + a[:, None] * poses[j, :3, 3]
+    out[:, 3, 3] = 1.0
+    out[a == 0] = poses[j - 1][a == 0]
+    out[a == 1] = poses[j][a == 1]
+    return out
+
+
 def invert_pose(pose: np.ndarray) -> np.ndarray:
     """Inverse of (..., 4, 4) rigid transforms."""
     pose = np.asarray(pose, dtype=np.float64)

@@ -21,7 +21,7 @@ import numpy as np
 
 from virus_nerf.data.csvtable import MAX_TIME_S, time_unit_problem
 from virus_nerf.errors import DataFormatError
-from virus_nerf.sensors.geometry import QUATERNION_NORM_TOLERANCE, pose_matrix
+from virus_nerf.sensors.geometry import QUATERNION_NORM_TOLERANCE, interpolate_poses, pose_matrix
 
 
 @dataclass
@@ -34,21 +34,11 @@ class PoseTrack:
     def at(self, t_s: np.ndarray, tolerance_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Poses (N, 4, 4) at times (N,): slerp/lerp between the neighbours; a time outside the
         track by more than `tolerance_s` (or any time when the track is empty) is invalid (N,) bool."""
-        from scipy.spatial.transform import Rotation, Slerp
-
         t_s = np.asarray(t_s, dtype=np.float64)
-        out = np.tile(np.eye(4), (len(t_s), 1, 1))
         if len(self.times_s) == 0:
-            return out, np.zeros(len(t_s), dtype=bool)
+            return np.tile(np.eye(4), (len(t_s), 1, 1)), np.zeros(len(t_s), dtype=bool)
         ok = (t_s >= self.times_s[0] - tolerance_s) & (t_s <= self.times_s[-1] + tolerance_s)
-        if len(self.times_s) == 1:
-            out[:] = self.poses[0]
-            return out, ok
-        tc = np.clip(t_s, self.times_s[0], self.times_s[-1])
-        out[:, :3, :3] = Slerp(self.times_s, Rotation.from_matrix(self.poses[:, :3, :3]))(tc).as_matrix()
-        for k in range(3):
-            out[:, k, 3] = np.interp(tc, self.times_s, self.poses[:, k, 3])
-        return out, ok
+        return interpolate_poses(self.times_s, self.poses, t_s), ok
 
 
 @dataclass(frozen=True)
