@@ -353,7 +353,7 @@ def test_checkpoints_load_on_the_cpu_whatever_the_trainer_device(tiny_office, tm
     CPU generator state on the GPU, and Generator.set_state refused it (--resume, evaluate and
     export crashed on CUDA). Here a trainer that believes it runs on CUDA loads a checkpoint:
     reading it on the CPU works without a GPU; reading it onto the device fails without one."""
-    from virus_nerf.trainer.run_folder import read_checkpoint_header
+    from virus_nerf.trainer.run_folder import read_checkpoint
 
     rec = load_recording(tiny_office, "office")
     a = Trainer(rec, small_config(max_steps=2), tmp_path, quiet=True)
@@ -364,7 +364,7 @@ def test_checkpoints_load_on_the_cpu_whatever_the_trainer_device(tiny_office, tm
     b.load_checkpoint(tmp_path / "checkpoint.pt")
     assert b.mapper.step == 1
     assert torch.equal(b.mapper.generator.get_state(), a.mapper.generator.get_state())
-    assert read_checkpoint_header(tmp_path / "checkpoint.pt", small_config(max_steps=2))["step"] == 1
+    assert read_checkpoint(tmp_path / "checkpoint.pt", small_config(max_steps=2))["step"] == 1
 
 
 def test_start_up_is_not_on_the_training_clock(tiny_office, tmp_path, monkeypatch):

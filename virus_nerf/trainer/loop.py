@@ -281,14 +281,16 @@ class Trainer:
         with atomic_path(self.run_dir / CHECKPOINT) as tmp:
             tmp.write_bytes(buffer.getbuffer())
 
-    def load_checkpoint(self, path: Path) -> None:
-        """Continue from checkpoint.pt. A checkpoint whose tensors do not fit this run's model
-        (damaged, edited, another model) is a DataFormatError naming the file and the tensor."""
+    def load_checkpoint(self, path: Path, state: dict | None = None) -> None:
+        """Continue from checkpoint.pt (`state`: its contents, where the caller read them already).
+        A checkpoint whose tensors do not fit this run's model (damaged, edited, another model) is
+        a DataFormatError naming the file and the tensor."""
         from virus_nerf.errors import DataFormatError, one_line
 
         # CPU first: the RNG states must stay CPU byte tensors (Generator.set_state refuses
         # others); load_state_dict copies the tensors onto the field's and optimiser's device
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        if state is None:
+            state = torch.load(path, map_location="cpu", weights_only=False)
         if not isinstance(state, dict):
             raise DataFormatError(path, f"not a virus-nerf checkpoint (holds a {type(state).__name__})")
         problem = self.mapper.state_problem(state)  # the whole state, before the mapper is touched

@@ -27,7 +27,7 @@ from virus_nerf.trainer.run_folder import (
     RunInfo,
     RunLock,
     open_run,
-    read_checkpoint_header,
+    read_checkpoint,
 )
 from virus_nerf.utils.io import write_json_atomic
 
@@ -68,7 +68,7 @@ def load_trained(run: Path, flag: str, *, poses: str | None = None, quiet: bool 
     cfg, info = open_run(run, flag)
     check_device(cfg)
     use_threads(cfg.threads)  # the run's: its scans are rendered as it rendered them
-    read_checkpoint_header(Path(run) / CHECKPOINT, cfg)
+    state = read_checkpoint(Path(run) / CHECKPOINT, cfg)  # before the recording: a bad file fails at once
     source, _ = resolve_pose_source(Path(info.data) / info.room, poses or "optimised")  # no LiDAR: odometry only
     recording = load_recording(info.data, info.room, poses=source)
     # the frames a large or driving run decodes go to a folder of this process's own, removed with
@@ -76,7 +76,7 @@ def load_trained(run: Path, flag: str, *, poses: str | None = None, quiet: bool 
     scratch = _reader_scratch()
     trainer = Trainer(recording, cfg, run, quiet=quiet, scratch=Path(scratch.name))
     trainer.scratch_folder = scratch  # kept as long as the trainer
-    trainer.load_checkpoint(Path(run) / CHECKPOINT)
+    trainer.load_checkpoint(Path(run) / CHECKPOINT, state)
     return trainer, cfg, info
 
 
@@ -368,12 +368,12 @@ def _resume(out: Path, recording, cfg, quiet):
         remove_stale_partials(out / folder, owned=True)
     trainer = Trainer(recording, cfg, out, quiet=quiet)
     if (out / CHECKPOINT).is_file():
-        header = read_checkpoint_header(out / CHECKPOINT, cfg)
-        trainer.load_checkpoint(out / CHECKPOINT)
+        state = read_checkpoint(out / CHECKPOINT, cfg)
+        trainer.load_checkpoint(out / CHECKPOINT, state)
         finished = trainer.done()
         if finished and (out / METRICS).is_file():
             raise UsageError(
-                f"--resume {out}: the run is finished (step {header['step']}, {header['seconds']:.1f} s of training "
+                f"--resume {out}: the run is finished (step {state['step']}, {state['seconds']:.1f} s of training "
                 f"reached the budget {_budget(cfg)}) and has its metrics.json; nothing to resume "
                 f"(give a larger {_binding_flags(trainer)} to train on)"
             )

@@ -187,8 +187,9 @@ def open_run(run: Path, flag: str):
     return cfg, RunInfo.read(run)
 
 
-def read_checkpoint_header(path: Path, cfg) -> dict:
-    """Read checkpoint.pt on the CPU and check it fits `cfg`; returns its step/seconds/config.
+def read_checkpoint(path: Path, cfg) -> dict:
+    """Read checkpoint.pt on the CPU and check it fits `cfg`; returns its state (step, seconds,
+    config, tensors: what `Trainer.load_checkpoint` takes, so the file is read once).
 
     A missing, truncated or foreign file is a DataFormatError naming it; a checkpoint of another
     grid or field than `cfg` asks for (e.g. `--resume --grid ngp` on a VIRUS run) a UsageError.
@@ -217,7 +218,7 @@ def read_checkpoint_header(path: Path, cfg) -> dict:
     if isinstance(saved, dict):
         _check_same_shapes(path, saved, to_dict(cfg))
     check_counters(path, state)
-    return {"step": int(state["step"]), "seconds": float(state["seconds"]), "config": saved}
+    return state
 
 
 def check_counters(path: Path, state: dict) -> None:
