@@ -646,3 +646,89 @@ def test_a_lidar_scan_not_named_by_its_time_in_nanoseconds_is_refused(sample_cop
     first.rename(folder / name)
     with pytest.raises(DataFormatError, match=rf"{name}: LiDAR scan name: expected <seconds>.<nanoseconds, 9 digits>"):
         load_recording(sample_copy, "office")
+
+
+def _shift_times(path: Path, seconds: float) -> None:
+    """Every row of a CSV with a `time` column `seconds` later."""
+    lines = path.read_text().splitlines()
+    t = lines[0].split(",").index("time")
+    for k in range(1, len(lines)):
+        cells = lines[k].split(",")
+        cells[t] = repr(float(cells[t]) + seconds)
+        lines[k] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize(("name", "seconds", "refused"), [
+    ("measurements/USS1.csv", 0.3, True),  # the reviewer's offset: the reader took it silently at 0.5 s
+    ("measurements/TOF3.csv", -0.2, True),
+    ("poses/poses_lidar_balm_sync1.csv", 0.2, True),  # the LiDAR's poses are the camera's rows too
+    ("measurements/USS1.csv", 0.1, False),  # within 0.15 s: one sample (import-bag's USS tolerance)
+])
+def test_a_sensor_file_off_the_camera_by_more_than_0_15_s_is_refused(sample_copy, name, seconds, refused):
+    """Row i of a stack's files is one sample: a file 0.2-0.3 s off the camera's times (a reading
+    the robot took 10-15 cm away at 0.5 m/s) is refused with its row and offset; 0.1 s is read."""
+    _shift_times(sample_copy / "office" / name, seconds)
+    if not refused:
+        load_recording(sample_copy, "office")
+        return
+    with pytest.raises(DataFormatError, match=rf"{Path(name).name}, row 2, field 'time': time .* is \{seconds:+.3f} s "
+                                              r"from the camera's .* \(5 of 5 rows are more than 0.15 s off\)"):
+        load_recording(sample_copy, "office")
+
+
+def test_a_stack_on_another_clock_leaves_the_test_points_with_stack_1_alone(sample_copy):
+    """Stack 3's four files 1 s later (its own clock): no stack-3 frame lies within 0.15 s of a
+    stack-1 test frame, so the sample's 2 test points go without one, and a warning says so."""
+    from virus_nerf.evaluation.testpoints import make_test_points, recording_warnings
+
+    room = sample_copy / "office"
+    for name in ("poses/poses_cam_balm_sync3.csv", "poses/poses_lidar_balm_sync3.csv", "measurements/USS3.csv",
+                 "measurements/TOF3.csv"):
+        _shift_times(room / name, 1.0)
+    rec = load_recording(sample_copy, "office")
+    points = make_test_points(rec)
+    assert [p.index3 for p in points] == [None, None]
+    assert "2 of 2 test points have no stack-3 frame within 0.15 s: they are scored with stack 1's cameras, USS " \
+           "and IRS alone" in recording_warnings(rec)
+
+
+def test_a_lidar_that_stops_early_scores_only_the_test_points_it_scanned(sample_copy):
+    """The sample's LiDAR scans at -0.036 .. 0.964 s from stack 1's first frame; its test frames are
+    at 0.208 and 0.624 s. With the scans after 0.3 s removed, the test point at 0.624 s has no scan
+    within 0.15 s (the nearest, 0.264 s, is 0.36 s away): its LiDAR scan is empty, not the one
+    taken 0.36 s earlier, and a warning counts it."""
+    from virus_nerf.evaluation.sensor_scans import lidar_scan_2d
+    from virus_nerf.evaluation.testpoints import make_test_points, recording_warnings
+
+    full = load_recording(sample_copy, "office")
+    t0 = full.stacks[1].times[0]
+    assert lidar_scan_2d(full, make_test_points(full)[1]).points.shape[0] > 100  # with every scan
+    for p in (sample_copy / "office" / "lidars" / "filtered").glob("*.pcd"):
+        if float(p.stem) > t0 + 0.3:
+            p.unlink()
+    rec = load_recording(sample_copy, "office")
+    first, second = make_test_points(rec)
+    assert np.round([first.time - t0, second.time - t0], 3).tolist() == [0.208, 0.624]
+    assert len(lidar_scan_2d(rec, first).points) > 100
+    assert lidar_scan_2d(rec, second).points.shape == (0, 2)
+    assert "1 of 2 test points have no LiDAR scan within 0.15 s: the LiDAR row leaves them out" in \
+        recording_warnings(rec)
+    assert recording_warnings(full) == []
+
+
+def test_quaternions_written_w_x_y_z_are_warned_of(sample_copy):
+    """The LiDAR poses with their quaternions written w,x,y,z under the qx,qy,qz,qw header read as
+    half turns (the LiDAR upside down): the recording reads, and a warning names the likely cause."""
+    from virus_nerf.evaluation.testpoints import recording_warnings
+
+    for s in (1, 3):
+        path = sample_copy / "office" / "poses" / f"poses_lidar_balm_sync{s}.csv"
+        lines = path.read_text().splitlines()
+        for k in range(1, len(lines)):
+            c = lines[k].split(",")
+            lines[k] = ",".join(c[:4] + [c[7], c[4], c[5], c[6]])  # w, x, y, z
+        path.write_text("\n".join(lines) + "\n")
+    rec = load_recording(sample_copy, "office")
+    assert ("the up axis of 100% of the LiDAR poses (poses/poses_lidar_*) points below the horizon: an upside-down "
+            "LiDAR, or quaternions in w,x,y,z order? They are read as qx,qy,qz,qw") in recording_warnings(rec)

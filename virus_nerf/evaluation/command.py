@@ -47,7 +47,7 @@ def sensors(
         lidar_scored_against_own_map,
         parse_gt_flag,
     )
-    from virus_nerf.evaluation.testpoints import require_test_points
+    from virus_nerf.evaluation.testpoints import recording_warnings, require_test_points
 
     require_int("--n-rays", n_rays, 1, 1_000_000)
     require_number("--lidar-angle-range-deg", lidar_angle_range_deg, 0.0, 360.0)
@@ -70,8 +70,9 @@ def sensors(
         raise OutputExistsError(out)
     warnings = [LIDAR_OWN_MAP] if "LiDAR" in config.sensors and protocols and lidar_scored_against_own_map(recording) \
         else []
+    warnings += recording_warnings(recording)
     result.write_json(out, warnings=warnings)
-    print(f"{result.n_points} test points of {Path(data) / room}")
+    print(f"{result.n_points} test point{'' if result.n_points == 1 else 's'} of {Path(data) / room}")
     print(result.table())
     for w in warnings:
         print(f"warning: {w}")

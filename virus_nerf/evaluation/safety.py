@@ -343,16 +343,16 @@ def safety_picture(image: np.ndarray, origin: tuple[float, float], resolution: f
 
 
 def lidar_rays_2d(recording, times: np.ndarray, height: float, band: float):
-    """The reference a LiDAR robot has (issue 42): for each time (s), the LiDAR scan nearest in
-    time, its points within +-band of `height` as 2D rays from the LiDAR (maps.evidence.Rays2D)."""
-    from virus_nerf.evaluation.testpoints import nearest_index
+    """The reference a LiDAR robot has (issue 42): for each time (s), the LiDAR scan taken then (the
+    nearest within SYNC_TOLERANCE_S; none: no rays), its points within +-band of `height` as 2D
+    rays from the LiDAR (maps.evidence.Rays2D)."""
+    from virus_nerf.evaluation.testpoints import lidar_scan_index
     from virus_nerf.maps.evidence import Rays2D
     from virus_nerf.sensors.geometry import transform_points
 
     out = Rays2D.empty()
-    if not len(recording.lidar_times):
-        return out
-    for k in sorted({nearest_index(recording.lidar_times, float(t)) for t in np.asarray(times).reshape(-1)}):
+    scans = {lidar_scan_index(recording, float(t)) for t in np.asarray(times).reshape(-1)}
+    for k in sorted(scans - {None}):
         pose = recording.lidar_pose_at(float(recording.lidar_times[k]))  # (4, 4) LiDAR to world
         pts = transform_points(pose, recording.lidar_scan(k).astype(np.float64))  # (M, 3) world
         xy = pts[np.abs(pts[:, 2] - height) <= band, :2] - pose[None, :2, 3]

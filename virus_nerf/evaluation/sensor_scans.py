@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from virus_nerf.data.ethz import Recording
-from virus_nerf.evaluation.testpoints import TestPoint, nearest_index
+from virus_nerf.evaluation.testpoints import TestPoint, lidar_scan_index
 from virus_nerf.maps.scans import FieldOfView, Scan2D, Sector
 from virus_nerf.sensors import irs, uss
 from virus_nerf.sensors.camera import z_depth_to_ray_length
@@ -51,13 +51,13 @@ def lidar_scan_2d(
     recording: Recording, test_point: TestPoint, band: float = 0.05, angle_range_deg: float = 360.0,
     angles_deg: tuple[float, float] | None = None,
 ) -> Scan2D:
-    """LiDAR points at camera height from the scan nearest in time to the test point, within
+    """LiDAR points at camera height from the scan taken at the test point's time (the nearest,
+    within SYNC_TOLERANCE_S; none: an empty scan of no field of view, which scores nothing), within
     `angle_range_deg` centred on the LiDAR heading or, when given, `angles_deg` (lo, hi) relative
     to it."""
-    if len(recording.lidar_times) == 0:
-        fov = FieldOfView(())
-        return Scan2D("LiDAR", np.zeros((0, 2)), test_point.origin_xy, fov)
-    k = nearest_index(recording.lidar_times, test_point.time)
+    k = lidar_scan_index(recording, test_point.time)
+    if k is None:
+        return Scan2D("LiDAR", np.zeros((0, 2)), test_point.origin_xy, FieldOfView(()))
     t_scan = float(recording.lidar_times[k])
     pose = recording.lidar_pose_at(t_scan)  # (4, 4) LiDAR to world
     pts = transform_points(pose, recording.lidar_scan(k).astype(np.float64))  # (M, 3) world

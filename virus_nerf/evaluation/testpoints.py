@@ -1,5 +1,9 @@
 """Test points of the evaluation (docs/method.md 6.1): the test frames of stack 1 and the stack-3 frame
-taken at (nearly) the same time. One test point = one scan origin shared by every scan."""
+taken at (nearly) the same time. One test point = one scan origin shared by every scan.
+
+"The same time" is within `SYNC_TOLERANCE_S` (0.15 s): a stack-3 frame or LiDAR scan farther
+from the test point's time was taken elsewhere, so the test point goes without it (stack 1's
+sensors alone; no LiDAR scan), and `pairing_warnings` says how many did."""
 
 from __future__ import annotations
 
@@ -7,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from virus_nerf.data.ethz import Recording
+from virus_nerf.data.ethz import SYNC_TOLERANCE_S, Recording
 from virus_nerf.errors import DataFormatError
 from virus_nerf.sensors.rig import MAIN_STACK
 
@@ -21,7 +25,7 @@ class TestPoint:
     __test__ = False  # not a pytest test class
 
     index1: int  # frame index in stack 1
-    index3: int | None  # synchronous frame index in stack 3 (None if the recording has no stack 3)
+    index3: int | None  # synchronous frame index in stack 3 (None: no stack 3, or none within SYNC_TOLERANCE_S)
     time: float  # s, stack-1 camera timestamp
     time3: float | None  # s, stack-3 camera timestamp
     pose1: np.ndarray  # (4, 4) camera-1 to world
@@ -60,8 +64,22 @@ def nearest_index(times: np.ndarray, t: float) -> int:
     return j - 1 if (t - times[j - 1]) <= (times[j] - t) else j
 
 
+def synchronous_index(times: np.ndarray, t: float, tolerance_s: float = SYNC_TOLERANCE_S) -> int | None:
+    """Index of the entry of sorted `times` nearest to t if it lies within `tolerance_s`, else None."""
+    if not len(times):
+        return None
+    j = nearest_index(times, t)
+    return j if abs(float(times[j]) - t) <= tolerance_s else None
+
+
+def lidar_scan_index(recording: Recording, t: float) -> int | None:
+    """The LiDAR scan taken at time t (s): the nearest within SYNC_TOLERANCE_S, else None."""
+    return synchronous_index(recording.lidar_times, t)
+
+
 def make_test_points(recording: Recording, split: str = "test") -> list[TestPoint]:
-    """One TestPoint per stack-1 frame labelled `split`, paired with the nearest stack-3 frame."""
+    """One TestPoint per stack-1 frame labelled `split`, paired with the stack-3 frame taken at the
+    same time (the nearest, within SYNC_TOLERANCE_S)."""
     if MAIN_STACK not in recording.stacks:
         raise DataFormatError(recording.room_dir / "measurements", "stack 1 (USS1.csv, CAM1) is needed for the test points")
     s1 = recording.stacks[MAIN_STACK]
@@ -69,7 +87,7 @@ def make_test_points(recording: Recording, split: str = "test") -> list[TestPoin
     points = []
     for i in s1.indices(split):
         t = float(s1.times[i])
-        j = nearest_index(s3.times, t) if s3 is not None and len(s3) else None
+        j = synchronous_index(s3.times, t) if s3 is not None else None
         points.append(
             TestPoint(
                 index1=int(i),
@@ -81,6 +99,39 @@ def make_test_points(recording: Recording, split: str = "test") -> list[TestPoin
             )
         )
     return points
+
+
+def recording_warnings(recording: Recording, scored: bool = True) -> list[str]:
+    """What `train`, `evaluate` and `sensors` say of a recording whose numbers may mislead: LiDAR
+    poses upside down (quaternions written w,x,y,z?), and when it is `scored`, test points that
+    went without their stack-3 frame or LiDAR scan."""
+    from virus_nerf.sensors.geometry import upside_down_share
+
+    out = []
+    lidar_poses = [s.lidar_to_world for s in recording.stacks.values()]
+    if lidar_poses and (down := upside_down_share(np.concatenate(lidar_poses))) > 0.5:
+        out.append(f"the up axis of {down:.0%} of the LiDAR poses (poses/poses_lidar_*) points below the horizon: "
+                   "an upside-down LiDAR, or quaternions in w,x,y,z order? They are read as qx,qy,qz,qw")
+    if scored and MAIN_STACK in recording.stacks:
+        out += pairing_warnings(recording, make_test_points(recording))
+    return out
+
+
+def pairing_warnings(recording: Recording, points: list[TestPoint]) -> list[str]:
+    """One line each for the test points that went without their stack-3 frame or LiDAR scan (none
+    taken within SYNC_TOLERANCE_S of them: a stream that starts late, ends early or pauses)."""
+    out = []
+    if PARTNER_STACK in recording.stacks:
+        alone = sum(p.index3 is None for p in points)
+        if alone:
+            out.append(f"{alone} of {len(points)} test points have no stack-{PARTNER_STACK} frame within "
+                       f"{SYNC_TOLERANCE_S:g} s: they are scored with stack {MAIN_STACK}'s cameras, USS and IRS alone")
+    if len(recording.lidar_times):
+        unscanned = sum(lidar_scan_index(recording, p.time) is None for p in points)
+        if unscanned:
+            out.append(f"{unscanned} of {len(points)} test points have no LiDAR scan within {SYNC_TOLERANCE_S:g} s: "
+                       "the LiDAR row leaves them out")
+    return out
 
 
 def split_file(recording: Recording) -> str:

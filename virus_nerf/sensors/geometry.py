@@ -72,6 +72,14 @@ def interpolate_poses(times_s: np.ndarray, poses: np.ndarray, t_s: np.ndarray) -
     return out
 
 
+def upside_down_share(poses: np.ndarray) -> float:
+    """The share of (N, 4, 4) poses whose z axis points below the horizon (NaN poses left out): a
+    ground robot's LiDAR or base stands upright, and quaternions read in the wrong order turn it over."""
+    up = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[:, 2, 2]
+    up = up[np.isfinite(up)]
+    return float(np.mean(up < 0.0)) if len(up) else 0.0
+
+
 def invert_pose(pose: np.ndarray) -> np.ndarray:
     """Inverse of (..., 4, 4) rigid transforms."""
     pose = np.asarray(pose, dtype=np.float64)

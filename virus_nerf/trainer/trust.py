@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from virus_nerf.evaluation.evaluate import LIDAR_OWN_MAP, lidar_scored_against_own_map
+from virus_nerf.evaluation.testpoints import recording_warnings
 
 MIN_TRAINING_FRAMES = 10  # fewer training frames than this: the map rests on a few views
 
@@ -39,4 +40,4 @@ def map_warnings(trainer) -> list[str]:
                    "separated free from occupied space; train longer")
     if lidar_scored_against_own_map(trainer.recording):
         out.append(LIDAR_OWN_MAP)
-    return out
+    return out + recording_warnings(trainer.recording, scored=bool(cfg.evaluation.gt))

@@ -38,6 +38,7 @@ from virus_nerf.data.split import DEFAULT_RATIOS, make_split, write_split
 from virus_nerf.data.voxel_map import VoxelMap
 from virus_nerf.errors import DataFormatError, UsageError
 from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.sensors.geometry import upside_down_share
 from virus_nerf.sensors.rig import MAIN_STACK
 
 Key = tuple[int | None, str]  # (stack, role); stack None for the LiDAR and tf topics
@@ -49,12 +50,6 @@ class Plan:
 
     roles: dict[Key, str]  # (stack, role) -> topic
     intrinsics: dict[int, Intrinsics]  # from the topics file's CSV, for stacks without camera_info (0 x 0: the images')
-
-
-def upside_down_share(track: PoseTrack) -> float:
-    """The share of the poses whose z axis points below the horizon (a ground robot's LiDAR or base
-    stands upright: what quaternions read in the wrong order turn over)."""
-    return float(np.mean(track.poses[:, 2, 2] < 0.0)) if len(track.poses) else 0.0
 
 
 class ImportRun:
@@ -81,7 +76,7 @@ class ImportRun:
             (self.room_dir / sub).mkdir(parents=True)
         self._first_pass()
         track, pose_settings = self._poses(poses, csv_poses, tf_parent, tf_child, kiss)
-        if (down := upside_down_share(track)) > 0.5:
+        if (down := upside_down_share(track.poses)) > 0.5:
             self.notes.append(f"the up axis of {down:.0%} of the poses (--poses {poses}) points below the horizon: an "
                               "upside-down LiDAR, or quaternions in w,x,y,z order? They are read as qx,qy,qz,qw")
         matches = {s: self._match(s, track, poses) for s in self.cfg.stacks}
