@@ -213,6 +213,19 @@ def test_nearest_matching_with_tolerance_and_thinning():
     assert mt.color_index.tolist() == [0] and mt.dropped_frames == {"no uss within 0.05 s": 1, "no pose": 1}
 
 
+def test_a_colour_frame_published_twice_is_one_sample():
+    """A driver that publishes a frame twice (one stamp): the first in the bag is the sample, the
+    other is dropped as a repeated stamp, before the thinning (a recording's times must increase)."""
+    color = np.array([0.4, 0.0, 0.2, 0.2, 0.0])  # bag order
+    uss = {"uss": (np.array([0.0, 0.2, 0.4]), 0.05)}
+    mt = match_stack(1, color, uss, np.ones(5, dtype=bool), 0.0)
+    assert mt.color_index.tolist() == [1, 2, 0] and mt.times_s.tolist() == [0.0, 0.2, 0.4]
+    assert mt.partner["uss"].tolist() == [0, 1, 2] and mt.dropped_frames == {"repeated stamp": 2}
+    mt = match_stack(1, color, uss, np.ones(5, dtype=bool), 4.0)  # 0.25 s apart: 0.2 goes
+    assert mt.color_index.tolist() == [1, 0]
+    assert mt.dropped_frames == {"repeated stamp": 2, "thinned to camera_rate_hz": 1}
+
+
 def test_pose_track_interpolates_and_tf_chain_composes():
     track = PoseTrack(np.array([0.0, 1.0]), np.stack([np.eye(4), pose_matrix(np.array([2.0, 0, 0]),
                                                                                np.array([0, 0, np.sin(0.5), np.cos(0.5)]))]))

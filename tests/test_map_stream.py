@@ -109,6 +109,29 @@ def test_streamed_frames_are_the_importers(bags, tmp_path, poses):
             assert np.array_equal(got[i].rgb, st.image(i))
 
 
+def test_a_colour_frame_published_twice_is_one_frame_imported_and_streamed(bags, tmp_path):
+    """A camera driver that publishes each frame twice (one stamp): import-bag and the stream make
+    one frame of each, the bag's first, and count the others as repeated stamps. Before, the import
+    wrote two rows of one time (which load_recording refuses) and map-bag stopped at the second."""
+    from virus_nerf.data.bags.importer import import_bag
+
+    topic = default_topics().stacks[1].color
+    twice = _rewrite(bags["ros1"], tmp_path / "twice.bag",
+                     lambda t, t_ns, msg, typ: [(t, typ, t_ns, msg)] + ([(t, typ, t_ns + 1, msg)] if t == topic else []))
+    import_bag(bags["ros1"], tmp_path / "once", poses="csv", room="drive", poses_file=bags["csv"])
+    report = import_bag(twice, tmp_path / "twice", poses="csv", room="drive", poses_file=bags["csv"])
+    once, rec = load_recording(tmp_path / "once", "drive"), load_recording(tmp_path / "twice", "drive")
+    n = len(once.stacks[1])
+    assert f"stack 1: {n} colour frames dropped (repeated stamp)" in report.summary()
+    for s, st in once.stacks.items():
+        np.testing.assert_array_equal(rec.stacks[s].times, st.times)
+        np.testing.assert_array_equal(rec.stacks[s].uss_range, st.uss_range)
+    frames, sync = _stream(twice, "csv", poses_file=bags["csv"])
+    assert len(frames) == sum(len(st) for st in once.stacks.values())
+    assert dict(sync.dropped[1]) == {"repeated stamp": n} and not sync.dropped[3]
+    np.testing.assert_allclose([f.frame.time for f in frames if f.frame.stack_id == 1], once.stacks[1].times, atol=1e-6)
+
+
 def test_a_ros1_bag_with_tf_gives_the_ros2_bags_frames(bags, tiny_office, tmp_path):
     """write_bag(ros_version=1, tf=True): rosbags' Noetic types lack tf2_msgs, registered for /tf;
     its frames and poses streamed from /tf are the ROS 2 bag's."""

@@ -273,6 +273,9 @@ class LiveSync:
         t = msg.time_s
         self.last_color[s] = t
         self.first_color.setdefault(s, t)
+        if t == self.last_kept[s]:  # a driver that publishes a frame twice: the first is the sample
+            self.dropped[s]["repeated stamp"] += 1
+            return
         rate = self.cfg.sync.camera_rate_hz
         if rate > 0 and t - self.last_kept[s] < 1.0 / rate - 1e-6:
             self.dropped[s]["thinned to camera_rate_hz"] += 1

@@ -72,11 +72,18 @@ class StackMatch:
 def match_stack(stack: int, color_s: np.ndarray, streams: dict[str, tuple[np.ndarray, float]],
                 pose_ok: np.ndarray, rate_hz: float) -> StackMatch:
     """Keep the colour frames (thinned to `rate_hz`) that have every stream within its tolerance
-    and a pose. streams: role -> (stamps (M,), tolerance s). Reasons count the first missing partner."""
+    and a pose; of frames with one stamp (a driver that publishes a frame twice) the first in the
+    bag. streams: role -> (stamps (M,), tolerance s). Reasons count the first missing partner."""
     order = np.argsort(color_s, kind="stable")
+    sorted_s = np.asarray(color_s, dtype=np.float64)[order]
+    repeated = np.r_[False, np.diff(sorted_s) == 0]  # (N,) in time order: a stamp kept already
     keep = np.zeros(len(color_s), dtype=bool)
-    keep[order] = thin_to_rate(np.asarray(color_s)[order], rate_hz)
-    dropped = {"thinned to camera_rate_hz": int((~keep).sum())}
+    keep[order] = ~repeated
+    dropped = {"repeated stamp": int(repeated.sum())}
+    thinned = keep.copy()
+    thinned[order[~repeated]] = thin_to_rate(sorted_s[~repeated], rate_hz)
+    dropped["thinned to camera_rate_hz"] = int((keep & ~thinned).sum())
+    keep = thinned
     partner = {}
     for role, (times, tol) in streams.items():
         idx = match_nearest(color_s, times, tol)
