@@ -81,6 +81,9 @@ def test_a_recording_without_lidar_trains_maps_and_says_nothing_was_scored(no_li
     code, _, err = run_cli(["evaluate", "--run", run])
     assert code == 2 and len(err.strip().splitlines()) == 1
     assert "the run was trained without ground truth (evaluation.gt none)" in err and "--gt names" not in err
+    # the simulated room has its scene.json but no LiDAR map: only --gt exact can score it
+    assert err.endswith("give --gt exact to score it (its recording has no LiDAR map, only the simulator's "
+                        "scene.json)\n"), err
     code, _, err = run_cli(["evaluate", "--run", run, "--gt", "none"])
     assert code == 2 and "--gt none: nothing to score" in err and len(err.strip().splitlines()) == 1
 

@@ -732,3 +732,26 @@ def test_quaternions_written_w_x_y_z_are_warned_of(sample_copy):
     rec = load_recording(sample_copy, "office")
     assert ("the up axis of 100% of the LiDAR poses (poses/poses_lidar_*) points below the horizon: an upside-down "
             "LiDAR, or quaternions in w,x,y,z order? They are read as qx,qy,qz,qw") in recording_warnings(rec)
+
+
+def test_images_under_other_names_are_named_not_counted_as_none(sample_copy):
+    """JPEG frames img0.jpg.. where the layout reads img0.png..: the folder is named with what it
+    holds, not counted as 0 images among the stack's sample counts."""
+    folder = sample_copy / "office" / "measurements" / "CAM1_color_image_raw"
+    for p in sorted(folder.glob("img*.png")):
+        p.rename(p.with_suffix(".jpg"))
+    with pytest.raises(DataFormatError, match=r"CAM1_color_image_raw: no img<i>.png among its 5 files \(e.g. "
+                                              r"img0.jpg\); expected them named img0.png, img1.png, ...$"):
+        load_recording(sample_copy, "office")
+
+
+def test_a_recording_without_stack_1_names_the_way_to_map_it(sample_copy):
+    """Only stack 3 (a robot with one stack, numbered 3): the scores need stack 1's test frames; the
+    refusal says how to map it anyway."""
+    from virus_nerf.evaluation.testpoints import make_test_points
+
+    rec = load_recording(sample_copy, "office", stacks=[3])
+    with pytest.raises(DataFormatError, match=r"measurements: stack 1 \(USS1.csv, CAM1\) is needed for the test "
+                                              r"points; train --gt none maps the recording without scoring it, or "
+                                              r"number the main stack's files 1$"):
+        make_test_points(rec)

@@ -284,6 +284,11 @@ def _numbered_files(folder: Path, suffix: str) -> list[Path]:
         m = re.fullmatch(rf"img(\d+){re.escape(suffix)}", p.name)
         if m:
             found[int(m.group(1))] = p
+    if not found:  # img0.jpg, frame_000.png: the folder holds images under names the layout does not read
+        others = sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))
+        if others:
+            raise DataFormatError(folder, f"no img<i>{suffix} among its {len(others)} files (e.g. {others[0]}); "
+                                          f"expected them named img0{suffix}, img1{suffix}, ...")
     missing = sorted(set(range(len(found))) - set(found))
     if missing:
         raise DataFormatError(folder / f"img{missing[0]}{suffix}", "file missing (images must be numbered img0..imgN-1)")

@@ -81,7 +81,9 @@ def make_test_points(recording: Recording, split: str = "test") -> list[TestPoin
     """One TestPoint per stack-1 frame labelled `split`, paired with the stack-3 frame taken at the
     same time (the nearest, within SYNC_TOLERANCE_S)."""
     if MAIN_STACK not in recording.stacks:
-        raise DataFormatError(recording.room_dir / "measurements", "stack 1 (USS1.csv, CAM1) is needed for the test points")
+        raise DataFormatError(recording.room_dir / "measurements", f"stack {MAIN_STACK} (USS{MAIN_STACK}.csv, "
+                              f"CAM{MAIN_STACK}) is needed for the test points; train --gt none maps the recording "
+                              f"without scoring it, or number the main stack's files {MAIN_STACK}")
     s1 = recording.stacks[MAIN_STACK]
     s3 = recording.stacks.get(PARTNER_STACK)
     points = []

@@ -274,12 +274,17 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
     if not cfg.evaluation.gt:
         from virus_nerf.evaluation.evaluate import scene_path
 
-        if trainer.recording.map_path is None and not scene_path(trainer.recording).is_file():
+        rec = trainer.recording
+        usable = (["map", "paper"] if rec.map_path is not None else []) + \
+            (["exact"] if scene_path(rec).is_file() else [])  # the protocols whose input the recording has
+        if not usable:
             raise UsageError(f"--run {run}: the run was trained without ground truth, and its recording has no "
                              "LiDAR map (maps/map_*.pcd) to score it against; its map is in the run (export "
                              "writes it again)")
         raise UsageError(f"--run {run}: the run was trained without ground truth (evaluation.gt none); "
-                         "give --gt map, exact or paper to score it")
+                         f"give --gt {' or '.join(usable)} to score it"
+                         + ("" if rec.map_path is not None else " (its recording has no LiDAR map, only the "
+                            "simulator's scene.json)"))
     check_ground_truth_inputs(trainer.recording, cfg.evaluation.gt)
     result = final_evaluation(trainer, run)
     # the run's steps and rate, from its checkpoint: its device names where they ran
