@@ -755,3 +755,21 @@ def test_a_recording_without_stack_1_names_the_way_to_map_it(sample_copy):
                                               r"points; train --gt none maps the recording without scoring it, or "
                                               r"number the main stack's files 1$"):
         make_test_points(rec)
+
+
+def test_a_stack_whose_poses_are_in_another_frame_is_warned_of(sample_copy):
+    """Stack 3's pose files 0.5 m along x (another world frame): both stacks' files hold the one
+    LiDAR's poses, which agree to 0.08 mm in the real sample; 0.50 m apart is said."""
+    from virus_nerf.evaluation.testpoints import recording_warnings
+
+    assert recording_warnings(load_recording(sample_copy, "office")) == []
+    for kind in ("cam", "lidar"):
+        path = sample_copy / "office" / "poses" / f"poses_{kind}_balm_sync3.csv"
+        lines = path.read_text().splitlines()
+        for k in range(1, len(lines)):
+            c = lines[k].split(",")
+            lines[k] = ",".join([c[0], repr(float(c[1]) + 0.5)] + c[2:])
+        path.write_text("\n".join(lines) + "\n")
+    assert recording_warnings(load_recording(sample_copy, "office")) == [
+        "stack 3's LiDAR poses lie a median 0.50 m from stack 1's at the same times (one LiDAR: they should agree): "
+        "are the stacks' files on different clocks or in different frames?"]
