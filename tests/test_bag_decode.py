@@ -176,6 +176,9 @@ def test_tf_and_odometry_decode_to_poses_and_refuse_a_broken_quaternion():
 
 def test_stamp_and_a_node_source_without_an_index():
     assert m.stamp_s(NS(header=_header(3, 250_000_000))) == 3.25 and m.stamp_s(NS()) == 0.0
+    # a TFMessage has no header: it is stamped by its newest transform
+    tf = NS(transforms=[NS(header=_header(7, 0)), NS(header=_header(5, 500_000_000))])
+    assert m.stamp_s(tf) == 7.0 and m.stamp_s(NS(transforms=[])) == 0.0
     err = m.Where("ros2 node virus_nerf", "/TOF1").error("has 3 zones; expected 64 (8x8)", field="meas")
     assert str(err) == "ros2 node virus_nerf, field 'meas': topic /TOF1: has 3 zones; expected 64 (8x8)"
 

@@ -57,7 +57,9 @@ def _png16(values) -> bytes:
 def test_image_transport_compressed_depth_16uc1_and_32fc1():
     """compressedDepth (a RealSense's /.../image_raw/compressedDepth): a 12-byte header
     (format, depthQuantA, depthQuantB) before a 16-bit PNG; 16UC1 holds mm, 32FC1 the quantised
-    inverse depth A / d + B (0 = invalid). By hand: A = 100, B = 0: 50 -> 2 m, 40 -> 2.5 m."""
+    inverse depth A / d + B (0 = invalid). By hand: A = 100, B = 0: 50 -> 2 m, 40 -> 2.5 m; with
+    image_transport's defaults (depth_quantization 100, depth_max 10 m) A = 100 * 101 = 10100 and
+    B = 1 - 10100 / 10 = -1009: 2 m was stored as 10100 / 2 - 1009 = 4041, 4 m as 1516."""
     import struct
 
     def message(fmt, quant_a, quant_b, values):
@@ -68,6 +70,8 @@ def test_image_transport_compressed_depth_16uc1_and_32fc1():
     assert mm.tolist() == [[1000, 0, 2500]]
     mm = m.decode_depth(message("32FC1; compressedDepth png", 100.0, 0.0, [[50, 40, 0]]), m.COMPRESSED, WHERE).mm
     assert mm.tolist() == [[2000, 2500, 0]]
+    mm = m.decode_depth(message("32FC1; compressedDepth png", 10100.0, -1009.0, [[4041, 1516]]), m.COMPRESSED, WHERE).mm
+    assert mm.tolist() == [[2000, 4000]]
     with pytest.raises(DataFormatError, match="the RVL codec is not read"):
         m.decode_depth(message("16UC1; compressedDepth rvl", 0.0, 0.0, [[1]]), m.COMPRESSED, WHERE)
     junk = NS(format="png", data=np.frombuffer(b"not an image at all", dtype=np.uint8))

@@ -103,6 +103,9 @@ def test_probability_map_of_an_analytic_grid(tmp_path):
     # a slice through the lower layer never sees the block; a wide band takes the maximum of both
     assert np.all(maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 0.25, 0.1, lo, hi, 0.25) == 0.1)
     assert np.count_nonzero(maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 0.5, 0.25, lo, hi, 0.25) == 0.9) == 8
+    # at 0.4 m the upper layer's centre (0.75 m) lies 0.35 m off: outside a 0.2 m band, on a 0.35 m one
+    assert np.all(maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 0.4, 0.2, lo, hi, 0.25) == 0.1)
+    assert np.count_nonzero(maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 0.4, 0.35, lo, hi, 0.25) == 0.9) == 8
     # a raster larger than the grid: outside pixels are 0.5 (no knowledge)
     big = maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 0.75, 0.1, np.array([-1.0, 0]), hi, 0.25)
     assert big.shape == (20, 8) and np.all(big[:4] == 0.5) and np.all(big[8:12, 2:4] == 0.9)

@@ -88,6 +88,15 @@ def test_grid_round_trip():
     np.testing.assert_array_equal(irs.measurements_from_grid(grid), meas)
 
 
+def test_readings_up_to_0_1_m_are_invalid():
+    """docs/method.md 4: a zone reading at or below 0.1 m is invalid (0 mm is the sensor's "no
+    target"); 101 and 110 mm are ranges. Zones 0-4 of the sensor order are image column 7, rows 0-4."""
+    meas = np.full(64, 2000.0)
+    meas[:5] = [0.0, 90.0, 100.0, 101.0, 110.0]
+    grid = irs.grid_from_mm(meas)
+    np.testing.assert_array_equal(grid[:5, 7], [np.nan, np.nan, np.nan, 0.101, 0.11])
+
+
 def test_zone_directions_fall_in_their_zone():
     d = irs.zone_directions(3)
     row, col = irs.zone_of_directions(d.reshape(-1, 3))

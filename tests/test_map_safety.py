@@ -521,3 +521,37 @@ def test_evaluate_scores_a_driving_run_on_the_frames_it_trained_on(tiny_office, 
     own, again = (json.loads(p.read_text()) for p in (run / "metrics.json", tmp_path / "again.json"))
     assert again["safety"] == own["safety"]
     assert again["sensors"]["NeRF"] == own["sensors"]["NeRF"]
+
+
+def test_the_planner_moves_diagonally_and_counts_a_path_past_both_kinds_once():
+    """By hand, a robot of 1 cm on 10 cm pixels (its configuration space: the free pixels) with no
+    tolerance (a danger pixel is the obstacle's own):
+    - free pixels only on a diagonal: 8-connected, every start reaches both others (3 x 2 paths);
+    - a corridor of 5 pixels, the body's pallet on column 1, a band obstacle on column 3: of the
+      20 ordered paths, 14 pass column 3 (crossing) and 6 pass column 1 but not 3 (crossing_below);
+      a path past both is the band's alone, wherever its walk meets them first."""
+    from virus_nerf.evaluation.safety import planner_check
+
+    res = 0.1
+    diagonal = np.full((3, 3), OCCUPIED, dtype=np.uint8)
+    diagonal[[0, 1, 2], [0, 1, 2]] = FREE
+    check = planner_check(diagonal, (0.0, 0.0), res, np.zeros((0, 2)), radius=0.01, tolerance=0.0)
+    assert (check.paths, check.crossing) == (6, 0)
+    corridor = np.full((3, 5), OCCUPIED, dtype=np.uint8)
+    corridor[1] = FREE  # y 0.1-0.2 m
+    band, pallet = np.array([[0.35, 0.15]]), np.array([[0.15, 0.15]])
+    check = planner_check(corridor, (0.0, 0.0), res, band, radius=0.01, tolerance=0.0, body_xy=pallet)
+    assert (check.paths, check.crossing, check.crossing_below) == (20, 14, 6)
+    assert check.unsafe_m2 == pytest.approx(res * res) and check.unsafe_below_m2 == pytest.approx(res * res)
+
+
+def test_an_obstacle_exactly_1_m_from_the_path_is_within_1_m():
+    """The zones are 'at most this far': on 0.25 m pixels an obstacle pixel 4 pixels (1.00 m) from
+    the path's pixel counts in the 1 m zone, one 5 pixels away (1.25 m) only in the 2 m zone."""
+    res = 0.25
+    image = np.full((3, 8), FREE, dtype=np.uint8)
+    path = np.array([[0.125, 0.375]])
+    for column, zones in ((4, [1, 1, 1]), (5, [0, 1, 1])):
+        obstacle = np.array([[(column + 0.5) * res, 0.375]])
+        got = [z.obstacles for z in map_safety(image, (0.0, 0.0), res, obstacle, path)]
+        assert got == zones, column

@@ -80,6 +80,23 @@ def test_uss_reach_is_the_datasheet_range_on_the_axis():
     assert np.isnan([m.measure(wall_at(8.5), LOOK_X, rng) for _ in range(10)]).all()
 
 
+def test_uss_reach_falls_off_towards_the_cone_edge():
+    """A pole 0.1 m wide 26 deg off the axis (rho ~0.95 of the 27.5 deg half-angle): its rays reach
+    at most 8 m * (1 - 0.75 * 0.85) = 2.9 m, so the pole echoes at 2 m and is silent at 4 m, where
+    the same pole on the axis echoes."""
+    rng = np.random.default_rng(0)
+    m = UssModel(dropout=0.0)
+
+    def pole(distance: float, bearing_deg: float) -> Scene:
+        a = np.deg2rad(bearing_deg)
+        return Scene([SceneObject("pole", "pole", (Box((distance * np.cos(a), distance * np.sin(a), 0), (0.1, 0.1, 20)),),
+                                  Material((0.8,) * 3, smooth=False))])
+
+    assert np.isfinite([m.measure(pole(2.0, 26.0), LOOK_X, rng) for _ in range(10)]).all()
+    assert np.isnan([m.measure(pole(4.0, 26.0), LOOK_X, rng) for _ in range(10)]).all()
+    assert np.isfinite([m.measure(pole(4.0, 0.0), LOOK_X, rng) for _ in range(10)]).all()
+
+
 def test_uss_model_matches_the_bench(uss_bench_dir):
     rows = uss_bench_comparison(uss_bench_dir, n_model=100)
     print("\n" + format_bench_table(rows))

@@ -321,6 +321,10 @@ def test_free_space_loss_by_hand():
     assert float(loss.detach()) == pytest.approx((0.01 + 0.04 + 0.0) / 2)
     loss.backward()
     np.testing.assert_allclose(weights.grad.numpy(), [0.1, 0.2, 0.0, 0.0, 0.0], atol=1e-7)  # 2 w / 2 rays
+    # a sample is emptied only if it ends before the limit: 5 mm past it, it is where the surface may be
+    one = torch.tensor([0.5])
+    assert float(free_space_loss(one, torch.tensor([2.005]), torch.tensor([0, 1]), torch.tensor([2.0]))) == 0.0
+    assert float(free_space_loss(one, torch.tensor([1.995]), torch.tensor([0, 1]), torch.tensor([2.0]))) == 0.25
 
 
 def test_stereo_free_until_by_hand():
@@ -350,6 +354,9 @@ def test_line_of_sight_terms_add_the_stereo_targets_by_hand():
                                 stereo_sigma=torch.tensor([nan, 0.1]))
     assert float(total) == pytest.approx(0.5 * 0.05 + 20.0 * 0.09)
     assert float(line_of_sight_terms(w, weights, t_ends, offsets, uss_range=uss)) == pytest.approx(0.5 * 0.05)
+    # an echo at 2.05 m: free until 1.95 m, short of the echo; the 2 m sample (the wall) is not emptied
+    near = torch.tensor([2.05, nan])
+    assert float(line_of_sight_terms(w, weights, t_ends, offsets, uss_range=near)) == pytest.approx(0.5 * 0.01)
 
 
 def test_stereo_line_of_sight_only_offline_in_a_fitted_room_up_to_its_size():
