@@ -1,6 +1,6 @@
 """Hash-encoding and field throughput on CPU (docs/method.md 10): numba vs plain PyTorch backends.
 
-Run: .venv/bin/python benchmarks/bench_field.py [--n 131072] [--reps 5]
+Run: .venv/bin/python benchmarks/bench_field.py [--n 131072] [--reps 3]
 Prints one JSON object. Points are ray-like (4096 rays x 32 samples along random directions in
 the unit box), the access pattern of training. Numbers are wall-clock minima over repetitions;
 on a shared machine they are noisy (see "load_avg").

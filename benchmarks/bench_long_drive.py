@@ -106,7 +106,11 @@ def main() -> None:
             print(json.dumps(row), flush=True)
     if args.out:
         write_out(args.out, json.dumps({"command": "benchmarks/bench_long_drive.py " + " ".join(sys.argv[1:]),
-                                        "scene": args.scene, "drives": rows}, indent=1) + "\n")
+                                        "scene": args.scene, "ground_truth": "map",
+                                        "units": {"zone3_accuracy_coverage_m": "m",
+                                                  "safety_marked_free_1m_2m_all": "share in [0, 1]",
+                                                  "free_recall": "share in [0, 1]"},
+                                        "drives": rows}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -61,6 +61,15 @@ def measure(recording, field_name: str, batch: int, grid: str, steps: int, warm:
         }
 
 
+def _only_room(ap: argparse.ArgumentParser, data: Path) -> str:
+    """The one room folder of an ETHZ recording (a folder holding measurements/); several or none: refused."""
+    rooms = sorted(p.name for p in Path(data).iterdir() if (p / "measurements").is_dir()) if Path(data).is_dir() else []
+    if len(rooms) != 1:
+        ap.error(f"--data {data}: {'holds the rooms ' + ', '.join(rooms) if rooms else 'holds no room folder'}; "
+                 "expected one room (name it with --room)")
+    return rooms[0]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=20, help="timed steps per configuration")
@@ -69,6 +78,7 @@ def main() -> None:
     ap.add_argument("--batches", default=None, help="comma-separated rays per step (default 1024,4096)")
     ap.add_argument("--fields", default=None, help="comma-separated field profiles: cpu_default,paper")
     ap.add_argument("--data", type=Path, default=None, help="an ETHZ recording (default: simulate an office)")
+    ap.add_argument("--room", default=None, help="the room folder in --data (default: its only room)")
     args = ap.parse_args()
     # the flags checked before anything is simulated or trained, each in one line
     fields = tuple(args.fields.split(",")) if args.fields else None
@@ -92,7 +102,7 @@ def main() -> None:
         if data is None:
             data = Path(tmp) / "office"
             simulate(scene="office", out=data, seed=0, duration=20.0, resolution_scale=0.5)
-        recording = load_recording(data, "office")
+        recording = load_recording(data, args.room or _only_room(ap, data))
         fields = fields or (("cpu_default",) if args.quick else ("cpu_default", "paper"))
         batches = batches or ((1024,) if args.quick else (1024, 4096))
         results = {}
