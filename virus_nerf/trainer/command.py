@@ -262,7 +262,7 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
     from virus_nerf.evaluation.plots import plots_dir_for, write_plots
     from virus_nerf.trainer.loop import TrainSummary
     from virus_nerf.trainer.report import RUN_SCAN_MAPS
-    from virus_nerf.trainer.run import final_evaluation
+    from virus_nerf.trainer.run import print_scores, score_run
     from virus_nerf.trainer.run_folder import train_summary_block
 
     if n_rays is not None or protocols is not None:
@@ -286,14 +286,10 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
                          + ("" if rec.map_path is not None else " (its recording has no LiDAR map, only the "
                             "simulator's scene.json)"))
     check_ground_truth_inputs(trainer.recording, cfg.evaluation.gt)
-    result = final_evaluation(trainer, run)
+    result, run_safety = score_run(trainer, run, cfg)  # as `train` scored it
     # the run's steps and rate, from its checkpoint: its device names where they ran
     summary = TrainSummary(trainer.mapper.step, trainer.mapper.seconds, trainer.mapper.samples,
                            device=trainer.trained_on)
-    from virus_nerf.evaluation.safety import mapper_safety, safety_line
-
-    trainer.prepare()  # the frames the run trained on and its stereo points (cached): the map `train` judged
-    run_safety = mapper_safety(trainer.mapper, trainer.recording, cfg.evaluation.height_band_m)
     from virus_nerf.trainer.trust import map_warnings
 
     warnings = map_warnings(trainer)  # the run's own (metrics.json's): this document stands alone
@@ -306,10 +302,6 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
         raise OutputExistsError(out)
     result.write_json(out, train=train_summary_block(cfg, summary),
                       safety=None if run_safety is None else run_safety.document, warnings=warnings)
-    print(result.table())
-    for w in warnings:
-        print(f"warning: {w}")
-    if run_safety is not None:
-        print(safety_line(run_safety.document))
+    print_scores(result, run_safety, warnings)
     print(f"wrote {out}" + (f" and {plots_dir_for(out)}/" if plots else ""))
 

@@ -233,15 +233,36 @@ def _keep_resumed_config(out: Path, cfg, resume: bool) -> None:
 
 
 def _score(trainer, out: Path, cfg, eval_recording):
-    """(EvaluationResult, RunSafety | None): the scans against the ground truth, in the true
-    (optimised) frame, and the planner's map against it."""
-    from virus_nerf.evaluation.safety import mapper_safety
-
+    """(EvaluationResult, RunSafety | None) of `score_run`, in the true (optimised) frame, and the
+    final point of the metric-vs-time curve."""
     if eval_recording is not trainer.recording:
         trainer.evaluate_on(eval_recording)  # the map and test points are judged in the true frame
-    result = final_evaluation(trainer, out)
-    trainer.record_eval(result, None)  # the final point of the metric-vs-time curve
+    result, run_safety = score_run(trainer, out, cfg)
+    trainer.record_eval(result, None)
+    return result, run_safety
+
+
+def score_run(trainer, run: Path, cfg):
+    """(EvaluationResult, RunSafety | None): a trained run's scores, as `train` ends and `evaluate`
+    gives them again: its scans with the instantaneous sensors against the ground truth
+    (`final_evaluation`), and the map its snapshots write, judged against the LiDAR map on the
+    frames it trained on (and their stereo points)."""
+    from virus_nerf.evaluation.safety import mapper_safety
+
+    result = final_evaluation(trainer, run)
+    trainer.prepare()  # a trainer loaded from its checkpoint: the frames and stereo points it trained on
     return result, mapper_safety(trainer.mapper, trainer.recording, cfg.evaluation.height_band_m)
+
+
+def print_scores(result, run_safety, warnings) -> None:
+    """The scores' table, the warnings and the safety line, as `train` and `evaluate` print them."""
+    from virus_nerf.evaluation.safety import safety_line
+
+    print(result.table())
+    for w in warnings:
+        print(f"warning: {w}")
+    if run_safety is not None:
+        print(safety_line(run_safety.document))
 
 
 def _write_results(trainer, out: Path, cfg, summary, result, run_safety, warnings, resume: bool) -> dict:
@@ -263,13 +284,7 @@ def _write_results(trainer, out: Path, cfg, summary, result, run_safety, warning
 def _print_results(trainer, out: Path, summary, result, run_safety, warnings) -> None:
     """The table, the warnings, the safety lines and the speed; then a final checkpoint that did
     not fit is named (exit 2)."""
-    print(result.table())
-    for w in warnings:
-        print(f"warning: {w}")
-    if run_safety is not None:
-        from virus_nerf.evaluation.safety import safety_line
-
-        print(safety_line(run_safety.document))
+    print_scores(result, run_safety, warnings)
     print(
         f"trained {summary.steps} steps in {summary.seconds:.1f} s "
         f"({summary.steps_per_s:.2f} steps/s, {summary.samples_per_s / 1e6:.3f} M samples/s); "
