@@ -212,6 +212,10 @@ def test_nearest_matching_with_tolerance_and_thinning():
     idx = match_nearest(np.array([0.0, 1.0, 2.0, 5.0]), np.array([2.04, 0.9, 0.05]), 0.1)
     assert idx.tolist() == [2, 1, 0, -1]  # any input order; 5.0 has nothing within 0.1 s
     assert thin_to_rate(np.arange(0, 1.01, 0.1), 4.0).tolist() == [1, 0, 0, 1, 0, 0, 1, 0, 0, 1, 0]
+    assert match_nearest(np.array([0.5]), np.array([0.75, 0.25]), 0.3).tolist() == [1]  # a tie: the earlier stamp
+    # 30 Hz stamps on the epoch clock thinned to 15 Hz: every second frame (their gaps round a little short)
+    epoch = 1.7e9 + np.arange(30) / 30.0
+    assert thin_to_rate(epoch, 15.0).tolist() == [True, False] * 15
     mt = match_stack(1, np.array([0.0, 0.2, 0.4]), {"uss": (np.array([0.0, 0.41]), 0.05)},
                      np.array([True, True, False]), 0.0)
     assert mt.color_index.tolist() == [0] and mt.dropped_frames == {"no uss within 0.05 s": 1, "no pose": 1}
@@ -369,6 +373,12 @@ def test_ate_ignores_a_rigid_offset():
     moved = pose_matrix(np.array([1.0, 2, 3]), np.array([0, 0, np.sin(0.3), np.cos(0.3)])) @ ref
     err = trajectory_error(moved, ref)
     assert err.median_m < 1e-9 and err.median_deg < 1e-5
+    # by hand, no alignment: four poses exact, the fifth turned 40 deg about z and 3 m off
+    est = ref[:5].copy()
+    est[4] = pose_matrix(np.array([3.0, 0, 0]), np.array([0, 0, np.sin(np.deg2rad(20)), np.cos(np.deg2rad(20))])) @ ref[4]
+    err = trajectory_error(est, ref[:5], align=np.eye(4))
+    assert (err.median_deg, err.median_m) == (0.0, 0.0) and err.max_deg == pytest.approx(40.0)
+    assert err.max_m == pytest.approx(np.linalg.norm(est[4, :3, 3] - ref[4, :3, 3])) and err.mean_m == pytest.approx(err.max_m / 5)
 
 
 def test_topics_file_defaults_and_errors(tmp_path):

@@ -120,6 +120,48 @@ def test_probability_map_of_an_analytic_grid(tmp_path):
     assert Image.open(tmp_path / "prob.pgm").size == (16, 8)
 
 
+class _OrangeWall:
+    """A model stand-in for the export's renderer: an opaque orange wall at x = 3 m (R, G, B 1.0,
+    0.5, 0.0), nothing elsewhere; `render` returns D (the depth weighted by opacity) and A as the
+    field's renderer does."""
+
+    device, min_opacity = "cpu", 0.5
+
+    def render(self, origins, directions, generator=None):
+        from types import SimpleNamespace
+
+        import torch
+
+        toward = directions[:, 0] > 1e-6
+        t = torch.where(toward, (3.0 - origins[:, 0]) / directions[:, 0].clamp(min=1e-6), torch.zeros_like(origins[:, 0]))
+        opacity = toward.to(origins.dtype)
+        rgb = torch.tensor([1.0, 0.5, 0.0]).expand(len(origins), 3) * opacity[:, None]
+        return SimpleNamespace(depth=t * opacity, opacity=opacity, rgb=rgb), None
+
+
+def test_the_surface_cloud_lies_on_the_rendered_surface_in_its_colours():
+    """cloud.pcd/ply's points: each training pixel's ray to its rendered depth, coloured by the
+    rendered colour, RGB: on the wall every point has x = 3 m and colour (255, 128, 0); the rays
+    that see nothing give no point."""
+    from types import SimpleNamespace
+
+    from virus_nerf.exports.views import surface_cloud
+    from virus_nerf.sensors.camera import Intrinsics
+
+    cams = []
+    for yaw in (0.0, 0.6, np.pi):  # looking at the wall, at it obliquely, away from it
+        fwd = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        pose = np.eye(4)
+        pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = np.cross([0, 0, -1.0], fwd), [0, 0, -1.0], fwd, (0.5, 0.2, 1.0)
+        cams.append(pose)
+    stack = SimpleNamespace(intrinsics=Intrinsics(40.0, 40.0, 31.5, 23.5, 64, 48), cam_to_world=np.stack(cams),
+                            indices=lambda split: np.arange(3))
+    points, colours = surface_cloud(_OrangeWall(), SimpleNamespace(stacks={1: stack}), max_points=600, image_scale=1.0)
+    assert 200 < len(points) <= 400  # two of three frames see the wall
+    np.testing.assert_allclose(points[:, 0], 3.0, atol=1e-5)
+    assert (colours == [255, 128, 0]).all()
+
+
 def test_esdf_of_one_occupied_pixel_is_the_distance_to_it(tmp_path):
     occ = np.zeros((11, 13), dtype=bool)
     occ[4, 6] = True

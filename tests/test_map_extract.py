@@ -31,6 +31,8 @@ def test_camera_height_is_the_main_stacks_median():
     assert camera_height(poses, stacks) == pytest.approx(0.7)  # median of 0.5, 0.7, 0.9
     assert camera_height(poses[2:3], stacks[2:3]) == pytest.approx(2.0)  # no stack 1: all stacks
     assert camera_height(poses[:0], stacks[:0], default=1.25) == 1.25
+    poses[:, 2, 3] = [0.5, 0.5, 0.5, 1.7, 0.5]  # a median, not a mean (0.8): one camera lifted
+    assert camera_height(poses[:4], np.ones(4, dtype=int)) == 0.5
 
 
 def test_a_raster_too_large_or_not_positive_is_one_line_naming_the_argument():
@@ -167,6 +169,25 @@ def test_what_the_rays_below_the_band_hit_is_occupied_and_their_passes_claim_not
     # passed: occupied there; behind it no low ray looked, so what the band passed there is
     # unknown (MAP_LOW_SHADOW_M, 1 m from the front: x up to 3.1); the low rays' passes claim nothing
     assert list(row[1:13]) == [FREE] * 7 + [OCCUPIED, UNKNOWN, UNKNOWN, UNKNOWN, OCCUPIED]
+
+
+class _TableBeforeBox(_PalletBeforeWall):
+    """The band's rays (from z >= 0.9 m) end on a table's edge at x = 1.1 m; the low rays pass
+    under it and end on a box at x = 2.1 m, where no band ray looked."""
+
+    wall_x = 1.1
+
+
+def test_the_low_rays_occupy_only_what_the_band_called_free():
+    """What the low rays end on beyond the band's view stays unknown: the low rays add obstacles
+    where the band's rays said free (D60), they do not map what the band never saw."""
+    from virus_nerf.maps.extract import scan_map
+
+    camera = np.array([0.25, 0.25, 1.0])
+    lo, hi, res = np.array([0.0, -1.0]), np.array([3.5, 1.0]), 0.25
+    row = scan_map(_TableBeforeBox(), camera[None], lo, hi, res, 360).image[::-1].T[:, 5]  # [ix], y in [0.25, 0.5)
+    assert list(row[1:3]) == [FREE] * 2 and row[4] == OCCUPIED  # the table's edge at x 1.1
+    assert (row[5:] == UNKNOWN).all()  # beyond it the band saw nothing: the box's pixel 8 stays unknown
 
 
 def _evidence(surfaces=(), irs_hits=()):
@@ -582,6 +603,13 @@ def test_the_scan_rule_holds_height_by_height_so_a_thin_table_top_is_kept():
     assert hits[4, 0] == 2 and passes[4, 0] == 8 and not scan_rule_occupied(passes, hits)[4, 0]
     # ...height by height the middle rays end there and none of their height passes it
     assert occupied[:, 0].tolist() == [False, False, False, False, True, False, True]
+    # scans of 4 rays (not a multiple of the 3 heights): ray j of every scan is at height j % 3, so the
+    # top's rays (j = 1) stay one height, 3 ends and no pass; grouped across scans (ray i % 3) each
+    # height would get one end against three passes and lose the top
+    origins4 = np.array([[0.3, 0.25, 1.0 + MAP_SCAN_HEIGHTS_M[j % 3]] for _ in range(3) for j in range(4)])
+    ranges4 = np.array([2.9, 1.9, 2.9, 2.9] * 3)
+    _, _, occupied4 = band_counts(origins4, np.tile([1.0, 0.0, 0.0], (12, 1)), ranges4, 4, lo, hi, 0.5)
+    assert occupied4[:, 0].tolist() == [False, False, False, False, True, False, True]
     # the whole map: the top's pixel on the scan's row is occupied, the floor before it free
     lo, hi, res = np.array([0.0, -1.0]), np.array([3.5, 1.0]), 0.5
     m = occupancy_map(_TableTop(), np.array([[0.25, 0.25, 1.0]]), lo, hi, res, 360, 30, np.ones((7, 4), dtype=bool))

@@ -50,6 +50,12 @@ def test_the_mask_is_the_wedge_of_the_camera_up_to_its_reach():
     both = observed_mask(np.stack([camera_looking(0, 0, 0), camera_looking(0, 0, math.pi), camera_looking(0, 0, 0)]),
                          np.full(3, half), lo, shape, res, reach=2.0)
     np.testing.assert_array_equal(both, expected | expected[::-1, :])
+    # one spot, headings 0 and 25 deg: two frames, not one (frames are thinned by heading to the degree)
+    turned = camera_looking(0, 0, math.radians(25.0))
+    alone = observed_mask(turned[None], np.array([half]), lo, shape, res, reach=2.0)
+    pair = observed_mask(np.stack([camera_looking(0, 0, 0), turned]), np.full(2, half), lo, shape, res, reach=2.0)
+    assert (alone & ~expected).any()
+    np.testing.assert_array_equal(pair, expected | alone)
 
 
 def test_the_pixel_a_camera_stood_in_is_observed():

@@ -49,6 +49,17 @@ def test_yawed_box():
     assert np.dot(p - [5, 0, 0], n[0]) == pytest.approx(1.0)
 
 
+def test_a_yawed_plank_turns_counter_clockwise():
+    """A 4 x 0.2 m plank yawed +30 deg (counter-clockwise from above) about its centre at the origin:
+    its upper long face is y = x tan 30 + 0.1 / cos 30, so a ray down -y at x = 1.3 m meets it at
+    y = 0.866 m (turned the other way it would be y = -0.635 m), with the face's normal (-sin 30, cos 30)."""
+    s = one(Box((0.0, 0.0, 0.0), (4.0, 0.2, 1.0), np.deg2rad(30.0)))
+    t, n, _ = s.cast(np.array([[1.3, 3.0, 0.0]]), np.array([[0.0, -1.0, 0.0]]))
+    a = np.deg2rad(30.0)
+    assert 3.0 - t[0] == pytest.approx(1.3 * np.tan(a) + 0.1 / np.cos(a)) == pytest.approx(0.866, abs=1e-3)
+    np.testing.assert_allclose(n[0], [-np.sin(a), np.cos(a), 0.0], atol=1e-12)
+
+
 def test_vertical_cylinder_side_and_cap():
     s = one(Cylinder((4.0, 0.0, 0.0), 1.0, 2.0))  # x^2 + y^2 <= 1 around (4, 0), z in [-1, 1]
     t, n, _ = s.cast(np.zeros((1, 3)), np.array([[1.0, 0, 0]]))

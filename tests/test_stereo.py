@@ -12,7 +12,7 @@ import torch
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.stereo import StereoBuilder, StereoConfig, StereoDepth
 from virus_nerf.stereo import triangulation as tri
-from virus_nerf.stereo.depth import _extend
+from virus_nerf.stereo.depth import _extend, scaled_pixels, whole_tracks
 from virus_nerf.stereo.tracking import (
     corner_mask,
     epipolar_distance,
@@ -482,3 +482,33 @@ def test_the_mapper_gives_the_grid_each_stereo_point_once_and_its_state_keeps_th
     before = off.grid.logodds.clone()
     off.set_stereo(both)
     assert torch.equal(off.grid.logodds, before)
+
+
+def test_a_point_is_kept_whole_or_not_at_all():
+    """Track 0's three views pass; track 1's second view fails (too far, too uncertain): all of
+    track 1's views go; track 2 has no view."""
+    track = np.array([0, 1, 0, 1, 1, 0])
+    ok = np.array([True, True, True, False, True, True])
+    assert whole_tracks(track, ok, 3).tolist() == [True, False, True, False, False, True]
+
+
+def test_stereo_targets_move_to_the_training_image_as_its_intrinsics_do():
+    """A point seen at full resolution lands, at the training scale, where the scaled intrinsics
+    project it (pixel centres at integers: at scale 0.5 full-resolution pixels 0 and 1 become
+    -0.25 and 0.25 around training pixel 0)."""
+    from virus_nerf.sensors.camera import project
+
+    full = Intrinsics(388.0, 388.4, 327.6, 244.3, 640, 480)
+    point = np.array([[0.4, -0.3, 3.0]])  # camera frame, m
+    u, v, _ = project(full, point)
+    u2, v2, _ = project(full.scaled(0.5), point)
+    np.testing.assert_allclose(scaled_pixels(np.column_stack([u, v]), 0.5), np.column_stack([u2, v2]), atol=1e-9)
+    np.testing.assert_allclose(scaled_pixels(np.array([[0.0, 1.0]]), 0.5), [[-0.25, 0.25]])
+
+
+def test_parallax_is_taken_against_the_first_and_the_last_view():
+    """Views at x = 0, -1 and +1 m (in that order) of a point 5 m ahead: the middle view against
+    the last spans 2 atan(1 / 5) = 22.62 deg; against the first alone it would be 11.31 deg."""
+    centres = np.array([[0.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    got = tri.max_parallax_deg(np.zeros(3, dtype=np.int64), np.array([[0.0, 5.0, 0.0]]), centres, 1)
+    assert got[0] == pytest.approx(2 * math.degrees(math.atan(0.2)))

@@ -102,6 +102,20 @@ class StereoDepth:
         return lo, hi - lo
 
 
+def whole_tracks(track: np.ndarray, view_ok: np.ndarray, n_tracks: int) -> np.ndarray:
+    """(V,) bool: the views whose track passed in every view (track (V,) ids < n_tracks, view_ok
+    (V,) bool). A point is kept whole or not at all: a view that failed the range or sigma test
+    says the point is doubtful for its other views too."""
+    failed = np.bincount(track, weights=~np.asarray(view_ok, dtype=bool), minlength=n_tracks)  # (n_tracks,)
+    return (failed == 0)[track]
+
+
+def scaled_pixels(uv: np.ndarray, scale) -> np.ndarray:
+    """Pixel coordinates (..., 2) in an image resized by `scale`, pixel centres at integers (as
+    `Intrinsics.scaled` moves the principal point): (uv + 0.5) * scale - 0.5."""
+    return (np.asarray(uv, dtype=np.float64) + 0.5) * scale - 0.5
+
+
 def _extend(old: StereoDepth, new: StereoDepth) -> StereoDepth:
     """`old`'s targets with `new`'s, sorted by frame; with equal frames `old`'s come first and each
     keeps its order (a stable sort of the two joined). Merged by insertion, so a long drive's
@@ -241,14 +255,12 @@ class StereoBuilder:
             sigma = np.sqrt(np.einsum("vi,vij,vj->v", u_dir, cov[track], u_dir))
         ok = (parallax[track] >= self.cfg.min_parallax_deg) & (dist >= self.cfg.min_range) & \
              (dist <= self.cfg.max_range) & np.isfinite(sigma) & (sigma <= self.cfg.max_rel_sigma * dist)
-        # a point is kept whole or not at all: every view must pass the range and sigma tests
-        track_ok = np.bincount(track, weights=~ok, minlength=n_tracks) == 0
-        ok = track_ok[track]
+        ok = whole_tracks(track, ok, n_tracks)
         track, frame, uv, stacks, sigma, dist = (a[ok] for a in (track, frame, uv, stacks, sigma, dist))
         # each view -> a target along its own ray, in the training image's pixel coordinates
         cams, cam_of = np.unique(stacks, return_inverse=True)
         scale = np.array([self.train_intrinsics[int(c)].width / self.intrinsics[int(c)].width for c in cams])[cam_of]
-        uv_train = (uv + 0.5) * scale[:, None] - 0.5
+        uv_train = scaled_pixels(uv, scale[:, None])
         order = np.argsort(frame, kind="stable")
         used = np.unique(track)
         return StereoDepth(frames=frame[order], uv=uv_train[order].astype(np.float32),
