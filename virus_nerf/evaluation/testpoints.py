@@ -107,13 +107,12 @@ def recording_warnings(recording: Recording, scored: bool = True) -> list[str]:
     """What `train`, `evaluate` and `sensors` say of a recording whose numbers may mislead: LiDAR
     poses upside down (quaternions written w,x,y,z?), and when it is `scored`, test points that
     went without their stack-3 frame or LiDAR scan."""
-    from virus_nerf.sensors.geometry import upside_down_share
+    from virus_nerf.sensors.geometry import upside_down_words
 
     out = []
     lidar_poses = [s.lidar_to_world for s in recording.stacks.values()]
-    if lidar_poses and (down := upside_down_share(np.concatenate(lidar_poses))) > 0.5:
-        out.append(f"the up axis of {down:.0%} of the LiDAR poses (poses/poses_lidar_*) points below the horizon: "
-                   "an upside-down LiDAR, or quaternions in w,x,y,z order? They are read as qx,qy,qz,qw")
+    if lidar_poses and (note := upside_down_words(np.concatenate(lidar_poses), "the LiDAR poses (poses/poses_lidar_*)")):
+        out.append(note)
     out += stacks_apart_warnings(recording)
     if scored and MAIN_STACK in recording.stacks:
         out += pairing_warnings(recording, make_test_points(recording))

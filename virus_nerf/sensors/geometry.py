@@ -80,6 +80,16 @@ def upside_down_share(poses: np.ndarray) -> float:
     return float(np.mean(up < 0.0)) if len(up) else 0.0
 
 
+def upside_down_words(poses: np.ndarray, which: str) -> str | None:
+    """The note on (N, 4, 4) poses (`which`: where they came from) of which more than half stand
+    upside down (`upside_down_share`), in the one wording import-bag and the readers share; else None."""
+    down = upside_down_share(poses)
+    if down <= 0.5:
+        return None
+    return (f"the up axis of {down:.0%} of {which} points below the horizon: an upside-down LiDAR, or "
+            "quaternions in w,x,y,z order? They are read as qx,qy,qz,qw")
+
+
 def invert_pose(pose: np.ndarray) -> np.ndarray:
     """Inverse of (..., 4, 4) rigid transforms."""
     pose = np.asarray(pose, dtype=np.float64)

@@ -38,7 +38,7 @@ from virus_nerf.data.split import DEFAULT_RATIOS, make_split, write_split
 from virus_nerf.data.voxel_map import VoxelMap
 from virus_nerf.errors import DataFormatError, UsageError
 from virus_nerf.sensors.camera import Intrinsics
-from virus_nerf.sensors.geometry import upside_down_share
+from virus_nerf.sensors.geometry import upside_down_words
 from virus_nerf.sensors.rig import MAIN_STACK
 
 Key = tuple[int | None, str]  # (stack, role); stack None for the LiDAR and tf topics
@@ -76,9 +76,8 @@ class ImportRun:
             (self.room_dir / sub).mkdir(parents=True)
         self._first_pass()
         track, pose_settings = self._poses(poses, csv_poses, tf_parent, tf_child, kiss)
-        if (down := upside_down_share(track.poses)) > 0.5:
-            self.notes.append(f"the up axis of {down:.0%} of the poses (--poses {poses}) points below the horizon: an "
-                              "upside-down LiDAR, or quaternions in w,x,y,z order? They are read as qx,qy,qz,qw")
+        if (note := upside_down_words(track.poses, f"the poses (--poses {poses})")) is not None:
+            self.notes.append(note)
         matches = {s: self._match(s, track, poses) for s in self.cfg.stacks}
         if MAIN_STACK not in matches:
             self.notes.append(f"no stack {MAIN_STACK}: the scores' test points stand at stack {MAIN_STACK}'s frames, so "
