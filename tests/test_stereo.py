@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.sensors.camera import Intrinsics, scaled_pixels
 from virus_nerf.stereo import StereoBuilder, StereoConfig, StereoDepth
 from virus_nerf.stereo import triangulation as tri
-from virus_nerf.stereo.depth import _extend, scaled_pixels, whole_tracks
+from virus_nerf.stereo.depth import _extend, whole_tracks
 from virus_nerf.stereo.tracking import (
     corner_mask,
     epipolar_distance,

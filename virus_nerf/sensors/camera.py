@@ -9,6 +9,12 @@ import numpy as np
 from virus_nerf.sensors.rays import Rays, rays_to_world
 
 
+def scaled_pixels(uv, scale) -> np.ndarray:
+    """Pixel coordinates (any shape) in an image resized by `scale`, pixel centres at integers:
+    (uv + 0.5) * scale - 0.5 (the principal point of `Intrinsics.scaled`, a stereo target's pixel)."""
+    return (np.asarray(uv, dtype=np.float64) + 0.5) * scale - 0.5
+
+
 @dataclass(frozen=True)
 class Intrinsics:
     """Pinhole intrinsics in pixels; no distortion (the ETHZ recordings are rectified)."""
@@ -25,8 +31,8 @@ class Intrinsics:
         return Intrinsics(
             fx=self.fx * factor,
             fy=self.fy * factor,
-            cx=(self.cx + 0.5) * factor - 0.5,
-            cy=(self.cy + 0.5) * factor - 0.5,
+            cx=float(scaled_pixels(self.cx, factor)),
+            cy=float(scaled_pixels(self.cy, factor)),
             width=round(self.width * factor),
             height=round(self.height * factor),
         )

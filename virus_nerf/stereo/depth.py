@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from virus_nerf.checks import Checks
-from virus_nerf.sensors.camera import Intrinsics
+from virus_nerf.sensors.camera import Intrinsics, scaled_pixels
 from virus_nerf.stereo import triangulation as tri
 from virus_nerf.stereo.tracking import StackTracker, TrackerConfig, Views, track_points
 
@@ -108,12 +108,6 @@ def whole_tracks(track: np.ndarray, view_ok: np.ndarray, n_tracks: int) -> np.nd
     says the point is doubtful for its other views too."""
     failed = np.bincount(track, weights=~np.asarray(view_ok, dtype=bool), minlength=n_tracks)  # (n_tracks,)
     return (failed == 0)[track]
-
-
-def scaled_pixels(uv: np.ndarray, scale) -> np.ndarray:
-    """Pixel coordinates (..., 2) in an image resized by `scale`, pixel centres at integers (as
-    `Intrinsics.scaled` moves the principal point): (uv + 0.5) * scale - 0.5."""
-    return (np.asarray(uv, dtype=np.float64) + 0.5) * scale - 0.5
 
 
 def _extend(old: StereoDepth, new: StereoDepth) -> StereoDepth:
