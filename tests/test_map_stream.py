@@ -958,3 +958,41 @@ def test_resume_sets_aside_a_final_map_a_full_disk_cut_and_clears_cut_snapshots(
         assert len(kept) == (case == "with files")
         if kept:
             assert (kept[0] / "mapper.pt").read_text() == "a state beside no map"
+
+
+def test_a_snapshot_slower_than_its_period_puts_the_next_further_off():
+    """Snapshots take at most half the wall time: the next is on the --snapshot-every grid, after
+    the one just written, and no sooner than it took to write (hand-computed grid points). Before,
+    a 4 s snapshot every 0.6 s left the stream only snapshots and its lag grew to 100 s."""
+    from virus_nerf.mapping.replay import next_snapshot_time
+
+    # a fast snapshot: the next grid point (10 s scheduled, written by 10.5 s in 0.5 s -> 20 s)
+    assert next_snapshot_time(10.0, 10.0, 10.5, 0.5) == 20.0
+    # missed grid points are skipped: written by 31 s (took 1 s) -> 40 s, not 20 s or 30 s
+    assert next_snapshot_time(10.0, 10.0, 31.0, 1.0) == 40.0
+    # slower than its period: scheduled at 1.0 s every 0.5 s, 4.1 s to write (done at 5.1 s):
+    # not before 9.2 s -> grid point 1.0 + 17 * 0.5 = 9.5 s (before: 5.5 s)
+    assert next_snapshot_time(1.0, 0.5, 5.1, 4.1) == pytest.approx(9.5)
+    # at most a quarter of the wall time: 3 x as long as it took after it
+    assert next_snapshot_time(1.0, 0.5, 5.1, 4.1, share=0.25) == pytest.approx(17.5)
+
+
+def test_live_every_colour_image_is_a_frame_or_counted_across_a_restart(bags):
+    """Live, a bag cut short just after a colour image, then played whole: every colour image
+    pushed is a frame or a dropped one with its reason. The image that was waiting for its depth,
+    USS and IRS when the clock went back is "before a clock restart" (before, it vanished from
+    the counts)."""
+    from virus_nerf.data.bags.live import LiveSync
+
+    cfg = default_topics()
+    with BagReader(bags["ros1"]) as reader:
+        sync = LiveSync(cfg, make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"]),
+                        bags["ros1"], on_problem=lambda line: None)
+        messages = list(reader.iter_topics(sync.topics()))
+    colours = [k for k, (t, _) in enumerate(messages) if sync.is_color(t)]
+    cut = colours[len(colours) // 2]  # a colour image mid-bag; its partners come after it
+    first = messages[:cut + 1]
+    made = sum(len(sync.push(t, msg)) for t, msg in first + messages) + len(sync.finish())
+    dropped = sync.dropped_total()
+    assert sync.restarts == 1 and dropped == {"before a clock restart": 1}
+    assert made + 1 == len(colours) // 2 + 1 + len(colours)

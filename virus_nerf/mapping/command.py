@@ -82,7 +82,8 @@ def map_bag(
         bag: ROS bag (ROS 1 .bag, a ROS 2 bag folder, or a bare ROS 2 .mcap/.db3 file).
         out: New output folder.
         playback: Recording seconds per wall-clock second (below 1 on a slow machine).
-        snapshot_every: Wall-clock seconds between map snapshots.
+        snapshot_every: Wall-clock seconds between map snapshots (streaming: further apart when a
+            snapshot takes longer than this; they take at most half the wall time).
         topics: Topic mapping file (default: the ETHZ robot's topic names).
         poses: Pose source: lidar-odometry (KISS-ICP scan by scan), tf (/tf, /tf_static), csv
             (--poses-file) or odometry (nav_msgs/Odometry on --odometry-topic; streaming only).

@@ -4,7 +4,7 @@ A wall clock, scaled by the playback speed, runs through the recording: every fr
 the mapper once the clock passes its timestamp (read and decoded then, as a robot receives it),
 and the mapper trains continuously in between. Every `snapshot_every` seconds of wall time the
 current map is written to OUT/snapshots/NNNN_<seconds>s/ (map.pgm/.yaml/.png, prob.* for the
-VIRUS grid, snapshot.json) with one progress line; when the last frame has arrived, the final
+VIRUS grid, snapshot.json) with one progress line (at most half the wall time: `next_snapshot_time`); when the last frame has arrived, the final
 map goes to OUT/map/ with the mapper's state (mapper.pt). Every folder appears complete (built
 under a temporary name and renamed) and none is ever overwritten.
 """
@@ -32,6 +32,7 @@ from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS
 SNAPSHOTS = "snapshots"
 REMOVAL_GRACE_S = 0.5  # s a vanished frame file waits for its folder's removal to show (replay's `add`)
 FINAL = "map"
+SNAPSHOT_SHARE = 0.5  # snapshots take at most this share of the wall time (`next_snapshot_time`)
 
 
 @dataclass(frozen=True)
@@ -194,7 +195,8 @@ def replay(
                 info = snapshot(folder, feeder.last_time)
                 written.append(folder)
                 log(_progress_line(f"snapshot {len(written)}", now, feeder.last_time - times[0], drive_s, info, folder))
-                next_snapshot = (math.floor(now / snapshot_every) + 1) * snapshot_every  # skip any missed
+                after = time.monotonic() - start
+                next_snapshot = next_snapshot_time(next_snapshot, snapshot_every, after, after - now)
             budget = min(train_slice, feeder.wait(now), next_snapshot - now)
             if budget > 0:
                 mapper.train(budget)
@@ -204,6 +206,17 @@ def replay(
     wall_s = time.monotonic() - start
     final()
     return ReplayReport(tuple(written), out / FINAL, mapper.frames, mapper.step, mapper.seconds, wall_s)
+
+
+def next_snapshot_time(scheduled: float, every: float, finished: float, took: float,
+                       share: float = SNAPSHOT_SHARE) -> float:
+    """When the snapshot after the one scheduled at `scheduled` (wall seconds) is due: the next on
+    the grid scheduled + k * every after the one just written (`finished`, `took` seconds to
+    write), missed ones skipped, and no sooner than `took` * (1 - share) / share after it. A
+    snapshot slower than its period (a large map on a slow or busy computer) would otherwise leave
+    the stream nothing but snapshots, its lag growing without end."""
+    earliest = finished + took * (1.0 - share) / share
+    return scheduled + every * max(1, math.floor((earliest - scheduled) / every) + 1)
 
 
 def _publish(mapper, recording_time: float, resolution: float, n_rays: int, max_poses: int, live, ros_bag):

@@ -6,11 +6,13 @@ receive time in the bag (the order a robot gets them). Each released message goe
 IRS within their sync tolerances + pose); they go to the `Mapper` at once. The mapper trains while
 the next message is not yet due; every `snapshot_every` seconds of wall time (the first after
 `first_snapshot` s, delayed by no training step: a step can take seconds on a CPU, and the first
-map shows that mapping runs) the map goes to OUT/snapshots/NNNN_<s>s/ with a progress line that reports the
-lag: the scaled wall clock minus the recording time of the newest frame. A colour image released
-more than `max_lag` recording seconds after it was due is dropped without being decoded (a robot
-cannot pause its sensors); the count is reported. The mapper is made at the first frames, its
-scene box around the first frame, grown as the robot drives (`initial_box`, docs/extent.md).
+map shows that mapping runs) the map goes to OUT/snapshots/NNNN_<s>s/ with a progress line that
+reports the lag: the scaled wall clock minus the recording time of the newest frame. Snapshots take
+at most half the wall time (`next_snapshot_time`: one slower than its period puts the next further
+off). A colour image released more than `max_lag` recording seconds after it was due is dropped
+without being decoded (a robot cannot pause its sensors); the count is reported. The mapper is
+made at the first frames, its scene box around the first frame, grown as the robot drives
+(`initial_box`, docs/extent.md).
 
 Bad data (`live.StreamError` and any `DataFormatError` of a message) stops the stream: the map made
 so far is written to OUT/map/ as the final map, OUT/stream.json says where it stopped, and the
@@ -40,7 +42,7 @@ import numpy as np
 from virus_nerf.data.bags.live import LiveSync, StreamFrame
 from virus_nerf.data.playback import Playback
 from virus_nerf.errors import DataFormatError
-from virus_nerf.mapping.replay import FINAL, SNAPSHOTS, _progress_line, _publish
+from virus_nerf.mapping.replay import FINAL, SNAPSHOTS, _progress_line, _publish, next_snapshot_time
 from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS
 from virus_nerf.scene_box import SceneBox
 from virus_nerf.utils.stop import Stopped
@@ -365,9 +367,8 @@ class StreamRun:
                 self.report.first_snapshot_s = round(self.now(), 3)
             self.log(self._line(f"snapshot {k}", now, info, folder, lag))
             self._save_progress(folder)
-        self.train_next = self.now()  # the snapshot's time is not the messages'
-        after = self.now()  # the next one on the grid after this one was written (missed ones skipped)
-        self.next_snapshot += self.snapshot_every * max(1, math.floor((after - self.next_snapshot) / self.snapshot_every) + 1)
+        after = self.train_next = self.now()  # the snapshot's time is not the messages'
+        self.next_snapshot = next_snapshot_time(self.next_snapshot, self.snapshot_every, after, after - now)
         return True
 
     def _snapshot(self, folder: Path, recording_time: float, with_state: bool = False):

@@ -85,7 +85,8 @@ def ros2(
         map_topic: The planner's map (nav_msgs/OccupancyGrid; relative: in --namespace; ~/x: the node's).
         probability_topic: The VIRUS grid's occupancy probability, 0-100.
         map_frame: The maps' frame_id (default: --tf-parent, the frame the poses are in).
-        publish_every: Wall-clock seconds between maps (each also a snapshot in OUT/snapshots).
+        publish_every: Wall-clock seconds between maps (each also a snapshot in OUT/snapshots;
+            further apart when one takes longer: they take at most half the wall time).
         first_map: Wall-clock seconds from the first message to the first map.
         drive: Expected drive in seconds: the learning rate decays over it, then stays low.
         max_lag: A colour image this many seconds behind the newest message is dropped (counted).

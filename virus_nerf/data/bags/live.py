@@ -30,8 +30,8 @@ Live (the ROS 2 node, `on_problem` given) a robot's data cannot be refused and t
 each of these is one line to `on_problem` (repeats of a kind within PROBLEM_REPEAT_S counted, not
 said) and the stream goes on: a malformed message is skipped; a message older than its topic's
 previous one is skipped, or, more than RESTART_BACK_S back (a bag played again, a robot's clock
-reset), starts the synchronisation again (the waiting images, sensor buffers and poses are
-forgotten; the map keeps every frame made); a silent topic or pose source is said once and said
+reset), starts the synchronisation again (the sensor buffers and poses are forgotten, the images
+waiting for them dropped and counted; the map keeps every frame made); a silent topic or pose source is said once and said
 again when it is back. Meanwhile a silent USS, ToF or depth topic's frames are made without it
 (NaN: no measurement, as for a stack without that sensor; counted in `without`), while a silent
 pose source drops the frames (no pose); a frame whose pose jumps is dropped and the next frames
@@ -257,7 +257,8 @@ class LiveSync:
         starts again; the frames already made stay in the map. `restarts` counts them (the stream
         re-anchors its lag clock)."""
         self.restarts += 1
-        for q in self.waiting.values():
+        for s, q in self.waiting.items():  # images of the old clock, never to be completed: counted
+            self.dropped[s]["before a clock restart"] += len(q)
             q.clear()
         for buf in self.buffers.values():
             buf.items.clear()
