@@ -512,3 +512,26 @@ def test_parallax_is_taken_against_the_first_and_the_last_view():
     centres = np.array([[0.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     got = tri.max_parallax_deg(np.zeros(3, dtype=np.int64), np.array([[0.0, 5.0, 0.0]]), centres, 1)
     assert got[0] == pytest.approx(2 * math.degrees(math.atan(0.2)))
+
+
+def test_triangulation_keeps_a_point_whole_or_drops_it():
+    """The triangulation applies the whole-track rule: two points seen exactly by four cameras
+    looking along +z (at x = 0, 0.5, 1 m and at (1.5, 0, -2) m). The first point, (0.75, 0, 4),
+    lies 6.05 m from the last camera, beyond max_range 5 m, so all four of its views go (not only
+    that one); the second, (0.75, 0.2, 2), passes everywhere: four targets at its true ranges."""
+    intr = Intrinsics(400.0, 400.0, 320.0, 240.0, 640, 480)
+    builder = StereoBuilder({1: intr}, {1: intr}, StereoConfig(max_range=5.0))
+    centres = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [1.0, 0.0, 0.0], [1.5, 0.0, -2.0]])
+    points = np.array([[0.75, 0.0, 4.0], [0.75, 0.2, 2.0]])
+    for f, c in enumerate(centres):
+        pose = np.eye(4)
+        pose[:3, 3] = c
+        builder.frame_pose[f], builder.frame_stack[f] = pose, 1
+    track = np.repeat([0, 1], 4)
+    frame = np.tile(np.arange(4), 2)
+    rel = points[track] - centres[frame]  # camera frame = world axes
+    uv = np.column_stack([400.0 * rel[:, 0] / rel[:, 2] + 320.0, 400.0 * rel[:, 1] / rel[:, 2] + 240.0])
+    targets = builder._triangulate(track, frame, uv)
+    assert targets.frames.tolist() == [0, 1, 2, 3]
+    np.testing.assert_allclose(targets.ranges, np.linalg.norm(points[1] - centres, axis=1), rtol=1e-5)
+    np.testing.assert_allclose(targets.points, points[1:], atol=1e-5)
