@@ -332,6 +332,9 @@ def test_the_floor_and_what_the_body_meets_below_the_band_by_hand():
                        [0.8, 0.5, 0.0]])  # in the band: the map's own ground truth, not the body's
     points = np.concatenate([floor, others])
     assert floor_height(points, camera_height=0.0) == pytest.approx(-0.5, abs=0.01)  # a 2 cm bin's centre
+    # the bins start at the lowest point: heights in [-0.51, -0.49) m are one bin, its centre -0.50 m
+    level = np.column_stack([np.zeros((100, 2)), np.r_[-0.51, rng.uniform(-0.51, -0.49, 99)]])
+    assert floor_height(level, camera_height=0.0) == pytest.approx(-0.50, abs=1e-9)
     np.testing.assert_allclose(body_slice(points, 0.0, 0.05), [[0.5, 0.5], [0.7, 0.5]])
     assert floor_height(others[2:], camera_height=0.0) is None  # nothing 0.2 m under the cameras
     assert body_slice(others[2:], 0.0, 0.05) is None
