@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from virus_nerf.evaluation.sensor_scans import irs_scan_2d, lidar_fov, uss_scan_2d
-from virus_nerf.evaluation.testpoints import TestPoint, make_test_points, nearest_index
+from virus_nerf.evaluation.testpoints import TestPoint, make_test_points, synchronous_index
 
 CAM_AXES = np.array([[0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0]])  # cam x,y,z (columns) in world
 
@@ -104,10 +104,12 @@ def test_lidar_fov_is_centred_on_the_lidar_x_axis():
 
 
 def test_test_points_pair_nearest_stack3_frame():
-    assert nearest_index(np.array([0.0, 1.0, 2.0]), 1.4) == 1
-    assert nearest_index(np.array([0.0, 1.0, 2.0]), 1.6) == 2
-    assert nearest_index(np.array([0.0, 1.0, 2.0]), -5.0) == 0
-    assert nearest_index(np.array([0.0, 1.0, 2.0]), 9.0) == 2
+    times = np.array([0.0, 1.0, 2.0])
+    assert synchronous_index(times, 1.4, 0.5) == 1 and synchronous_index(times, 1.6, 0.5) == 2
+    assert synchronous_index(times, 1.5, 0.5) == 1  # a tie: the earlier stamp
+    assert synchronous_index(times, -0.4, 0.5) == 0 and synchronous_index(times, -0.6, 0.5) is None
+    assert synchronous_index(times, 2.4, 0.5) == 2 and synchronous_index(times, 2.6, 0.5) is None
+    assert synchronous_index(np.zeros(0), 1.0, 0.5) is None
     class Stack(SimpleNamespace):
         def __len__(self) -> int:
             return len(self.times)

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from virus_nerf.data.bags.sync import match_nearest
 from virus_nerf.data.ethz import SYNC_TOLERANCE_S, Recording
 from virus_nerf.errors import DataFormatError
 from virus_nerf.sensors.rig import MAIN_STACK
@@ -54,22 +55,11 @@ class TestPoint:
         return out
 
 
-def nearest_index(times: np.ndarray, t: float) -> int:
-    """Index of the entry of sorted `times` nearest to t."""
-    j = int(np.searchsorted(times, t))
-    if j <= 0:
-        return 0
-    if j >= len(times):
-        return len(times) - 1
-    return j - 1 if (t - times[j - 1]) <= (times[j] - t) else j
-
-
 def synchronous_index(times: np.ndarray, t: float, tolerance_s: float = SYNC_TOLERANCE_S) -> int | None:
-    """Index of the entry of sorted `times` nearest to t if it lies within `tolerance_s`, else None."""
-    if not len(times):
-        return None
-    j = nearest_index(times, t)
-    return j if abs(float(times[j]) - t) <= tolerance_s else None
+    """Index of the entry of `times` nearest to t if it lies within `tolerance_s`, else None: the
+    importer's pairing rule (data/bags/sync.match_nearest; a tie goes to the earlier stamp)."""
+    k = int(match_nearest(np.array([t]), times, tolerance_s)[0])
+    return None if k < 0 else k
 
 
 def lidar_scan_index(recording: Recording, t: float) -> int | None:
