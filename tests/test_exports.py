@@ -110,11 +110,16 @@ def test_probability_map_of_an_analytic_grid(tmp_path):
     big = maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 0.75, 0.1, np.array([-1.0, 0]), hi, 0.25)
     assert big.shape == (20, 8) and np.all(big[:4] == 0.5) and np.all(big[8:12, 2:4] == 0.9)
 
-    maps.write_map_server(maps.scale_map(p, lo, 0.25), tmp_path, "prob")
-    for (x, y), want in {(1.5, 0.75): 0.9, (1.01, 0.51): 0.9, (0.2, 0.2): 0.1, (3.9, 1.9): 0.1, (2.1, 0.75): 0.1}.items():
+    # a sensor looked everywhere but at the column x in [3.75, 4) m
+    known = np.ones(p.shape, dtype=bool)
+    known[15, :] = False
+    maps.write_map_server(maps.raw_map(p, lo, 0.25, known), tmp_path, "prob")
+    # map_server's raw mode serves a pixel of 0..100 as itself, any other as -1 (unknown)
+    for (x, y), want in {(1.5, 0.75): 90, (1.01, 0.51): 90, (0.2, 0.2): 10, (3.7, 1.9): 10, (2.1, 0.75): 10,
+                         (3.9, 1.9): -1, (3.76, 0.1): -1}.items():
         value, doc = map_value_at(tmp_path / "prob.yaml", x, y)
-        assert doc["negate"] == 0 and doc["mode"] == "scale"
-        assert abs((255 - value) / 255 - want) <= 0.5 / 255 + 1e-9  # map_server's p, negate 0
+        assert doc["negate"] == 0 and doc["mode"] == "raw"
+        assert (value if value <= 100 else -1) == want, (x, y)
     assert doc["image"] == "prob.pgm" and doc["resolution"] == 0.25 and doc["origin"] == [0.0, 0.0, 0.0]
     assert doc["occupied_thresh"] == 0.65 and doc["free_thresh"] == 0.196
     assert Image.open(tmp_path / "prob.pgm").size == (16, 8)
@@ -255,7 +260,7 @@ def test_export_all_writes_every_format(exported):
             "export.json", "scans/scan_0000.pcd", "scans/scan_0001.ply", "images/color_0001.png",
             "images/depth_0000.png"} <= names
     trinary, prob = read_yaml(exported / "map.yaml"), read_yaml(exported / "prob.yaml")
-    assert trinary["mode"] == "trinary" and prob["mode"] == "scale"
+    assert trinary["mode"] == "trinary" and prob["mode"] == "raw"
     doc = json.loads((exported / "export.json").read_text())  # the frame and how the map was made
     assert doc["frame"].startswith("world: the recording's pose frame")
     assert (doc["map"]["n_rays"], doc["map"]["max_poses"]) == (90, 2)

@@ -171,7 +171,8 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     prob = np.asarray(Image.open(tmp_path / "export" / "prob.pgm"))
     unseen = np.isnan(esdf)
     assert summary["observed"] == pytest.approx(1.0 - unseen.mean(), abs=1e-4)
-    assert (image[unseen] == UNKNOWN).all() and (prob[unseen] == 128).all()  # p = 0.5 -> round(127.5)
+    # map_server's raw mode: 255 unknown (-1), elsewhere round(100 p)
+    assert (image[unseen] == UNKNOWN).all() and (prob[unseen] == 255).all() and (prob[~unseen] <= 100).all()
     # free wherever a camera stood (usage.md), the drive's first frames too: the view wedges start at
     # the lens, and the robot standing still at the start would leave its own pixel unknown
     from virus_nerf.trainer.run import load_trained

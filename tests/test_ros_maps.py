@@ -32,10 +32,12 @@ def _pattern_map() -> OccupancyMap2D:
 
 
 def _prob_map() -> OccupancyMap2D:
-    """Scale map: p = 0, 0.5, 1 and one in between, as maps.occupancy.scale_map stores them."""
+    """Raw map, as Mapper.probability_map makes it: p = 0 .. 1 in 35 steps as round(100 p), and
+    the top-left pixel (row 0 = largest y) unknown: no sensor looked there (255)."""
     p = np.linspace(0.0, 1.0, 35).reshape(5, 7)
-    value = np.rint(255 * (1 - p)).astype(np.uint8)
-    return OccupancyMap2D(value, RES, ORIGIN, "scale")
+    value = np.rint(100 * p).astype(np.uint8)
+    value[0, 0] = 255
+    return OccupancyMap2D(value, RES, ORIGIN, "raw")
 
 
 def _read_pgm(path) -> np.ndarray:
@@ -113,16 +115,22 @@ def test_map_matches_map_server_pgm_cell_by_cell(bag, tmp_path):
     assert data[0, 0] == 100 and (data[0, 1:] == 0).all() and data[4, 6] == 100 and data[2, 3] == 0
 
 
-def test_probability_map_is_round_100p(bag):
+def test_probability_map_is_round_100p_and_unknown_where_no_sensor_looked(bag):
+    """/map_probability = round(100 p), -1 where no sensor looked (a costmap's unknown, where a
+    50 would read as free): the values map_server's raw mode serves from the same prob.pgm."""
     grid = next(dec for t, _, dec in _messages(bag) if t == "/map_probability")
-    data = np.asarray(grid.data, dtype=np.int8).reshape(5, 7)
-    value = _prob_map().image  # round(255 (1 - p)), row 0 = largest y
-    want = np.rint(100 * (255 - value.astype(float)) / 255).astype(np.int8)
-    np.testing.assert_array_equal(data, np.flipud(want))
-    p = np.linspace(0.0, 1.0, 35).reshape(5, 7)
-    # within 1 % of the true p (the PGM stores p in steps of 1/255)
-    assert np.abs(np.flipud(data).astype(int) - np.rint(100 * p)).max() <= 1
-    assert data.min() == 0 and data.max() == 100
+    data = np.flipud(np.asarray(grid.data, dtype=np.int8).reshape(5, 7))  # row 0 = largest y, as the image
+    want = np.rint(100 * np.linspace(0.0, 1.0, 35).reshape(5, 7)).astype(np.int8)
+    want[0, 0] = -1
+    np.testing.assert_array_equal(data, want)
+    assert data[0, 1] == 3 and data[4, 6] == 100  # p = 1/34 -> 2.94 %, p = 1
+
+
+def test_a_probability_preview_is_dark_where_occupied_and_grey_where_unknown():
+    from virus_nerf.maps.occupancy import preview
+
+    m = OccupancyMap2D(np.array([[0, 50, 100, 255]], dtype=np.uint8), RES, ORIGIN, "raw")
+    assert preview(m).tolist() == [[255, 128, 0, 128]]  # 255 (1 - p); unknown mid grey
 
 
 def test_tf_of_hand_computed_poses(bag):

@@ -222,7 +222,7 @@ class MapViews:
         is replaced once the new one is complete (a resumed run's own map). `maps`: (map2d,
         probability_map) already computed at these settings for this state (not recomputed)."""
         from virus_nerf.maps.observed import observed_share
-        from virus_nerf.maps.occupancy import FREE, OCCUPIED, write_map_server, write_png
+        from virus_nerf.maps.occupancy import FREE, OCCUPIED, preview, write_map_server, write_png
         from virus_nerf.utils.io import new_output_dir, write_json_atomic
 
         folder = Path(folder)
@@ -237,7 +237,7 @@ class MapViews:
             write_png(tmp / "map.png", m.image)
             if prob is not None:
                 write_map_server(prob, tmp, "prob")
-                write_png(tmp / "prob.png", prob.image)
+                write_png(tmp / "prob.png", preview(prob))
             occupied, known = int((m.image == OCCUPIED).sum()), int(np.isin(m.image, (OCCUPIED, FREE)).sum())
             info = SnapshotInfo(
                 frames=self.frames, steps=self.step, seconds=round(self.seconds, 3),

@@ -165,7 +165,7 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
             height = mapper.camera_height()
             maps.write_map_server(mapper.probability_map(resolution, band), folder, "prob")
             summary["prob_map"] = {"height": height, "band": band, "projection": "max over layers in the band"}
-            done.append(f"prob.pgm/.yaml (scale, z {height:.2f} +- {band:g} m)")
+            done.append(f"prob.pgm/.yaml (raw: 100 p, unknown where no sensor looked; z {height:.2f} +- {band:g} m)")
         if "grid3d" in kinds:
             info = grid3d.Grid3DInfo(lo=tuple(map(float, spec.box.lo)), hi=tuple(map(float, spec.box.hi)),
                                      resolution=tuple(int(r) for r in spec.resolution),

@@ -22,7 +22,7 @@ Entity paths (world: metres, right-handed, z up; S = the sensor stack id):
 - world/scan                     Points3D, the NeRF's 360 deg 2D scan at the camera's height
 - map/trinary                    Image, the 2D occupancy map (maps.occupancy raster: row 0 = largest y;
                                  0 occupied, 254 free, 205 unknown)
-- map/probability                Image, the VIRUS grid's probability map (255 (1 - p))
+- map/probability                Image, the VIRUS grid's probability map (255 (1 - p), mid grey unknown)
 - map/scan                       Points2D, the same scan in the map images' pixel coordinates
 - map/robot                      Points2D, the robot in the map images' pixel coordinates
 - ranges/uss_S, ranges/irs_min_S Scalars, the USS range and the nearest valid IRS zone (m)
@@ -48,7 +48,7 @@ import numpy as np
 from virus_nerf.data.frame import SyncFrame
 from virus_nerf.errors import OutputExistsError, UsageError, install_extra, one_line
 from virus_nerf.mapping.ros_maps import RobotStacks, base_pose
-from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS, OccupancyMap2D
+from virus_nerf.maps.occupancy import MAP_POSES, MAP_RAYS, OccupancyMap2D, preview
 from virus_nerf.sensors.camera import Intrinsics
 from virus_nerf.sensors.irs import IRS_MAX_RANGE_M, zone_directions
 from virus_nerf.sensors.uss import USS_FOV_H_DEG, USS_FOV_V_DEG
@@ -269,7 +269,7 @@ class LiveView:
         self._set_time(time)
         for path, m in (("map/trinary", map2d), ("map/probability", prob)):
             if m is not None:
-                self.rec.log(path, rr.Image(np.asarray(m.image, dtype=np.uint8), color_model="L"))
+                self.rec.log(path, rr.Image(preview(m), color_model="L"))
         raster = map2d if map2d is not None else prob
         if scan_points is not None:
             xy = np.asarray(scan_points, dtype=np.float64).reshape(-1, 2)

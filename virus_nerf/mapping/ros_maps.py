@@ -8,8 +8,8 @@ PATH/ holding metadata.yaml and PATH/<folder name>.mcap (`RosMapBag.mcap_path`) 
   -1 unknown, the values map_server would publish from the same map.pgm (its thresholds,
   maps.occupancy.OCCUPIED_THRESH / FREE_THRESH);
 - `/map_probability` (nav_msgs/msg/OccupancyGrid): the VIRUS grid's occupancy probability
-  (`Mapper.probability_map`) as round(100 p), 0..100; -1 never occurs (cells outside the grid's
-  box are p = 0.5, i.e. 50);
+  (`Mapper.probability_map`) as round(100 p), 0..100, and -1 where no sensor looked (the value
+  map_server serves from the same prob.pgm, `mode: raw`);
 - `/tf` (tf2_msgs/msg/TFMessage): map -> base_link, one per frame of the stack(s) that give the
   robot's pose (`RobotStacks`: the mounted ones, else the first seen).
 
@@ -100,14 +100,17 @@ def base_pose(cam_to_world: np.ndarray, camera_in_base: np.ndarray | None = None
 def occupancy_values(m: OccupancyMap2D) -> np.ndarray:
     """(H, W) int8 OccupancyGrid values of a map image, rows still image order (row 0 = top).
 
-    Both modes go through p = (255 - value) / 255, the occupancy probability map_server reads
-    from the PGM (negate 0). trinary: 100 where p > OCCUPIED_THRESH, 0 where p < FREE_THRESH,
-    -1 in between (0 -> 100, 254 -> 0, 205 -> -1), as map_server's trinary mode; scale:
-    round(100 p) in 0..100 (the probability itself, not map_server's rescaling between the
-    thresholds, so that a reader gets p back to 1 %)."""
+    raw: the value itself where it is 0..100, else -1, as map_server's raw mode (the probability
+    map, round(100 p)). trinary and scale go through p = (255 - value) / 255, the occupancy
+    probability map_server reads from the PGM (negate 0). trinary: 100 where p > OCCUPIED_THRESH,
+    0 where p < FREE_THRESH, -1 in between (0 -> 100, 254 -> 0, 205 -> -1), as map_server's
+    trinary mode; scale: round(100 p) in 0..100 (the probability itself, not map_server's
+    rescaling between the thresholds, so that a reader gets p back to 1 %)."""
     img = np.asarray(m.image)
     if img.ndim != 2 or img.dtype != np.uint8:
         raise UsageError(f"OccupancyMap2D.image {img.dtype} of shape {img.shape}: expected (H, W) uint8")
+    if m.mode == "raw":
+        return np.where(img <= 100, img, -1).astype(np.int8)
     p = (255.0 - img) / 255.0  # (H, W)
     if m.mode == "trinary":
         out = np.full(img.shape, -1, dtype=np.int8)
@@ -116,7 +119,7 @@ def occupancy_values(m: OccupancyMap2D) -> np.ndarray:
         return out
     if m.mode == "scale":
         return np.rint(100.0 * p).astype(np.int8)
-    raise UsageError(f"OccupancyMap2D.mode {m.mode!r}: expected 'trinary' or 'scale'")
+    raise UsageError(f"OccupancyMap2D.mode {m.mode!r}: expected 'trinary', 'scale' or 'raw'")
 
 
 def grid_data(m: OccupancyMap2D) -> np.ndarray:

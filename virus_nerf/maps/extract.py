@@ -34,9 +34,9 @@ from virus_nerf.maps.occupancy import (
     OccupancyMap2D,
     probability_slice,
     raster_shape,
+    raw_map,
     ray_ends,
     ray_points,
-    scale_map,
     scan_counts,
     scan_rule_occupied,
     to_image,
@@ -420,8 +420,8 @@ def occupancy_map(model, positions: np.ndarray, lo: np.ndarray, hi: np.ndarray, 
 def probability_map(probability: np.ndarray, box_lo, box_hi, height: float, band: float, lo: np.ndarray,
                     hi: np.ndarray, resolution: float, observed: np.ndarray) -> OccupancyMap2D:
     """The VIRUS grid's occupancy probability (rx, ry, rz) over the 3D box [box_lo, box_hi] as a
-    `mode: scale` map of the (x, y) box [lo, hi] at `height` +- `band` m (maximum over the
-    layers), 0.5 outside `observed`."""
+    `mode: raw` map of the (x, y) box [lo, hi] at `height` +- `band` m (maximum over the layers):
+    round(100 p), unknown (maps.occupancy.RAW_UNKNOWN, -1 to map_server) outside `observed`, where
+    no sensor looked (the grid's prior there is no knowledge, and never free)."""
     p = probability_slice(probability, box_lo, box_hi, height, band, lo, hi, resolution)
-    p[~observed] = 0.5  # no sensor looked: no knowledge, never free
-    return scale_map(p, lo, resolution)
+    return raw_map(p, lo, resolution, observed)

@@ -7,11 +7,13 @@ x in [ox + c*res, ox + (c+1)*res) and y in [oy + (H-1-r)*res, oy + (H-r)*res): r
 Two maps are written beside each other on the same raster:
 - trinary (`mode: trinary`): the NeRF's own 360 deg scans at camera height, cells a ray passed
   free (254), end cells occupied (0), the rest unknown (205);
-- scale (`mode: scale`): the Bayesian VIRUS grid's occupancy probability p stored as
-  value = round(255 * (1 - p)); map_server (negate 0) reads p = (255 - value) / 255 back, 100 above
-  occupied_thresh, 0 below free_thresh and linear in between (ROS 1: 99 * (p - free) / (occ -
-  free)). A PGM has no alpha channel, scale mode's only mark of unknown, so map_server serves the
-  p = 0.5 of cells no sensor looked at as a probability: the planner's map is the trinary one.
+- raw (`mode: raw`): the Bayesian VIRUS grid's occupancy probability p as the OccupancyGrid
+  value itself, round(100 p) in 0..100, and RAW_UNKNOWN (255) where no sensor looked; map_server
+  (ROS 1 and nav2) serves a raw pixel of 0..100 as that value and any other as -1 (unknown), so
+  it serves exactly what /map_probability carries. (A `mode: scale` PGM cannot mark a cell
+  unknown: scale mode's only mark is an alpha channel, which a PGM has not; map_server served
+  the p = 0.5 of unseen cells as a probability, which a costmap reading it as trinary takes for
+  free space.) `preview` gives the picture to look at: 255 (1 - p), unknown mid grey.
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ from typing import Literal
 import numpy as np
 
 OCCUPIED, FREE, UNKNOWN = 0, 254, 205
+RAW_UNKNOWN = 255  # a raw map's pixel where no sensor looked (map_server: any value over 100 is -1)
+PREVIEW_UNKNOWN = 128  # ... and its preview's (p = 0.5: no knowledge)
 OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.196
 MAX_PIXELS = 100_000_000  # a finer --resolution is refused (memory) before anything is computed
 # pass points rasterised at once: ~100 bytes of temporaries each (the points, their rays' origins
@@ -41,7 +45,7 @@ class OccupancyMap2D:
     image: np.ndarray  # (H, W) uint8, row 0 = largest y (image top)
     resolution: float  # metres per pixel
     origin: tuple[float, float]  # world (x, y) of the lower-left pixel corner
-    mode: Literal["trinary", "scale"] = "trinary"
+    mode: Literal["trinary", "scale", "raw"] = "trinary"
 
     def __post_init__(self) -> None:
         # Python floats whatever the caller gave (numpy scalars): the YAML and JSON written from
@@ -201,11 +205,26 @@ def probability_slice(
     return out
 
 
-def scale_map(p_xy: np.ndarray, lo: np.ndarray, resolution: float) -> OccupancyMap2D:
-    """Probabilities [ix, iy] in [0, 1] -> a `mode: scale` map, value = round(255 * (1 - p))."""
-    value = np.rint(255.0 * (1.0 - np.clip(p_xy, 0.0, 1.0))).astype(np.uint8)
+def raw_map(p_xy: np.ndarray, lo: np.ndarray, resolution: float, known_xy: np.ndarray | None = None) -> OccupancyMap2D:
+    """Probabilities [ix, iy] in [0, 1] -> a `mode: raw` map: value = round(100 p), RAW_UNKNOWN
+    outside `known_xy` ([ix, iy] bool; None: everywhere known)."""
+    value = np.rint(100.0 * np.clip(p_xy, 0.0, 1.0)).astype(np.uint8)
+    if known_xy is not None:
+        value[~np.asarray(known_xy, dtype=bool)] = RAW_UNKNOWN
     return OccupancyMap2D(image=to_image(value), resolution=resolution, origin=(float(lo[0]), float(lo[1])),
-                          mode="scale")
+                          mode="raw")
+
+
+def preview(m: OccupancyMap2D) -> np.ndarray:
+    """(H, W) uint8 picture of a map to look at: a raw map as 255 (1 - p) (dark = occupied, as the
+    trinary map), PREVIEW_UNKNOWN where unknown; the other modes' images are pictures already."""
+    img = np.asarray(m.image, dtype=np.uint8)
+    if m.mode != "raw":
+        return img
+    known = img <= 100
+    out = np.full(img.shape, PREVIEW_UNKNOWN, dtype=np.uint8)
+    out[known] = np.rint(255.0 * (1.0 - img[known] / 100.0)).astype(np.uint8)
+    return out
 
 
 def write_pgm(path: Path, image: np.ndarray) -> None:
@@ -250,8 +269,9 @@ def read_map_server(yaml_path: Path) -> OccupancyMap2D:
     x, y, _ = (float(v) for v in fields["origin"].strip("[]").split(","))
     with Image.open(yaml_path.parent / fields["image"]) as img:
         image = np.asarray(img, dtype=np.uint8).copy()
+    mode = fields.get("mode", "trinary")
     return OccupancyMap2D(image=image, resolution=float(fields["resolution"]), origin=(x, y),
-                          mode="scale" if fields.get("mode") == "scale" else "trinary")
+                          mode=mode if mode in ("scale", "raw") else "trinary")
 
 
 def write_png(path: Path, image: np.ndarray) -> None:
