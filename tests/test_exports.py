@@ -542,3 +542,16 @@ def test_poses_csv_keeps_epoch_times_and_reads_back(tmp_path):
     back = read_pose_csv(path)
     np.testing.assert_allclose(back.times, times, rtol=0, atol=1e-6)
     np.testing.assert_allclose(back.cam_to_world, poses, atol=1e-9)
+
+
+def test_map_yaml_numbers_read_back_as_numbers_in_yaml_1_1(tmp_path):
+    """PyYAML (YAML 1.1) reads `3e-05` as a string; the map's YAML writes `3.0e-05`, the same float.
+    The shortest text otherwise (a LiDAR point on a pixel edge falls in the same pixel for a reader)."""
+    from virus_nerf.maps.occupancy import map_yaml, yaml_float
+
+    yaml = pytest.importorskip("yaml")  # PyYAML: there with the dev extras (a dependency of theirs)
+
+    assert [yaml_float(v) for v in (3e-05, 1e22, -2.5e-07, 0.1, -4.05, 1e16)] == [
+        "3.0e-05", "1.0e+22", "-2.5e-07", "0.1", "-4.05", "1.0e+16"]
+    doc = yaml.safe_load(map_yaml("map.pgm", 0.05, (3e-05, -1e-07)))
+    assert doc["origin"] == [3e-05, -1e-07, 0.0] and doc["resolution"] == 0.05

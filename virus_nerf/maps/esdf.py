@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from virus_nerf.maps.occupancy import yaml_float
+
 
 @dataclass
 class DistanceField2D:
@@ -56,7 +58,8 @@ def write_esdf(field: DistanceField2D, folder: Path, name: str = "esdf", preview
     write_text_atomic(
         folder / f"{name}.yaml",
         f"data: {name}.npy\nunits: metres\nsigned: true  # negative inside obstacles\n"
-        f"resolution: {field.resolution!r}\norigin: [{field.origin[0]!r}, {field.origin[1]!r}, 0.0]\n"
+        f"resolution: {yaml_float(field.resolution)}\norigin: [{yaml_float(field.origin[0])}, "
+        f"{yaml_float(field.origin[1])}, 0.0]\n"
         "layout: rows top (largest y) to bottom, columns x increasing, as the map_server image\n",
     )
     d = np.clip(np.nan_to_num(field.distance, nan=0.0, posinf=preview_max), -preview_max, preview_max)

@@ -236,13 +236,24 @@ def write_pgm(path: Path, image: np.ndarray) -> None:
         tmp.write_bytes(f"P5\n{w} {h}\n255\n".encode() + np.ascontiguousarray(image, dtype=np.uint8).tobytes())
 
 
+def yaml_float(value: float) -> str:
+    """A float as YAML text that every YAML reader reads back as the same float: the shortest
+    text (repr), with a decimal point before any exponent (YAML 1.1 readers such as PyYAML read
+    `3e-05` as a string, `3.0e-05` as the number)."""
+    text = repr(float(value))
+    mantissa, e, exponent = text.partition("e")
+    if e and "." not in mantissa:
+        text = f"{mantissa}.0e{exponent}"
+    return text
+
+
 def map_yaml(image_name: str, resolution: float, origin: tuple[float, float], mode: str = "trinary") -> str:
     """The map_server YAML (written by hand: a flat document of scalars and one list). The origin
     is written to the last bit (the shortest text that reads back as the same float): a LiDAR
     point on a pixel edge then falls in the same pixel for a reader of map.yaml as for the safety
     figures that judged the map."""
-    return (f"image: {image_name}\nmode: {mode}\nresolution: {resolution!r}\n"
-            f"origin: [{float(origin[0])!r}, {float(origin[1])!r}, 0.0]\nnegate: 0\n"
+    return (f"image: {image_name}\nmode: {mode}\nresolution: {yaml_float(resolution)}\n"
+            f"origin: [{yaml_float(origin[0])}, {yaml_float(origin[1])}, 0.0]\nnegate: 0\n"
             f"occupied_thresh: {OCCUPIED_THRESH}\nfree_thresh: {FREE_THRESH}\n")
 
 
