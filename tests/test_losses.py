@@ -99,7 +99,8 @@ def test_total_loss_weights_each_term_and_skips_absent_sensors():
     terms = total_loss(w, pred_rgb, target_rgb, pred_depth, irs, uss, rgbd)
     assert isinstance(terms, LossTerms)
     assert terms.as_floats() == pytest.approx(
-        {"colour": 0.5, "irs": 1.0, "uss": 1.0, "rgbd": 2.0, "total": 0.5 + 0.5 + 0.25 + 4.0}
+        {"colour": 0.5, "irs": 1.0, "uss": 1.0, "rgbd": 2.0, "stereo": 0.0, "distortion": 0.0, "line_of_sight": 0.0,
+         "total": 0.5 + 0.5 + 0.25 + 4.0}
     )
     camera_only = total_loss(w, pred_rgb, target_rgb, pred_depth)
     assert camera_only.total.item() == pytest.approx(0.5)

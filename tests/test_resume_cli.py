@@ -669,7 +669,7 @@ def test_a_torn_log_row_is_dropped_and_a_damaged_one_named_on_resume(run_copy):
     lines[2] = "4,oops"
     log.write_bytes("\r\n".join(lines).encode())
     code, _, err = run_cli(["train", "--out", run_copy, "--resume", "--max-steps", "9", "--quiet"])
-    one_line_error(code, err, f"{log}, row 3: expected 11 comma-separated numbers")
+    one_line_error(code, err, f"{log}, row 3: expected 14 comma-separated numbers")
 
 
 def test_the_run_is_locked_while_a_process_trains_in_it(run_copy):

@@ -88,7 +88,7 @@ def test_truncate_log_drops_a_torn_last_row(tmp_path, tail):
 def test_truncate_log_names_a_damaged_row_and_mends_a_torn_header(tmp_path):
     path = tmp_path / "train_log.csv"
     path.write_text(_log(HEADER, _row(5), "5,x,oops", _row(15)), newline="")
-    with pytest.raises(DataFormatError, match=r"train_log.csv, row 3: expected 11 comma-separated numbers"):
+    with pytest.raises(DataFormatError, match=r"train_log.csv, row 3: expected 14 comma-separated numbers"):
         truncate_log(path, 20)
     path.write_text("step,sec", newline="")  # killed while writing the header
     truncate_log(path, 0)
@@ -128,3 +128,17 @@ def test_a_full_disk_while_logging_names_train_log(tmp_path):
         log.write(LogRow(1, 0.1, 0.1, 0.01, 0.0, 0.0, 0.0, 20.0, 12.5, 0.3, 7))
     assert info.value.filename == str(tmp_path / "train_log.csv")
     log.close()
+
+
+def test_a_log_of_an_earlier_release_is_resumed_with_the_later_columns_empty(tmp_path):
+    """A run begun before stereo, distortion and line_of_sight were logged: --resume keeps its rows
+    up to the checkpoint, each with three empty cells, under today's header; read again, they stand."""
+    old_header = ",".join(LogRow.FIELDS[:11])
+    old = [",".join([str(s), "1.5"] + ["0.5"] * 8 + ["3"]) for s in (5, 10, 15)]
+    path = tmp_path / "train_log.csv"
+    path.write_text(_log(old_header, *old), newline="")
+    truncate_log(path, 10)
+    want = _log(HEADER, old[0] + ",,,", old[1] + ",,,")
+    assert path.read_bytes().decode() == want
+    truncate_log(path, 10)
+    assert path.read_bytes().decode() == want

@@ -66,5 +66,5 @@ def step_loss(config: MapperConfig, batch: RayBatch, out, samples, rgb_rays: tor
         free = line_of_sight_terms(w, out.weights, samples.t_ends, samples.ray_offsets, uss_range=uss,
                                    stereo_range=batch.stereo_range if stereo else None,
                                    stereo_sigma=batch.stereo_sigma if stereo else None)
-        terms = dataclasses.replace(terms, total=terms.total + free)
+        terms = dataclasses.replace(terms, total=terms.total + free, line_of_sight=free)
     return terms

@@ -170,10 +170,13 @@ class LossTerms:
     total: torch.Tensor
     distortion: torch.Tensor | None = None  # unweighted, when the term is on
     stereo: torch.Tensor | None = None  # unweighted, when the stereo sensor is trained
+    line_of_sight: torch.Tensor | None = None  # weighted (`line_of_sight_terms`), when on
 
     def as_floats(self) -> dict[str, float]:
-        """Plain floats for logging."""
-        return {k: float(getattr(self, k).detach()) for k in ("colour", "irs", "uss", "rgbd", "total")}
+        """Plain floats for logging; a term that is off is 0.0, so that total = the weighted sum
+        of the others plus line_of_sight."""
+        return {k: 0.0 if getattr(self, k) is None else float(getattr(self, k).detach())
+                for k in ("colour", "irs", "uss", "rgbd", "stereo", "distortion", "line_of_sight", "total")}
 
 
 def total_loss(

@@ -375,6 +375,9 @@ class Trainer:
             samples_per_ray=round(self.mapper.last_samples_per_ray, 2),
             occupied=round(self.mapper.grid.occupancy_share(), 4),
             frames=len(self.available_frames()),
+            stereo=t["stereo"],
+            distortion=t["distortion"],
+            line_of_sight=t["line_of_sight"],
         )
 
     def record_eval(self, result: EvaluationResult, log: TrainLog | None = None) -> None:

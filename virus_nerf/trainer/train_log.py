@@ -19,8 +19,12 @@ from virus_nerf.utils.io import write_text_atomic
 
 @dataclass(frozen=True)
 class LogRow:
-    """One line of train_log.csv: loss terms (unweighted), PSNR (dB) of the colour term, samples
-    per ray of the step, the grid's occupied share and the frames available (online)."""
+    """One line of train_log.csv: loss terms (unweighted; 0 when off), PSNR (dB) of the colour
+    term, samples per ray of the step, the grid's occupied share and the frames available
+    (online), then the terms added later (at the end, so that a column keeps its place):
+    stereo and distortion (unweighted) and line_of_sight (the free-space terms, already
+    weighted). loss = the weights' sum of colour, irs, uss, rgbd, stereo and distortion, plus
+    line_of_sight."""
 
     step: int
     seconds: float  # training clock (start-up and evaluations excluded)
@@ -33,10 +37,16 @@ class LogRow:
     samples_per_ray: float
     occupied: float
     frames: int
+    stereo: float = 0.0
+    distortion: float = 0.0
+    line_of_sight: float = 0.0
 
     FIELDS: ClassVar[tuple[str, ...]] = (
         "step", "seconds", "loss", "colour", "irs", "uss", "rgbd", "psnr", "samples_per_ray", "occupied", "frames",
+        "stereo", "distortion", "line_of_sight",
     )
+    # an earlier release's header: its rows are kept on resume, the later columns left empty
+    LEGACY_FIELDS: ClassVar[tuple[str, ...]] = FIELDS[:11]
 
     def values(self) -> tuple:
         return astuple(self)
@@ -69,24 +79,28 @@ def truncate_log(path: Path, step: int) -> None:
     if not complete:
         write_text_atomic(path, header + "\r\n")
         return
-    if complete[0] != header:
+    legacy = complete[0] == ",".join(LogRow.LEGACY_FIELDS)
+    if complete[0] != header and not legacy:
         raise DataFormatError(path, f"header {complete[0][:80]!r}: expected {header!r}", row=1)
+    n_old = len(LogRow.LEGACY_FIELDS)
+    pad = "," * (len(LogRow.FIELDS) - n_old)  # an earlier release's row: the later columns empty
     keep = [header]
     for i, line in enumerate(complete[1:], start=2):
         cells = line.split(",")
         try:
-            if len(cells) != len(LogRow.FIELDS):
+            if len(cells) != (n_old if legacy else len(LogRow.FIELDS)):
                 raise ValueError
             row_step = int(cells[0])
-            [float(c) for c in cells[1:]]
+            [float(c) for c in cells[1:n_old]]
+            [float(c) for c in cells[n_old:] if c != ""]
         except ValueError:
             if i == len(complete):
                 break  # the last row: torn or garbage, dropped
             raise DataFormatError(
-                path, f"expected {len(LogRow.FIELDS)} comma-separated numbers ({header}); the log is damaged "
+                path, f"expected {complete[0].count(',') + 1} comma-separated numbers ({complete[0]}); the log is damaged "
                       "before its last row (move the file away to resume without it)", row=i) from None
         if row_step <= step:
-            keep.append(line)
+            keep.append(line + pad if legacy else line)
     new = "\r\n".join(keep) + "\r\n"
     if new != text:
         write_text_atomic(path, new)
