@@ -180,6 +180,7 @@ def test_refusals(tmp_path, monkeypatch):
     import virus_nerf.mapping.live_view as live_view
 
     monkeypatch.setattr(live_view, "_viewer_executable", lambda: str(tmp_path / "no-viewer"))
+    monkeypatch.setenv("DISPLAY", ":0")  # a screen: the viewer itself is what fails
     with pytest.raises(UsageError) as err:
         LiveView(spawn=True, port=9)
     assert str(err.value).startswith("--rerun: cannot start the Rerun viewer (") and "--rerun-save FILE.rrd" in str(err.value)
@@ -190,6 +191,26 @@ def test_refusals(tmp_path, monkeypatch):
                          ({"rerun_connect": "rerun+http://127.0.0.1:9/proxy"}, "--rerun-connect")):
         with pytest.raises(UsageError, match=f"^{named} needs the live extra: "):  # the flag given, not --rerun
             RerunSinks(**flags).check()
+
+
+def test_rerun_without_a_display_is_refused_in_one_line(monkeypatch):
+    """A robot's computer over ssh (Linux, neither DISPLAY nor WAYLAND_DISPLAY): --rerun is refused
+    before anything starts, naming --rerun-connect and --rerun-save (before: the viewer died, the
+    view waited 6 s for its port, the drive mapped without a viewer and the command exited 0)."""
+    from virus_nerf.mapping.live_view import no_display_problem
+    from virus_nerf.mapping.options import RerunSinks
+
+    assert no_display_problem({}, "linux").startswith("--rerun: no display for the Rerun viewer")
+    assert no_display_problem({"DISPLAY": ":0"}, "linux") is None
+    assert no_display_problem({"WAYLAND_DISPLAY": "wayland-0"}, "linux") is None
+    assert no_display_problem({}, "darwin") is None and no_display_problem({}, "win32") is None
+    if not sys.platform.startswith("linux"):
+        return
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with pytest.raises(UsageError, match="--rerun-connect rerun.*--rerun-save FILE.rrd"):
+        RerunSinks(rerun=True).check()
+    RerunSinks(rerun_save=None).check()  # nothing asked: nothing refused
 
 
 def test_a_viewer_that_is_not_there_is_a_warning_at_close_not_a_failure(tmp_path, capsys):

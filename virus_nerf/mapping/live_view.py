@@ -94,6 +94,18 @@ def _viewer_executable() -> str | None:
     return str(beside) if beside.is_file() else None
 
 
+def no_display_problem(environ=None, platform: str = sys.platform) -> str | None:
+    """Why a viewer window cannot open here (Linux without DISPLAY or WAYLAND_DISPLAY: a robot's
+    computer over ssh), else None. Rerun's spawn says nothing then: the viewer dies, the view's
+    messages wait for a port that never opens, and the drive maps without a viewer."""
+    env = os.environ if environ is None else environ
+    if platform.startswith("linux") and not (env.get("DISPLAY") or env.get("WAYLAND_DISPLAY")):
+        return ("--rerun: no display for the Rerun viewer (neither DISPLAY nor WAYLAND_DISPLAY is set); on a "
+                "computer without a screen, send the view to a viewer elsewhere with --rerun-connect "
+                "rerun+http://HOST:9876/proxy, or save it with --rerun-save FILE.rrd")
+    return None
+
+
 def uss_cone_lines(range_m: float, n: int = 32) -> list[np.ndarray]:
     """Camera-frame polylines of the USS cone at radial range `range_m`: the ellipse (n + 1, 3)
     closed, then four edges (2, 3) from the sensor to the ellipse's ends (wide axis = camera x)."""
@@ -164,6 +176,8 @@ class LiveView:
         self.rec = rr.RecordingStream(application_id)
         urls = []
         if spawn:
+            if (problem := no_display_problem()) is not None:
+                raise UsageError(problem)
             try:
                 rr.spawn(port=port, connect=False, executable_path=_viewer_executable(), recording=self.rec)
             except (RuntimeError, OSError) as exc:  # no viewer executable, or one that does not start

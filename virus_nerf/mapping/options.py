@@ -62,6 +62,11 @@ class RerunSinks:
             if not save.absolute().parent.is_dir():
                 raise UsageError(f"--rerun-save {save}: no folder {save.absolute().parent}; expected a .rrd file "
                                  "in an existing folder")
+        if self.rerun:
+            from virus_nerf.mapping.live_view import no_display_problem
+
+            if (problem := no_display_problem()) is not None:
+                raise UsageError(problem)
         if self.wanted:
             from virus_nerf.mapping.live_view import _rerun
 
