@@ -109,6 +109,12 @@ def test_train_argument_errors(tmp_path, extra, fragment):
         (["train", "--out", "{tmp}/run"], ["--data is required"]),
         (["train", "--out", "{tmp}/run", "--resume"], ["--resume {tmp}/run: no such run folder"]),
         (["train", "--data", "{tmp}", "--room", "../x", "--out", "{tmp}/run"], ["--room '../x': expected the name of a room"]),
+        # every command that reads a room of --data takes a name, not a path (one check)
+        (["sensors", "--data", "{tmp}", "--room", "../x", "--out", "{tmp}/m.json"], ["--room '../x': expected the name"]),
+        (["sensors", "--data", "{tmp}", "--room", "", "--out", "{tmp}/m.json"], ["--room '': expected the name of a room"]),
+        (["tune", "--data", "{tmp}", "--room", "../x", "--study", "s", "--trials", "1", "--out", "{tmp}/t"],
+         ["--room '../x': expected the name of a room"]),
+        (["import-bag", "{tmp}/b.bag", "--out", "{tmp}/d", "--room", ""], ["--room '': expected letters, digits"]),
         (["train", "--data", "{tmp}/nope", "--room", "office", "--out", "{tmp}/run"],
          ["{tmp}/nope: no such folder; expected the dataset folder that holds the room folders (--data)"]),
         (["trian"], ["Unrecognized options: trian", "Available subcommands"]),

@@ -115,6 +115,13 @@ def one_line(text: object, limit: int = 400) -> str:
     return s if len(s) <= limit else s[: limit - 3] + "..."
 
 
+def require_room_name(room: object, flag: str = "--room") -> None:
+    """A room is a folder's name inside the dataset folder (--data), not a path: `../other/office`
+    would read a room of another dataset, and "" the dataset folder itself."""
+    if not isinstance(room, str) or not room.strip() or "/" in room or "\\" in room or room in (".", ".."):
+        raise UsageError(f"{flag} {room!r}: expected the name of a room folder inside --data (e.g. office)")
+
+
 def require_int(name: str, value: object, lo: int, hi: int | None = None) -> None:
     """`value` of argument `name` must be an integer (numpy's too) in [lo, hi]; else a one-line UsageError."""
     import numbers

@@ -38,7 +38,7 @@ def sensors(
             protocol), comma-separated; the first is the document's own, the others go to by_gt.
     """
     from virus_nerf.data.ethz import load_recording
-    from virus_nerf.errors import require_int, require_number
+    from virus_nerf.errors import require_int, require_number, require_room_name
     from virus_nerf.evaluation.evaluate import (
         LIDAR_OWN_MAP,
         EvaluationConfig,
@@ -49,6 +49,7 @@ def sensors(
     )
     from virus_nerf.evaluation.testpoints import recording_warnings, require_test_points
 
+    require_room_name(room)
     require_int("--n-rays", n_rays, 1, 1_000_000)
     require_number("--lidar-angle-range-deg", lidar_angle_range_deg, 0.0, 360.0)
     protocols = parse_gt_flag(gt, scores=True)

@@ -311,7 +311,13 @@ def tune(
         threads_per_run: Threads of each training (default: cores / parallel locally, 1 on Dask).
         export_config: Write the best trial as a config file for `train --config` (never overwritten).
     """
-    from virus_nerf.errors import OutputExistsError, UsageError, require_int, require_number
+    from virus_nerf.errors import (
+        OutputExistsError,
+        UsageError,
+        require_int,
+        require_number,
+        require_room_name,
+    )
     from virus_nerf.experiments.executors import require_extra
     from virus_nerf.utils.io import require_makeable
 
@@ -327,6 +333,7 @@ def tune(
         require_number("--eval-interval", eval_interval, 0.0, lo_open=False)
     if not study.strip() or "/" in study or "\\" in study or study in (".", ".."):
         raise UsageError(f"--study {study!r}: expected a name (no slashes)")
+    require_room_name(room)
     if not (Path(data) / room).is_dir():
         raise UsageError(f"--data {data} --room {room}: {Path(data) / room} is not a room folder")
     if export_config is not None and Path(export_config).exists():

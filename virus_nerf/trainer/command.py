@@ -21,6 +21,7 @@ from virus_nerf.errors import (
     UsageError,
     renamed_flag,
     require_int,
+    require_room_name,
 )
 from virus_nerf.sampler.shares import SENSORS
 from virus_nerf.trainer.config import PRODUCT_KNOBS, TrainConfig
@@ -167,8 +168,8 @@ def train(
     out = Path(out)
     given, flags = train_flags(knobs, gt, playback_speed)
     watch_parent()
-    if room is not None and (not room.strip() or "/" in room or "\\" in room or room in (".", "..")):
-        raise UsageError(f"--room {room!r}: expected the name of a room folder inside --data (e.g. office)")
+    if room is not None:
+        require_room_name(room)
     if resume:
         saved_cfg, info = open_run(out, "--resume")
         if data is not None and Path(data).resolve() != Path(info.data).resolve():

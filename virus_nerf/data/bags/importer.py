@@ -67,7 +67,7 @@ def import_bag(bag: str | Path, out: str | Path, topics: str | Path | TopicsConf
     if poses == "csv" and poses_file is None:
         raise UsageError("--poses csv needs --poses-file FILE (time,x,y,z,qx,qy,qz,qw or TUM)")
     csv_poses = csv_track(poses_file) if poses == "csv" else None
-    room = room or room_name(bag)
+    room = room_name(bag) if room is None else room
     if not re.fullmatch(r"[A-Za-z0-9_-]+", room):
         raise UsageError(f"--room {room!r}: expected letters, digits, '_' or '-'")
     with BagReader(bag) as reader:
