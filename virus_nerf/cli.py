@@ -249,11 +249,13 @@ def _main(argv: list[str] | None) -> None:
 
     from virus_nerf.errors import (
         DISK_FULL_ERRNOS,
+        PENDING_NOTES,
         DataFormatError,
         NotWrittenError,
         OutputExistsError,
         OutputGoneError,
         UsageError,
+        say_notes,
     )
     from virus_nerf.utils.stop import stop_on_signals
 
@@ -263,9 +265,11 @@ def _main(argv: list[str] | None) -> None:
     try:
         with stop_on_signals():  # SIGTERM as Ctrl-C: temporary outputs removed, one line, exit 143
             run()
+        say_notes()  # a command that did not say them where its work began
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGINT/SIGTERM of a command that stops cleanly
         _interrupted(exc)
     except (UsageError, DataFormatError, OutputExistsError, NotWrittenError, OutputGoneError) as exc:
+        PENDING_NOTES.clear()  # the error line alone
         _fail(str(exc))
     except OSError as exc:
         if exc.filename is None:

@@ -148,14 +148,25 @@ def require_number(name: str, value: object, lo: float, hi: float | None = None,
         raise UsageError(f"{name} {value}: expected {expected}")
 
 
+PENDING_NOTES: list[str] = []  # notes on the arguments, said once they are all accepted (`say_notes`)
+
+
 def renamed_flag(new: str, new_value, old: str, old_value):
-    """The value of flag `new`, or of its deprecated old name `old` (with a one-line notice on
-    stderr); both given is a UsageError."""
+    """The value of flag `new`, or of its deprecated old name `old` (a note, said by `say_notes`
+    once the command's arguments are accepted: a refused command prints its one error line
+    alone); both given is a UsageError."""
     if old_value is None:
         return new_value
     if new_value is not None:
         raise UsageError(f"{old} {old_value!r}: the old name of {new}; give {new} alone")
+    PENDING_NOTES.append(f"virus-nerf: note: {old} is deprecated; use {new} (the same recording seconds per second)")
+    return old_value
+
+
+def say_notes() -> None:
+    """The pending notes on stderr, once (a command calls this where its work begins)."""
     import sys
 
-    print(f"virus-nerf: note: {old} is deprecated; use {new} (the same recording seconds per second)", file=sys.stderr)
-    return old_value
+    for note in PENDING_NOTES:
+        print(note, file=sys.stderr)
+    PENDING_NOTES.clear()

@@ -82,7 +82,7 @@ def online(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from virus_nerf.errors import renamed_flag, require_int, require_number
+    from virus_nerf.errors import renamed_flag, require_int, require_number, say_notes
     from virus_nerf.evaluation.config import parse_gt_flag
     from virus_nerf.evaluation.plots import save_png
     from virus_nerf.sim.command import simulate
@@ -92,9 +92,10 @@ def online(
         require_int("--seeds", seeds, 1, 1000)
     if duration is not None:
         require_number("--duration", duration, 0.0, 3600.0)
+    playback_flag = "--playback-speed" if playback is None and playback_speed is not None else "--playback"
     playback_speed = renamed_flag("--playback", playback, "--playback-speed", playback_speed)
     playback_speed = 0.5 if playback_speed is None else playback_speed
-    require_number("--playback", playback_speed, 0.0)
+    require_number(playback_flag, playback_speed, 0.0)
     if eval_interval is not None:
         require_number("--eval-interval", eval_interval, 0.0)
     require_int("--workers", workers, 1, 64)
@@ -106,6 +107,7 @@ def online(
     interval = eval_interval or t_train / 10
     settings = {"--duration": duration, "--playback": playback_speed, "--eval-interval": interval,
                 "--gt": ",".join(protocols)}  # what every run shares
+    say_notes()
     take_experiment_folder(out, "online", summaries, settings)  # new, or this command's unfinished experiment
     data = out / "data"
     if not (data / "office").is_dir():

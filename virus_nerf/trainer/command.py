@@ -22,6 +22,7 @@ from virus_nerf.errors import (
     renamed_flag,
     require_int,
     require_room_name,
+    say_notes,
 )
 from virus_nerf.sampler.shares import SENSORS
 from virus_nerf.trainer.config import PRODUCT_KNOBS, TrainConfig
@@ -184,6 +185,7 @@ def train(
         from virus_nerf.trainer.run import run_training
         from virus_nerf.utils.stop import stop_on_signals
 
+        say_notes()
         with stop_on_signals():  # Ctrl-C, `systemctl stop`: kept after the step in progress (run.py)
             run_training(Path(info.data), info.room, out, cfg, quiet=quiet or None, resume=True)
         return
@@ -195,6 +197,7 @@ def train(
     from virus_nerf.trainer.run import run_training
     from virus_nerf.utils.stop import stop_on_signals
 
+    say_notes()
     with stop_on_signals():
         run_training(data, room, out, cfg, quiet=True if quiet else None, auto_gt=gt is None)
 
