@@ -493,3 +493,14 @@ def test_sensors_on_a_recording_without_test_frames_is_one_line(tmp_path):
     code, _, err = run_cli(["sensors", "--data", tmp_path / "sim", "--room", "office", "--out", tmp_path / "m.json"])
     assert_one_line_error(code, err, "field 'CAM1'", "no CAM1 rows labelled 'test'")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sim"]
+
+
+def test_a_flag_suggested_for_a_typo_names_the_help_that_lists_it(tmp_path):
+    """`train --help` lists the product knobs alone: a typo near a flag only `--help-all` lists
+    points there (a review: --evaluation.zones suggested --evaluation.n-rays "in train --help")."""
+    code, _, err = run_cli(["train", "--data", "x", "--room", "y", "--out", tmp_path / "r", "--evaluation.zones", "3"])
+    line = assert_one_line_error(code, err, "Perhaps you meant: --evaluation.n-rays")
+    assert "in virus-nerf train --help-all" in line
+    code, _, err = run_cli(["train", "--data", "x", "--room", "y", "--out", tmp_path / "r", "--max-step", "3"])
+    line = assert_one_line_error(code, err, "Perhaps you meant: --max-steps")
+    assert "train --help-all" not in line and "in virus-nerf train --help" in line

@@ -222,7 +222,23 @@ def _parse(argv: list[str]):
         if exc.code in (0, None):  # --help (printed to stdout)
             sys.stderr.write(captured.getvalue())
             raise
-        _fail(tyro_error_line(captured.getvalue(), command if command in commands else None))
+        line = tyro_error_line(captured.getvalue(), command if command in commands else None)
+        _fail(_help_all_for_hidden_flags(line, command))
+
+
+def _help_all_for_hidden_flags(line: str, command: str | None) -> str:
+    """tyro's "Perhaps you meant: --X ... in virus-nerf train --help" for a flag that only
+    `train --help-all` lists (the short help shows the product knobs alone): the help named is the
+    one that shows it."""
+    if command != "train" or "Perhaps you meant" not in line:
+        return line
+    from virus_nerf.trainer.config import PRODUCT_KNOBS
+
+    shown = {"--" + k.replace("_", "-") for k in PRODUCT_KNOBS}
+    suggested = set(re.findall(r"--[\w.-]+", line.split("Perhaps you meant", 1)[1])) - {"--help", "--help-all"}
+    if suggested and not suggested & shown:
+        line = line.replace("virus-nerf train --help", "virus-nerf train --help-all")
+    return line
 
 
 def _fail(message: str) -> NoReturn:
