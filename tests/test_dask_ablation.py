@@ -123,15 +123,15 @@ def test_a_port_that_is_no_scheduler_is_one_line_before_anything_is_written(tmp_
     from virus_nerf.experiments import executors
 
     monkeypatch.setattr(executors, "CONNECT_TIMEOUT_S", 2.0)
-    (tmp_path / "maps").mkdir()
-    (tmp_path / "maps" / "map.pcd").write_text("not read: refused before")  # tune's room has a LiDAR map
+    (tmp_path / "office" / "maps").mkdir(parents=True)
+    (tmp_path / "office" / "maps" / "map.pcd").write_text("not read: refused before")  # tune's room has a LiDAR map
     listener = socket.socket()
     listener.bind(("127.0.0.1", 0))
     listener.listen(8)  # accepts (the kernel does), never answers
     try:
         address = f"tcp://127.0.0.1:{listener.getsockname()[1]}"
         for argv, out in ((["ablation", "--out", tmp_path / "abl", "--quick"], tmp_path / "abl"),
-                          (["tune", "--data", tmp_path, "--room", ".", "--study", "s", "--trials", "1",
+                          (["tune", "--data", tmp_path, "--room", "office", "--study", "s", "--trials", "1",
                             "--out", tmp_path / "study"], tmp_path / "study")):
             code, _, err = run_cli([*argv, "--scheduler", address])
             assert code == 2 and err.count("\n") == 1, err

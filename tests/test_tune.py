@@ -375,3 +375,13 @@ def test_a_study_folder_holds_one_study(tmp_path):
     code, _, err = run_cli(_tune_args(tmp_path, tmp_path / "d", "--trials", 1))
     assert code == 2 and "exists and is not a study's folder (no study.json); give study 's' a new --out" in err, err
     assert sorted(p.name for p in (tmp_path / "study").iterdir()) == ["notes.txt"]
+
+
+def test_a_run_whose_every_trial_failed_exits_1(tmp_path):
+    """As ablation and online: a script sees that nothing was tuned (a room without measurements:
+    its trial's training refuses it; the study and its table are kept)."""
+    (tmp_path / "d" / "office" / "maps").mkdir(parents=True)
+    (tmp_path / "d" / "office" / "maps" / "map.pcd").write_text("x")
+    code, out, err = run_cli(_tune_args(tmp_path, tmp_path / "d", "--trials", 1, "--max-steps", 2))
+    assert code == 1 and "trial 0: FAILED" in out, (out, err)
+    assert (tmp_path / "study" / "trials.csv").is_file()

@@ -358,6 +358,7 @@ def tune(
         handle, base = studies.open_study(study, studies.storage_for(storage, out), obj, base, seed, pruner,
                                           Path(data).absolute(), room)
         settled = studies.settle_stale_trials(handle, obj)
+        before = len(handle.trials)
         if settled:
             print(f"settled trial(s) {settled} left running by a tune process that died")
         if trials:
@@ -384,3 +385,6 @@ def tune(
         if export_config is not None:
             trial = studies.export_config(handle, obj, base, Path(export_config))
             print(f"wrote trial {trial.number}'s config to {export_config} (use: virus-nerf train --config {export_config})")
+    ran = handle.trials[before:]
+    if ran and all(t.state.name == "FAIL" for t in ran):  # as ablation and online: a script sees it (exit 1)
+        raise SystemExit(f"all {len(ran)} trial(s) of this run failed (each trial's log lies in {out / 'trials'})")
