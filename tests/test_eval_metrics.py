@@ -182,6 +182,10 @@ def test_metrics_document_schema_and_table():
     with pytest.raises(ValueError):
         check_metrics_document(bad)
     assert "train" not in metrics_document({"NeRF": m})
+    scored = metrics_document({"NeRF": m}, scoring={"n_rays": 128, "test_points": 7})
+    assert list(scored)[:4] == ["gt", "zones", "inlier_m", "scoring"] and scored["scoring"]["n_rays"] == 128
+    with pytest.raises(ValueError, match="scoring"):
+        check_metrics_document({**scored, "scoring": {"n_rays": -1}})
     back = sensor_metrics_from_json(json.loads(json.dumps(doc)))
     assert back["NeRF"] == m and list(back) == ["NeRF", "LiDAR"]
     table = format_table({"NeRF": m, "USS": metrics_of(np.zeros((0, 2)), np.ones((1, 2)))})

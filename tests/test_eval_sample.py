@@ -125,6 +125,8 @@ def test_models_plug_in_with_the_gt_origin(sample_recording):
     z3 = res.metrics["NeRF"].zones["zone3"]
     assert z3.acc_mean == pytest.approx(0.0, abs=1e-9) and z3.cov_mean == pytest.approx(0.0, abs=1e-9)
     assert z3.n_pred == z3.n_gt == len(gts[0].scan)
+    # metrics.json says what the figures rest on: 256 rays a scan, the test points scored
+    assert res.document()["scoring"] == {"n_rays": 256, "test_points": res.n_points}
 
 
 def test_keeping_few_scans_scores_every_test_point_alike(result, sample_recording):
@@ -151,7 +153,7 @@ def test_sensors_command_writes_schema_and_refuses_existing(sample_dir, tmp_path
     out = tmp_path / "results" / "metrics.json"
     sensors(sample_dir, "office", out)
     doc = json.loads(out.read_text())
-    assert list(doc) == ["gt", "zones", "inlier_m", "sensors"] and doc["gt"] == "map"
+    assert list(doc) == ["gt", "zones", "inlier_m", "scoring", "sensors"] and doc["gt"] == "map"
     assert doc["zones"] == {"zone1": [0, 1], "zone2": [0, 2], "zone3": [0, 100]}
     assert list(doc["sensors"]) == ["LiDAR", "USS", "IRS"]
     for per_zone in doc["sensors"].values():

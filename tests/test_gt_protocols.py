@@ -235,7 +235,7 @@ def test_sensors_command_with_several_protocols(tiny_office, tmp_path):
     out = tmp_path / "m" / "metrics.json"
     sensors(tiny_office, "office", out, gt="exact,map")
     doc = json.loads(out.read_text())
-    assert list(doc) == ["gt", "zones", "inlier_m", "sensors", "by_gt"] and doc["gt"] == "exact"
+    assert list(doc) == ["gt", "zones", "inlier_m", "scoring", "sensors", "by_gt"] and doc["gt"] == "exact"
     assert list(doc["by_gt"]) == ["exact", "map"] and doc["by_gt"]["exact"]["sensors"] == doc["sensors"]
     for block in doc["by_gt"]["map"]["sensors"]["IRS"].values():
         assert tuple(block) == METRIC_KEYS

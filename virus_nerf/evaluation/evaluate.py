@@ -132,11 +132,16 @@ class EvaluationResult:
     def document(self, train: Mapping[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
         """extra: safety, warnings (metrics_document)."""
         return metrics_document(self.metrics, self.config.zones, train, gt=self.gt, by_gt=self.by_gt or None,
-                                inlier_m=self.config.inlier_m, **extra)
+                                inlier_m=self.config.inlier_m, scoring=self.scoring(), **extra)
+
+    def scoring(self) -> dict[str, int]:
+        """What the figures depend on beyond the zones: the scans' rays, the positions scored."""
+        return {"n_rays": int(self.config.n_rays), "test_points": int(self.n_points)}
 
     def write_json(self, path: str | Path, train: Mapping[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
         return write_metrics_json(path, self.metrics, self.config.zones, train, gt=self.gt,
-                                  by_gt=self.by_gt or None, inlier_m=self.config.inlier_m, **extra)
+                                  by_gt=self.by_gt or None, inlier_m=self.config.inlier_m, scoring=self.scoring(),
+                                  **extra)
 
     def table(self) -> str:
         """The metrics table of every protocol, each under a line naming its ground truth."""

@@ -180,20 +180,25 @@ def metrics_document(
     safety: Mapping[str, Any] | None = None,
     warnings: Sequence[str] = (),
     inlier_m: float = INLIER_M,
+    scoring: Mapping[str, int] | None = None,
 ) -> dict[str, Any]:
-    """The metrics.json object of docs/method.md 7: gt, zones, inlier_m, sensors[, by_gt][, train][, safety][, warnings].
+    """The metrics.json object of docs/method.md 7: gt, zones, inlier_m[, scoring], sensors[, by_gt][, train][, safety][, warnings].
 
     `sensors` are the metrics under protocol `gt`; `by_gt` (every protocol asked -> metrics, `gt`
     among them) is written only when it holds more than that one protocol. gt None (with no
     sensors) = a run without ground truth. `safety`: the exported map's planner-safety figures
-    (evaluation/safety.py); `warnings`: one line each on why the map may not be trusted.
+    (evaluation/safety.py); `warnings`: one line each on why the map may not be trusted;
+    `scoring`: what the figures depend on beyond the zones ({"n_rays": rays of each 360 deg scan,
+    "test_points": positions scored}: 128 rays give a LiDAR accuracy twice 512's).
     """
     doc: dict[str, Any] = {
         "gt": gt,
         "zones": {z.name: [_json_number(z.lo), _json_number(z.hi)] for z in zones},
         "inlier_m": _json_number(inlier_m),  # acc_inlier / cov_inlier: the share of distances below it
-        "sensors": {name: m.to_json() for name, m in sensors.items()},
     }
+    if scoring is not None:
+        doc["scoring"] = {k: int(v) for k, v in scoring.items()}
+    doc["sensors"] = {name: m.to_json() for name, m in sensors.items()}
     if by_gt is not None and list(by_gt) != [gt]:
         if gt not in by_gt:
             raise ValueError(f"by_gt {list(by_gt)} lacks the document's protocol {gt!r}")
@@ -228,10 +233,14 @@ def check_metrics_document(doc: Mapping[str, Any]) -> None:
 
     Documents written before the ground-truth protocols (no "gt", no "gt_unseen") are accepted.
     """
-    allowed = {"gt", "zones", "inlier_m", "sensors", "by_gt", "train", "safety", "warnings"}
+    allowed = {"gt", "zones", "inlier_m", "scoring", "sensors", "by_gt", "train", "safety", "warnings"}
     if set(doc) - allowed or not {"zones", "sensors"} <= set(doc):
-        raise ValueError(f"metrics document keys must be [gt,] zones, [inlier_m,] sensors[, by_gt][, train]"
-                         f"[, safety][, warnings]; got {sorted(doc)}")
+        raise ValueError(f"metrics document keys must be [gt,] zones, [inlier_m,] [scoring,] sensors[, by_gt]"
+                         f"[, train][, safety][, warnings]; got {sorted(doc)}")
+    scoring = doc.get("scoring", {})
+    if not isinstance(scoring, Mapping) or not all(
+            isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in scoring.values()):
+        raise ValueError(f"metrics document scoring must map names to counts, got {scoring!r}")
     inlier = doc.get("inlier_m", INLIER_M)  # documents written before it: the paper's 0.1 m
     if isinstance(inlier, bool) or not isinstance(inlier, int | float) or not math.isfinite(inlier) or inlier <= 0:
         raise ValueError(f"metrics document inlier_m must be a positive number of metres, got {inlier!r}")
@@ -342,10 +351,11 @@ def write_metrics_json(
     safety: Mapping[str, Any] | None = None,
     warnings: Sequence[str] = (),
     inlier_m: float = INLIER_M,
+    scoring: Mapping[str, int] | None = None,
 ) -> dict[str, Any]:
     """Write metrics.json atomically; returns the written object."""
     doc = metrics_document(sensors, zones, train, gt=gt, by_gt=by_gt, safety=safety, warnings=warnings,
-                           inlier_m=inlier_m)
+                           inlier_m=inlier_m, scoring=scoring)
     write_json_atomic(path, doc)
     return doc
 
