@@ -563,7 +563,9 @@ def test_map_bag_streams_with_snapshots_lag_and_final_map(bags, tiny_cfg, tmp_pa
     assert final["frames"] == report["frames"] == 30 and report["dropped"] == {} and report["stopped"] is None
     assert len(report["lag_s"]) == len(snaps) and report["first_snapshot_s"] < 5
     assert (out / "map" / "mapper.pt").is_file() and not (out / "recording").exists()
-    assert "map-bag: 30 frames, 0 dropped; lag at snapshots median" in stdout
+    assert "map-bag: 30 frames, 0 dropped; lag at snapshots median" in stdout and "; lag at frames median" in stdout
+    # the lag as each frame reached the mapper, and at the final map (a snapshot's is taken before it)
+    assert 0.0 <= report["frame_lag_median_s"] <= report["frame_lag_max_s"] and report["final_lag_s"] is not None
     if have_sinks:  # the live view and the ROS maps get every frame and every snapshot's maps, as in replay
         from test_mapper import _check_map_bag_sinks
 

@@ -76,6 +76,11 @@ class StreamReport:
     dropped: dict[str, int] = field(default_factory=dict)  # reason -> colour frames
     without: dict[str, int] = field(default_factory=dict)  # live: silent sensor (uss, tof, depth) -> frames made without it
     lag_s: list[float] = field(default_factory=list)  # at each snapshot
+    # over every frame as it reached the mapper (a snapshot's lag is taken before it, while the
+    # stream falls behind after one): median, max; and at the final map
+    frame_lag_median_s: float | None = None
+    frame_lag_max_s: float | None = None
+    final_lag_s: float | None = None
     # --poses lidar-odometry: LiDAR scans KISS-ICP did not register, to keep up with the LiDAR
     scans_skipped: int = 0
     # --poses lidar-odometry: the floor of the first scan registered (odometry.ScanRegistration.describe)
@@ -144,6 +149,7 @@ class StreamRun:
             self.report.out_bag = {"path": str(ros_bag.path.absolute()), "map_frame": ros_bag.map_frame,
                                    "base_frame": ros_bag.base_frame}
         self._warned: set[str] = set()
+        self.frame_lags: list[float] = []  # the lag as each frame reached the mapper (s)
 
     # ------------------------------------------------------------------ clock
     def now(self) -> float:
@@ -313,6 +319,7 @@ class StreamRun:
                 continue
             self.mapper.add_frame(f.frame)
             self.newest = f.frame.time if self.newest is None else max(self.newest, f.frame.time)
+            self.frame_lags.append(self.lag(self.now()))
             if self.live is not None:
                 self.live.log_frame(f.frame, self.mapper.intrinsics)
             if self.ros_bag is not None:
@@ -414,6 +421,9 @@ class StreamRun:
         """The report's counts of what did not become a frame or a pose."""
         r = self.report
         r.dropped, r.without = dict(self.sync.dropped_total()), dict(self.sync.without_total())
+        if self.frame_lags:
+            r.frame_lag_median_s = round(statistics.median(self.frame_lags), 3)
+            r.frame_lag_max_s = round(max(self.frame_lags), 3)
         r.scans_skipped = getattr(self.sync.poses, "skipped", 0)
         r.lidar_floor = getattr(self.sync.poses, "floor", None)
         if r.lidar_floor and "note" in r.lidar_floor:
@@ -436,6 +446,7 @@ class StreamRun:
             lag = self.lag(now)
             final = self.out / FINAL
             made = {}
+            r.final_lag_s = round(lag, 3)
             if outputs.write(final, lambda: made.update(info=self._snapshot(
                     final, self.map_time()))):
                 r.final = str(final)
@@ -455,6 +466,8 @@ def summary(report: StreamReport) -> str:
     reasons = ", ".join(f"{n} {why}" for why, n in sorted(report.dropped.items(), key=lambda kv: -kv[1]))
     lag = (f"; lag at snapshots median {statistics.median(report.lag_s):.2f} s, max {max(report.lag_s):.2f} s"
            if report.lag_s else "")
+    if report.frame_lag_max_s is not None:
+        lag += f"; lag at frames median {report.frame_lag_median_s:.2f} s, max {report.frame_lag_max_s:.2f} s"
     without = "".join(f", {n} without {role}" for role, n in sorted(report.without.items()))
     skipped = f"; {report.scans_skipped} LiDAR scans skipped to keep up" if report.scans_skipped else ""
     return f"{report.frames} frames{without}, {dropped} dropped{f' ({reasons})' if reasons else ''}{lag}{skipped}"
