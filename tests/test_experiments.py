@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from virus_nerf.evaluation.metrics import RunMetrics
 from virus_nerf.experiments import ablation as abl
 from virus_nerf.experiments.online import band
 from virus_nerf.maps.occupancy import FREE, OCCUPIED, UNKNOWN, scan_occupancy, write_map_server
@@ -90,7 +91,11 @@ def test_ablation_aggregates_mean_and_std(tmp_path):
     assert r1["runs"] == 0 and r1["acc_mean"] is None
     assert abl.grid_speed(records) == {"office": pytest.approx(1.5)}
     md = abl.table_markdown(records)
-    assert "0.200 ± 0.141" in md and md.count("\n") == 10
+    assert "0.200 ± 0.141" in md and md.count("\n") == 10 and "authors' scoring" in md
+    assert r8["zone3"] == "0-100 m"  # the runs' own zone, as their metrics.json give it
+    moved = fake_metrics(0.1, 0.2, 1.0)
+    moved["zones"]["zone3"] = [2, 3]
+    assert abl.zone_bounds([RunMetrics.from_document(moved)]) == "2-3 m"
     abl.plot_rows(records, tmp_path / "ablation.png")
     from PIL import Image
 

@@ -823,15 +823,23 @@ def test_a_bad_flag_value_points_at_the_commands_own_help(tmp_path):
 
 
 def test_the_metric_vs_time_plot_names_its_ground_truth(tmp_path, monkeypatch):
-    """plots/metric_vs_time.png's title names the protocol its points were scored against, as every
-    plot's does (usage.md, "Ground truth")."""
+    """plots/metric_vs_time.png draws one curve per protocol its points were scored against (a
+    run resumed with another --gt continues under the new one: a review saw map's points drawn
+    under the title "ground truth: exact") and names the zone's bounds."""
     from types import SimpleNamespace
 
     from virus_nerf.evaluation import plots
+    from virus_nerf.evaluation.metrics import DEFAULT_ZONES
     from virus_nerf.trainer.report import write_run_plots
+    from virus_nerf.trainer.run_folder import EvalPoint
 
-    titles = []
+    drawn = []
     monkeypatch.setattr(plots, "write_plot_files", lambda result, folder, max_maps: [])
-    monkeypatch.setattr(plots, "plot_metric_vs_time", lambda curves, path, title: titles.append(title))
-    write_run_plots(tmp_path / "run", SimpleNamespace(gt="map"), [])
-    assert titles == ["NeRF zone 3 vs training time; ground truth: map"]
+    monkeypatch.setattr(plots, "plot_metric_vs_time", lambda curves, path, title: drawn.append((curves, title)))
+    history = [EvalPoint(10, 10.0, 0.5, 0.6, 0.1, 0.1, 3, "map"), EvalPoint(20, 20.0, 0.4, 0.5, 0.2, 0.2, 3, "map"),
+               EvalPoint(30, 30.0, 0.3, 0.4, 0.3, 0.3, 3, "exact")]
+    write_run_plots(tmp_path / "run", SimpleNamespace(gt="exact", config=SimpleNamespace(zones=DEFAULT_ZONES)), history)
+    (curves, title), = drawn
+    assert title == "NeRF zone 3 (0-100 m) vs training time"
+    assert {k: [e.step for e in v] for k, v in curves.items()} == {"NeRF, ground truth map": [10, 20],
+                                                                   "NeRF, ground truth exact": [30]}

@@ -230,7 +230,7 @@ def test_resume_after_a_crash_cuts_the_log_back_to_the_checkpoint(tiny_office, t
     run.mkdir()
     Trainer(rec, small_config(max_steps=6, log_every=1), run, quiet=True).fit()  # checkpoint at step 6
     with (run / "train_log.csv").open("a") as fh:  # rows a killed process wrote after the checkpoint
-        fh.write("7,1.0,0.1,0.1,0,0,0,10,20,0.5,4\n8,1.1,0.1,0.1,0,0,0,10,20,0.5,4\n")
+        fh.write("7,1.0,0.1,0.1,0,0,0,10,20,0.5,4,0,0,0\n8,1.1,0.1,0.1,0,0,0,10,20,0.5,4,0,0,0\n")
     resumed = Trainer(rec, small_config(max_steps=10, log_every=1), run, quiet=True)
     resumed.load_checkpoint(run / "checkpoint.pt")
     resumed.fit()
@@ -447,3 +447,20 @@ def test_the_logged_terms_add_up_to_the_logged_loss(tiny_office, tmp_path):
                  + w.stereo * v["stereo"] + w.distortion * v["distortion"] + v["line_of_sight"])
         assert v["loss"] == pytest.approx(parts, rel=1e-5)
     assert any(float(r["distortion"]) > 0 for r in rows) and any(float(r["line_of_sight"]) > 0 for r in rows)
+
+
+def test_a_resumed_run_keeps_the_final_evaluation_scored_after_its_last_checkpoint(tiny_office, tmp_path):
+    """`train` scores its final evaluation after the last checkpoint, at the checkpoint's step:
+    a resume keeps that point on the curve (a review saw it vanish from metrics_vs_time.csv); a
+    point of another step (a killed run's, after the checkpoint) is not taken."""
+    from virus_nerf.trainer.run_folder import METRICS_VS_TIME, EvalPoint, write_eval_history
+
+    rec = load_recording(tiny_office, "office")
+    run = tmp_path / "run"
+    run.mkdir()
+    Trainer(rec, small_config(max_steps=6), run, quiet=True).fit()  # checkpoint at step 6
+    final = EvalPoint(6, 3.0, 0.5, 0.6, 0.2, 0.3, 2, "map")
+    write_eval_history(run / METRICS_VS_TIME, [final, EvalPoint(7, 3.5, 0.4, 0.5, 0.2, 0.3, 2, "map")])
+    resumed = Trainer(rec, small_config(max_steps=10), run, quiet=True)
+    resumed.load_checkpoint(run / "checkpoint.pt")
+    assert resumed.eval_history == [final]

@@ -146,8 +146,9 @@ class EvaluationResult:
     def table(self) -> str:
         """The metrics table of every protocol, each under a line naming its ground truth."""
         by_gt = self.by_gt or {self.gt: self.metrics}
+        zones = ", ".join(f"{z.name} {z.lo:g}-{z.hi:g} m" for z in self.config.zones)
         return "\n".join(f"ground truth: {p} ({GT_DESCRIPTIONS[p]}); distances in metres, shares in [0, 1], "
-                         f"inliers < {self.config.inlier_m:g} m\n"
+                         f"inliers < {self.config.inlier_m:g} m; {zones}\n"
                          + format_table(m, self.config.zones)
                          for p, m in by_gt.items())
 

@@ -304,12 +304,27 @@ class Trainer:
         try:
             self.mapper.load_state(state)
             self.eval_history = [EvalPoint(**e) for e in state.get("eval_history", [])]
+            self.eval_history += self._final_points(Path(path).parent)
             self.trained_on = state.get("device") if isinstance(state.get("device"), str) else None
             if self.config.online and isinstance(state.get("frames"), int) and self.mapper.frames == 0:
                 self._frames_at_load = state["frames"]
         except (KeyError, ValueError, TypeError, RuntimeError) as exc:  # optimiser, RNG states, history
             raise DataFormatError(path, f"does not fit this run's model ({type(exc).__name__}: "
                                         f"{one_line(exc, 160)})") from None
+
+    def _final_points(self, run_dir: Path) -> list[EvalPoint]:
+        """The run's final evaluation, scored after its last checkpoint at the checkpoint's step
+        (metrics_vs_time.csv's points at that step the checkpoint lacks): a resumed run keeps it
+        on its curve."""
+        from virus_nerf.errors import DataFormatError
+        from virus_nerf.trainer.run_folder import METRICS_VS_TIME, read_eval_history
+
+        try:
+            saved = read_eval_history(run_dir / METRICS_VS_TIME)
+        except DataFormatError:  # a damaged curve: the checkpoint's history stands
+            return []
+        known = {(e.step, e.ground_truth) for e in self.eval_history}
+        return [e for e in saved if e.step == self.mapper.step and (e.step, e.ground_truth) not in known]
 
     # ------------------------------------------------------------------ the loop
     def fit(self, started: Callable[[], None] | None = None) -> TrainSummary:

@@ -27,9 +27,14 @@ def write_run_plots(run_dir: Path, result, eval_history: list[EvalPoint], max_ma
     folder = Path(run_dir) / PLOTS
     with new_output_dir(folder, replace=replace) as tmp:
         names = write_plot_files(result, tmp, max_maps=max_maps)
-        # scored during training against the primary ground truth, as the title says (plots.py)
-        curve = plot_metric_vs_time({"NeRF": eval_history}, tmp / "metric_vs_time.png",
-                                    title=f"NeRF zone 3 vs training time; ground truth: {result.gt}")
+        # one curve per ground truth the points were scored against (a run resumed with another
+        # --gt continues its history under the new one)
+        protocols = list(dict.fromkeys(e.ground_truth or result.gt for e in eval_history))
+        curves = {f"NeRF, ground truth {p}": [e for e in eval_history if (e.ground_truth or result.gt) == p]
+                  for p in protocols}
+        zone3 = next((f"{z.lo:g}-{z.hi:g} m" for z in result.config.zones if z.name == "zone3"), "")
+        curve = plot_metric_vs_time(curves, tmp / "metric_vs_time.png",
+                                    title=f"NeRF zone 3 ({zone3}) vs training time")
         if curve is not None:
             names.append(curve.name)
         if safety is not None:
