@@ -998,3 +998,62 @@ def test_live_every_colour_image_is_a_frame_or_counted_across_a_restart(bags):
     dropped = sync.dropped_total()
     assert sync.restarts == 1 and dropped == {"before a clock restart": 1}
     assert made + 1 == len(colours) // 2 + 1 + len(colours)
+
+
+def test_a_take_spanning_a_clock_restart_keeps_each_pass_whole(bags):
+    """The ROS 2 node takes each topic's messages in arrival order and feeds them in stamp order;
+    a take that spans a restart (a bag played again) keeps the old pass's tail before the new
+    pass's head (hand-made take: A 2.9, 0.0, 0.1 and B 2.95, 0.05). Fed so, the stream restarts
+    once and says no topic stopped (before: stamp order alone gave two restarts and 13 lines)."""
+    pytest.importorskip("cyclonedds")
+    from virus_nerf.data.bags.reader import Message
+    from virus_nerf.ros2.node import order_take
+
+    def msg(t):
+        return Message(0, t, None, "x", None)
+
+    take = [("A", msg(2.9)), ("A", msg(0.0)), ("A", msg(0.1)), ("B", msg(2.95)), ("B", msg(0.05))]
+    newest = {"A": 2.8}
+    got = [(topic, m_.time_s) for topic, m_ in order_take(take, newest)]
+    assert got == [("A", 2.9), ("B", 2.95), ("A", 0.0), ("B", 0.05), ("A", 0.1)]
+    assert newest == {"A": 0.1, "B": 0.05}
+    # a take within one pass: plain stamp order
+    assert [m_.time_s for _, m_ in order_take([("A", msg(0.3)), ("B", msg(0.2))], newest)] == [0.2, 0.3]
+    # the whole bag twice in one take, each topic in arrival order: one restart
+    cfg = default_topics()
+    with BagReader(bags["ros1"]) as reader:
+        lines: list[str] = []
+        sync = LiveSync(cfg, make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"]),
+                        bags["ros1"], on_problem=lines.append)
+        messages = list(reader.iter_topics(sync.topics()))
+    by_topic = sorted(messages + messages, key=lambda item: item[0])  # stable: each topic's in arrival order
+    for topic, m_ in order_take(by_topic, {}):
+        sync.push(topic, m_)
+    assert sync.restarts == 1 and not any("stopped" in ln for ln in lines), lines
+
+
+def test_a_snapshot_the_disk_refused_still_lets_the_map_train(tmp_path):
+    """Before the first snapshot no step starts that might delay it; after it, the map trains
+    freely. A snapshot a full disk refused counts as the first: before, a node on a full disk
+    mapped 97 frames with 0 steps (a review: every map it published came from an untrained field)."""
+    import errno
+    import time as time_mod
+    from types import SimpleNamespace
+
+    from virus_nerf.mapping.stream import StreamRun
+
+    lines: list[str] = []
+    run = StreamRun(SimpleNamespace(), tmp_path, None, snapshot_every=1.0, first_snapshot=1.0, log=lines.append,
+                    warm_step_s=5.0)  # a slow machine: a step may take 10 s
+    run.mapper = SimpleNamespace(step=0, seconds=0.0)
+    run.start = time_mod.monotonic() - 0.5
+    assert not run._may_train(run.now())  # 10 s to the step, 0.5 s to the first snapshot
+
+    def full(folder, recording_time, with_state=False):
+        raise OSError(errno.ENOSPC, "No space left on device", str(folder / "map.png"))
+
+    run._snapshot = full
+    run.start = time_mod.monotonic() - 1.2  # the first snapshot is due
+    assert run._maybe_snapshot() and run.report.snapshots == []
+    assert lines and "could not be written (No space left on device); mapping goes on" in lines[0]
+    assert run._may_train(run.now())

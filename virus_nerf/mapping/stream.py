@@ -150,6 +150,7 @@ class StreamRun:
                                    "base_frame": ros_bag.base_frame}
         self._warned: set[str] = set()
         self.frame_lags: list[float] = []  # the lag as each frame reached the mapper (s)
+        self.snapshot_tried = False  # the first snapshot was attempted (written or not: a full disk)
 
     # ------------------------------------------------------------------ clock
     def now(self) -> float:
@@ -277,7 +278,7 @@ class StreamRun:
         or the mean of the steps so far)."""
         if self.mapper is None:
             return False
-        if self.report.snapshots:
+        if self.snapshot_tried:  # not only a written one: on a full disk the map must still train
             return True
         m = self.mapper
         step_s = m.seconds / m.step if m.step else 2.0 * self.warm_step_s
@@ -362,6 +363,7 @@ class StreamRun:
         k = len(self.report.snapshots) + 1
         folder = self.out / SNAPSHOTS / f"{k:04d}_{now:.1f}s"
         lag = self.lag(now)
+        self.snapshot_tried = True
         try:
             info = self._snapshot(folder, self.map_time())
         except OSError as exc:  # a full disk: the map is still in memory, the final map comes first

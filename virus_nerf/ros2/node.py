@@ -25,6 +25,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from virus_nerf.data.bags import messages as m
+from virus_nerf.data.bags.live import RESTART_BACK_S
 from virus_nerf.data.bags.reader import Message
 from virus_nerf.mapping.ros_maps import OCCUPANCY_GRID, grid_message, stamp_ns
 from virus_nerf.ros2 import dds, types
@@ -41,6 +42,25 @@ def live_stamp(msg, fallback_s: float) -> float:
     return fallback_s
 
 
+def order_take(take: list[tuple[str, Message]], newest: dict[str, float]) -> list[tuple[str, Message]]:
+    """One poll's messages (each topic's in arrival order) in stamp order, a clock restart kept
+    whole: a topic whose stamp goes back more than RESTART_BACK_S (a bag played again, a clock
+    reset) starts its next pass there, and every pass comes after the one before it, each in
+    stamp order. Sorting a take that spans the jump by stamp alone put the old pass's tail after
+    the new pass's head: two restarts, and every topic said stopped and back. `newest`: each
+    topic's newest stamp so far (updated)."""
+    keyed = []
+    passes: dict[str, int] = {}
+    for arrival, (topic, msg) in enumerate(take):
+        prev = newest.get(topic)
+        if prev is not None and msg.time_s < prev - RESTART_BACK_S:
+            passes[topic] = passes.get(topic, 0) + 1
+        newest[topic] = msg.time_s
+        keyed.append((passes.get(topic, 0), msg.time_s, arrival, topic, msg))
+    keyed.sort(key=lambda k: k[:3])
+    return [(topic, msg) for *_, topic, msg in keyed]
+
+
 class LiveMessages:
     """(topic, Message) as they arrive from DDS, None when nothing is new (module doc).
 
@@ -55,7 +75,8 @@ class LiveMessages:
         self.counts: dict[str, int] = dict.fromkeys(wanted, 0)
         self.refused: set[tuple[str, str]] = set()
         self.bad: dict[str, int] = {}  # topic -> payloads that did not deserialise
-        self.last_message_s: float | None = None  # wall time (monotonic) of the newest message
+        self.last_message_s: float | None = None  # wall time (monotonic) of the newest message (not /tf_static)
+        self.newest: dict[str, float] = {}  # topic -> its newest stamp (`order_take`)
         self._next_discovery = 0.0
 
     def discover(self) -> None:
@@ -96,10 +117,9 @@ class LiveMessages:
                 self.counts[topic] = k + 1
                 t = live_stamp(msg, sample.source_s)
                 batch.append((topic, Message(k, t, msg, reader.msgtype, sample.received_s)))
-        if batch:
+        if any(not dds.is_tf_static(topic) for topic, _ in batch):  # latched, sent before the robot moves
             self.last_message_s = time.monotonic()
-        batch.sort(key=lambda item: item[1].time_s)
-        return batch
+        return order_take(batch, self.newest)
 
     def __iter__(self) -> Iterator[tuple[str, Message] | None]:
         """Ends when stop() is true and nothing is waiting (what came during a long step counts)."""
