@@ -1057,3 +1057,35 @@ def test_a_snapshot_the_disk_refused_still_lets_the_map_train(tmp_path):
     assert run._maybe_snapshot() and run.report.snapshots == []
     assert lines and "could not be written (No space left on device); mapping goes on" in lines[0]
     assert run._may_train(run.now())
+
+
+def test_live_a_robot_that_pauses_and_goes_on_is_not_said_stopped(bags):
+    """Live, every topic quiet for 5 s (the robot paused), then all of them again: nothing is said
+    (docs: "if every topic stops, the clock stops with them"; before, each topic was said stopped
+    and back at once) and the frames after the pause are mapped. A topic that does not come back
+    after the pause is still said stopped."""
+    import dataclasses
+
+    cfg = default_topics()
+    with BagReader(bags["ros1"]) as reader:
+        messages = list(reader.iter_topics(LiveSync(cfg, make_pose_source(
+            "csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"]), bags["ros1"]).topics()))
+    t0 = messages[0][1].time_s
+
+    def shifted(m_):  # the pause at 0.5 s of the bag (2.4 s after it); the poses file is on the bag's clock, shifted too
+        return m_ if m_.time_s < t0 + 0.5 else dataclasses.replace(m_, time_s=m_.time_s + 5.0)
+
+    csv = np.loadtxt(bags["csv"], delimiter=",", skiprows=1)
+    csv[csv[:, 0] >= t0 + 0.5, 0] += 5.0
+    moved = bags["csv"].with_name("paused.csv")
+    np.savetxt(moved, csv, delimiter=",", header="time,x,y,z,qx,qy,qz,qw", comments="", fmt="%.9f")
+    for drop in (None, "/TOF1"):
+        lines: list[str] = []
+        sync = LiveSync(cfg, make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=moved),
+                        bags["ros1"], on_problem=lines.append)
+        made = [f for t, m_ in messages if not (drop and t == drop and m_.time_s >= t0 + 0.5)
+                for f in sync.push(t, shifted(m_))] + sync.finish()
+        if drop is None:
+            assert lines == [] and any(f.frame.time > t0 + 5.5 for f in made)
+        else:
+            assert [ln for ln in lines if "stopped" in ln and drop in ln], lines

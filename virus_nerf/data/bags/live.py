@@ -148,6 +148,7 @@ class LiveSync:
         self.last_stamp: dict[str, float] = {}
         self.t0: float | None = None  # the first stamp: bag times in messages count from here
         self.clock = -math.inf  # the newest stamp seen
+        self.resumed_at = -math.inf  # live: where the clock went on after every topic was quiet (`_check_gap`)
         self.dropped: dict[int, Counter] = {s: Counter() for s in cfg.stacks}
         self.without: dict[int, Counter] = {s: Counter() for s in cfg.stacks}  # live: role -> frames made without it
         self.made = 0
@@ -268,7 +269,7 @@ class LiveSync:
         self.last_kept = dict.fromkeys(self.cfg.stacks, -math.inf)
         self.last_color = dict.fromkeys(self.cfg.stacks, -math.inf)
         self.first_color.clear()
-        self.clock, self.last_frame = t, None
+        self.clock, self.last_frame, self.resumed_at = t, None, -math.inf
 
     def _color(self, s: int, msg: Message, late: bool) -> None:
         t = msg.time_s
@@ -312,6 +313,10 @@ class LiveSync:
         recording paused) stops the stream, named as such rather than as every topic stopping.
         Live, a gap is the link or the robot going quiet: the silence checks say it."""
         gap = msg.time_s - self.clock
+        if self.on_problem is not None and self.clock > -math.inf and gap > self.max_silence_s:
+            # live, the whole robot went quiet and goes on: its topics' silence counts from here
+            # (each gets max_silence_s to speak again), not from before the pause
+            self.resumed_at = msg.time_s
         if self.on_problem is None and self.clock > -math.inf and gap > self.max_silence_s:
             raise StreamError(self.bag, f"the bag's clock jumps {gap:.3f} s forward: no topic sent anything between "
                               f"{self.rel(self.clock):.3f} s and {self.rel(msg.time_s):.3f} s (message "
@@ -323,7 +328,8 @@ class LiveSync:
         limit = self.max_silence_s
         for topic in self.watched:
             last = self.last_stamp.get(topic)
-            if self.clock - (self.t0 if last is None else last) > limit and topic not in self.silent:
+            since = max(self.t0 if last is None else last, self.resumed_at)
+            if self.clock - since > limit and topic not in self.silent:
                 if last is not None and last < self.t0 - limit:  # its messages come, stamped long before the stream
                     problem = (f"topic {topic} is stamped on another clock: its newest message at {self.rel(last):.3f} s, "
                                f"the stream at {self.rel(self.clock):.3f} s (seconds since the bag's first message); "
@@ -335,7 +341,8 @@ class LiveSync:
                              StreamError(self.bag, problem, self.rel(self.clock)))
         for s, first in self.first_color.items():  # a camera's images came, its intrinsics did not
             topic = self.cfg.stacks[s].camera_info
-            if s not in self.intrinsics and topic and self.clock - first > limit and topic not in self.silent:
+            if (s not in self.intrinsics and topic and self.clock - max(first, self.resumed_at) > limit
+                    and topic not in self.silent):
                 last = self.last_stamp.get(topic)
                 what = "sent nothing" if last is None else f"sent nothing usable since {self.rel(last):.3f} s"
                 self._silent(topic, -math.inf if last is None else last, StreamError(
@@ -343,7 +350,7 @@ class LiveSync:
                     f"time {self.rel(self.clock):.3f} s): its frames cannot be made without the camera's intrinsics",
                     self.rel(self.clock)), live="they are dropped until it comes")
         newest = self.poses.newest_s()
-        if self.clock - max(newest, self.t0) > limit and "poses" not in self.silent:
+        if self.clock - max(newest, self.t0, self.resumed_at) > limit and "poses" not in self.silent:
             why = self.poses.problem()
             what = "no pose yet" if newest == -math.inf else f"the last pose is at {self.rel(newest):.3f} s"
             self._silent("poses", newest, StreamError(self.bag, f"{self.poses.describe}: {what} and none came for {limit:g} s "
