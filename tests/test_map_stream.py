@@ -1089,3 +1089,22 @@ def test_live_a_robot_that_pauses_and_goes_on_is_not_said_stopped(bags):
             assert lines == [] and any(f.frame.time > t0 + 5.5 for f in made)
         else:
             assert [ln for ln in lines if "stopped" in ln and drop in ln], lines
+
+
+def test_a_camera_info_after_the_map_started_is_said_once(tmp_path):
+    """A camera whose camera_info first came after the mapper was made (past the start-up wait)
+    cannot join the map: said once, its frames counted under their own reason (a review saw the
+    stack said "back" and then never mapped, with no word why)."""
+    from collections import Counter
+    from types import SimpleNamespace
+
+    from virus_nerf.mapping.stream import StreamRun
+
+    lines: list[str] = []
+    sync = SimpleNamespace(dropped={1: Counter(), 3: Counter()}, intrinsics={1: "cam1", 3: "cam3"})
+    run = StreamRun(sync, tmp_path, None, log=lines.append)
+    run.mapper = SimpleNamespace(intrinsics={1: "cam1"})
+    late = SimpleNamespace(frame=SimpleNamespace(stack_id=3))
+    run._add([late, late])
+    assert sync.dropped[3] == {"camera_info after the map started": 2}
+    assert len(lines) == 1 and "stack 3's camera_info came after the map was started with stacks [1]" in lines[0]

@@ -284,7 +284,7 @@ def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: f
             final = f"final map in {out / 'map'}" if (out / "map").is_dir() else "no map was made yet"
             print(f"map-bag: stopped by {exc.name}; {final}; the recording imported in {out / 'recording'}")
             raise
-    print(f"map-bag: {report.frames} frames, {report.steps} steps in {report.wall_s:.1f} s; "
+    print(f"map-bag: {report.frames} frames, {report.steps} steps in {report.wall_s:.1f} s of wall time; "
           f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}{sinks.note()}")
 
 
@@ -356,7 +356,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
         sinks.discard()
         raise DataFormatError(bag, f"no frame could be made ({summary(report)}); check the topics file's sync "
                               "tolerances and the pose source")
-    print(f"map-bag: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s; "
+    print(f"map-bag: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s of wall time; "
           f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}"
           f"{sinks.note()}")
 

@@ -315,8 +315,15 @@ class StreamRun:
             self._make_mapper(frames)  # adds them
             return
         for f in frames:
-            if f.frame.stack_id not in self.mapper.intrinsics:
-                self.sync.dropped[f.frame.stack_id]["no camera_info"] += 1
+            sid = f.frame.stack_id
+            if sid not in self.mapper.intrinsics:
+                if sid in self.sync.intrinsics:  # its camera_info came after the mapper was made
+                    self.sync.dropped[sid]["camera_info after the map started"] += 1
+                    self._warn(f"late camera_info {sid}", f"stack {sid}'s camera_info came after the map was "
+                               f"started with stacks {sorted(self.mapper.intrinsics)}: its frames are not mapped "
+                               "in this run (start the node once every camera publishes its camera_info)")
+                else:
+                    self.sync.dropped[sid]["no camera_info"] += 1
                 continue
             self.mapper.add_frame(f.frame)
             self.newest = f.frame.time if self.newest is None else max(self.newest, f.frame.time)
