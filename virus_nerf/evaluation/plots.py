@@ -129,7 +129,7 @@ def plot_test_point(tps, path: str | Path, title: str = "", window_m: float | No
     for ax in axes.ravel()[len(panels):]:
         ax.axis("off")
     tp = tps.test_point
-    fig.suptitle(title or f"test point: stack-1 frame {tp.index1}, t = {tp.time:.3f} s, camera height "
+    fig.suptitle(title or f"test point: stack-1 frame {tp.index1}, t = {tp.time:.3f} s, the camera at world "
                           f"z = {tp.height:.3f} m; ground truth: {gt.protocol}")
     return save_png(fig, path, tight=False)  # laid out by hand above: drawn once
 
