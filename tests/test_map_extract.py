@@ -103,15 +103,17 @@ def test_the_map_is_the_scans_and_unknown_where_no_sensor_looked():
     assert (grid[5, :] == UNKNOWN).all()
 
 
-def test_the_probability_map_is_half_where_no_sensor_looked():
+def test_the_probability_map_is_unknown_where_no_sensor_looked():
+    """mode raw: round(100 p) where a sensor looked, 255 (map_server's -1) where none did (before:
+    p = 0.5, which map_server served as a probability a trinary costmap takes for free)."""
     prob = np.full((4, 2, 2), 0.9)  # a 4 x 2 x 2 grid over [0, 4] x [0, 2] x [0, 2]
     observed = np.ones((4, 2), dtype=bool)
     observed[0, 0] = False
     m = probability_map(prob, (0, 0, 0), (4, 2, 2), 1.0, 0.1, np.array([0.0, 0.0]), np.array([4.0, 2.0]), 1.0,
                         observed)
-    p = 1.0 - m.image[::-1].T / 255.0  # [ix, iy]
-    assert p[0, 0] == pytest.approx(0.5, abs=0.003)
-    assert p[1, 1] == pytest.approx(0.9, abs=0.003)
+    value = m.image[::-1].T  # [ix, iy]
+    assert m.mode == "raw" and value[0, 0] == 255 and value[1, 1] == 90
+    assert (value[observed] == 90).all()
 
 
 class _LowWall:
