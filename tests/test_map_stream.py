@@ -601,8 +601,11 @@ def test_map_bag_drops_late_frames_and_keeps_the_map_on_bad_data(bags, tiny_cfg,
                                     "--max-lag", "0.05"])
     assert code == 0, stderr
     report = json.loads((out / "stream.json").read_text())
-    assert report["dropped"]["late (the mapper was behind)"] >= 10 and report["frames"] >= 1
-    assert f"{report['dropped']['late (the mapper was behind)']} late (the mapper was behind)" in stdout
+    # how many are late depends on the machine's speed (8-12 of 30 on 2 cores): some are, and every
+    # colour image is a frame or a dropped one
+    late = report["dropped"]["late (the mapper was behind)"]
+    assert late >= 1 and report["frames"] >= 1 and report["frames"] + sum(report["dropped"].values()) == 30
+    assert f"{late} late (the mapper was behind)" in stdout
 
     rows = bags["csv"].read_text().splitlines()
     bad_csv = tmp_path / "jump.csv"
@@ -830,6 +833,16 @@ def test_an_out_that_keeps_nothing_leaves_no_parent_behind(tmp_path):
     assert not (tmp_path / "a" / "b").exists() and (tmp_path / "a" / "notes.txt").read_text() == "another's"
 
 
+def _csv_sync(bags, on_problem=None) -> tuple[LiveSync, list]:
+    """A LiveSync of the default topics on the bag's CSV poses (live when `on_problem` is given) and
+    the bag's messages in order."""
+    cfg = default_topics()
+    with BagReader(bags["ros1"]) as reader:
+        sync = LiveSync(cfg, make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"]),
+                        bags["ros1"], on_problem=on_problem)
+        return sync, list(reader.iter_topics(sync.topics()))
+
+
 def test_live_stream_played_twice_keeps_the_mapper_in_time_order(bags, tiny_cfg, tmp_path):
     """Live, a bag played again (a clock reset) restarts the synchronisation; its frames reach the
     mapper after `restart_clock`, so they continue after the newest frame in the mapper's store
@@ -839,12 +852,8 @@ def test_live_stream_played_twice_keeps_the_mapper_in_time_order(bags, tiny_cfg,
     from virus_nerf.mapping.options import load_stream_config
     from virus_nerf.mapping.stream import StreamRun
 
-    cfg = default_topics()
-    with BagReader(bags["ros1"]) as reader:
-        lines: list[str] = []
-        sync = LiveSync(cfg, make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"]),
-                        bags["ros1"], on_problem=lines.append)
-        messages = list(reader.iter_topics(sync.topics()))
+    lines: list[str] = []
+    sync, messages = _csv_sync(bags, lines.append)
     once = sum(1 for t, _ in messages if t in ("/CAM1/color/image_raw", "/CAM3/color/image_raw"))
     (tmp_path / "out").mkdir()
     run = StreamRun(sync, tmp_path / "out", load_stream_config(tiny_cfg), snapshot_every=1e9, first_snapshot=1e9,
@@ -912,11 +921,7 @@ def test_a_stop_at_the_end_of_the_bag_keeps_a_finite_stop_time(bags, tiny_cfg, t
     from virus_nerf.mapping.stream import StreamRun
     from virus_nerf.utils.stop import Stopped
 
-    cfg = default_topics()
-    with BagReader(bags["ros1"]) as reader:
-        sync = LiveSync(cfg, make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"]),
-                        bags["ros1"])
-        messages = list(reader.iter_topics(sync.topics()))
+    sync, messages = _csv_sync(bags)
     finish = sync.finish
 
     def finish_then_stop():
@@ -984,13 +989,8 @@ def test_live_every_colour_image_is_a_frame_or_counted_across_a_restart(bags):
     pushed is a frame or a dropped one with its reason. The image that was waiting for its depth,
     USS and IRS when the clock went back is "before a clock restart" (before, it vanished from
     the counts)."""
-    from virus_nerf.data.bags.live import LiveSync
 
-    cfg = default_topics()
-    with BagReader(bags["ros1"]) as reader:
-        sync = LiveSync(cfg, make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"]),
-                        bags["ros1"], on_problem=lambda line: None)
-        messages = list(reader.iter_topics(sync.topics()))
+    sync, messages = _csv_sync(bags, lambda line: None)
     colours = [k for k, (t, _) in enumerate(messages) if sync.is_color(t)]
     cut = colours[len(colours) // 2]  # a colour image mid-bag; its partners come after it
     first = messages[:cut + 1]
@@ -1020,12 +1020,8 @@ def test_a_take_spanning_a_clock_restart_keeps_each_pass_whole(bags):
     # a take within one pass: plain stamp order
     assert [m_.time_s for _, m_ in order_take([("A", msg(0.3)), ("B", msg(0.2))], newest)] == [0.2, 0.3]
     # the whole bag twice in one take, each topic in arrival order: one restart
-    cfg = default_topics()
-    with BagReader(bags["ros1"]) as reader:
-        lines: list[str] = []
-        sync = LiveSync(cfg, make_pose_source("csv", cfg, bags["ros1"], present=lambda t: True, poses_file=bags["csv"]),
-                        bags["ros1"], on_problem=lines.append)
-        messages = list(reader.iter_topics(sync.topics()))
+    lines: list[str] = []
+    sync, messages = _csv_sync(bags, lines.append)
     by_topic = sorted(messages + messages, key=lambda item: item[0])  # stable: each topic's in arrival order
     for topic, m_ in order_take(by_topic, {}):
         sync.push(topic, m_)
