@@ -115,10 +115,15 @@ def one_line(text: object, limit: int = 400) -> str:
     return s if len(s) <= limit else s[: limit - 3] + "..."
 
 
+def is_plain_name(text: object) -> bool:
+    """A name that is one folder's name, not a path: not empty, no slash, not . or .."""
+    return isinstance(text, str) and bool(text.strip()) and not {"/", "\\"} & set(text) and text not in (".", "..")
+
+
 def require_room_name(room: object, flag: str = "--room") -> None:
     """A room is a folder's name inside the dataset folder (--data), not a path: `../other/office`
     would read a room of another dataset, and "" the dataset folder itself."""
-    if not isinstance(room, str) or not room.strip() or "/" in room or "\\" in room or room in (".", ".."):
+    if not is_plain_name(room):
         raise UsageError(f"{flag} {room!r}: expected the name of a room folder inside --data (e.g. office)")
 
 

@@ -49,7 +49,6 @@ from virus_nerf.evaluation.metrics import (
     format_table,
     metrics_document,
     nnd_samples,
-    write_metrics_json,
     zone_metrics,
 )
 from virus_nerf.evaluation.scans import model_scan
@@ -139,9 +138,12 @@ class EvaluationResult:
         return {"n_rays": int(self.config.n_rays), "test_points": int(self.n_points)}
 
     def write_json(self, path: str | Path, train: Mapping[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
-        return write_metrics_json(path, self.metrics, self.config.zones, train, gt=self.gt,
-                                  by_gt=self.by_gt or None, inlier_m=self.config.inlier_m, scoring=self.scoring(),
-                                  **extra)
+        """metrics.json (`document`), written atomically; returns the written object."""
+        from virus_nerf.utils.io import write_json_atomic
+
+        doc = self.document(train, **extra)
+        write_json_atomic(path, doc)
+        return doc
 
     def table(self) -> str:
         """The metrics table of every protocol, each under a line naming its ground truth."""

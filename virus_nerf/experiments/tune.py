@@ -314,6 +314,7 @@ def tune(
     from virus_nerf.errors import (
         OutputExistsError,
         UsageError,
+        is_plain_name,
         require_int,
         require_number,
         require_room_name,
@@ -331,7 +332,7 @@ def tune(
         require_number("--max-time", max_time, 0.0)
     if eval_interval is not None:
         require_number("--eval-interval", eval_interval, 0.0, lo_open=False)
-    if not study.strip() or "/" in study or "\\" in study or study in (".", ".."):
+    if not is_plain_name(study):
         raise UsageError(f"--study {study!r}: expected a name (no slashes)")
     require_room_name(room)
     if not (Path(data) / room).is_dir():

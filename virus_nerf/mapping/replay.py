@@ -4,8 +4,8 @@ A wall clock, scaled by the playback speed, runs through the recording: every fr
 the mapper once the clock passes its timestamp (read and decoded then, as a robot receives it),
 and the mapper trains continuously in between. Every `snapshot_every` seconds of wall time the
 current map is written to OUT/snapshots/NNNN_<seconds>s/ (map.pgm/.yaml/.png, prob.* for the
-VIRUS grid, snapshot.json) with one progress line (at most half the wall time: `next_snapshot_time`); when the last frame has arrived, the final
-map goes to OUT/map/ with the mapper's state (mapper.pt). Every folder appears complete (built
+VIRUS grid, snapshot.json) with one progress line (snapshots take at most half the wall time:
+`next_snapshot_time`); when the last frame has arrived, the final map goes to OUT/map/ with the mapper's state (mapper.pt). Every folder appears complete (built
 under a temporary name and renamed) and none is ever overwritten.
 """
 

@@ -29,9 +29,9 @@ def write_run_plots(run_dir: Path, result, eval_history: list[EvalPoint], max_ma
         names = write_plot_files(result, tmp, max_maps=max_maps)
         # one curve per ground truth the points were scored against (a run resumed with another
         # --gt continues its history under the new one)
-        protocols = list(dict.fromkeys(e.ground_truth or result.gt for e in eval_history))
-        curves = {f"NeRF, ground truth {p}": [e for e in eval_history if (e.ground_truth or result.gt) == p]
-                  for p in protocols}
+        curves: dict[str, list[EvalPoint]] = {}
+        for e in eval_history:
+            curves.setdefault(f"NeRF, ground truth {e.ground_truth or result.gt}", []).append(e)
         zone3 = next((f"{z.lo:g}-{z.hi:g} m" for z in result.config.zones if z.name == "zone3"), "")
         curve = plot_metric_vs_time(curves, tmp / "metric_vs_time.png",
                                     title=f"NeRF zone 3 ({zone3}) vs training time")

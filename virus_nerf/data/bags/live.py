@@ -31,8 +31,8 @@ each of these is one line to `on_problem` (repeats of a kind within PROBLEM_REPE
 said) and the stream goes on: a malformed message is skipped; a message older than its topic's
 previous one is skipped, or, more than RESTART_BACK_S back (a bag played again, a robot's clock
 reset), starts the synchronisation again (the sensor buffers and poses are forgotten, the images
-waiting for them dropped and counted; the map keeps every frame made); a silent topic or pose source is said once and said
-again when it is back. Meanwhile a silent USS, ToF or depth topic's frames are made without it
+waiting for them dropped and counted; the map keeps every frame made); a silent topic or pose
+source is said once and said again when it is back. Meanwhile a silent USS, ToF or depth topic's frames are made without it
 (NaN: no measurement, as for a stack without that sensor; counted in `without`), while a silent
 pose source drops the frames (no pose); a frame whose pose jumps is dropped and the next frames
 are compared with it.
@@ -311,13 +311,14 @@ class LiveSync:
     def _check_gap(self, topic: str, msg: Message) -> None:
         """A bag: no topic sent anything for more than max_silence_s of bag time (a clock jump, a
         recording paused) stops the stream, named as such rather than as every topic stopping.
-        Live, a gap is the link or the robot going quiet: the silence checks say it."""
+        Live, the whole robot went quiet and goes on: its topics' silence counts from here (each
+        gets max_silence_s to speak again), not from before the pause."""
         gap = msg.time_s - self.clock
-        if self.on_problem is not None and self.clock > -math.inf and gap > self.max_silence_s:
-            # live, the whole robot went quiet and goes on: its topics' silence counts from here
-            # (each gets max_silence_s to speak again), not from before the pause
+        if self.clock == -math.inf or gap <= self.max_silence_s:
+            return
+        if self.on_problem is not None:
             self.resumed_at = msg.time_s
-        if self.on_problem is None and self.clock > -math.inf and gap > self.max_silence_s:
+        else:
             raise StreamError(self.bag, f"the bag's clock jumps {gap:.3f} s forward: no topic sent anything between "
                               f"{self.rel(self.clock):.3f} s and {self.rel(msg.time_s):.3f} s (message "
                               f"{msg.index + 1} of {topic}; seconds since the bag's first message); a gap over "
