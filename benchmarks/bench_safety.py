@@ -24,6 +24,12 @@ file a planner reads, is judged as it lies on disk against the recording's LiDAR
 
     .venv/bin/python benchmarks/bench_safety.py --bag --out bag.json
 
+--config FILE trains every room with that `train --config` over the defaults (its runs kept under
+RUNS/MODE/FILE-STEM/), and --steps 0.63 gives each kind 63 % of its protocol steps: a config whose
+steps cost longer is judged at the defaults' wall time (D124):
+
+    .venv/bin/python benchmarks/bench_safety.py --scenes warehouse --config pre.json --steps 0.63 --out pre.json
+
 Runs are kept under --runs (a run folder that exists is judged again, not retrained). Training
 runs one at a time: two trainings on 2 cores run ~20x slower each (measured). The JSON holds each
 room's figures, their means by room kind (`mean`) and the planner's paths summed over the rooms
@@ -48,17 +54,22 @@ from bench_time_to_map import ensure_data  # noqa: E402
 STEPS = {"office": 1500, "common": 4000, "warehouse": 3000}  # ~ the 55 s / 175 s budgets of issue 42
 
 
-def train(data: Path, scene: str, run: Path, online: bool, seed: int) -> None:
+def train(data: Path, scene: str, run: Path, online: bool, seed: int, config: dict, steps: int) -> None:
+    """`virus-nerf train` of one room into `run` (kept: a run folder that exists is not trained
+    again), with `config` over the defaults (online: with the grown box as well)."""
     if run.exists():
         return
     cmd = [sys.executable, "-m", "virus_nerf.cli", "train", "--data", str(data), "--room", scene, "--out", str(run),
            "--seed", str(seed), "--quiet"]
     if online:
-        cfg = run.parent / "grow.json"
-        cfg.write_text(json.dumps({"extent": {"mode": "grow"}}))
-        cmd += ["--online", "--playback", "1", "--config", str(cfg)]
+        config = {**config, "extent": {**config.get("extent", {}), "mode": "grow"}}
+        cmd += ["--online", "--playback", "1"]
     else:
-        cmd += ["--max-steps", str(STEPS[scene])]
+        cmd += ["--max-steps", str(steps)]
+    if config:
+        cfg = run.parent / f"{run.name}.config.json"
+        cfg.write_text(json.dumps(config))
+        cmd += ["--config", str(cfg)]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"training failed ({run}):\n{proc.stderr[-3000:]}")
@@ -226,32 +237,40 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=HERE / ".data")
     ap.add_argument("--runs", type=Path, default=HERE / ".runs")
     ap.add_argument("--train-seed", type=int, default=0)
+    ap.add_argument("--config", type=Path, help="a `train --config` JSON over the defaults (runs kept under "
+                    "RUNS/MODE/CONFIG-NAME/)")
+    ap.add_argument("--steps", type=float, default=1.0, help="offline: this share of each kind's protocol steps "
+                    "(e.g. 0.63 for a config whose steps cost 1/0.63 as long: the same wall time)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
+    config = json.loads(args.config.read_text()) if args.config else {}
+    if args.bag and config:
+        ap.error("--config: map-bag runs take the defaults")
     new_out(args.out)  # before the run: a result is never overwritten
+    budget = {scene: round(n * args.steps) for scene, n in STEPS.items()}
     mode = "bag" if args.bag else "online" if args.online else "offline"
     # steps: what each kind's rooms trained, in seed order (one number where they agree); a run
     # kept under --runs from another budget is judged as it is and labelled with its own steps
-    doc: dict = {"mode": mode, "online": args.online, "protocol_steps": STEPS if mode == "offline" else None,
-                 "steps": {}, "gt": "map", "rooms": {}, "mean": {}, "total": {}}
+    doc: dict = {"mode": mode, "online": args.online, "protocol_steps": budget if mode == "offline" else None,
+                 "config": config, "steps": {}, "gt": "map", "rooms": {}, "mean": {}, "total": {}}
     for scene in args.scenes.split(","):
         rows = []
         for seed in (int(s) for s in args.seeds.split(",")):
             data = ensure_data(args.data, scene, seed)
-            run = args.runs / mode / f"{scene}{seed}"
+            run = args.runs / mode / (args.config.stem if args.config else "") / f"{scene}{seed}"
             run.parent.mkdir(parents=True, exist_ok=True)
             if args.bag:
                 stream(data, scene, args.data / "bags", run)
                 rows.append(judge_bag(run, data, scene))
             else:
-                train(data, scene, run, args.online, args.train_seed)
+                train(data, scene, run, args.online, args.train_seed, config, budget[scene])
                 rows.append(judge(run, data, scene))
             doc["rooms"][f"{scene}{seed}"] = rows[-1]
             print(json.dumps({f"{scene}{seed}": rows[-1]}), file=sys.stderr)
         steps = [r["steps"] for r in rows]
         doc["steps"][scene] = steps[0] if len(set(steps)) == 1 else steps
-        if mode == "offline" and set(steps) != {STEPS[scene]}:
-            print(f"note: {scene}: rooms trained {steps} steps, not the protocol's {STEPS[scene]} (runs kept under "
+        if mode == "offline" and set(steps) != {budget[scene]}:
+            print(f"note: {scene}: rooms trained {steps} steps, not the protocol's {budget[scene]} (runs kept under "
                   f"{args.runs})", file=sys.stderr)
         kinds = ("map",) if args.bag else ("map", "export", "nerf_scans_alone", "sensors_alone", "lidar")
         doc["mean"][scene] = {k: mean([r[k] for r in rows]) for k in kinds}
