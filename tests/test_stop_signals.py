@@ -459,6 +459,9 @@ def test_train_stopped_while_scoring_keeps_the_map_and_says_resume_scores_it(tin
     assert code == 0, err
     block = json.loads((out / "metrics.json").read_text())["train"]
     assert block["steps"] == 4 and block["device"] == "cpu"  # the checkpoint's: where the steps ran
+    import torch
+
+    assert block["threads"] == torch.get_num_threads()  # and with how many threads
 
 
 def test_after_a_stop_no_exception_ignored_report_follows_the_one_line():

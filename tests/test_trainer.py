@@ -192,6 +192,7 @@ def test_command_line_train_evaluate_export(tiny_office, tmp_path, capsys):
     # the run's rate and where it ran (the checkpoint's device; a review: null before)
     trained = json.loads((run / "metrics.json").read_text())["train"]
     assert (doc["train"]["device"], doc["train"]["steps_per_s"]) == (trained["device"], trained["steps_per_s"])
+    assert doc["train"]["threads"] == trained["threads"] == torch.get_num_threads()  # a review: null before
     assert doc["train"]["startup_s"] is None and doc["train"]["wall_s"] is None  # no training in evaluate
     assert (run / "evaluation" / "metrics_plots" / "metrics_bars.png").is_file()
     main(["export", "--run", str(run), "--out", str(tmp_path / "map"), "--max-poses", "4"])

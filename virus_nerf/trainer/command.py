@@ -293,7 +293,7 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
     result, run_safety = score_run(trainer, run, cfg)  # as `train` scored it
     # the run's steps and rate, from its checkpoint: its device names where they ran
     summary = TrainSummary(trainer.mapper.step, trainer.mapper.seconds, trainer.mapper.samples,
-                           device=trainer.trained_on)
+                           device=trainer.trained_on, threads=trainer.trained_threads)
     from virus_nerf.trainer.trust import map_warnings
 
     warnings = map_warnings(trainer)  # the run's own (metrics.json's): this document stands alone

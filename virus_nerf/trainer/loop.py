@@ -101,6 +101,7 @@ class Trainer:
         self.startup_s: float | None = None  # process start -> first step (set by prepare)
         self.checkpoint_error: OSError | None = None  # the final checkpoint did not fit (online)
         self.trained_on: str | None = None  # a loaded checkpoint's device ("cpu", "cuda"; None before it was kept)
+        self.trained_threads: int | None = None  # and its torch CPU threads (None: a checkpoint before they were kept)
         self.grid_init_s = 0.0
 
     @property
@@ -266,7 +267,8 @@ class Trainer:
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict:
         return {**self.mapper.state(), "eval_history": [dataclasses.asdict(p) for p in self.eval_history],
-                "config": to_dict(self.config), "device": self.mapper.device.type}
+                "config": to_dict(self.config), "device": self.mapper.device.type,
+                "threads": torch.get_num_threads()}
 
     def save_checkpoint(self) -> None:
         """checkpoint.pt, whole or not at all: serialised in memory, then written to a temporary
@@ -306,6 +308,7 @@ class Trainer:
             self.eval_history = [EvalPoint(**e) for e in state.get("eval_history", [])]
             self.eval_history += self._final_points(Path(path).parent)
             self.trained_on = state.get("device") if isinstance(state.get("device"), str) else None
+            self.trained_threads = state.get("threads") if isinstance(state.get("threads"), int) else None
             if self.config.online and isinstance(state.get("frames"), int) and self.mapper.frames == 0:
                 self._frames_at_load = state["frames"]
         except (KeyError, ValueError, TypeError, RuntimeError) as exc:  # optimiser, RNG states, history

@@ -401,7 +401,7 @@ def _resume(out: Path, recording, cfg, quiet):
         trainer.prepare()  # on the frames and stereo points (cached) it trained on, as `export` does
         # the steps ran in the process that wrote the checkpoint: its device names their rate
         return trainer, TrainSummary(trainer.mapper.step, trainer.mapper.seconds, trainer.mapper.samples,
-                                     device=trainer.trained_on)
+                                     device=trainer.trained_on, threads=trainer.trained_threads)
 
     def started() -> None:  # the first step worked: from now on the run is one of this config
         if to_dict(cfg) != _saved_config(out):
