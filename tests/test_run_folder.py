@@ -142,3 +142,27 @@ def test_a_log_of_an_earlier_release_is_resumed_with_the_later_columns_empty(tmp
     assert path.read_bytes().decode() == want
     truncate_log(path, 10)
     assert path.read_bytes().decode() == want
+
+
+def test_an_evaluation_is_logged_under_its_ground_truth(tmp_path):
+    """TensorBoard's zone-3 curves are one per ground truth (a run resumed with another --gt drew
+    both under one tag), and metrics_vs_time.csv gets the same point."""
+    from types import SimpleNamespace
+
+    from virus_nerf.trainer.loop import Trainer
+
+    class Log:
+        def __init__(self):
+            self.scalars = []
+
+        def scalar(self, tag, value, step):
+            self.scalars.append((tag, value, step))
+
+    zone = SimpleNamespace(acc_mean=0.25, cov_mean=0.5, acc_inlier=0.75, cov_inlier=None)
+    result = SimpleNamespace(metrics={"NeRF": SimpleNamespace(zones={"zone3": zone})}, n_points=3, gt="exact")
+    trainer = SimpleNamespace(mapper=SimpleNamespace(step=40, seconds=2.5), eval_history=[], run_dir=tmp_path)
+    log = Log()
+    Trainer.record_eval(trainer, result, log)
+    assert log.scalars == [("eval_exact/zone3_acc_mean", 0.25, 40), ("eval_exact/zone3_cov_mean", 0.5, 40),
+                           ("eval_exact/zone3_acc_inlier", 0.75, 40), ("eval_exact/zone3_cov_inlier", None, 40)]
+    assert read_eval_history(tmp_path / "metrics_vs_time.csv") == [EvalPoint(40, 2.5, 0.25, 0.5, 0.75, None, 3, "exact")]

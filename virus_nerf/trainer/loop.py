@@ -409,9 +409,9 @@ class Trainer:
 
         require_folder(self.run_dir, "the run folder")
         write_eval_history(self.run_dir / METRICS_VS_TIME, self.eval_history)
-        if log is not None:
+        if log is not None:  # one curve per ground truth, as metric_vs_time.png draws them
             for k in ("acc_mean", "cov_mean", "acc_inlier", "cov_inlier"):
-                log.scalar(f"eval/zone3_{k}", getattr(point, k), self.mapper.step)
+                log.scalar(f"eval_{point.ground_truth}/zone3_{k}", getattr(point, k), self.mapper.step)
 
 
 def _raise_if_out_of_memory(exc: BaseException, batch_size: int) -> None:
