@@ -122,10 +122,11 @@ def online(
     grid = np.linspace(0, t_train, 101)
     summary = {}
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    labels = {"offline": "offline (all test points)", "online": "online (the test points driven past so far)"}
     for mode, colour in (("offline", "tab:blue"), ("online", "tab:orange")):
         hist = [read_eval_history(out / "runs" / f"{mode}_seed{s}" / METRICS_VS_TIME) for s in range(n_seeds)]
         mean, std = band(hist, "acc_mean", grid)
-        ax.plot(grid, mean, color=colour, label=mode)
+        ax.plot(grid, mean, color=colour, label=labels[mode])
         ax.fill_between(grid, mean - std, mean + std, color=colour, alpha=0.25)
         finals = [h[-1].acc_mean for h in hist if h and h[-1].acc_mean is not None]
         final_mean, final_std = mean_std(finals)
@@ -146,7 +147,9 @@ def online(
     write_text_atomic(out / "online.md", f"# Offline vs online\n\nGround truth: {protocols[0]}\n\n" + "\n".join(
         f"- {m}: final zone 3 (0-100 m) accuracy {_metres(v['final_acc_mean'])} ± {_metres(v['final_acc_std'])} m over "
         f"{v['runs']} run(s)" for m, v in summary.items())
-        + "\n\n![accuracy vs time](online.png)\n(the paper's figures, the authors' scoring on their real "
+        + "\n\n![accuracy vs time](online.png)\n(before its end, the online curve is scored on the test points "
+          "the drive has passed so far, as in the paper; the offline curve and both final figures on all of them)\n"
+          "(the paper's figures, the authors' scoring on their real "
           "office with a GPU: 0.148 m offline, 0.161 m online)\n"
         + ("\n" + warnings_markdown(warnings) if warnings else ""))
     for m, v in summary.items():  # the lines of online.md: ground truth, zone, unit
