@@ -209,6 +209,47 @@ def test_the_node_stopped_by_sigterm_keeps_its_final_map_in_one_line(office_bag,
     assert report["lag_s"] and min(report["lag_s"]) >= 0.0, report["lag_s"]
 
 
+@pytest.mark.skipif(not hasattr(__import__("signal"), "SIGSTOP"), reason="needs SIGSTOP (POSIX)")
+def test_a_stop_while_a_hung_reader_holds_the_final_map_keeps_the_summary(office_bag, tmp_path):
+    """The node's last act waits for its /map readers (2 s per topic); SIGTERM then (a hung reader:
+    SIGSTOP here) ends the wait with one line after the run's summary, exit 143 (a review: the
+    summary was lost and the CLI said only "interrupted"; a stop landing just before or after the
+    wait is said alike)."""
+    import signal
+
+    domain, out = _domain(), tmp_path / "node"
+    script = (f"import time\nfrom virus_nerf.ros2 import dds\np = dds.Participant('jazzy', {domain}, loopback=True)\n"
+              f"r = p.reader('/map', {GRID!r}, dds.LATCHED)\nt0 = time.monotonic()\n"
+              "while not r.take() and time.monotonic() - t0 < 90:\n    time.sleep(0.02)\n"
+              "print('got', flush=True)\ntime.sleep(90)\n")
+    node = _node(out, domain, "--exit-when-idle", "3")
+    reader = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        _wait_for(node, "node up on ROS 2 domain")
+        player = dds.Participant("jazzy", domain, loopback=True)
+        try:
+            from virus_nerf.ros2.play import play
+
+            play(office_bag, player, rate=1.0, delay_s=1.5, log=lambda line: None)
+        finally:
+            player.close()
+        assert reader.stdout.readline().strip() == "got"  # a first map reached it
+        os.kill(reader.pid, signal.SIGSTOP)  # matched, and no longer acknowledging
+        lines = _wait_for(node, "maps published on /map")  # the run's summary: the node now waits for readers
+        node.send_signal(signal.SIGTERM)
+        stdout, stderr = node.communicate(timeout=60)
+    finally:
+        for proc in (node, reader):
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=30)
+    assert node.returncode == 143 and "Traceback" not in stderr and "interrupted" not in stderr, stderr
+    assert "final map in" in lines[-1] and (out / "map" / "map.pgm").is_file()
+    assert stdout.splitlines() == ["ros2: stopped by SIGTERM while leaving the ROS 2 graph; the final map was "
+                                   "published, a reader that had not taken it yet gets none"], stdout
+    assert json.loads((out / "stream.json").read_text())["stopped"] is None  # the drive itself ended (idle)
+
+
 def test_ros2_flags_are_refused_in_one_line(tmp_path):
     code, _, err = run_cli(["ros2", "--out", tmp_path / "o"])
     assert code == 2 and "--poses tf needs --tf-child FRAME" in err and "Traceback" not in err

@@ -189,7 +189,7 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
     participant = Participant(distro, domain, loopback=loopback)
     participant.announce_node(NODE_NAME, namespace)
     where = label(participant)
-    with ExitStack() as owned:
+    with Leaving(log) as leaving, ExitStack() as owned:
         owned.callback(participant.close)
         source = make_pose_source(poses, tcfg, where, present=lambda t: True, tf_parent=tf_parent, tf_child=tf_child,
                                   odometry_topic=odometry_topic, keep_up=True)
@@ -236,13 +236,36 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
                     log(f"ros2: stopped by {exc.name}; {summary(run.report)}; final map in {run.report.final} "
                         f"(published on {names['map']}), report in {out / 'stream.json'}")
             raise
-    if report.final is None:
-        made.remove()  # made by this run, and nothing in it
-        sinks.discard()
-        log(f"ros2: no frame was mapped ({summary(report)}); nothing was kept")
-        return
-    log(f"ros2: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s; {publisher.published} maps "
-        f"published on {names['map']}; final map in {report.final}")
+        # said before the node leaves the graph (its readers get up to 2 s to take the final map)
+        if report.final is None:
+            made.remove()  # made by this run, and nothing in it
+            sinks.discard()
+            log(f"ros2: no frame was mapped ({summary(report)}); nothing was kept")
+        else:
+            leaving.published = True  # before the line: a stop while it is printed is said after it
+            log(f"ros2: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s; {publisher.published} maps "
+                f"published on {names['map']}; final map in {report.final}")
+
+
+class Leaving:
+    """The node leaving the graph after its final map and last line: a stop signal then (a hung
+    reader holds the final map's hand-over, 2 s per topic) adds one line after it, not the CLI's
+    bare "interrupted" (a review: the summary was lost)."""
+
+    def __init__(self, log) -> None:
+        self.log, self.published = log, False
+
+    def __enter__(self) -> Leaving:
+        return self
+
+    def __exit__(self, kind, exc, tb) -> None:
+        from virus_nerf.utils.stop import Stopped
+
+        if self.published and isinstance(exc, Stopped) and not exc.reported:
+            exc.reported = True
+            self.log(f"ros2: stopped by {exc.name} while leaving the ROS 2 graph; the final map was published, a "
+                     "reader that had not taken it yet gets none")
+
 
 
 def ros2_play(
