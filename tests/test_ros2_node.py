@@ -250,6 +250,31 @@ def test_a_stop_while_a_hung_reader_holds_the_final_map_keeps_the_summary(office
     assert json.loads((out / "stream.json").read_text())["stopped"] is None  # the drive itself ended (idle)
 
 
+def test_another_node_publishing_the_nodes_map_is_said_once():
+    """Two mapping nodes on one domain (a review: both published /map unwarned, and a planner
+    reads both maps on one topic): the node says once that another writer of its topic is on the
+    graph, over real DDS on the loopback interface."""
+    from virus_nerf.ros2.node import LiveMessages
+
+    domain, lines = _domain(), []
+    other, node = dds.Participant("jazzy", domain, loopback=True), dds.Participant("jazzy", domain, loopback=True)
+    try:
+        other.writer("/map", GRID, dds.LATCHED)
+        messages = LiveMessages(node, {}, log=lines.append, published=("/map", "/map_probability"))
+        start = time.monotonic()
+        while not lines and time.monotonic() - start < 20:
+            messages.discover()
+            time.sleep(0.1)
+        for _ in range(3):
+            messages.discover()  # said once, not at every discovery
+    finally:
+        other.close()
+        node.close()
+    assert lines == ["ros2: warning: another node also publishes /map (nav_msgs/msg/OccupancyGrid): its readers get "
+                     "both nodes' maps; give this node another topic (--map-topic, --probability-topic, --namespace) "
+                     "or --domain-id"]
+
+
 def test_ros2_flags_are_refused_in_one_line(tmp_path):
     code, _, err = run_cli(["ros2", "--out", tmp_path / "o"])
     assert code == 2 and "--poses tf needs --tf-child FRAME" in err and "Traceback" not in err

@@ -210,7 +210,8 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
             last = messages.last_message_s
             return exit_when_idle is not None and last is not None and now - last >= exit_when_idle
 
-        messages = LiveMessages(participant, wanted_topics(sync, source), log=log, stop=stop)
+        messages = LiveMessages(participant, wanted_topics(sync, source), log=log, stop=stop,
+                                published=(names["map"], names["probability"]))
         messages.discover()
         log(f"ros2: node up on ROS 2 domain {participant.domain_id} ({distro}{', localhost only' if loopback else ''}); "
             f"waiting for {', '.join(sorted(messages.wanted))}; maps on {names['map']} and {names['probability']} "

@@ -65,11 +65,14 @@ class LiveMessages:
     """(topic, Message) as they arrive from DDS, None when nothing is new (module doc).
 
     wanted: topic -> the message types accepted on it; stop(): ends the iteration when true
-    (checked at every poll); log: one line per event (a subscription made, a type refused)."""
+    (checked at every poll); log: one line per event (a subscription made, a type refused);
+    published: the topics this node writes (its maps): another publisher of one is said once."""
 
     def __init__(self, participant: dds.Participant, wanted: dict[str, tuple[str, ...]],
-                 log: Callable[[str], None] = print, stop: Callable[[], bool] = lambda: False) -> None:
+                 log: Callable[[str], None] = print, stop: Callable[[], bool] = lambda: False,
+                 published: tuple[str, ...] = ()) -> None:
         self.participant, self.wanted, self.log, self.stop = participant, wanted, log, stop
+        self.published, self.rivals = published, set()  # rivals: published topics another node writes too
         self.store = types.typestore(participant.distro)
         self.readers: dict[str, dds.Reader] = {}
         self.counts: dict[str, int] = dict.fromkeys(wanted, 0)
@@ -80,8 +83,17 @@ class LiveMessages:
         self._next_discovery = 0.0
 
     def discover(self) -> None:
-        """Subscribe to each wanted topic once a publisher of an accepted type is on the graph."""
-        for topic, msgtypes in self.participant.discover().items():
+        """Subscribe to each wanted topic once a publisher of an accepted type is on the graph; say
+        once when another node publishes one of this node's topics (two mapping nodes on one
+        domain: a planner would read both their maps on one topic)."""
+        publishers = self.participant.discover()
+        for topic in self.published:
+            if topic in publishers and topic not in self.rivals:
+                self.rivals.add(topic)
+                self.log(f"ros2: warning: another node also publishes {topic} "
+                         f"({', '.join(sorted(publishers[topic]))}): its readers get both nodes' maps; give this "
+                         "node another topic (--map-topic, --probability-topic, --namespace) or --domain-id")
+        for topic, msgtypes in publishers.items():
             if topic not in self.wanted or topic in self.readers:
                 continue
             accepted = [t for t in msgtypes if t in self.wanted[topic]]
