@@ -570,3 +570,23 @@ def test_a_stop_swallowed_inside_the_block_is_raised_when_it_ends():
     assert signal.getsignal(signal.SIGTERM) is before
     with stop_on_signals():  # a later block starts clean
         pass
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_while_the_commands_modules_load_is_one_line(monkeypatch, signum):
+    """SIGINT or SIGTERM in the second or two while a command's modules load (torch): one line and
+    128 + the signal (a review: SIGINT then was a traceback, SIGTERM a silent kill). The signal is
+    real, sent to this process from inside the import."""
+    from helpers import ctrl_c_raises
+
+    import virus_nerf.cli as cli
+
+    def loading(name):
+        os.kill(os.getpid(), signum)
+        time.sleep(5)  # the handler raises in here
+        raise AssertionError("the signal was not taken")
+
+    monkeypatch.setattr(cli, "_command", loading)
+    with ctrl_c_raises():
+        code, stdout, stderr = run_cli(["train", "--data", "nowhere", "--room", "office", "--out", "nowhere"])
+    assert (code, stdout, stderr) == (128 + signum, "", f"virus-nerf: interrupted ({signal.Signals(signum).name})\n")

@@ -253,6 +253,9 @@ def main(argv: list[str] | None = None) -> None:
     ends the command quietly with 141, as SIGPIPE ends a Unix tool."""
     try:
         _main(argv)
+    except KeyboardInterrupt:  # Ctrl-C in the first tenth of a second, before _main's own handling
+        print("virus-nerf: interrupted (Ctrl-C)", file=sys.stderr)
+        raise SystemExit(130) from None
     except BrokenPipeError:
         import os
 
@@ -276,10 +279,12 @@ def _main(argv: list[str] | None) -> None:
     from virus_nerf.utils.stop import stop_on_signals
 
     argv = sys.argv[1:] if argv is None else list(argv)
-    run = _parse(argv)
-    _one_line_thread_errors()
     try:
-        with stop_on_signals():  # SIGTERM as Ctrl-C: temporary outputs removed, one line, exit 143
+        # SIGTERM as Ctrl-C: temporary outputs removed, one line, exit 143; from the start, so a
+        # stop while the command's modules load (torch: a second or two) is one line as well
+        with stop_on_signals():
+            run = _parse(argv)
+            _one_line_thread_errors()
             run()
         say_notes()  # a command that did not say them where its work began
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGINT/SIGTERM of a command that stops cleanly
