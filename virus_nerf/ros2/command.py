@@ -89,7 +89,8 @@ def ros2(
             further apart when one takes longer: they take at most half the wall time).
         first_map: Wall-clock seconds from the first message to the first map.
         drive: Expected drive in seconds: the learning rate decays over it, then stays low.
-        max_lag: A colour image this many seconds behind the newest message is dropped (counted).
+        max_lag: A colour image that waited this many wall-clock seconds since it arrived is dropped
+            (counted).
         max_silence: A sensor topic (or the pose source) silent this long is said in the log.
         config: JSON training config (default: the defaults).
         maps: The maps (--resolution, --n-rays, --max-poses; mapping/options.py, as map-bag's).
