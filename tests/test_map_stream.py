@@ -1087,20 +1087,54 @@ def test_live_a_robot_that_pauses_and_goes_on_is_not_said_stopped(bags):
             assert [ln for ln in lines if "stopped" in ln and drop in ln], lines
 
 
-def test_a_camera_info_after_the_map_started_is_said_once(tmp_path):
-    """A camera whose camera_info first came after the mapper was made (past the start-up wait)
-    cannot join the map: said once, its frames counted under their own reason (a review saw the
-    stack said "back" and then never mapped, with no word why)."""
+def test_a_camera_whose_camera_info_comes_after_the_map_started_joins_it(bags, tiny_cfg, tmp_path):
+    """Live, a camera driver that starts late: stack 3's camera_info comes 2 s into the drive, past
+    the first second's wait, so the map starts with stack 1 alone; stack 3 joins when its
+    camera_info comes, said once, and its frames are mapped from then on (before: never, in the
+    whole run)."""
+    import math
+
+    from virus_nerf.mapping.options import load_stream_config
+    from virus_nerf.mapping.stream import StreamRun
+
+    problems, lines = [], []
+    sync, messages = _csv_sync(bags, problems.append)
+    t0 = messages[0][1].time_s
+    late = [(t, m_) for t, m_ in messages if t != "/CAM3/color/camera_info" or m_.time_s - t0 > 2.0]
+    (tmp_path / "out").mkdir()
+    run = StreamRun(sync, tmp_path / "out", load_stream_config(tiny_cfg), snapshot_every=1e9, first_snapshot=1e9,
+                    max_lag=math.inf, drive_s=10.0, n_rays=16, max_poses=2, log=lines.append)
+    report = run.run(late)
+    joined = [ln for ln in lines if "camera_info came after the map was started" in ln]
+    assert len(joined) == 1 and re.fullmatch(r"stack 3's camera_info came after the map was started: its frames are "
+                                             r"mapped from now on \(bag time 2\.\d{3} s\)", joined[0]), lines
+    store = run.mapper.store
+    mine = store.times[store.stack_ids == 3]
+    assert len(mine) >= 3 and mine.min() > 2.0 and (store.stack_ids == 1).sum() >= 10, (len(mine), store.stack_ids)
+    assert sync.dropped[3]["no camera_info"] > 0 and "camera_info after the map started" not in sync.dropped[3]
+    assert report.frames == len(store)
+
+
+def test_a_late_camera_that_cannot_join_is_said_once(tmp_path):
+    """A late camera whose images differ in size from the mapped ones cannot join (one batch
+    holds every camera's pixels): said once with the reason, its frames counted under their own
+    reason (a review saw such a stack said "back" and then never mapped, with no word why)."""
     from collections import Counter
     from types import SimpleNamespace
 
+    from virus_nerf.errors import UsageError
     from virus_nerf.mapping.stream import StreamRun
+
+    def add_stack(sid, intrinsics):
+        raise UsageError("Mapper intrinsics: the stacks' images differ in size (stack 1 640x480, stack 3 848x480)")
 
     lines: list[str] = []
     sync = SimpleNamespace(dropped={1: Counter(), 3: Counter()}, intrinsics={1: "cam1", 3: "cam3"})
     run = StreamRun(sync, tmp_path, None, log=lines.append)
-    run.mapper = SimpleNamespace(intrinsics={1: "cam1"})
+    run.mapper = SimpleNamespace(intrinsics={1: "cam1"}, add_stack=add_stack)
     late = SimpleNamespace(frame=SimpleNamespace(stack_id=3))
     run._add([late, late])
     assert sync.dropped[3] == {"camera_info after the map started": 2}
-    assert len(lines) == 1 and "stack 3's camera_info came after the map was started with stacks [1]" in lines[0]
+    assert lines == ["warning: stack 3's camera_info came after the map was started with stacks [1], and it cannot "
+                     "join: Mapper intrinsics: the stacks' images differ in size (stack 1 640x480, stack 3 848x480); "
+                     "its frames are not mapped in this run (said once)"]

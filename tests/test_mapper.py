@@ -203,6 +203,31 @@ def test_bad_frames_and_arguments_give_one_line_errors(tmp_path):
         Mapper(tiny_train_config(), {1: INTR}, ((-3.0, -3.0, -1.0), (3.0, 3.0, 2.0)))
 
 
+def test_a_stack_that_joins_after_the_first_frames_is_mapped_from_then_on():
+    """Live, a camera driver that starts late (its camera_info after the map was started) joins
+    with `add_stack`: its frames are taken, sampled and tracked by the stereo sensor from then on.
+    A stack already mapped, or of another image size, is refused in one line, nothing changed."""
+    mapper = Mapper(tiny_train_config(sensors=("camera", "uss", "irs", "stereo")), {1: INTR}, BOX)
+    with pytest.raises(UsageError, match=r"SyncFrame.stack_id 3: unknown stack; expected one of \[1\] .*Mapper.add_stack"):
+        mapper.add_frame(_frame(0.0, stack=3))
+    mapper.add_frame(_frame(0.0))
+    assert mapper.train(600.0, steps=1).steps == 1  # the sampler and the stereo feed are made
+    with pytest.raises(UsageError, match=r"Mapper.add_stack: stack 1 is already mapped"):
+        mapper.add_stack(1, INTR)
+    with pytest.raises(UsageError, match=r"differ in size \(stack 1 32x24, stack 3 64x48\)"):
+        mapper.add_stack(3, dataclasses.replace(INTR, width=64, height=48, cx=32.0, cy=24.0))
+    assert set(mapper.intrinsics) == set(mapper.store.intrinsics) == {1}
+    mapper.add_stack(3, INTR)
+    assert mapper.store.intrinsics[3] == INTR.scaled(mapper.config.image_scale) and 3 in mapper.store.footprints
+    for k in range(1, 4):
+        mapper.add_frame(_frame(float(k), stack=3))
+    assert mapper.store.stack_ids.tolist() == [1, 3, 3, 3]
+    batch = mapper.sampler.sample(np.random.default_rng(0), 256)
+    assert {int(mapper.store.stack_ids[f]) for f in batch.frames.numpy()} == {1, 3}  # both cameras' rays
+    assert mapper.train(600.0, steps=2).steps == 2 and np.isfinite(mapper.train(600.0, steps=1).loss)
+    assert 3 in mapper._stereo_feed.builder.trackers  # its images are tracked too
+
+
 def test_a_restarted_clock_continues_after_the_newest_frame():
     """Mapper.restart_clock: the next frames (stamped from 0 again) follow the newest frame in the
     store, 1 s on, each stack in time order; without it an earlier stamp is refused."""

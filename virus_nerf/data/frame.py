@@ -72,7 +72,7 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
                          "Mapper's intrinsics)")
     if sid not in intrinsics:
         raise UsageError(f"SyncFrame.stack_id {sid!r}: unknown stack; expected one of {sorted(intrinsics)} "
-                         "(the stacks whose intrinsics the Mapper was given)")
+                         "(the stacks whose intrinsics the Mapper was given; Mapper.add_stack adds one)")
     intr = intrinsics[sid]
     t = frame.time
     if isinstance(t, bool) or not isinstance(t, numbers.Real) or not math.isfinite(t):

@@ -231,6 +231,26 @@ class Mapper(MapViews, MapperCheckpoint):
         self.track_image(row, frame.rgb)
         return row
 
+    @serialised
+    def add_stack(self, stack_id: int, intrinsics: Intrinsics) -> None:
+        """A camera stack the mapper was not made with (live: a camera driver that started after
+        the map, its camera_info late): its frames are taken from now on. Its images must have the
+        other stacks' size; a stack it has already is refused (a camera does not change its lens
+        mid-drive). One-line UsageError, nothing changed."""
+        from virus_nerf.sampler.frames import StackFootprints
+
+        if isinstance(stack_id, numbers.Integral) and int(stack_id) in self.intrinsics:
+            raise UsageError(f"Mapper.add_stack: stack {stack_id} is already mapped; expected a new stack id")
+        check_intrinsics({**self.intrinsics, stack_id: intrinsics})  # the id, the numbers, one image size
+        stack_id = int(stack_id)
+        self.intrinsics[stack_id] = intrinsics
+        if self._sampler is not None:  # else made with every stack when first needed
+            scaled = intrinsics.scaled(self.config.image_scale)
+            self.store.intrinsics[stack_id] = scaled
+            self.store.footprints[stack_id] = StackFootprints.of(scaled)
+            if self._stereo_feed is not None:
+                self._stereo_feed.builder.add_stack(stack_id, intrinsics, scaled)
+
     @property
     def newest_stamp(self) -> float | None:
         """The stamp, as the robot sent it, of the frame newest in the store's time."""

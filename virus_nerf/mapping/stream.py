@@ -316,14 +316,7 @@ class StreamRun:
             return
         for f in frames:
             sid = f.frame.stack_id
-            if sid not in self.mapper.intrinsics:
-                if sid in self.sync.intrinsics:  # its camera_info came after the mapper was made
-                    self.sync.dropped[sid]["camera_info after the map started"] += 1
-                    self._warn(f"late camera_info {sid}", f"stack {sid}'s camera_info came after the map was "
-                               f"started with stacks {sorted(self.mapper.intrinsics)}: its frames are not mapped "
-                               "in this run (start the node once every camera publishes its camera_info)")
-                else:
-                    self.sync.dropped[sid]["no camera_info"] += 1
+            if sid not in self.mapper.intrinsics and not self._join(sid):
                 continue
             self.mapper.add_frame(f.frame)
             self.newest = f.frame.time if self.newest is None else max(self.newest, f.frame.time)
@@ -332,6 +325,27 @@ class StreamRun:
                 self.live.log_frame(f.frame, self.mapper.intrinsics)
             if self.ros_bag is not None:
                 self.ros_bag.write_pose(f.frame.time, f.frame.cam_to_world, f.frame.stack_id)
+
+    def _join(self, sid: int) -> bool:
+        """A stack whose camera_info came after the mapper was made (a camera driver that started
+        late) joins the map now, said once; False (its frame dropped, counted) while its
+        camera_info has not come, or when its images differ in size from the mapped stacks'."""
+        from virus_nerf.errors import UsageError
+
+        if sid not in self.sync.intrinsics:
+            self.sync.dropped[sid]["no camera_info"] += 1
+            return False
+        try:
+            self.mapper.add_stack(sid, self.sync.intrinsics[sid])
+        except UsageError as exc:
+            self.sync.dropped[sid]["camera_info after the map started"] += 1
+            self._warn(f"late camera_info {sid}", f"stack {sid}'s camera_info came after the map was started "
+                       f"with stacks {sorted(self.mapper.intrinsics)}, and it cannot join: {exc}; its frames are "
+                       "not mapped in this run")
+            return False
+        self.log(f"stack {sid}'s camera_info came after the map was started: its frames are mapped from now on "
+                 f"(bag time {self.sync.rel(self.sync.clock):.3f} s)")
+        return True
 
     def _make_mapper(self, first: list[StreamFrame]) -> None:
         """The mapper for the stacks whose intrinsics are known, its box from the first frames; the

@@ -158,6 +158,11 @@ class StereoBuilder:
         # flush (a list of parts merged anew at every flush held the drive's targets twice)
         self._targets = StereoDepth.empty()
 
+    def add_stack(self, stack: int, intrinsics: Intrinsics, train_intrinsics: Intrinsics) -> None:
+        """A camera that joined after the first frames (Mapper.add_stack): tracked from its first frame."""
+        self.intrinsics[stack], self.train_intrinsics[stack] = intrinsics, train_intrinsics
+        self.trackers[stack] = StackTracker(intrinsics, self.cfg.tracker, self.views, self._next_id)
+
     def add(self, frame: int, stack: int, time: float, cam_to_world: np.ndarray, rgb: np.ndarray) -> None:
         """One frame (store row `frame`, full-resolution RGB uint8) of camera `stack`."""
         import cv2
