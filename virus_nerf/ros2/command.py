@@ -269,7 +269,6 @@ class Leaving:
                      "reader that had not taken it yet gets none")
 
 
-
 def ros2_play(
     bag: Annotated[Path, tyro.conf.Positional],
     rate: float = 1.0,
