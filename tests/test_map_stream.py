@@ -1126,7 +1126,7 @@ def test_a_late_camera_that_cannot_join_is_said_once(tmp_path):
     from virus_nerf.mapping.stream import StreamRun
 
     def add_stack(sid, intrinsics):
-        raise UsageError("Mapper intrinsics: the stacks' images differ in size (stack 1 640x480, stack 3 848x480)")
+        raise UsageError("Mapper.add_stack intrinsics: the stacks' images differ in size (stack 1 640x480, stack 3 848x480)")
 
     lines: list[str] = []
     sync = SimpleNamespace(dropped={1: Counter(), 3: Counter()}, intrinsics={1: "cam1", 3: "cam3"})
@@ -1136,5 +1136,5 @@ def test_a_late_camera_that_cannot_join_is_said_once(tmp_path):
     run._add([late, late])
     assert sync.dropped[3] == {"camera_info after the map started": 2}
     assert lines == ["warning: stack 3's camera_info came after the map was started with stacks [1], and it cannot "
-                     "join: Mapper intrinsics: the stacks' images differ in size (stack 1 640x480, stack 3 848x480); "
+                     "join: Mapper.add_stack intrinsics: the stacks' images differ in size (stack 1 640x480, stack 3 848x480); "
                      "its frames are not mapped in this run (said once)"]

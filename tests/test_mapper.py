@@ -8,6 +8,7 @@ import importlib.util
 import io
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -212,9 +213,16 @@ def test_a_stack_that_joins_after_the_first_frames_is_mapped_from_then_on():
         mapper.add_frame(_frame(0.0, stack=3))
     mapper.add_frame(_frame(0.0))
     assert mapper.train(600.0, steps=1).steps == 1  # the sampler and the stereo feed are made
-    with pytest.raises(UsageError, match=r"Mapper.add_stack: stack 1 is already mapped"):
+    with pytest.raises(UsageError, match=r"^Mapper.add_stack stack_id 1: already mapped; expected a new stack id$"):
         mapper.add_stack(1, INTR)
-    with pytest.raises(UsageError, match=r"differ in size \(stack 1 32x24, stack 3 64x48\)"):
+    for sid in (True, "3", 3.0, None):  # a review: the constructor's argument was named, True "already mapped"
+        with pytest.raises(UsageError, match=rf"^Mapper.add_stack stack_id {re.escape(repr(sid))}: a "
+                                             rf"{type(sid).__name__}; expected the stack id as an int"):
+            mapper.add_stack(sid, INTR)
+    with pytest.raises(UsageError, match=r"^Mapper.add_stack intrinsics\[3\]: got a tuple; expected a "):
+        mapper.add_stack(3, (20.0, 20.0, 16.0, 12.0))
+    with pytest.raises(UsageError, match=r"^Mapper.add_stack intrinsics: the stacks' images differ in size "
+                                         r"\(stack 1 32x24, stack 3 64x48\)"):
         mapper.add_stack(3, dataclasses.replace(INTR, width=64, height=48, cx=32.0, cy=24.0))
     assert set(mapper.intrinsics) == set(mapper.store.intrinsics) == {1}
     mapper.add_stack(3, INTR)
@@ -911,6 +919,8 @@ def test_mapper_api_bad_input_round_three(tmp_path):
     # string stack keys (a KeyError after the frame was half added), bool and float stack ids
     with pytest.raises(UsageError, match=r"^Mapper intrinsics\['1'\]: the key '1' is a str; expected the stack id as an int"):
         Mapper(tiny_train_config(), {"1": INTR}, BOX)
+    with pytest.raises(UsageError, match=r"^Mapper intrinsics: got a list; expected a dict stack id -> "):
+        Mapper(tiny_train_config(), [INTR], BOX)  # a review: a bare AttributeError
     mapper = _mapper()
     for sid in (True, 1.0):
         with pytest.raises(UsageError, match=rf"^SyncFrame.stack_id {sid!r}: a {type(sid).__name__}; expected an int"):
@@ -1115,8 +1125,9 @@ def test_numpy_numbers_are_numbers_and_a_pose_far_outside_a_fitted_box_is_refuse
         assert "resolution: 0.10000000149011612\n" in doc and "np." not in doc, doc
     far = _frame(1.0)
     far.cam_to_world[:3, 3] = (362.0, -151.6, -150.1)  # the rig's camera offset in millimetres / 1000 wrong way
-    with pytest.raises(UsageError, match=r"frame at time 1.000 s: camera at \(362.00, -151.60, -150.10\) m lies "
-                                         r"outside the Mapper's box \[-3.0, -3.0, -1.0\]..\[3.0, 3.0, 2.0\] m"):
+    with pytest.raises(UsageError, match=r"SyncFrame.cam_to_world \(time 1.000 s\): camera at \(362.00, -151.60, "
+                                         r"-150.10\) m lies outside the Mapper's box \[-3.0, -3.0, -1.0\]..\[3.0, 3.0, "
+                                         r"2.0\] m \(extent.mode fitted\); expected a pose in metres \(millimetres\?\)"):
         mapper.add_frame(far)
     near = _frame(2.0)
     near.cam_to_world[:3, 3] = (3.0 + FITTED_SLACK_M - 0.1, 0.0, 0.5)
@@ -1179,6 +1190,11 @@ def test_a_growing_mapper_starts_around_its_first_camera_and_sections_may_be_dic
     np.testing.assert_allclose(mapper.box.hi, (10.0 + 0.11, 5.0 + 0.11, 0.5 + 14 * 0.11), atol=1e-12)
     with pytest.raises(UsageError, match=r"Mapper.growing first_position of shape \(2,\)"):
         Mapper.growing(MapperConfig(), {1: INTR}, [1.0, 2.0])
+    far = _frame(1.0)
+    far.cam_to_world[:3, 3] = (10.0 + 362.0, 5.0, 0.5)  # a pose in millimetres beside ones in metres
+    with pytest.raises(UsageError, match=r"^SyncFrame.cam_to_world \(time 1.000 s\): camera at \(372.00, 5.00, 0.50\) "
+                                         r"m lies outside the map's frame .*; expected a pose in metres \(millimetres\?\)"):
+        mapper.add_frame(far)
     (tmp_path / "snap").mkdir()
     with pytest.raises(OutputExistsError, match=r"snap: output folder already exists; choose a new snapshot folder"):
         _mapper().snapshot(tmp_path / "snap")

@@ -109,7 +109,7 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
         raise UsageError(f"SyncFrame.cam_to_world (stack {sid}, time {frame.time}): the camera looks straight "
                          f"{'up' if axis_z > 0 else 'down'} ({math.degrees(math.acos(min(1.0, abs(axis_z)))):.1f} deg "
                          "from vertical); expected OpenCV camera axes (z forward, y down), not a ROS body frame "
-                         "(x forward, z up), of a camera that sees the room")
+                         "(x forward, z up), of a camera that sees the room, in a world whose z is up")
     if np.shape(frame.irs_range) != (8, 8):
         raise UsageError(f"SyncFrame.irs_range (stack {sid}): shape {np.shape(frame.irs_range)}; expected (8, 8) "
                          "zone depths in metres in image zone order (NaN = invalid)")
@@ -152,11 +152,15 @@ def _check_ranges(what: str, values: np.ndarray, kind: str) -> None:
         raise UsageError(f"{what}: {finite.max():g} is beyond {MAX_RANGE_M:g} m; expected metres, not millimetres")
 
 
-def check_intrinsics(intrinsics: Mapping[int, Intrinsics]) -> None:
+def check_intrinsics(intrinsics: Mapping[int, Intrinsics], what: str = "Mapper intrinsics") -> None:
     """Stacks' intrinsics the mapper can use (as the readers check a file's), all of one image size
-    (one training batch holds every camera's pixels), or a one-line UsageError naming the field."""
+    (one training batch holds every camera's pixels), or a one-line UsageError naming the field
+    (`what`: the argument, as the caller's user knows it)."""
+    if not isinstance(intrinsics, Mapping):
+        raise UsageError(f"{what}: got a {type(intrinsics).__name__}; expected a dict stack id -> "
+                         "virus_nerf.sensors.camera.Intrinsics")
     for sid, intr in intrinsics.items():
-        where = f"Mapper intrinsics[{sid!r}]"
+        where = f"{what}[{sid!r}]"
         if isinstance(sid, bool) or not isinstance(sid, numbers.Integral):
             raise UsageError(f"{where}: the key {sid!r} is a {type(sid).__name__}; expected the stack id as an int "
                              "(SyncFrame.stack_id)")
@@ -176,5 +180,5 @@ def check_intrinsics(intrinsics: Mapping[int, Intrinsics]) -> None:
     sizes = {(int(i.width), int(i.height)) for i in intrinsics.values()}
     if len(sizes) > 1:
         shown = ", ".join(f"stack {s} {int(i.width)}x{int(i.height)}" for s, i in intrinsics.items())
-        raise UsageError(f"Mapper intrinsics: the stacks' images differ in size ({shown}); expected one size for "
+        raise UsageError(f"{what}: the stacks' images differ in size ({shown}); expected one size for "
                          "every camera (resize the images and scale the intrinsics alike)")

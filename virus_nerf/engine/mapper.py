@@ -99,9 +99,9 @@ class Mapper(MapViews, MapperCheckpoint):
     def __init__(self, config: MapperConfig, intrinsics: Mapping[int, Intrinsics], box: SceneBox,
                  schedules: Schedules | None = None):
         self._calls = threading.RLock()  # one call at a time, from any thread (views.serialised)
+        check_intrinsics(intrinsics)
         if not intrinsics:
             raise UsageError("Mapper intrinsics {}: expected at least one stack id -> Intrinsics")
-        check_intrinsics(intrinsics)
         if not isinstance(box, SceneBox):
             raise UsageError(f"Mapper box: got a {type(box).__name__}; expected a virus_nerf.scene_box.SceneBox "
                              "(lo, hi corners in metres)")
@@ -188,9 +188,11 @@ class Mapper(MapViews, MapperCheckpoint):
     @property
     def sampler(self) -> BatchSampler:
         if self._sampler is None:
-            scaled = {s: i.scaled(self.config.image_scale) for s, i in self.intrinsics.items()}
-            store = FrameStore.empty(scaled, with_depth="rgbd" in self.config.sensors)
-            self._sampler = BatchSampler(store, self.config.sensors, self.config.shares, self.stereo)
+            with self._calls:  # made once: a thread reading `frames` while the first frame is added
+                if self._sampler is None:
+                    scaled = {s: i.scaled(self.config.image_scale) for s, i in self.intrinsics.items()}
+                    store = FrameStore.empty(scaled, with_depth="rgbd" in self.config.sensors)
+                    self._sampler = BatchSampler(store, self.config.sensors, self.config.shares, self.stereo)
         return self._sampler
 
     @property
@@ -239,10 +241,14 @@ class Mapper(MapViews, MapperCheckpoint):
         mid-drive). One-line UsageError, nothing changed."""
         from virus_nerf.sampler.frames import StackFootprints
 
-        if isinstance(stack_id, numbers.Integral) and int(stack_id) in self.intrinsics:
-            raise UsageError(f"Mapper.add_stack: stack {stack_id} is already mapped; expected a new stack id")
-        check_intrinsics({**self.intrinsics, stack_id: intrinsics})  # the id, the numbers, one image size
+        if isinstance(stack_id, bool) or not isinstance(stack_id, numbers.Integral):
+            raise UsageError(f"Mapper.add_stack stack_id {stack_id!r}: a {type(stack_id).__name__}; expected the "
+                             "stack id as an int (SyncFrame.stack_id)")
         stack_id = int(stack_id)
+        if stack_id in self.intrinsics:
+            raise UsageError(f"Mapper.add_stack stack_id {stack_id}: already mapped; expected a new stack id")
+        check_intrinsics({stack_id: intrinsics}, "Mapper.add_stack intrinsics")
+        check_intrinsics({**self.intrinsics, stack_id: intrinsics}, "Mapper.add_stack intrinsics")  # one image size
         self.intrinsics[stack_id] = intrinsics
         if self._sampler is not None:  # else made with every stack when first needed
             scaled = intrinsics.scaled(self.config.image_scale)

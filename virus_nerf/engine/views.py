@@ -200,8 +200,9 @@ class MapViews:
 
     @serialised
     def probability_map(self, resolution: float = 0.05, band: float = 0.1):
-        """The VIRUS grid's occupancy probability at camera height (`mode: scale` OccupancyMap2D;
-        maps.extract.probability_map); None for the Instant-NGP grid."""
+        """The VIRUS grid's occupancy probability at camera height (an OccupancyMap2D of `mode: raw`:
+        round(100 p), 255 where no sensor looked; maps.extract.probability_map); None for the
+        Instant-NGP grid."""
         lo, hi = self._raster_box("Mapper.probability_map resolution", resolution)
         require_number("Mapper.probability_map band", band, 0.0, 10.0, lo_open=False)  # as export --band
         if not isinstance(self.grid, VirusGrid):
