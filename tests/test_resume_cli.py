@@ -341,6 +341,21 @@ def test_new_output_dir_removes_its_partial_folder_on_error(tmp_path):
             (tmp / "half.txt").write_text("x")
             raise RuntimeError("crash")
     assert list(tmp_path.iterdir()) == []
+    with pytest.raises(RuntimeError):  # the parents it made go too (a review: export left a/b/ behind)
+        with new_output_dir(tmp_path / "a" / "b" / "out"):
+            raise RuntimeError("refused after the folder was made")
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "a").mkdir()
+    with pytest.raises(RuntimeError):  # ... and only those: a parent that was there stays
+        with new_output_dir(tmp_path / "a" / "b" / "out"):
+            (tmp_path / "a" / "notes.txt").write_text("another's, written meanwhile")
+            raise RuntimeError("crash")
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["notes.txt"]
+    with new_output_dir(tmp_path / "a" / "c" / "out") as tmp:
+        (tmp / "kept.txt").write_text("kept")
+    assert (tmp_path / "a" / "c" / "out" / "kept.txt").is_file()
+    for p in sorted(tmp_path.rglob("*"), reverse=True):
+        p.unlink() if p.is_file() else p.rmdir()
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "old.txt").write_text("old")
     with pytest.raises(OutputExistsError):

@@ -1,7 +1,8 @@
 """`virus-nerf export`: a trained run as map, grid, distance-field, point-cloud and image files.
 
 Every flag, the run folder, the pose file and the output folder are checked before the model
-is loaded; the output is built in a temporary folder beside OUT and renamed when complete.
+is loaded (--image-scale's pixels, which need the recording's camera, once it is loaded and before
+anything is rendered); the output is built in a temporary folder beside OUT and renamed when complete.
 """
 
 from __future__ import annotations
@@ -68,7 +69,7 @@ def export(
     """
     from virus_nerf.errors import OutputExistsError, require_int, require_number
     from virus_nerf.trainer.run import load_trained
-    from virus_nerf.trainer.run_folder import RunLock, open_run
+    from virus_nerf.trainer.run_folder import METRICS, RunLock, open_run
     from virus_nerf.utils.io import new_output_dir
 
     require_number("--resolution", resolution, 0.0)
@@ -93,15 +94,52 @@ def export(
         raise OutputExistsError(out)  # before any work
     cfg, _ = open_run(run, "--run")
     kinds = parse_what(what, cfg.grid)
+    if pose_set is not None and "images" in kinds:  # the scans take the poses' positions alone
+        _check_poses_see_the_room(Path(poses), pose_set)
     # not while a `train` works in the run (its checkpoint would be a moment of a moving run);
     # shared with other exports, and nothing written into the run
     with RunLock(Path(run), "--run", shared=True), new_output_dir(out) as tmp:  # OUT made (and checked writable) first
         trainer, cfg, _ = load_trained(run, "--run", poses="odometry" if cfg.odometry_poses else "optimised")
         if pose_set is not None:
             _check_poses_in_box(Path(poses), pose_set, trainer.mapper.box)
+        if "images" in kinds:  # before anything is rendered
+            _image_intrinsics(trainer.recording, image_scale if image_scale is not None else cfg.image_scale)
+        finished = (Path(run) / METRICS).is_file()  # `train` writes it when its budget is spent
         written = _export_all(trainer, cfg, tmp, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,
-                              image_scale if image_scale is not None else cfg.image_scale)
+                              image_scale if image_scale is not None else cfg.image_scale, finished)
+    if not finished:
+        print(f"note: --run {run}: its training did not finish (no metrics.json; stopped at step "
+              f"{trainer.mapper.step}): exported as it stands (`virus-nerf train --resume --out {run}` continues it)")
     print(f"wrote {out}/: " + ", ".join(written))
+
+
+def _check_poses_see_the_room(path: Path, pose_set) -> None:
+    """--poses for images are cameras in OpenCV axes (z forward): one looking straight up or down
+    is a ROS body frame (x forward, z up) or a world that is not z-up, whose images would show the
+    ceiling (the Mapper refuses such a SyncFrame alike)."""
+    import math
+
+    from virus_nerf.data.frame import MIN_AXIS_TILT_DEG
+
+    axis_z = pose_set.cam_to_world[:, 2, 2]  # (N,) the optical axis' world z
+    for i in np.flatnonzero(np.abs(axis_z) > math.cos(math.radians(MIN_AXIS_TILT_DEG)))[:1]:
+        raise DataFormatError(path, f"the camera looks straight {'up' if axis_z[i] > 0 else 'down'}; expected "
+                                    "camera-to-world poses in OpenCV camera axes (z forward, y down), not a ROS body "
+                                    "frame (x forward, z up), in a world whose z is up", row=int(i) + 2,
+                              field="qx/qy/qz/qw")
+
+
+def _image_intrinsics(recording, image_scale: float):
+    """The main stack's camera at `image_scale`, refused in one line below 1x1 px."""
+    from virus_nerf.sensors.rig import MAIN_STACK
+
+    stack = recording.stacks.get(MAIN_STACK) or next(iter(recording.stacks.values()))
+    intr = stack.intrinsics.scaled(image_scale)
+    if intr.width < 1 or intr.height < 1:
+        raise UsageError(f"--image-scale {image_scale:g}: CAM{stack.stack_id}'s {stack.intrinsics.width}x"
+                         f"{stack.intrinsics.height} px images would be {intr.width}x{intr.height} px; expected a "
+                         "scale giving at least 1x1 px")
+    return intr
 
 
 def _check_poses_in_box(path: Path, pose_set, box) -> None:
@@ -122,8 +160,9 @@ WORLD_FRAME = "world: the recording's pose frame (its LiDAR map's), metres"
 
 
 def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,
-                image_scale) -> list[str]:
-    """Compute and write every requested kind into `folder`; returns a short line per kind."""
+                image_scale, finished: bool = True) -> list[str]:
+    """Compute and write every requested kind into `folder`; returns a short line per kind.
+    finished: the run's training ended (export.json says so, with the steps it had)."""
     from virus_nerf.exports import clouds, grid3d, views
     from virus_nerf.maps import esdf, observed
     from virus_nerf.maps import occupancy as maps
@@ -134,10 +173,10 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
     box = mapper.box
     lo, hi = np.asarray(box.lo[:2], float), np.asarray(box.hi[:2], float)
     summary: dict = {"kinds": list(kinds), "frame": WORLD_FRAME, "resolution": resolution,
-                     "origin": [float(lo[0]), float(lo[1]), 0.0]}
+                     "origin": [float(lo[0]), float(lo[1]), 0.0], "steps": mapper.step, "run_finished": finished}
     done = []
     seen = None
-    if {"map", "esdf", "prob"} & set(kinds):
+    if {"map", "esdf", "prob", "scans"} & set(kinds):
         check_raster("--resolution", lo, hi, resolution)  # refused before any work if too large
         trainer.prepare()  # the frames the run trained on and its stereo points (cached), as `train` had them
         seen = mapper.observed(resolution)  # (nx, ny) [ix, iy]: the training frames' view wedges
@@ -179,13 +218,16 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
         summary["poses"] = {"source": pose_set.source, "count": len(pose_set)}
     if "scans" in kinds:
         (folder / "scans").mkdir()
-        n_pts = 0
+        n_pts = n_unseen = 0
         for k, pose in enumerate(pose_set.cam_to_world):
             pts = views.scan_points(trainer.mapper.model, pose[:3, 3], SCAN_RAYS if n_rays is None else n_rays)
+            keep = views.observed_points(pts, seen, lo, resolution)  # as the maps: none where no sensor looked
+            pts, n_unseen = pts[keep], n_unseen + int((~keep).sum())
             clouds.write_pcd(folder / "scans" / f"scan_{k:04d}.pcd", pts)
             clouds.write_ply(folder / "scans" / f"scan_{k:04d}.ply", pts)
             n_pts += len(pts)
-        done.append(f"scans/ ({len(pose_set)} poses, {n_pts} points)")
+        summary["scans"] = {"points": n_pts, "unobserved_left_out": n_unseen}
+        done.append(f"scans/ ({len(pose_set)} poses, {n_pts} points; {n_unseen} where no sensor looked left out)")
     if "cloud" in kinds:
         xyz, rgb = views.surface_cloud(trainer.mapper.model, trainer.recording, cloud_points, cfg.image_scale)
         clouds.write_pcd(folder / "cloud.pcd", xyz, rgb)
@@ -193,14 +235,7 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
         summary["cloud_points"] = len(xyz)
         done.append(f"cloud.pcd/.ply ({len(xyz)} points)")
     if "images" in kinds:
-        from virus_nerf.sensors.rig import MAIN_STACK
-
-        stack = trainer.recording.stacks.get(MAIN_STACK) or next(iter(trainer.recording.stacks.values()))
-        intr = stack.intrinsics.scaled(image_scale)
-        if intr.width < 1 or intr.height < 1:
-            raise UsageError(f"--image-scale {image_scale:g}: CAM{stack.stack_id}'s {stack.intrinsics.width}x"
-                             f"{stack.intrinsics.height} px images would be {intr.width}x{intr.height} px; expected a "
-                             "scale giving at least 1x1 px")
+        intr = _image_intrinsics(trainer.recording, image_scale)
         (folder / "images").mkdir()
         for k, pose in enumerate(pose_set.cam_to_world):
             rgb, depth_mm = views.render_image(trainer.mapper.model, intr, pose)

@@ -13,9 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-INDEX_RULE = ("cell (ix, iy, iz) of world point p: i = floor((p - lo) / (hi - lo) * resolution) per axis, "
-              "inside when 0 <= i < resolution (virus_nerf.grid.base.cell_index); "
-              "flat index = (ix * ry + iy) * rz + iz; cell centre = lo + (i + 0.5) * cell_size")
+INDEX_RULE = ("cell (ix, iy, iz) of world point p: i = floor((p - lo) / (hi - lo) * shape) per axis, "
+              "inside when 0 <= i < shape (virus_nerf.grid.base.cell_index); "
+              "with shape = (nx, ny, nz): flat index = (ix * ny + iy) * nz + iz; cell centre = lo + (i + 0.5) * "
+              "cell_size")
 
 
 @dataclass(frozen=True)

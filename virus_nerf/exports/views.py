@@ -92,6 +92,20 @@ def scan_points(model, position: np.ndarray, n_rays: int) -> np.ndarray:
     return origins[ok] + dirs[ok] * r[ok, None]
 
 
+def observed_points(points: np.ndarray, seen: np.ndarray, lo: np.ndarray, resolution: float) -> np.ndarray:
+    """(M,) bool: the points (M, 3+) whose x, y lie in an observed pixel of `seen` ((nx, ny) [ix,
+    iy] over the raster from `lo` at `resolution`, Mapper.observed). A 360 deg scan also runs
+    through the sides no camera faced, where the field holds what it was initialised to: every
+    2D map calls that unknown, and a scan keeps no point there."""
+    from virus_nerf.maps.occupancy import world_pixels
+
+    ij, inside = world_pixels(np.asarray(points, dtype=np.float64)[:, :2], np.asarray(lo, dtype=np.float64)[:2],
+                              resolution, seen.shape)
+    keep = np.zeros(len(ij), dtype=bool)
+    keep[inside] = seen[ij[inside, 0], ij[inside, 1]]
+    return keep
+
+
 def surface_cloud(model, recording, max_points: int, image_scale: float):
     """Dense surface points (M, 3) and colours (M, 3) uint8, M <= max_points.
 

@@ -154,7 +154,7 @@ def create_new_dir(path: str | Path) -> Path:
 def new_output_dir(path: str | Path, *, replace: bool = False, flag: str = "--out") -> Iterator[Path]:
     """Build an output folder under a temporary name and rename it into place when complete.
 
-    An error inside the block removes the temporary folder; a kill leaves a
+    An error inside the block removes the temporary folder and the parents it made; a kill leaves a
     `.<name>.partial-<pid>-*` folder beside it, never a half-written `path`
     (`remove_stale_partials` removes it when the next attempt starts). With `replace=True` an
     existing `path` is swapped for the new folder once the new one is complete (used only where
@@ -164,6 +164,7 @@ def new_output_dir(path: str | Path, *, replace: bool = False, flag: str = "--ou
     if path.exists() and not replace:
         raise OutputExistsError(path, flag)  # flag: what named `path`, the one to change
     remove_stale_partials(path)  # a killed attempt's `.<name>.partial-<pid>-*` (its process is dead)
+    missing = [p for p in path.absolute().parents if not p.exists()]  # made here: gone again if nothing lands
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.partial-{os.getpid()}-", dir=path.parent))
@@ -197,6 +198,12 @@ def new_output_dir(path: str | Path, *, replace: bool = False, flag: str = "--ou
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+        if not path.exists():  # refused or failed: the parents this call made go too (empty ones only)
+            for p in missing:
+                try:
+                    p.rmdir()
+                except OSError:
+                    break
 
 
 _PARTIAL = re.compile(r"^\.(?P<name>.+)\.(?:partial|old)-(?:(?P<pid>\d+)-)?[^.]*$")
