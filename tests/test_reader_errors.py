@@ -67,6 +67,18 @@ def test_zero_quaternion(tmp_path):
         read_poses(p)
 
 
+def test_a_blank_line_between_rows_is_named_and_one_at_the_end_is_read(tmp_path):
+    """A blank line inside the table is refused at its row: the checks after reading (the quaternion,
+    the time order, the box) name data row i as file row i + 2, which a skipped line would shift (a
+    review saw row 3 named for the bad pose on row 4)."""
+    p = write(tmp_path, "poses.csv", POSE_HEADER + "1,0,0,0,0,0,0,1\n\n2,0,0,0,0,0,0,2\n")
+    with pytest.raises(DataFormatError, match=r"poses.csv, row 3: a blank line between rows; expected one row per line"):
+        read_poses(p)
+    p = write(tmp_path, "poses.csv", POSE_HEADER + "1,0,0,0,0,0,0,1\n2,0,0,0,0,0,0,2\n\n\n")
+    with pytest.raises(DataFormatError, match=r"row 3, field 'qx/qy/qz/qw'"):  # blank lines at the end: read
+        read_poses(p)
+
+
 def test_unsorted_timestamps(tmp_path):
     p = write(tmp_path, "poses.csv", POSE_HEADER + "2,0,0,0,0,0,0,1\n1,0,0,0,0,0,0,1\n")
     with pytest.raises(DataFormatError, match="row 3, field 'time': timestamps not strictly increasing"):

@@ -64,7 +64,8 @@ def read_numeric_csv(
 ) -> dict[str, np.ndarray]:
     """Read a headed CSV whose `required` columns are numbers -> {column: (N,) float64}.
 
-    Rows are 1-based with the header as row 1, as a spreadsheet shows them.
+    Rows are 1-based with the header as row 1, as a spreadsheet shows them; a blank line is
+    allowed at the end only, so that the checks after reading name data row i as row i + 2.
     """
     path = Path(path)
     if not path.is_file():
@@ -88,9 +89,14 @@ def read_numeric_csv(
         raise DataFormatError(path, f"expected exactly columns {list(required)}", row=1)
     index = [header.index(c) for c in required]
     rows: list[list[float]] = []
+    blank = None  # the first blank line: allowed at the end only, so that data row i is file row i + 2
     for row_no, row in enumerate(reader, start=2):
         if not row or all(not c.strip() for c in row):
+            blank = blank or row_no
             continue
+        if blank is not None:
+            raise DataFormatError(path, "a blank line between rows; expected one row per line (blank lines at "
+                                        "the end only)", row=blank)
         if len(row) != len(header):
             raise DataFormatError(
                 path, f"has {len(row)} values; expected {len(header)} (one per header column)", row=row_no
