@@ -586,3 +586,22 @@ def test_map_yaml_numbers_read_back_as_numbers_in_yaml_1_1(tmp_path):
         "3.0e-05", "1.0e+22", "-2.5e-07", "0.1", "-4.05", "1.0e+16"]
     doc = yaml.safe_load(map_yaml("map.pgm", 0.05, (3e-05, -1e-07)))
     assert doc["origin"] == [3e-05, -1e-07, 0.0] and doc["resolution"] == 0.05
+
+
+def test_a_run_whose_training_did_not_finish_is_exported_with_a_note(trained_run, tmp_path):
+    """A run stopped while it trained past an earlier budget (`train --resume --max-steps` more,
+    then Ctrl-C) keeps the earlier budget's metrics.json: export says the checkpoint's steps are not
+    the finished run's (a review: run_finished was true), and exports it as it stands."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run)
+    doc = json.loads((run / "metrics.json").read_text())
+    steps = doc["train"]["steps"]
+    doc["train"]["steps"] = steps - 1  # the earlier budget's file, one step short of the checkpoint
+    (run / "metrics.json").write_text(json.dumps(doc))
+    code, stdout, err = run_cli(["export", "--run", run, "--out", tmp_path / "exp", "--what", "map"])
+    assert code == 0, err
+    assert stdout.startswith(f"note: --run {run}: its training did not finish (no metrics.json of its last step; stopped at step "
+                              f"{steps})")
+    assert json.loads((tmp_path / "exp" / "export.json").read_text())["run_finished"] is False

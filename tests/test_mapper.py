@@ -1125,9 +1125,10 @@ def test_numpy_numbers_are_numbers_and_a_pose_far_outside_a_fitted_box_is_refuse
         assert "resolution: 0.10000000149011612\n" in doc and "np." not in doc, doc
     far = _frame(1.0)
     far.cam_to_world[:3, 3] = (362.0, -151.6, -150.1)  # the rig's camera offset in millimetres / 1000 wrong way
-    with pytest.raises(UsageError, match=r"SyncFrame.cam_to_world \(time 1.000 s\): camera at \(362.00, -151.60, "
-                                         r"-150.10\) m lies outside the Mapper's box \[-3.0, -3.0, -1.0\]..\[3.0, 3.0, "
-                                         r"2.0\] m \(extent.mode fitted\); expected a pose in metres \(millimetres\?\)"):
+    with pytest.raises(UsageError, match=r"frame at time 1.000 s \(its pose, SyncFrame.cam_to_world\): camera at "
+                                         r"\(362.00, -151.60, -150.10\) m lies outside the Mapper's box \[-3.0, -3.0, "
+                                         r"-1.0\]..\[3.0, 3.0, 2.0\] m \(extent.mode fitted\); expected a pose in "
+                                         r"metres \(one in millimetres lands far outside\)"):
         mapper.add_frame(far)
     near = _frame(2.0)
     near.cam_to_world[:3, 3] = (3.0 + FITTED_SLACK_M - 0.1, 0.0, 0.5)
@@ -1192,8 +1193,9 @@ def test_a_growing_mapper_starts_around_its_first_camera_and_sections_may_be_dic
         Mapper.growing(MapperConfig(), {1: INTR}, [1.0, 2.0])
     far = _frame(1.0)
     far.cam_to_world[:3, 3] = (10.0 + 362.0, 5.0, 0.5)  # a pose in millimetres beside ones in metres
-    with pytest.raises(UsageError, match=r"^SyncFrame.cam_to_world \(time 1.000 s\): camera at \(372.00, 5.00, 0.50\) "
-                                         r"m lies outside the map's frame .*; expected a pose in metres \(millimetres\?\)"):
+    with pytest.raises(UsageError, match=r"^frame at time 1.000 s \(its pose, SyncFrame.cam_to_world\): camera at "
+                                         r"\(372.00, 5.00, 0.50\) m lies outside the map's frame .*; expected a drive "
+                                         r"within it .* and poses in metres \(one in millimetres lands far outside\)"):
         mapper.add_frame(far)
     (tmp_path / "snap").mkdir()
     with pytest.raises(OutputExistsError, match=r"snap: output folder already exists; choose a new snapshot folder"):

@@ -77,6 +77,10 @@ def test_a_blank_line_between_rows_is_named_and_one_at_the_end_is_read(tmp_path)
     p = write(tmp_path, "poses.csv", POSE_HEADER + "1,0,0,0,0,0,0,1\n2,0,0,0,0,0,0,2\n\n\n")
     with pytest.raises(DataFormatError, match=r"row 3, field 'qx/qy/qz/qw'"):  # blank lines at the end: read
         read_poses(p)
+    # Python's csv.writer on Windows without newline="" ends each row with \r\r\n: read, not blank lines
+    p = tmp_path / "poses_crcrlf.csv"
+    p.write_bytes((POSE_HEADER + "1,0,0,0,0,0,0,1\n2,0,0,0,0,0,0,1\n").replace("\n", "\r\r\n").encode())
+    assert len(read_poses(p)) == 2
 
 
 def test_unsorted_timestamps(tmp_path):

@@ -36,7 +36,7 @@ def read_csv_rows(path: str | Path, what: str = "file") -> list[list[str]]:
     virus_nerf.utils.textfile). A file the csv module cannot split is refused naming the row.
     """
     path = Path(path)
-    data = read_bytes(path, what)
+    data = read_bytes(path, what).replace(b"\r\r\n", b"\r\n")  # csv.writer on Windows without newline=""
     reader = csv.reader(io.StringIO(decode_lenient(data), newline=""))
     rows: list[list[str]] = []
     try:

@@ -67,17 +67,19 @@ class MapExtent:
             for i in np.flatnonzero(~self.box.padded(FITTED_SLACK_M).contains(positions))[:1]:
                 p, lo, hi = positions[i], np.round(self.box.lo, 2).tolist(), np.round(self.box.hi, 2).tolist()
                 raise UsageError(
-                    f"SyncFrame.cam_to_world (time {float(times[i]):.3f} s): camera at ({p[0]:.2f}, {p[1]:.2f}, "
-                    f"{p[2]:.2f}) m lies outside the Mapper's box {lo}..{hi} m (extent.mode fitted); expected a pose "
-                    "in metres (millimetres?), in the box's frame (extent.mode grow maps a drive of any size)")
+                    f"frame at time {float(times[i]):.3f} s (its pose, SyncFrame.cam_to_world): camera at "
+                    f"({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m lies outside the Mapper's box {lo}..{hi} m (extent.mode "
+                    "fitted); expected a pose in metres (one in millimetres lands far outside), in the box's frame "
+                    "(extent.mode grow maps a drive of any size)")
             return
         for p, t in zip(positions, times, strict=True):
             if not inside_frame(p, self.frame):
                 raise UsageError(
-                    f"SyncFrame.cam_to_world (time {float(t):.3f} s): camera at ({p[0]:.2f}, {p[1]:.2f}, "
-                    f"{p[2]:.2f}) m lies outside the map's frame {self.frame.lo}..{self.frame.hi} (extent.frame_m "
-                    f"{self.config.frame_m:g} m around the first frame); expected a pose in metres (millimetres?) "
-                    "of a drive within it (a larger extent.frame_m maps a larger area)")
+                    f"frame at time {float(t):.3f} s (its pose, SyncFrame.cam_to_world): camera at ({p[0]:.2f}, "
+                    f"{p[1]:.2f}, {p[2]:.2f}) m lies outside the map's frame {self.frame.lo}..{self.frame.hi} "
+                    f"(extent.frame_m {self.config.frame_m:g} m around the first frame); expected a drive within it "
+                    "(a larger extent.frame_m maps a larger area) and poses in metres (one in millimetres lands far "
+                    "outside)")
 
     def add_frames(self, store: FrameStore, rows: np.ndarray) -> SceneBox | None:
         """Growing: the box that holds the camera positions of `store`'s `rows` plus the camera

@@ -104,13 +104,25 @@ def export(
             _check_poses_in_box(Path(poses), pose_set, trainer.mapper.box)
         if "images" in kinds:  # before anything is rendered
             _image_intrinsics(trainer.recording, image_scale if image_scale is not None else cfg.image_scale)
-        finished = (Path(run) / METRICS).is_file()  # `train` writes it when its budget is spent
+        finished = _scored_at(Path(run) / METRICS) == trainer.mapper.step  # a resumed run's old one is not
         written = _export_all(trainer, cfg, tmp, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,
                               image_scale if image_scale is not None else cfg.image_scale, finished)
     if not finished:
-        print(f"note: --run {run}: its training did not finish (no metrics.json; stopped at step "
+        print(f"note: --run {run}: its training did not finish (no metrics.json of its last step; stopped at step "
               f"{trainer.mapper.step}): exported as it stands (`virus-nerf train --resume --out {run}` continues it)")
     print(f"wrote {out}/: " + ", ".join(written))
+
+
+def _scored_at(metrics: Path) -> int | None:
+    """The step of the run's metrics.json (`train` writes it when its budget is spent; a resume
+    past it leaves the earlier one until it ends too), or None without a readable one."""
+    import json
+
+    try:
+        steps = json.loads(metrics.read_text())["train"]["steps"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return steps if isinstance(steps, int) else None
 
 
 def _check_poses_see_the_room(path: Path, pose_set) -> None:
