@@ -246,6 +246,8 @@ def main() -> None:
     config = json.loads(args.config.read_text()) if args.config else {}
     if args.bag and config:
         ap.error("--config: map-bag runs take the defaults")
+    if args.steps <= 0 or (args.steps != 1.0 and (args.online or args.bag)):
+        ap.error(f"--steps {args.steps}: expected a share > 0 of the offline protocol's steps (a drive has no budget)")
     new_out(args.out)  # before the run: a result is never overwritten
     budget = {scene: round(n * args.steps) for scene, n in STEPS.items()}
     mode = "bag" if args.bag else "online" if args.online else "offline"
