@@ -78,8 +78,11 @@ def _first(signum, frame) -> None:  # noqa: ARG001
         signal.signal(s, _at_once)
     quiet_after_stop()
     _STEP["signalled"] = signum  # a Stopped raised where a C callback swallows it still ends the block
-    if _STEP["depth"]:  # inside a training step: it ends first (`atomic_step`)
-        _STEP["pending"] = signum
+    # inside a training step it ends first (`atomic_step`); outside one the Stopped rises here, and
+    # is also kept for the next step's end: where a C callback swallowed it, the work would go on
+    # to the block's end (a whole budget of training) before the stop stands
+    _STEP["pending"] = signum
+    if _STEP["depth"]:
         return
     raise Stopped(signum)
 
@@ -88,7 +91,8 @@ def _first(signum, frame) -> None:  # noqa: ARG001
 def atomic_step() -> Iterator[None]:
     """A training step the first signal must not cut in half (the optimiser stepped, the grid not
     yet updated: a checkpoint of that would not continue as the run would have): its `Stopped`
-    rises when the step is done, so the checkpoint written then resumes exactly."""
+    rises when the step is done, so the checkpoint written then resumes exactly. A signal whose
+    `Stopped` a C callback swallowed between steps rises at the end of the next one."""
     _STEP["depth"] += 1
     try:
         yield
