@@ -105,7 +105,7 @@ def check_frame(frame: SyncFrame, intrinsics: Mapping[int, Intrinsics]) -> None:
         raise UsageError(f"SyncFrame.cam_to_world (stack {sid}, time {frame.time}): {problem}; expected a finite "
                          "(4, 4) rigid transform (rotation with det +1, translation in metres, last row 0 0 0 1)")
     axis_z = float(np.asarray(frame.cam_to_world, dtype=np.float64)[2, 2])  # the optical axis' world z
-    if abs(axis_z) > math.cos(math.radians(MIN_AXIS_TILT_DEG)):
+    if looks_vertical(axis_z):
         raise UsageError(f"SyncFrame.cam_to_world (stack {sid}, time {frame.time}): the camera looks straight "
                          f"{'up' if axis_z > 0 else 'down'} ({math.degrees(math.acos(min(1.0, abs(axis_z)))):.1f} deg "
                          "from vertical); expected OpenCV camera axes (z forward, y down), not a ROS body frame "
@@ -150,6 +150,13 @@ def _check_ranges(what: str, values: np.ndarray, kind: str) -> None:
                          "NaN where invalid")
     if finite.size and finite.max() > MAX_RANGE_M:
         raise UsageError(f"{what}: {finite.max():g} is beyond {MAX_RANGE_M:g} m; expected metres, not millimetres")
+
+
+def looks_vertical(axis_z):
+    """True (per pose) where the optical axis' world z (cam_to_world[..., 2, 2]) is within
+    MIN_AXIS_TILT_DEG of vertical: a ROS body frame (x forward, z up) or a world that is not z-up,
+    not an OpenCV camera that sees the room."""
+    return np.abs(axis_z) > math.cos(math.radians(MIN_AXIS_TILT_DEG))
 
 
 def check_intrinsics(intrinsics: Mapping[int, Intrinsics], what: str = "Mapper intrinsics") -> None:

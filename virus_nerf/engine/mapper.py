@@ -239,21 +239,17 @@ class Mapper(MapViews, MapperCheckpoint):
         the map, its camera_info late): its frames are taken from now on. Its images must have the
         other stacks' size; a stack it has already is refused (a camera does not change its lens
         mid-drive). One-line UsageError, nothing changed."""
-        from virus_nerf.sampler.frames import StackFootprints
-
         if isinstance(stack_id, bool) or not isinstance(stack_id, numbers.Integral):
             raise UsageError(f"Mapper.add_stack stack_id {stack_id!r}: a {type(stack_id).__name__}; expected the "
                              "stack id as an int (SyncFrame.stack_id)")
         stack_id = int(stack_id)
         if stack_id in self.intrinsics:
             raise UsageError(f"Mapper.add_stack stack_id {stack_id}: already mapped; expected a new stack id")
-        check_intrinsics({stack_id: intrinsics}, "Mapper.add_stack intrinsics")
-        check_intrinsics({**self.intrinsics, stack_id: intrinsics}, "Mapper.add_stack intrinsics")  # one image size
+        check_intrinsics({**self.intrinsics, stack_id: intrinsics}, "Mapper.add_stack intrinsics")  # and one size
         self.intrinsics[stack_id] = intrinsics
         if self._sampler is not None:  # else made with every stack when first needed
             scaled = intrinsics.scaled(self.config.image_scale)
-            self.store.intrinsics[stack_id] = scaled
-            self.store.footprints[stack_id] = StackFootprints.of(scaled)
+            self.store.add_stack(stack_id, scaled)
             if self._stereo_feed is not None:
                 self._stereo_feed.builder.add_stack(stack_id, intrinsics, scaled)
 

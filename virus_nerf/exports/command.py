@@ -102,11 +102,12 @@ def export(
         trainer, cfg, _ = load_trained(run, "--run", poses="odometry" if cfg.odometry_poses else "optimised")
         if pose_set is not None:
             _check_poses_in_box(Path(poses), pose_set, trainer.mapper.box)
+        scale = image_scale if image_scale is not None else cfg.image_scale
         if "images" in kinds:  # before anything is rendered
-            _image_intrinsics(trainer.recording, image_scale if image_scale is not None else cfg.image_scale)
+            _image_intrinsics(trainer.recording, scale)
         finished = _scored_at(Path(run) / METRICS) == trainer.mapper.step  # a resumed run's old one is not
         written = _export_all(trainer, cfg, tmp, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,
-                              image_scale if image_scale is not None else cfg.image_scale, finished)
+                              scale, finished)
     if not finished:
         print(f"note: --run {run}: its training did not finish (no metrics.json of its last step; stopped at step "
               f"{trainer.mapper.step}): exported as it stands (`virus-nerf train --resume --out {run}` continues it)")
@@ -129,12 +130,10 @@ def _check_poses_see_the_room(path: Path, pose_set) -> None:
     """--poses for images are cameras in OpenCV axes (z forward): one looking straight up or down
     is a ROS body frame (x forward, z up) or a world that is not z-up, whose images would show the
     ceiling (the Mapper refuses such a SyncFrame alike)."""
-    import math
-
-    from virus_nerf.data.frame import MIN_AXIS_TILT_DEG
+    from virus_nerf.data.frame import looks_vertical
 
     axis_z = pose_set.cam_to_world[:, 2, 2]  # (N,) the optical axis' world z
-    for i in np.flatnonzero(np.abs(axis_z) > math.cos(math.radians(MIN_AXIS_TILT_DEG)))[:1]:
+    for i in np.flatnonzero(looks_vertical(axis_z))[:1]:
         raise DataFormatError(path, f"the camera looks straight {'up' if axis_z[i] > 0 else 'down'}; expected "
                                     "camera-to-world poses in OpenCV camera axes (z forward, y down), not a ROS body "
                                     "frame (x forward, z up), in a world whose z is up", row=int(i) + 2,

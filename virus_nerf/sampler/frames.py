@@ -129,6 +129,12 @@ class FrameStore:
     def __len__(self) -> int:
         return len(self.stack_ids)
 
+    def add_stack(self, stack_id: int, intrinsics: Intrinsics) -> None:
+        """A stack whose frames may come from now on (training-resolution intrinsics of the
+        store's image size: the caller checked it)."""
+        self.intrinsics[stack_id] = intrinsics
+        self.footprints[stack_id] = StackFootprints.of(intrinsics)
+
     @staticmethod
     def empty(intrinsics: dict[int, Intrinsics], with_depth: bool = False) -> FrameStore:
         """A store without frames for stacks with these (training-resolution) intrinsics."""
