@@ -70,8 +70,21 @@ def _none_survive(pids: list[int], parent: int, within_s: float = 5.0) -> None:
 
 
 def _start(argv: list, cwd: Path) -> subprocess.Popen:
+    # faulthandler: a command that does not end after its stop shows where it is (`_ended`)
     return subprocess.Popen([sys.executable, "-m", "virus_nerf.cli", *map(str, argv)], cwd=cwd,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONFAULTHANDLER": "1"})
+
+
+def _ended(proc: subprocess.Popen, timeout_s: float = 60.0) -> tuple[str, str]:
+    """proc.communicate(); a process still running after `timeout_s` fails the test with every
+    thread's stack (SIGABRT: faulthandler's dump), not only with the timeout."""
+    try:
+        return proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)
+        stdout, stderr = proc.communicate(timeout=60)
+        pytest.fail(f"still running {timeout_s:g} s after its stop; stdout: {stdout!r}; its stacks:\n{stderr[-8000:]}")
 
 
 def _wait_for(cond, proc: subprocess.Popen, timeout_s: float = 120.0) -> None:
@@ -162,7 +175,7 @@ def test_map_bag_stopped_by_a_signal_keeps_the_map_in_one_line(drive, tmp_path, 
     children = _children(proc.pid)
     assert children, "the KISS-ICP worker runs as a child process"
     proc.send_signal(getattr(signal, sig))
-    stdout, stderr = proc.communicate(timeout=60)
+    stdout, stderr = _ended(proc)
     assert proc.returncode == 128 + getattr(signal, sig), stderr
     assert stderr == ""
     last = stdout.splitlines()[-1]
@@ -339,7 +352,7 @@ def test_train_online_stopped_keeps_map_and_checkpoint_and_evaluate_says_it_trai
                                     f"pid {proc.pid}); wait for it to end or stop it, then run again\n")
     children = _children(proc.pid)
     proc.send_signal(signal.SIGINT)
-    stdout, stderr = proc.communicate(timeout=60)
+    stdout, stderr = _ended(proc)
     assert proc.returncode == 130 and stderr == "", stderr
     assert stdout.startswith("train: stopped by SIGINT at step ") and stdout.count("\n") == 1
     assert stdout.rstrip().endswith(f"map in {out / 'map'}, checkpoint in {out / 'checkpoint.pt'}; continue with "
@@ -370,7 +383,7 @@ def test_train_offline_stopped_resumes_exactly_as_the_run_never_stopped(tiny_off
     log = out / "train_log.csv"
     _wait_for(lambda: log.is_file() and len(log.read_text().splitlines()) >= 4, proc)
     proc.send_signal(sig)
-    stdout, stderr = proc.communicate(timeout=60)
+    stdout, stderr = _ended(proc)
     assert proc.returncode == 128 + sig and stderr == "", stderr
     assert stdout.startswith(f"train: stopped by {signal.Signals(sig).name} at step ") and stdout.count("\n") == 1
     step = int(stdout.split(" at step ")[1].split()[0])
@@ -505,7 +518,7 @@ def test_any_command_stopped_by_sigterm_leaves_no_partial_folder(tmp_path):
     # llvmlite's callback: the command then stops only at its end, test below)
     _wait_for(lambda: any(tmp_path.glob(".sim.partial-*/**/*.png")), proc)
     proc.send_signal(signal.SIGTERM)
-    stdout, stderr = proc.communicate(timeout=60)
+    stdout, stderr = _ended(proc)
     assert proc.returncode == 128 + signal.SIGTERM and stderr == "virus-nerf: interrupted (SIGTERM)\n", stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == []
     stale = tmp_path / ".exp.partial-999999999-abc"  # no such pid
@@ -595,8 +608,8 @@ def test_a_stop_while_the_commands_modules_load_is_one_line(monkeypatch, signum)
 def test_a_stop_a_c_callback_swallowed_rises_at_the_next_steps_end():
     """A signal that lands where a C callback swallows the `Stopped` (llvmlite's, while numba loads
     a kernel between training steps) stops the run at the end of the next step, not after the whole
-    budget (a loaded suite run saw a stopped `train` go on past the 60 s its stop is given)."""
-    from virus_nerf.utils.stop import Stopped, atomic_step, stop_on_signals
+    budget."""
+    from virus_nerf.utils.stop import Stopped, stop_on_signals, stops_deferred
 
     steps = []
     with pytest.raises(Stopped) as stopped, stop_on_signals():
@@ -606,6 +619,59 @@ def test_a_stop_a_c_callback_swallowed_rises_at_the_next_steps_end():
         except Stopped:
             pass
         for k in range(3):
-            with atomic_step():
+            with stops_deferred():
                 steps.append(k)
     assert steps == [0] and stopped.value.signum == signal.SIGTERM
+
+
+def test_a_deferring_block_in_the_unwinding_of_a_stop_adds_no_second_stop():
+    """The stop rose between deferring blocks (kept for the next one's end, in case a C callback
+    swallowed it); the log's close in a `finally` is such a block: it must not raise a second one."""
+    from virus_nerf.utils.stop import Stopped, stop_on_signals, stops_deferred
+
+    closed = []
+    with pytest.raises(Stopped) as stopped, stop_on_signals():
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # the handler raises in here
+        finally:
+            with stops_deferred():
+                closed.append(True)
+    assert closed == [True] and stopped.value.__context__ is None
+
+
+def test_a_stop_during_a_log_write_rises_once_the_row_and_its_tensorboard_scalars_are_written(tmp_path):
+    """A signal inside a TensorBoard call (the CSV row just written: where a loaded suite run's
+    stopped `train` landed) waits until the log's write is done. Cut there, TensorBoard's writer
+    thread can miss its wake-up and sleep until its 120 s flush, and the stop's close waits for it
+    (that run wrote its map two minutes after the signal). The stop rises once: the log's close in
+    the unwinding adds none."""
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from virus_nerf.trainer.train_log import LogRow, TrainLog
+    from virus_nerf.utils.stop import Stopped, stop_on_signals
+
+    log = TrainLog(tmp_path, 0, 10, quiet=True)
+    real, calls = log._tb.add_scalar, []
+
+    def signalled_inside(tag, value, step):
+        calls.append(tag)
+        if len(calls) == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # the handler runs in here: without the deferral the Stopped rises now
+        real(tag, value, step)
+
+    log._tb.add_scalar = signalled_inside
+    row = LogRow(2, 0.1, 0.5, 0.25, 0.125, 0.0, 0.0, 20.0, 12.5, 0.3, 7)
+    with pytest.raises(Stopped) as stopped, stop_on_signals():
+        try:
+            log.write(row)
+        finally:
+            log.close()
+    assert stopped.value.signum == signal.SIGTERM and stopped.value.__context__ is None  # one stop, not two
+    assert (tmp_path / "train_log.csv").read_text().splitlines()[-1].split(",")[:3] == ["2", "0.1", "0.5"]
+    events = EventAccumulator(str(tmp_path / "tensorboard"))
+    events.Reload()
+    assert sorted(events.Tags()["scalars"]) == sorted(f"train/{name}" for name in LogRow.FIELDS[2:])
+    assert [(e.step, e.value) for e in events.Scalars("train/colour")] == [(2, 0.25)]

@@ -45,7 +45,7 @@ from virus_nerf.trainer.run_folder import (
 from virus_nerf.trainer.train_log import Every, LogRow, TrainLog, psnr_db
 from virus_nerf.utils.clock import since_process_start
 from virus_nerf.utils.io import atomic_path
-from virus_nerf.utils.stop import atomic_step
+from virus_nerf.utils.stop import stops_deferred
 
 __all__ = ["Trainer", "TrainSummary"]
 
@@ -343,7 +343,7 @@ class Trainer:
         try:
             while not self.done():
                 try:
-                    with atomic_step():  # SIGINT/SIGTERM stop the run between steps (trainer/run.py)
+                    with stops_deferred():  # SIGINT/SIGTERM stop the run between steps (trainer/run.py)
                         terms = self.train_step()
                 except (MemoryError, RuntimeError) as exc:
                     _raise_if_out_of_memory(exc, c.batch_size)

@@ -15,6 +15,7 @@ from typing import ClassVar
 
 from virus_nerf.trainer.run_folder import TENSORBOARD, TRAIN_LOG
 from virus_nerf.utils.io import write_text_atomic
+from virus_nerf.utils.stop import stops_deferred
 
 
 @dataclass(frozen=True)
@@ -108,7 +109,9 @@ def truncate_log(path: Path, step: int) -> None:
 
 class TrainLog:
     """train_log.csv (appended; cut back to the checkpoint's step on resume), TensorBoard scalars
-    when the optional package is installed, and a tqdm bar (hidden off a terminal)."""
+    when the optional package is installed, and a tqdm bar (hidden off a terminal). A stop signal
+    waits until a call is done: both libraries hand work to a thread of their own, which a signal
+    cut inside that hand-over can leave asleep (utils/stop.stops_deferred)."""
 
     def __init__(self, run_dir: Path, step: int, total_steps: int | None, quiet: bool):
         from tqdm import tqdm
@@ -133,23 +136,30 @@ class TrainLog:
             raise type(exc)(exc.errno, exc.strerror, str(self.path)) from exc
 
     def write(self, row: LogRow) -> None:
-        self._append(row.values())
-        for name in LogRow.FIELDS[2:]:
-            self.scalar(f"train/{name}", getattr(row, name), row.step)
-        self._bar.set_postfix(loss=f"{row.loss:.4f}", psnr=f"{row.psnr:.1f}", t=f"{row.seconds:.0f}s")
+        with stops_deferred():
+            self._append(row.values())
+            for name in LogRow.FIELDS[2:]:
+                self.scalar(f"train/{name}", getattr(row, name), row.step)
+            self._bar.set_postfix(loss=f"{row.loss:.4f}", psnr=f"{row.psnr:.1f}", t=f"{row.seconds:.0f}s")
 
     def scalar(self, tag: str, value: float | None, step: int) -> None:
         if self._tb is not None and value is not None:
             try:
-                self._tb.add_scalar(tag, value, step)
+                with stops_deferred():
+                    self._tb.add_scalar(tag, value, step)
             except OSError:  # its folder became read-only or vanished: the run's own writes say so
                 self._tb = None
 
     def advance(self) -> None:
         """One more step on the progress bar."""
-        self._bar.update(1)
+        with stops_deferred():
+            self._bar.update(1)
 
     def close(self) -> None:
+        with stops_deferred():
+            self._close()
+
+    def _close(self) -> None:
         self._bar.close()
         try:
             self._file.close()

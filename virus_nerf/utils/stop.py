@@ -60,7 +60,7 @@ def _at_once(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signat
     os._exit(128 + signum)
 
 
-# `atomic_step`: how deep inside one, the signal it deferred; `stop_on_signals`: the first signal
+# `stops_deferred`: how deep inside such blocks, the signal they deferred; `stop_on_signals`: the first signal
 _STEP = {"depth": 0, "pending": None, "signalled": None}
 
 
@@ -78,9 +78,10 @@ def _first(signum, frame) -> None:  # noqa: ARG001
         signal.signal(s, _at_once)
     quiet_after_stop()
     _STEP["signalled"] = signum  # a Stopped raised where a C callback swallows it still ends the block
-    # inside a training step it ends first (`atomic_step`); outside one the Stopped rises here, and
-    # is also kept for the next step's end: where a C callback swallowed it, the work would go on
-    # to the block's end (a whole budget of training) before the stop stands
+    # inside a deferring block (a training step, a TensorBoard write) that ends first
+    # (`stops_deferred`); outside one the Stopped rises here, and is also kept for the next such
+    # block's end: where a C callback swallowed it, the work would go on to the end of
+    # `stop_on_signals` (a whole budget of training) before the stop stands
     _STEP["pending"] = signum
     if _STEP["depth"]:
         return
@@ -88,11 +89,17 @@ def _first(signum, frame) -> None:  # noqa: ARG001
 
 
 @contextmanager
-def atomic_step() -> Iterator[None]:
-    """A training step the first signal must not cut in half (the optimiser stepped, the grid not
-    yet updated: a checkpoint of that would not continue as the run would have): its `Stopped`
-    rises when the step is done, so the checkpoint written then resumes exactly. A signal whose
-    `Stopped` a C callback swallowed between steps rises at the end of the next one."""
+def stops_deferred() -> Iterator[None]:
+    """Work a first signal must not cut in half; its `Stopped` rises when the block is done:
+    - a training step (the optimiser stepped, the grid not yet updated: a checkpoint of that would
+      not continue as the run would have);
+    - a call into a library that hands work to its own thread (TensorBoard's event writer, tqdm's
+      bar): a `Stopped` raised inside `threading.Condition.notify`, between waking the thread and
+      taking it off the waiters, leaves a stale waiter that swallows the next wake-up (CPython
+      gh-92530). The thread then sleeps until its own timer (TensorBoard's: 120 s) and the close at
+      the stop waits for it (seen: a stopped `train` wrote its map two minutes late).
+    A signal whose `Stopped` a C callback swallowed rises at the end of the next such block. A
+    block that ends while a stop already rises (in a `finally`) adds no second one."""
     _STEP["depth"] += 1
     try:
         yield
@@ -101,7 +108,8 @@ def atomic_step() -> Iterator[None]:
     pending = _STEP["pending"]
     if pending is not None and not _STEP["depth"]:
         _STEP["pending"] = None
-        raise Stopped(pending)
+        if not isinstance(sys.exc_info()[1], KeyboardInterrupt):
+            raise Stopped(pending)
 
 
 @contextmanager
