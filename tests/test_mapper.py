@@ -622,10 +622,10 @@ def test_mapper_state_round_trip_continues_identically():
 
 
 def test_building_adam_is_not_on_the_training_clock(monkeypatch):
-    """Adam is built at the first training step, before the step's clock starts: its first
-    construction imports torch._dynamo (seconds), which a --max-time budget must not pay. Here
-    it takes 1000 s by the training clock's own reading (the clock jumps while Adam is built), so
-    no real time is measured and a busy machine cannot fail it."""
+    """Adam is built at the first training step, before the step's clock starts (torch's own
+    optimiser class took seconds to build: it imports torch._dynamo), which a --max-time budget
+    must not pay. Here it takes 1000 s by the training clock's own reading (the clock jumps while
+    Adam is built), so no real time is measured and a busy machine cannot fail it."""
     import time
     import types
 
@@ -633,14 +633,14 @@ def test_building_adam_is_not_on_the_training_clock(monkeypatch):
 
     built, jump = [], [0.0]
 
-    class SlowAdam(torch.optim.Adam):
+    class SlowAdam(mapper_module.Adam):
         def __init__(self, *args, **kwargs):
             jump[0] += 1000.0
             built.append(1)
             super().__init__(*args, **kwargs)
 
     monkeypatch.setattr(mapper_module, "time", types.SimpleNamespace(perf_counter=lambda: time.perf_counter() + jump[0]))
-    monkeypatch.setattr(torch.optim, "Adam", SlowAdam)
+    monkeypatch.setattr(mapper_module, "Adam", SlowAdam)
     mapper = _mapper(device="cpu")
     mapper.add_frame(_frame(0.0))
     mapper.prepare()  # off the clock, as a Trainer does

@@ -3,6 +3,7 @@ command line or evaluation.
 
 config: `MapperConfig`, every knob the engine reads
 mapper: `Mapper`, frames in, training steps, map queries out (its public API)
+adam: `Adam`, torch's Adam update and state_dict without torch's optimiser class (no torch._dynamo)
 clock: `FrameClock`, the frames' stamps made one forward time per stack across clock restarts
 checkpoint: the Mapper's `state()` / `load_state` (mixed into `Mapper`)
 step_loss: a step's loss as pure functions of the config, the batch and the render
@@ -16,5 +17,5 @@ memory: what a training step needs, checked before any work (`check_batch_memory
 """
 
 # its public modules; none is imported here, so `import virus_nerf.engine` loads nothing else
-__all__ = ["checkpoint", "clock", "config", "extent", "mapper", "memory", "model", "schedule", "state",
+__all__ = ["adam", "checkpoint", "clock", "config", "extent", "mapper", "memory", "model", "schedule", "state",
            "step_loss", "views"]

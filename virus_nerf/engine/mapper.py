@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from virus_nerf.data.frame import SyncFrame, check_frame, check_intrinsics, valid_ranges
+from virus_nerf.engine.adam import Adam
 from virus_nerf.engine.checkpoint import MapperCheckpoint
 from virus_nerf.engine.clock import FrameClock, PlacedFrame
 from virus_nerf.engine.config import MapperConfig
@@ -125,7 +126,7 @@ class Mapper(MapViews, MapperCheckpoint):
             self.field, self.grid, config.march.step_size, config.march.near, config.march.max_samples,
             config.min_opacity, config.march.backend, config.march.min_transmittance,
         )
-        self._optimizer: torch.optim.Adam | None = None  # built by the first step (`optimizer`)
+        self._optimizer: Adam | None = None  # built by the first step (`optimizer`)
         self._optimizer_state: dict | None = None  # a checkpoint's Adam state, until then
         self._optimizer_lock = threading.Lock()
         self.rng = np.random.default_rng(config.seed)
@@ -388,16 +389,14 @@ class Mapper(MapViews, MapperCheckpoint):
         self.field.zero_grad(set_to_none=True)
 
     @property
-    def optimizer(self) -> torch.optim.Adam:
-        """Adam on the field, built when first asked for (a training step, a checkpoint's state):
-        torch's optimisers import torch._dynamo (2 s of start-up on a 2-core machine), which
-        evaluating, exporting or mapping a trained run never needs."""
+    def optimizer(self) -> Adam:
+        """Adam on the field (engine/adam.py: torch's update and state_dict), built when first
+        asked for (a training step, a checkpoint's state)."""
         with self._optimizer_lock:  # one Adam, and the pending state taken once, whichever thread asks
             if self._optimizer is None:
                 optim = self.config.optim
                 fused = self.device.type == "cpu" or self.device.type == "cuda"
-                adam = torch.optim.Adam(self.field.parameters(), lr=optim.lr, eps=optim.eps, betas=optim.betas,
-                                        fused=fused)
+                adam = Adam(self.field.parameters(), lr=optim.lr, eps=optim.eps, betas=optim.betas, fused=fused)
                 if self._optimizer_state is not None:
                     adam.load_state_dict(self._optimizer_state)
                 self._optimizer, self._optimizer_state = adam, None
@@ -437,7 +436,7 @@ class Mapper(MapViews, MapperCheckpoint):
     @serialised
     def _timed_step(self, progress: float | None = None) -> tuple[LossTerms, float]:
         """`train_step` and the seconds it added to the training clock."""
-        self.build_optimizer()  # before the clock starts: the first one imports torch._dynamo
+        self.build_optimizer()  # before the clock starts
         t_start = time.perf_counter()
         terms = self._step(progress)
         took = time.perf_counter() - t_start
@@ -581,7 +580,6 @@ class Mapper(MapViews, MapperCheckpoint):
             raise UsageError(f"Mapper.train seconds {seconds!r}: expected a finite number >= 0")
         if steps is not None and (isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 0):
             raise UsageError(f"Mapper.train steps {steps!r}: expected an integer >= 0 or None")
-        import torch._dynamo  # noqa: F401  torch's optimisers import it at their first use (2 s): here, not under the lock
         self.prepare()
         done, spent, loss = 0, 0.0, None  # this call's own steps and clock (another thread may load_state meanwhile)
         while spent < seconds and (steps is None or done < steps):
@@ -592,12 +590,11 @@ class Mapper(MapViews, MapperCheckpoint):
 
 
 def warm_up(config: MapperConfig) -> float:
-    """Load torch's optimiser machinery and the mapper's kernels on a throwaway mapper (one small
-    synthetic frame, one step) before the drive's clock starts, as a robot starts its mapper before
-    it drives off: the first real frame is then not seconds late, and a callback adding frames
-    does not wait for the first `train` (measured on 2 shared cores: the optimiser's first
-    construction imports torch._dynamo, 1-2 s; the first render 0.2-0.8 s, tens of seconds when
-    numba compiles the kernels, the first time after an install; the first snapshot 0.2 s).
+    """Load the mapper's kernels on a throwaway mapper (one small synthetic frame, one step) before
+    the drive's clock starts, as a robot starts its mapper before it drives off: the first real
+    frame is then not seconds late, and a callback adding frames does not wait for the first
+    `train` (measured on 2 shared cores: the first render 0.2-0.8 s, tens of seconds when numba
+    compiles the kernels, the first time after an install; the first snapshot 0.2 s).
     Returns the seconds of its training step (a first step on one small frame)."""
     import tempfile
 

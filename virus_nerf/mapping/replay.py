@@ -167,7 +167,7 @@ def replay(
     for k in feeder.release(0.0):  # the first frame (and any at its time) before the clock starts
         add(int(k))
     mapper.prepare()
-    mapper.build_optimizer()  # its first construction imports torch._dynamo (1-2 s): before the drive's clock
+    mapper.build_optimizer()  # before the drive's clock
     start = time.monotonic()
     next_snapshot = snapshot_every
 
