@@ -35,7 +35,11 @@ def _logged_steps(run: Path) -> list[int]:
 def test_sigkill_then_resume_equals_an_uninterrupted_run(tiny_office, tmp_path):
     # bit-for-bit equality is the CPU promise: on a GPU the hash table's backward adds with atomics
     # in no fixed order, so two uninterrupted CUDA runs already differ in the last bits
-    cfg = small_config(max_steps=24, log_every=1, checkpoint_every=0.05, device="cpu")
+    from virus_nerf.field.config import FieldConfig
+
+    # a checkpoint every 0.05 s of training: of 6 MB (2^14-entry hash table), not the default's 23 MB
+    cfg = small_config(max_steps=24, log_every=1, checkpoint_every=0.05, device="cpu",
+                       field=FieldConfig(log2_table_size=14))
     # no ground truth (`--gt none`): the runs write their map, not a scored evaluation; the
     # checkpoints are what must match
     cfg.evaluation = dataclasses.replace(cfg.evaluation, gt=())
@@ -113,7 +117,12 @@ def test_killed_at_every_checkpoint_equals_an_uninterrupted_run(tiny_office, tmp
     from virus_nerf.trainer.loop import Trainer
 
     steps = 60
-    cfg = small_config(max_steps=steps, log_every=1, checkpoint_every=1e-9, eval_interval=0.0, device="cpu")
+    from virus_nerf.field.config import FieldConfig
+
+    # a 2^14-entry hash table (the default's quarter): 59 checkpoints of 6 MB, not 23 MB (half the
+    # test's time); the run still crosses the render-path switch
+    cfg = small_config(max_steps=steps, log_every=1, checkpoint_every=1e-9, eval_interval=0.0, device="cpu",
+                       field=FieldConfig(log2_table_size=14))
     rec = load_recording(tiny_office, "office")
 
     full = Trainer(rec, cfg, tmp_path / "full", quiet=True)
