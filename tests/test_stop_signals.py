@@ -458,8 +458,11 @@ def test_train_stopped_while_scoring_keeps_the_map_and_says_resume_scores_it(tin
     def stopped(*args, **kwargs):
         raise Stopped(signal.SIGTERM)
 
-    out = tmp_path / "run"
-    args = ["train", "--data", tiny_office, "--room", "office", "--out", out, "--max-steps", "4", "--quiet"]
+    from virus_nerf.config_io import to_dict
+
+    out, cfg = tmp_path / "run", tmp_path / "tiny.json"
+    cfg.write_text(json.dumps(to_dict(tiny_train_config(max_steps=4))))  # no plots: 11 s of matplotlib twice
+    args = ["train", "--data", tiny_office, "--room", "office", "--out", out, "--config", cfg, "--quiet"]
     with monkeypatch.context() as m:
         m.setattr(run_module, "_score", stopped)
         code, stdout, err = run_cli(args)
