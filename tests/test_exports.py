@@ -197,7 +197,9 @@ def test_grid3d_npy_and_sidecar_locate_cells(tmp_path):
     logodds[1, 2, 0] = 3.0
     prob = 1 / (1 + np.exp(-logodds))
     info = grid3d.Grid3DInfo(lo=(-1.0, 0.0, 0.0), hi=(1.0, 1.5, 1.0), resolution=(4, 3, 2), cell_size=(0.5, 0.5, 0.5))
-    grid3d.write_grid3d(prob, logodds, info, tmp_path)
+    observed = np.ones((4, 3), dtype=bool)
+    observed[3, 0] = False  # the column x in [0.5, 1), y in [0, 0.5): no sensor looked there
+    grid3d.write_grid3d(prob, logodds, observed, info, tmp_path)
     side = json.loads((tmp_path / "grid.json").read_text())
     arr = np.load(tmp_path / side["data"])
     assert arr.dtype == np.float32 and list(arr.shape) == side["shape"] and side["axis_order"] == ["x", "y", "z"]
@@ -205,7 +207,10 @@ def test_grid3d_npy_and_sidecar_locate_cells(tmp_path):
     ijk = np.floor((point - side["lo"]) / (np.array(side["hi"]) - side["lo"]) * side["shape"]).astype(int)
     assert tuple(ijk) == (1, 2, 0) and arr[tuple(ijk)] == pytest.approx(1 / (1 + math.exp(-3)))
     np.testing.assert_allclose(np.array(side["lo"]) + (ijk + 0.5) * side["cell_size"], [-0.25, 1.25, 0.25])
-    np.testing.assert_allclose(np.load(tmp_path / side["logodds"]), logodds)
+    # unknown: the whole column NaN (a planner must not read the prior 0.12 there as free), the rest p
+    assert np.isnan(arr[3, 0]).all() and np.isnan(arr).sum() == 2 and side["observed"] == pytest.approx(11 / 12, abs=1e-4)
+    assert "NaN" in side["unknown"]
+    np.testing.assert_allclose(np.load(tmp_path / side["logodds"]), logodds)  # the grid's state everywhere
 
 
 def test_point_clouds_round_trip_through_independent_parsers(tmp_path):
@@ -277,9 +282,19 @@ def test_export_all_writes_every_format(exported):
         assert np.all(d[a == 0] < 0) and np.all(d[(a != 0) & seen] > 0)
     side = json.loads((exported / "grid.json").read_text())
     p3 = np.load(exported / "grid_probability.npy")
-    np.testing.assert_allclose(p3, 1 / (1 + np.exp(-np.load(exported / "grid_logodds.npy"))), atol=1e-6)
-    assert list(p3.shape) == side["shape"] and 0 <= p3.min() <= p3.max() <= 1
+    known = ~np.isnan(p3)
+    np.testing.assert_allclose(p3[known], 1 / (1 + np.exp(-np.load(exported / "grid_logodds.npy")[known])), atol=1e-6)
+    assert list(p3.shape) == side["shape"] and 0 <= p3[known].min() <= p3[known].max() <= 1
     np.testing.assert_allclose(np.array(side["hi"]) - side["lo"], np.array(side["cell_size"]) * side["shape"])
+    # NaN: whole columns no sensor looked at; they agree with prob.pgm's unknown (255) at the columns'
+    # centres, read from the files (the two rasters' cells differ: edges may disagree)
+    columns = known.all(axis=2)
+    assert (columns == known.any(axis=2)).all() and side["observed"] == pytest.approx(columns.mean(), abs=1e-4)
+    assert 0.0 < columns.mean() < 1.0 and doc["grid3d"]["observed"] == side["observed"]
+    ix, iy = np.meshgrid(np.arange(p3.shape[0]), np.arange(p3.shape[1]), indexing="ij")
+    centres = np.array(side["lo"])[:2] + (np.stack([ix, iy], -1) + 0.5) * np.array(side["cell_size"])[:2]
+    looked = _looked_at(exported, centres.reshape(-1, 2)).reshape(columns.shape)
+    assert (looked == columns).mean() > 0.9, (looked == columns).mean()
 
 
 def _looked_at(folder: Path, points: np.ndarray) -> np.ndarray:

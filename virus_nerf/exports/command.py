@@ -187,9 +187,12 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
                      "origin": [float(lo[0]), float(lo[1]), 0.0], "steps": mapper.step, "run_finished": finished}
     done = []
     seen = None
-    if {"map", "esdf", "prob", "scans"} & set(kinds):
+    rasters = {"map", "esdf", "prob", "scans"} & set(kinds)
+    if rasters:
         check_raster("--resolution", lo, hi, resolution)  # refused before any work if too large
+    if rasters or "grid3d" in kinds:
         trainer.prepare()  # the frames the run trained on and its stereo points (cached), as `train` had them
+    if rasters:
         seen = mapper.observed(resolution)  # (nx, ny) [ix, iy]: the training frames' view wedges
         summary["observed"] = round(observed.observed_share(seen), 4)
     if "map" in kinds or "esdf" in kinds:
@@ -220,8 +223,11 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
             info = grid3d.Grid3DInfo(lo=tuple(map(float, spec.box.lo)), hi=tuple(map(float, spec.box.hi)),
                                      resolution=tuple(int(r) for r in spec.resolution),
                                      cell_size=tuple(float(c) for c in spec.cell_size))
-            grid3d.write_grid3d(prob3, grid.logodds.detach().cpu().numpy(), info, folder)
-            done.append(f"grid_probability.npy {prob3.shape}")
+            columns = mapper.grid_observed()  # (rx, ry): NaN in grid_probability.npy elsewhere
+            grid3d.write_grid3d(prob3, grid.logodds.detach().cpu().numpy(), columns, info, folder)
+            summary["grid3d"] = {"observed": round(float(columns.mean()), 4)}
+            done.append(f"grid_probability.npy {prob3.shape} (NaN in the {1 - columns.mean():.0%} of the columns "
+                        "no sensor looked at)")
     if {"scans", "images"} & set(kinds):
         pose_set = (pose_set or views.recording_test_poses(trainer.recording)).subsample(
             SCAN_POSES if max_poses is None else max_poses)
