@@ -246,8 +246,8 @@ def ablation(
     Each summary file is written atomically.
 
     Args:
-        out: Experiment folder (created, or continued if it holds an unfinished ablation; any other
-            existing folder is refused).
+        out: Experiment folder (created; an empty folder is taken; continued if it holds an unfinished
+            ablation; any other existing folder is refused).
         quick: Smoke profile: office only, 1 seed, 15 s per run.
         seeds: Training seeds per row and scene (default 3; quick 1).
         workers: Trainings in parallel (local: each gets cores / workers threads; with

@@ -61,8 +61,8 @@ def online(
     atomically.
 
     Args:
-        out: Experiment folder (created, or continued if it holds an unfinished online experiment;
-            refused if it holds summaries or anything else).
+        out: Experiment folder (created; an empty folder is taken; continued if it holds an unfinished
+            online experiment; refused if it holds summaries or anything else).
         quick: Smoke profile: 1 seed, a 10 s drive.
         seeds: Training seeds (default 3; quick 1).
         duration: Seconds of simulated drive (default 40; quick 10).

@@ -88,7 +88,8 @@ def ros2(
         publish_every: Wall-clock seconds between maps (each also a snapshot in OUT/snapshots;
             further apart when one takes longer: they take at most half the wall time).
         first_map: Wall-clock seconds from the first message to the first map.
-        drive: Expected drive in seconds: the learning rate decays over it, then stays low.
+        drive: Expected drive in seconds (the progress lines' and config.json's budget); the learning
+            rate decays over it only with a config's optim.lr_decay_driving below 1.
         max_lag: A colour image that waited this many wall-clock seconds since it arrived is dropped
             (counted).
         max_silence: A sensor topic (or the pose source) silent this long is said in the log.
