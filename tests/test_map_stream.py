@@ -475,6 +475,30 @@ def _bad(bags, tmp_path, name, edit, **kw) -> tuple[list, StreamError]:
     return frames, err.value
 
 
+def test_a_depth_topic_that_stops_ends_no_stream_that_does_not_use_depth(bags, tmp_path):
+    """map-bag without the rgbd sensor neither reads nor waits for the depth images: a depth
+    driver that stops half-way ends no stream and drops no frame (a review: the stream stopped
+    with "topic ... stopped"); with rgbd it still does."""
+    depth = default_topics().stacks[1].depth
+
+    def stops(topic, t, msg, ty):
+        return [] if topic == depth and t * 1e-9 > 1700000001.0 else [(topic, ty, t, msg)]
+
+    bag = _rewrite(bags["ros1"], tmp_path / "depth_stops.bag", stops)
+    cfg = default_topics()
+    frames = []
+    with BagReader(bag) as reader:
+        sync = LiveSync(cfg, make_pose_source("csv", cfg, bag, present=lambda t: True, poses_file=bags["csv"]), bag,
+                        max_silence_s=1.0)
+        for topic, msg in reader.iter_topics(sync.topics()):
+            frames += sync.push(topic, msg)
+        frames += sync.finish()
+    whole, _ = _stream(bags["ros1"], "csv", poses_file=bags["csv"])
+    assert depth not in sync.topics() and len(frames) == len(whole) and not sync.dropped_total()
+    frames, err = _bad(bags, tmp_path, "depth_stops_rgbd", stops, max_silence_s=1.0, with_depth=True)
+    assert f"topic {depth} stopped" in str(err) and frames
+
+
 def test_bad_input_while_streaming_names_the_topic_and_time(bags, tmp_path):
     """A clock that goes backwards, a topic that stops half-way, a pose that jumps: one line naming
     the topic (or pose source) and the bag time, after the frames made until then."""
