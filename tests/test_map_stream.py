@@ -482,10 +482,11 @@ def _bad(bags, tmp_path, name, edit, **kw) -> tuple[list, StreamError]:
     return frames, err.value
 
 
-def test_a_depth_topic_that_stops_ends_no_stream_that_does_not_use_depth(bags, tmp_path):
-    """map-bag without the rgbd sensor neither reads nor waits for the depth images: a depth
-    driver that stops half-way ends no stream and drops no frame (a review: the stream stopped
-    with "topic ... stopped"); with rgbd it still does."""
+def test_a_depth_topic_that_stops_ends_no_stream_that_does_not_use_depth(bags, tiny_cfg, tmp_path):
+    """map-bag without the rgbd sensor neither requires, reads nor waits for the depth images: a
+    depth driver that stops half-way ends no stream and drops no frame (a review: the stream
+    stopped with "topic ... stopped"), and a bag recorded without depth maps (it was refused for
+    the missing topic); with rgbd the stream still stops."""
     depth = default_topics().stacks[1].depth
 
     def stops(topic, t, msg, ty):
@@ -504,6 +505,12 @@ def test_a_depth_topic_that_stops_ends_no_stream_that_does_not_use_depth(bags, t
     assert depth not in sync.topics() and len(frames) == len(whole) and not sync.dropped_total()
     frames, err = _bad(bags, tmp_path, "depth_stops_rgbd", stops, max_silence_s=1.0, with_depth=True)
     assert f"topic {depth} stopped" in str(err) and frames
+    no_depth = _rewrite(bags["ros1"], tmp_path / "no_depth.bag",
+                        lambda topic, t, msg, ty: [] if "depth" in topic else [(topic, ty, t, msg)])
+    out = tmp_path / "out"
+    code, _, stderr = run_cli(["map-bag", no_depth, "--out", out, "--playback", "20", "--config", tiny_cfg,
+                               "--n-rays", "32", "--max-poses", "3", "--poses", "csv", "--poses-file", bags["csv"]])
+    assert code == 0 and (out / "map" / "map.pgm").is_file(), stderr
 
 
 def test_bad_input_while_streaming_names_the_topic_and_time(bags, tmp_path):

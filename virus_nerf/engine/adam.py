@@ -102,6 +102,13 @@ class Adam:
         state = {}
         for i, saved in state_dict["state"].items():
             p = self.params[int(i)]
-            state[int(i)] = {k: (v.to(dtype=torch.float32, device=p.device) if fused else v) if k == "step"
-                             else v.to(dtype=p.dtype, device=p.device) for k, v in saved.items()}
+            one = {}
+            for k, v in saved.items():
+                if k != "step":
+                    one[k] = v.to(dtype=p.dtype, device=p.device)
+                    continue
+                if not isinstance(v, torch.Tensor):  # a number: torch before 1.12 kept the counter so
+                    v = torch.tensor(float(v), dtype=torch.get_default_dtype())
+                one[k] = v.to(dtype=torch.float32, device=p.device) if fused else v
+            state[int(i)] = one
         self.param_groups, self.state = [group], state

@@ -308,6 +308,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
     for note in tcfg.notes:  # e.g. no [stacks]: the ETHZ robot's topics are read
         print(f"map-bag: note: {note}")
     cfg = cfg if cfg is not None else TrainConfig()
+    tcfg = tcfg.for_sensors(cfg.sensors)  # no depth topic required, read or waited for without rgbd
     with BagReader(bag) as reader, ExitStack() as owned:
         plan = plan_topics(reader, tcfg, "csv" if poses == "odometry" else poses)
         if poses == "odometry":

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time
 from contextlib import ExitStack
@@ -186,8 +185,7 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
     for note in tcfg.notes:  # e.g. no [stacks]: the ETHZ robot's topics are waited for
         log(f"ros2: note: {note}")
     cfg = cfg if cfg is not None else TrainConfig()
-    if "rgbd" not in cfg.sensors:  # live, a depth image the mapper does not use is neither read nor waited for
-        tcfg = dataclasses.replace(tcfg, stacks={s: dataclasses.replace(st, depth=None) for s, st in tcfg.stacks.items()})
+    tcfg = tcfg.for_sensors(cfg.sensors)  # a depth image the mapper does not use is neither read nor waited for
     participant = Participant(distro, domain, loopback=loopback)
     participant.announce_node(NODE_NAME, namespace)
     where = label(participant)

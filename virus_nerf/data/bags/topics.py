@@ -91,6 +91,13 @@ class TopicsConfig:
     source: Path | None = None  # the file read (None = built-in defaults)
     notes: tuple[str, ...] = ()  # what the import report should say about the file (e.g. defaults used)
 
+    def for_sensors(self, sensors) -> TopicsConfig:
+        """The topics a stream that trains `sensors` needs: without the depth images unless `rgbd`
+        is trained (map-bag's stream and the ROS 2 node neither require, read nor wait for them)."""
+        if "rgbd" in sensors:
+            return self
+        return dataclasses.replace(self, stacks={s: dataclasses.replace(st, depth=None) for s, st in self.stacks.items()})
+
 
 def ethz_stack(s: int) -> StackTopics:
     """Topics of ETHZ stack s with the simulator's camera-in-LiDAR mounting."""
