@@ -493,7 +493,7 @@ def test_a_depth_topic_that_stops_ends_no_stream_that_does_not_use_depth(bags, t
         return [] if topic == depth and t * 1e-9 > 1700000001.0 else [(topic, ty, t, msg)]
 
     bag = _rewrite(bags["ros1"], tmp_path / "depth_stops.bag", stops)
-    cfg = default_topics()
+    cfg = default_topics().for_sensors(("camera", "uss", "irs"))  # as map-bag and the node take them
     frames = []
     with BagReader(bag) as reader:
         sync = LiveSync(cfg, make_pose_source("csv", cfg, bag, present=lambda t: True, poses_file=bags["csv"]), bag,

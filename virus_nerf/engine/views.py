@@ -204,13 +204,8 @@ class MapViews:
         wedge or holding a camera (maps/observed.py at the grid's cell size), as `observed` is for
         the 2D maps; elsewhere the grid holds its warm-up and prior, not evidence."""
         spec = self.grid.spec
-        seen = self._viewed_columns(0, self.frames)
-        lo, size = np.asarray(spec.box.lo[:2], dtype=np.float64), np.asarray(spec.box.size[:2], dtype=np.float64)
-        res = np.asarray(spec.resolution[:2])
-        ij = np.floor((self.store.cam_to_world[:self.frames, :2, 3] - lo) / size * res).astype(np.int64)  # cell_index
-        inside = ((ij >= 0) & (ij < res)).all(axis=1)
-        seen[ij[inside, 0], ij[inside, 1]] = True
-        return seen
+        return with_camera_pixels(self._viewed_columns(0, self.frames), self.store.cam_to_world[:self.frames, :2, 3],
+                                  np.asarray(spec.box.lo[:2]), np.asarray(spec.cell_size[:2], dtype=np.float64))
 
     @serialised
     def probability_map(self, resolution: float = 0.05, band: float = 0.1):

@@ -88,9 +88,9 @@ def frames_observed(cam_to_world: np.ndarray, stack_ids: np.ndarray, intrinsics,
     return observed_mask(cam_to_world, half, lo, shape, resolution, reach)
 
 
-def with_camera_pixels(mask_xy: np.ndarray, positions: np.ndarray, lo: np.ndarray, resolution: float) -> np.ndarray:
+def with_camera_pixels(mask_xy: np.ndarray, positions: np.ndarray, lo: np.ndarray, resolution) -> np.ndarray:
     """`mask_xy` (nx, ny) [ix, iy] with the pixels that hold a camera position ((N, 2+) m, world)
-    observed too: the robot's body stood there, while a view wedge starts at the lens, so the
+    observed too (`resolution`: one pixel size, or (2,) sizes along x and y: the grid's cells): the robot's body stood there, while a view wedge starts at the lens, so the
     centre of the camera's own pixel may lie just behind it (at a drive's start, before the robot
     moves, no wedge covers it and the planner's own start pixel would be unknown). The input is
     not changed."""

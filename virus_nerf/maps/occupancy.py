@@ -75,7 +75,7 @@ def from_image(image: np.ndarray) -> np.ndarray:
 
 def world_pixels(points: np.ndarray, lo: np.ndarray, resolution: float, shape: tuple[int, int]):
     """(..., 2) world points -> ((..., 2) int [ix, iy] of the raster at `lo`, clipped into `shape`,
-    (...) bool whether each lies inside it)."""
+    (...) bool whether each lies inside it). `resolution`: one pixel size, or (2,) along x and y."""
     ij = np.floor((np.asarray(points, dtype=np.float64) - lo) / resolution).astype(np.int64)
     inside = (ij[..., 0] >= 0) & (ij[..., 0] < shape[0]) & (ij[..., 1] >= 0) & (ij[..., 1] < shape[1])
     return np.clip(ij, 0, np.array(shape) - 1), inside

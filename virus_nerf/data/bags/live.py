@@ -137,12 +137,8 @@ class LiveSync:
         self.roles: dict[str, list[tuple[int, str]]] = {}
         for s, st in cfg.stacks.items():
             for role, topic in st.roles().items():
-                if role != "depth" or with_depth:  # a depth image the mapper does not use: not read, not waited for
-                    self.roles.setdefault(topic, []).append((s, role))
-        # stack -> the partner sensors its colour images wait for (topics named, depth only if used)
-        self.partners = {s: [r for r in PARTNERS if r in st.roles() and (r != "depth" or with_depth)]
-                         for s, st in cfg.stacks.items()}
-        self.buffers = {(s, r): Recent() for s, rs in self.partners.items() for r in rs}
+                self.roles.setdefault(topic, []).append((s, role))
+        self.buffers = {(s, r): Recent() for s, st in cfg.stacks.items() for r in PARTNERS if r in st.roles()}
         self.tof_units = m.TofUnitCheck()  # a ToF topic in metres, over its messages
         self.waiting: dict[int, deque[Message]] = {s: deque() for s in cfg.stacks}
         self.watched = {t for t, keys in self.roles.items() if any(r != "camera_info" for _, r in keys)}
@@ -415,25 +411,27 @@ class LiveSync:
         return out
 
     def _decided(self, s: int, t: float) -> bool:
+        roles = self.cfg.stacks[s].roles()
         tol = self.cfg.sync.pose_tolerance_s
         if s not in self.intrinsics and self.clock <= t + max([tol, *self.tolerance.values()]):
             return False  # its camera_info follows the image: wait as long as for any partner
-        return (all(self.buffers[(s, r)].decided(t, self.tolerance[r], self.clock) for r in self.partners[s])
+        return (all(self.buffers[(s, r)].decided(t, self.tolerance[r], self.clock) for r in PARTNERS if r in roles)
                 and self.poses.decided(t, tol, self.clock))
 
     def _make(self, s: int, msg: Message) -> StreamFrame | None:
         """The frame of colour image `msg`, or None (counted) when a partner or its pose is missing."""
         t, roles = msg.time_s, self.cfg.stacks[s].roles()
         partner = {}
-        for r in self.partners[s]:
-            near = self.buffers[(s, r)].nearest(t, self.tolerance[r])
-            if near is not None:
-                partner[r] = near
-            elif roles[r] in self.silent:  # live: the sensor stopped; the frame goes on without it (NaN)
-                self.without[s][r] += 1
-            else:
-                self.dropped[s][f"no {r} within {self.tolerance[r]:g} s"] += 1
-                return None
+        for r in PARTNERS:
+            if r in roles:
+                near = self.buffers[(s, r)].nearest(t, self.tolerance[r])
+                if near is not None:
+                    partner[r] = near
+                elif roles[r] in self.silent:  # live: the sensor stopped; the frame goes on without it (NaN)
+                    self.without[s][r] += 1
+                else:
+                    self.dropped[s][f"no {r} within {self.tolerance[r]:g} s"] += 1
+                    return None
         robot = self.poses.at(t, self.cfg.sync.pose_tolerance_s)
         if robot is None:
             self.dropped[s]["no pose"] += 1
