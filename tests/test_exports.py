@@ -106,9 +106,13 @@ def test_probability_map_of_an_analytic_grid(tmp_path):
     # at 0.4 m the upper layer's centre (0.75 m) lies 0.35 m off: outside a 0.2 m band, on a 0.35 m one
     assert np.all(maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 0.4, 0.2, lo, hi, 0.25) == 0.1)
     assert np.count_nonzero(maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 0.4, 0.35, lo, hi, 0.25) == 0.9) == 8
-    # a raster larger than the grid: outside pixels are 0.5 (no knowledge)
+    # a raster larger than the grid: no cell knows the outside pixels (NaN), nor a height above the box
     big = maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 0.75, 0.1, np.array([-1.0, 0]), hi, 0.25)
-    assert big.shape == (20, 8) and np.all(big[:4] == 0.5) and np.all(big[8:12, 2:4] == 0.9)
+    assert big.shape == (20, 8) and np.isnan(big[:4]).all() and np.isfinite(big[4:]).all()
+    assert np.all(big[8:12, 2:4] == 0.9)
+    assert np.isnan(maps.probability_slice(prob, (0, 0, 0), (4, 2, 1), 1.5, 0.1, lo, hi, 0.25)).all()
+    # ... and the raw map serves them as unknown even where a sensor looked (a raster rounded up past the box)
+    assert np.array_equal(np.unique(maps.raw_map(big, np.array([-1.0, 0]), 0.25).image[:, :4]), [255])
 
     # a sensor looked everywhere but at the column x in [3.75, 4) m
     known = np.ones(p.shape, dtype=bool)

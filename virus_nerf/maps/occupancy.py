@@ -177,7 +177,8 @@ def probability_slice(
     `band` metres of `height` (at least the layer containing `height`) is taken, and a column's
     probability is the largest in the band (the conservative projection for a planner).
     Pixel centres look up the grid cell containing them (the cell-index formula of
-    `grid.base.cell_index`); pixels outside the grid's box get 0.5 (no knowledge).
+    `grid.base.cell_index`); a pixel whose centre lies outside the grid's box is NaN: no cell holds
+    knowledge of it (a raster's size is rounded up, so its last row and column may stick out).
 
     probability: (rx, ry, rz) array indexed [ix, iy, iz]; box_lo/box_hi: the grid's box (m).
     """
@@ -192,14 +193,14 @@ def probability_slice(
         layers[iz] = True
     nx, ny = raster_shape(lo, hi, resolution)
     if not layers.any():  # the height is outside the box: nothing known there
-        return np.full((nx, ny), 0.5)
+        return np.full((nx, ny), np.nan)
     column = probability[:, :, layers].max(axis=2)  # (rx, ry)
     x = lo[0] + (np.arange(nx) + 0.5) * resolution
     y = lo[1] + (np.arange(ny) + 0.5) * resolution
     ix = np.floor((x - blo[0]) / size[0] * res[0]).astype(int)
     iy = np.floor((y - blo[1]) / size[1] * res[1]).astype(int)
     ok_x, ok_y = (ix >= 0) & (ix < res[0]), (iy >= 0) & (iy < res[1])
-    out = np.full((nx, ny), 0.5)
+    out = np.full((nx, ny), np.nan)
     sub = column[np.ix_(ix[ok_x], iy[ok_y])]
     out[np.ix_(ok_x, ok_y)] = sub
     return out
@@ -207,10 +208,13 @@ def probability_slice(
 
 def raw_map(p_xy: np.ndarray, lo: np.ndarray, resolution: float, known_xy: np.ndarray | None = None) -> OccupancyMap2D:
     """Probabilities [ix, iy] in [0, 1] -> a `mode: raw` map: value = round(100 p), RAW_UNKNOWN
-    outside `known_xy` ([ix, iy] bool; None: everywhere known)."""
-    value = np.rint(100.0 * np.clip(p_xy, 0.0, 1.0)).astype(np.uint8)
+    where p is NaN (no knowledge) and outside `known_xy` ([ix, iy] bool; None: wherever p is a number)."""
+    p_xy = np.asarray(p_xy, dtype=np.float64)
+    known = np.isfinite(p_xy)
     if known_xy is not None:
-        value[~np.asarray(known_xy, dtype=bool)] = RAW_UNKNOWN
+        known &= np.asarray(known_xy, dtype=bool)
+    value = np.full(p_xy.shape, RAW_UNKNOWN, dtype=np.uint8)
+    value[known] = np.rint(100.0 * np.clip(p_xy[known], 0.0, 1.0)).astype(np.uint8)
     return OccupancyMap2D(image=to_image(value), resolution=resolution, origin=(float(lo[0]), float(lo[1])),
                           mode="raw")
 
