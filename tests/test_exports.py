@@ -192,7 +192,7 @@ def test_esdf_of_one_occupied_pixel_is_the_distance_to_it(tmp_path):
     d[0, :] = np.nan  # a row no sensor looked at: blue in the preview, not the black of "deep inside"
     esdf.write_esdf(esdf.DistanceField2D(d, 0.1, (-1.0, 2.0)), tmp_path / "unseen")
     png = np.asarray(Image.open(tmp_path / "unseen" / "esdf.png"))
-    assert (png[0] == esdf.UNOBSERVED_RGB).all() and (png[1:, :, 0] == png[1:, :, 2]).all()
+    assert (png[0] == esdf.UNKNOWN_RGB).all() and (png[1:, :, 0] == png[1:, :, 2]).all()
     assert np.all(np.isinf(esdf.signed_distance(np.zeros((3, 3), bool), 0.1)))  # no obstacle: infinitely far
 
 

@@ -160,17 +160,24 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     assert not (tmp_path / "eval_plots").exists() and "eval_plots" not in out_eval  # --no-plots: the JSON alone
     assert "map safety (map ground truth; shares of the obstacles within that distance of the path" in out_eval
     assert "map safety (map ground truth; shares of the obstacles within that distance of the path" in out
-    # export: the map, ESDF and probability map are unknown / NaN / 255 outside the observed wedges
+    # export: the map and probability map are unknown / 255 outside the observed wedges; the ESDF is NaN
+    # wherever the map is unknown (outside the wedges, and the shadows inside them)
     code, _, err = run_cli(["export", "--run", run, "--out", tmp_path / "export", "--what", "map,esdf,prob"])
     assert code == 0, err
     summary = json.loads((tmp_path / "export" / "export.json").read_text())
     from PIL import Image
 
+    from virus_nerf.trainer.run import load_trained
+
     image = np.asarray(Image.open(tmp_path / "export" / "map.pgm"))
     esdf = np.load(tmp_path / "export" / "esdf.npy")
     prob = np.asarray(Image.open(tmp_path / "export" / "prob.pgm"))
-    unseen = np.isnan(esdf)
+    trainer, _, _ = load_trained(run, "--run")
+    trainer.prepare()
+    unseen = ~to_image(trainer.mapper.observed(0.05))  # (H, W) as the PGMs: no training frame looked there
     assert summary["observed"] == pytest.approx(1.0 - unseen.mean(), abs=1e-4)
+    assert np.array_equal(np.isnan(esdf), image == UNKNOWN) and (image[~unseen] == UNKNOWN).any()
+    assert (esdf[image == OCCUPIED] < 0).all() and (esdf[image == FREE] > 0).all()
     # map_server's raw mode: 255 unknown (-1), elsewhere round(100 p); the raster is rounded up past the
     # grid's box (at its high x and y: the last column, the top row), where no cell knows the pixels
     assert (image[unseen] == UNKNOWN).all() and (prob[unseen] == 255).all()
@@ -179,10 +186,6 @@ def test_a_scored_run_reports_its_map_safety_and_the_snapshot_its_observed_share
     assert (prob[~unseen & ~past_box] <= 100).all()
     # free wherever a camera stood (usage.md), the drive's first frames too: the view wedges start at
     # the lens, and the robot standing still at the start would leave its own pixel unknown
-    from virus_nerf.trainer.run import load_trained
-
-    trainer, _, _ = load_trained(run, "--run")
-    trainer.prepare()
     cams = trainer.mapper.store.cam_to_world[:, :2, 3]  # (N, 2) the frames the map was made from
     origin = np.array([float(v) for v in next(ln for ln in (tmp_path / "export" / "map.yaml").read_text().splitlines()
                                                if ln.startswith("origin:")).split("[")[1].split(",")[:2]])

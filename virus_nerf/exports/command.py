@@ -207,7 +207,7 @@ def _export_all(trainer, cfg, folder: Path, kinds, pose_set, resolution, n_rays,
             done.append(f"map.pgm/.yaml ({m.image.shape[1]}x{m.image.shape[0]} px)")
         if "esdf" in kinds:
             d = esdf.signed_distance(m.image == maps.OCCUPIED, resolution)
-            d[~maps.to_image(seen)] = np.nan  # no sensor looked: no distance to claim
+            d[m.image == maps.UNKNOWN] = np.nan  # the map claims nothing there (no sensor looked, a shadow)
             esdf.write_esdf(esdf.DistanceField2D(d, resolution, m.origin), folder)
             done.append("esdf.npy/.yaml/.png")
     if "prob" in kinds or "grid3d" in kinds:

@@ -3,7 +3,7 @@
 The array is the occupancy *probability* p = sigmoid(log-odds) as float32, shape (rx, ry, rz),
 axis order (x, y, z): a user needs no knowledge of the clamp or the log-odds to threshold it
 (the ray marcher samples where p > 0.5). It is NaN in the columns no sensor looked at (no
-camera's view wedge, maps/observed.py, and no camera standing there), as the ESDF is: there the
+camera's view wedge, maps/observed.py, and no camera standing there), as prob.pgm is unknown: there the
 grid holds its warm-up and prior (p 0.49 after the warm-up, below the threshold), which a
 planner reading the array must not take for free space. The log-odds are written beside it
 (`grid_logodds.npy`, the grid's state everywhere) for those who fuse further evidence. The

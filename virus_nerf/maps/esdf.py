@@ -2,9 +2,10 @@
 
 Signed, in metres, between pixel centres: outside obstacles the distance to the nearest
 occupied pixel (> 0), inside obstacles minus the distance to the nearest pixel that is not
-occupied (<= -resolution). Unknown pixels count as not occupied: the field says how far the
-known obstacles are, not where it is safe to drive (the map's unknown pixels say that); pixels
-no sensor looked at (maps/observed.py) are NaN: no distance is claimed there. Written as
+occupied (<= -resolution). The distances count unknown pixels as not occupied, and the pixels the
+map leaves unknown (no sensor looked there, or the map claims nothing: a shadow behind a low
+obstacle, a place no ray reached) are NaN: a planner reading a clearance there would read free
+space the map does not claim, as an ESDF over observed space only gives none. Written as
 float32 `.npy` in image layout (row 0 = largest y, the map_server raster of `maps`), a map_server
 style YAML naming it, and a PNG preview.
 """
@@ -21,7 +22,7 @@ from virus_nerf.maps.occupancy import yaml_float
 
 @dataclass
 class DistanceField2D:
-    distance: np.ndarray  # (H, W) float32 metres, row 0 = largest y; +inf where the map has no obstacle; NaN unobserved
+    distance: np.ndarray  # (H, W) float32 metres, row 0 = largest y; +inf where the map has no obstacle; NaN where the map is unknown
     resolution: float  # metres per pixel
     origin: tuple[float, float]  # world (x, y) of the lower-left pixel corner
 
@@ -42,13 +43,13 @@ def signed_distance(occupied: np.ndarray, resolution: float) -> np.ndarray:
     return ((outside - inside) * resolution).astype(np.float32)
 
 
-UNOBSERVED_RGB = (70, 110, 200)  # esdf.png: pixels no sensor looked at (NaN distance)
+UNKNOWN_RGB = (70, 110, 200)  # esdf.png: the map's unknown pixels (NaN distance)
 
 
 def write_esdf(field: DistanceField2D, folder: Path, name: str = "esdf", preview_max: float = 2.0) -> None:
     """esdf.npy + esdf.yaml (origin, resolution, units) + esdf.png (RGB; distance clipped to
     [-preview_max, preview_max] m: black = deep inside obstacles, mid grey = surface, white far,
-    blue (UNOBSERVED_RGB) = unobserved)."""
+    blue (UNKNOWN_RGB) = unknown)."""
     from PIL import Image
 
     from virus_nerf.utils.io import atomic_path, write_text_atomic
@@ -65,6 +66,6 @@ def write_esdf(field: DistanceField2D, folder: Path, name: str = "esdf", preview
     d = np.clip(np.nan_to_num(field.distance, nan=0.0, posinf=preview_max), -preview_max, preview_max)
     grey = np.rint((d + preview_max) / (2 * preview_max) * 255).astype(np.uint8)
     rgb = np.repeat(grey[..., None], 3, axis=2)  # (H, W, 3)
-    rgb[np.isnan(field.distance)] = UNOBSERVED_RGB  # not black: that is deep inside an obstacle
+    rgb[np.isnan(field.distance)] = UNKNOWN_RGB  # not black: that is deep inside an obstacle
     with atomic_path(folder / f"{name}.png") as tmp:
         Image.fromarray(rgb).save(tmp, format="PNG")

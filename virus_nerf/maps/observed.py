@@ -13,8 +13,8 @@ as observed only if some frame's sensors looked at it:
   gives metric evidence, only the NeRF's guess.
 
 The pixels that hold a camera position count as observed as well (`with_camera_pixels`, the
-maps' mask, not the grid's warm-up): the robot stood there. Every map pixel outside the mask is written unknown (trinary map), 0.5 (probability map: never
-free for a planner), NaN (ESDF). The share of the map's pixels inside the mask is reported as
+maps' mask, not the grid's warm-up): the robot stood there. Every map pixel outside the mask is written unknown (trinary map; 255, served as -1, in the
+probability map), NaN (ESDF, which is NaN wherever the trinary map is unknown). The share of the map's pixels inside the mask is reported as
 the map's `observed` figure in snapshot.json and export.json.
 
 The wedge test is exact per pixel centre; frames are first thinned to distinct (position
