@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from virus_nerf.errors import OutputExistsError
+from virus_nerf.errors import OutputExistsError, UsageError
 from virus_nerf.evaluation.config import EvaluationConfig
 from virus_nerf.evaluation.evaluate import build_ground_truth, evaluate
 from virus_nerf.evaluation.gt import cast_rays, rasterise
@@ -173,5 +173,17 @@ def test_sensors_command_writes_schema_and_refuses_existing(sample_dir, tmp_path
     # a plot folder without its metrics.json is a run killed before its end (issue 30): done again
     out2 = tmp_path / "other.json"
     (tmp_path / "other_plots").mkdir()
+    (tmp_path / "other_plots" / "scan_frame0003.png").write_bytes(b"half")
     sensors(sample_dir, "office", out2)
     assert out2.is_file() and sorted(p.name for p in (tmp_path / "other_plots").iterdir()) == plots
+    # ... but a folder by that name that holds a user's own files is refused, and kept as it was
+    mine = tmp_path / "mine_plots"
+    (mine / "sub").mkdir(parents=True)
+    (mine / "notes.txt").write_text("notes")
+    (mine / "metrics_bars.png").write_bytes(b"mine")
+    with pytest.raises(UsageError, match=r"mine_plots: the plots of --out .*mine.json go there, but it holds what "
+                                         r"this command did not write \(notes.txt and 1 more\); expected no such "
+                                         r"folder: choose another --out \(nothing was touched\)$"):
+        sensors(sample_dir, "office", tmp_path / "mine.json")
+    assert sorted(p.name for p in mine.iterdir()) == ["metrics_bars.png", "notes.txt", "sub"]
+    assert (mine / "metrics_bars.png").read_bytes() == b"mine" and not (tmp_path / "mine.json").exists()

@@ -789,3 +789,32 @@ def test_a_stack_whose_poses_are_in_another_frame_is_warned_of(sample_copy):
     assert recording_warnings(load_recording(sample_copy, "office")) == [
         "stack 3's LiDAR poses lie a median 0.50 m from stack 1's at the same times (one LiDAR: they should agree): "
         "are the stacks' files on different clocks or in different frames?"]
+
+
+def test_a_stack_without_lidar_poses_leaves_the_lidar_placed_by_the_other(sample_copy):
+    """Stack 1's poses_lidar file missing: the LiDAR's track is stack 3's poses alone (before, its
+    NaN rows were slerped into the track and the scores crashed in an SVD); both missing while the
+    scans are there: refused in one line naming the poses folder."""
+    full = load_recording(sample_copy, "office")
+    (sample_copy / "office" / "poses" / "poses_lidar_balm_sync1.csv").unlink()
+    rec = load_recording(sample_copy, "office")
+    t3 = rec.stacks[3].times
+    for t in (t3[0], t3[len(t3) // 2], 0.5 * (t3[1] + t3[2])):  # a stack-3 sample, and between two
+        pose = rec.lidar_pose_at(float(t))
+        assert np.isfinite(pose).all() and np.allclose(pose[:3, 3], full.lidar_pose_at(float(t))[:3, 3], atol=0.01)
+    np.testing.assert_array_equal(rec.lidar_pose_at(float(t3[3])), rec.stacks[3].lidar_to_world[3])
+    (sample_copy / "office" / "poses" / "poses_lidar_balm_sync3.csv").unlink()
+    with pytest.raises(DataFormatError, match=r"office/poses: no LiDAR poses \(poses_lidar_\*sync<id>.csv\) for the "
+                                              r"\d+ LiDAR scans in lidars/filtered"):
+        load_recording(sample_copy, "office")
+
+
+def test_rgbd_on_a_recording_without_depth_images_is_refused_before_the_run(sample_copy, tmp_path):
+    from helpers import run_cli
+
+    shutil.rmtree(sample_copy / "office" / "measurements" / "CAM3_aligned_depth_to_color_image_raw")
+    code, _, err = run_cli(["train", "--data", sample_copy, "--room", "office", "--out", tmp_path / "run",
+                            "--max-steps", 2, "--gt", "none", "--quiet", "--sensors", "camera,uss,irs,rgbd"])
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "CAM3_aligned_depth_to_color_image_raw: missing: this recording has no depth images" in err
+    assert not (tmp_path / "run").exists()

@@ -791,12 +791,12 @@ def test_evaluate_and_sensors_killed_before_their_metrics_finish_on_the_next_run
     ev.mkdir()
     dead = _dead_pid()
     (ev / "metrics_plots").mkdir()
-    (ev / "metrics_plots" / "half.png").write_bytes(b"from the killed attempt")
+    (ev / "metrics_plots" / "scan_frame0001.png").write_bytes(b"from the killed attempt")
     (ev / f".metrics_plots.partial-{dead}-abc").mkdir()
     code, _, err = run_cli(["evaluate", "--run", run_copy, "--n-rays", "32"])
     assert code == 0, err
     assert (ev / "metrics.json").is_file() and (ev / "metrics_plots" / "metrics_bars.png").is_file()
-    assert not (ev / "metrics_plots" / "half.png").exists()
+    assert all(p.read_bytes()[:4] == b"\x89PNG" for p in (ev / "metrics_plots").iterdir())  # all drawn again
     assert sorted(p.name for p in ev.iterdir()) == ["metrics.json", "metrics_plots"]
     code, _, err = run_cli(["evaluate", "--run", run_copy])
     one_line_error(code, err, "evaluation/metrics.json: output file already exists")

@@ -69,12 +69,16 @@ class SensorStack:
         """(H, W, 3) uint8 RGB."""
         return read_rgb(self.image_paths[i], self.intrinsics)
 
-    def depth(self, i: int) -> np.ndarray:
-        """(H, W) float32 z-depth in metres, NaN where invalid."""
+    def require_depth(self) -> None:
+        """Refuse in one line (DataFormatError naming the folder) when the stack has no depth images."""
         if not self.depth_paths:
-            raise DataFormatError(self.image_paths[i].parent.with_name(f"CAM{self.stack_id}_aligned_depth_to_color_image_raw"),
+            raise DataFormatError(self.image_paths[0].parent.with_name(f"CAM{self.stack_id}_aligned_depth_to_color_image_raw"),
                                   "missing: this recording has no depth images; the rgbd sensor needs them "
                                   "(train without rgbd in --sensors)")
+
+    def depth(self, i: int) -> np.ndarray:
+        """(H, W) float32 z-depth in metres, NaN where invalid."""
+        self.require_depth()
         return read_depth(self.depth_paths[i], self.intrinsics)
 
     def frame(self, i: int, with_depth: bool = False) -> SyncFrame:
@@ -119,6 +123,8 @@ class Recording:
     def _lidar_pose_track(self) -> tuple[np.ndarray, np.ndarray]:
         times = np.concatenate([s.times for s in self.stacks.values()])
         poses = np.concatenate([s.lidar_to_world for s in self.stacks.values()])
+        known = np.isfinite(poses).all(axis=(1, 2))  # a stack without poses_lidar_* holds NaN: left out
+        times, poses = times[known], poses[known]
         order = np.argsort(times, kind="stable")
         return times[order], poses[order]
 
@@ -397,6 +403,10 @@ def load_recording(
         read[s] = _read_stack(room_dir, s, intrinsics[s], poses, check_images)
     splits = _splits(room_dir, {s: len(st) for s, st in read.items()}, write_split)
     lidar_entries = _lidar_scans(room_dir)
+    if lidar_entries and not any(np.isfinite(st.lidar_to_world).all() for st in read.values()):
+        raise DataFormatError(room_dir / "poses", f"no LiDAR poses (poses_lidar_*sync<id>.csv) for the {len(lidar_entries)} "
+                              "LiDAR scans in lidars/filtered; expected them to place the scans (a robot without a LiDAR: "
+                              "a recording without lidars/)")
     return Recording(
         root=root,
         room=room,

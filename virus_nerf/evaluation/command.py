@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from virus_nerf.errors import OutputExistsError
-from virus_nerf.evaluation.plots import plots_dir_for, write_plots
+from virus_nerf.evaluation.plots import plots_dir_for, stopped_attempts_plots, write_plots
 from virus_nerf.utils.io import remove_stale_partials
 
 
@@ -60,7 +60,7 @@ def sensors(
     # plots without metrics.json: a run killed before its end, done again whole (the plots are
     # replaced once the new ones are complete); `.<plots>.partial-<pid>-*` of dead attempts go
     remove_stale_partials(plot_dir)
-    redo = plot_dir.exists()
+    redo = stopped_attempts_plots(plot_dir, out)  # a folder holding a user's files: refused
     recording = load_recording(data, room, poses="odometry" if odometry_poses else "optimised")
     require_test_points(recording)  # nothing to score: refused, not an empty table
     check_ground_truth_inputs(recording, protocols)

@@ -12,6 +12,7 @@ Every title names the ground-truth protocol (docs/method.md 6.7).
 from __future__ import annotations
 
 import functools
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -251,6 +252,28 @@ def plots_dir_for(out: Path) -> Path:
     """Plot folder beside a metrics file: results/metrics.json -> results/metrics_plots/."""
     out = Path(out)
     return out.parent / f"{out.stem}_plots"
+
+
+PLOT_NAME = re.compile(r"scan_frame\d{4,}\.png|metrics_bars(?:_gt-[a-z]+)?\.png")  # write_plot_files' names
+
+
+def stopped_attempts_plots(folder: Path, out: Path) -> bool:
+    """True when the plot folder `folder` of the metrics file `out` is there from an attempt
+    stopped before its metrics file (it is then drawn again whole and replaced); False when it is
+    absent. A folder holding anything else (a user's own files) is refused in one line, never
+    replaced."""
+    folder = Path(folder)
+    if not folder.exists():
+        return False
+    others = sorted(p.name for p in folder.iterdir() if not (PLOT_NAME.fullmatch(p.name) and p.is_file())) \
+        if folder.is_dir() else [folder.name]
+    if others:
+        from virus_nerf.errors import UsageError
+
+        raise UsageError(f"{folder}: the plots of --out {out} go there, but it holds what this command did not "
+                         f"write ({others[0]}{f' and {len(others) - 1} more' if len(others) > 1 else ''}); "
+                         "expected no such folder: choose another --out (nothing was touched)")
+    return True
 
 
 def write_plots(result, folder: Path, max_maps: int | None = None, replace: bool = False) -> list[Path]:

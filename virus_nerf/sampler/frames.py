@@ -340,6 +340,8 @@ def build_frame_store(
     n = len(entries)
     files = [recording.stacks[s].image_paths[i] for s, i in entries]
     if with_depth:
+        for s in sorted({s for s, _ in entries}):
+            recording.stacks[s].require_depth()  # a stack without depth images: refused in one line
         files += [recording.stacks[s].depth_paths[i] for s, i in entries]
     key = frame_cache.frames_key(files, (width, height), with_depth) if use_cache and n else None
     cached = frame_cache.load_frames(key) if key is not None else None

@@ -230,7 +230,7 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     """
     from virus_nerf.errors import OutputExistsError
     from virus_nerf.evaluation.config import parse_gt_flag
-    from virus_nerf.evaluation.plots import plots_dir_for
+    from virus_nerf.evaluation.plots import plots_dir_for, stopped_attempts_plots
     from virus_nerf.utils.io import remove_stale_partials, require_makeable
 
     if n_rays is not None:
@@ -243,7 +243,7 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     # plots without metrics.json: an evaluation killed before its end, done again whole (plots
     # replaced once the new ones are complete); `.<plots>.partial-<pid>-*` of dead attempts go
     remove_stale_partials(plots_dir_for(out))
-    redo = plots_dir_for(out).exists()
+    redo = stopped_attempts_plots(plots_dir_for(out), out)  # a folder holding a user's files: refused
     open_run(run, "--run")
     # a run a `train` still works in is said to be so (with or without a checkpoint yet), before
     # its files are read; nothing is written into a run that cannot be evaluated
