@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from virus_nerf.data.csvtable import read_numeric_csv
-from virus_nerf.data.ethz import load_recording, read_poses, read_tof
+from virus_nerf.data.ethz import load_recording, read_intrinsics, read_poses, read_tof, read_uss
 from virus_nerf.data.pcd import read_pcd_xyz
 from virus_nerf.data.split import make_split
 from virus_nerf.errors import DataFormatError
@@ -818,3 +818,67 @@ def test_rgbd_on_a_recording_without_depth_images_is_refused_before_the_run(samp
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert "CAM3_aligned_depth_to_color_image_raw: missing: this recording has no depth images" in err
     assert not (tmp_path / "run").exists()
+
+
+def test_a_uss_table_in_metres_or_nanoseconds_is_refused(tmp_path):
+    """USS<id>.csv holds the echo time in microseconds (5000 a metre): 0.648 (metres) read as an echo
+    of 0.13 mm, 3.752e6 (nanoseconds) as no echo at all, both silently before."""
+    def table(values):
+        return write(tmp_path, "USS1.csv", "time,meas\n" + "".join(f"{k},{v}\n" for k, v in enumerate(values)))
+
+    t, r = read_uss(table([3752, 50000, 0, 9802]))  # microseconds, a no-echo code and a 0: read
+    np.testing.assert_allclose(r, [0.7504, np.nan, np.nan, 1.9604])
+    with pytest.raises(DataFormatError, match=r"USS1.csv: every echo time is below 100 us, the sensor's nearest range "
+                                              r"of 2 cm \(the largest 1.96\); expected microseconds \(the file holds "
+                                              r"metres\?\)$"):
+        read_uss(table([0.7504, 1.96, 0, 50000]))
+    with pytest.raises(DataFormatError, match=r"USS1.csv, row 3, field 'meas': 3.752e\+06 is beyond any echo time "
+                                              r"\(> 500000 us; the sensor's no-echo code is 50000\); expected "
+                                              r"microseconds \(the file holds nanoseconds\?\)$"):
+        read_uss(table([50000, 3752000, 9802000]))
+
+
+def test_a_camera_calibrated_twice_is_refused_with_its_row(tmp_path):
+    p = write(tmp_path, "camera_intrinsics.CSV", "cam_id,fx,fy,cx,cy\nCAM1,380,380,320,240\nCAM3,381,381,321,241\n"
+                                                 "CAM1,300,300,320,240\n")
+    with pytest.raises(DataFormatError, match=r"row 4, field 'cam_id': cam_id CAM1 again \(an earlier row has it\); "
+                                              r"expected one row per camera$"):
+        read_intrinsics(p)
+
+
+def test_a_16_bit_image_is_refused_not_read_as_white(tmp_path):
+    """PIL's convert("RGB") clips a 16-bit grey PNG's values to 255: every pixel white, silently."""
+    from PIL import Image
+
+    from virus_nerf.data.images import read_rgb
+    from virus_nerf.sensors.camera import Intrinsics
+
+    grey = (np.arange(48, dtype=np.uint16).reshape(6, 8) * 1000)
+    Image.fromarray(grey).save(tmp_path / "img0.png")  # mode I;16
+    with pytest.raises(DataFormatError, match=r"img0.png: image mode I;16 \(16-bit grey\); expected 8-bit colour or "
+                                              r"grey \(RGB, RGBA, P, L\)$"):
+        read_rgb(tmp_path / "img0.png", Intrinsics(8, 8, 3.5, 2.5, width=8, height=6))
+    Image.fromarray((grey // 256).astype(np.uint8)).save(tmp_path / "img1.png")  # 8-bit grey: read, as RGB
+    rgb = read_rgb(tmp_path / "img1.png", Intrinsics(8, 8, 3.5, 2.5, width=8, height=6))
+    assert rgb.shape == (6, 8, 3) and (rgb[..., 0] == grey // 256).all() and (rgb[..., 2] == grey // 256).all()
+
+
+@pytest.mark.parametrize("where", ["split/split.csv", "poses/poses_lidar_balm_sync3.csv",
+                                   "measurements/CAM3_aligned_depth_to_color_image_raw", "lidars/filtered"])
+def test_an_optional_file_behind_a_broken_link_is_refused_not_taken_for_absent(sample_copy, where):
+    """A split file behind a link to an unmounted share gave the default split, silently (other
+    test frames); a LiDAR pose file or depth folder so, no LiDAR poses or no depth."""
+    path = sample_copy / "office" / where
+    if path.is_dir():
+        shutil.rmtree(path)
+    else:
+        path.unlink()
+    path.symlink_to("/mnt/unmounted/share/x")
+    with pytest.raises(DataFormatError, match=rf"office/{where}: a link to /mnt/unmounted/share/x, which does not "
+                                              r"exist; expected the (file|folder) itself \(or nothing here\)$"):
+        load_recording(sample_copy, "office")
+    path.unlink()
+    path.mkdir() if where.endswith(".csv") else path.write_text("x")  # the other kind where one belongs
+    want = "is a folder; expected a file" if where.endswith(".csv") else "is a file; expected a folder"
+    with pytest.raises(DataFormatError, match=rf"office/{where}: {want} \(or nothing here\)$"):
+        load_recording(sample_copy, "office")

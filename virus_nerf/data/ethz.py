@@ -9,6 +9,7 @@ Nothing under DATA/ is ever written unless `write_split=True` is asked for.
 from __future__ import annotations
 
 import dataclasses
+import os
 import re
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -196,6 +197,9 @@ def read_intrinsics(path: Path, default_size: tuple[int, int] | None = (640, 480
         m = re.fullmatch(r"CAM([0-9]+)", row[0].strip())
         if not m:
             raise DataFormatError(path, f"cam_id {quoted(row[0])} is not CAM<number>", row=row_no, field="cam_id")
+        if int(m.group(1)) in out:  # two calibrations of one camera: which one is meant is not for us to guess
+            raise DataFormatError(path, f"cam_id {row[0].strip()} again (an earlier row has it); expected one row "
+                                        "per camera", row=row_no, field="cam_id")
         values = []
         for name, text in zip(header[1:], row[1:], strict=True):
             try:
@@ -264,6 +268,9 @@ def read_uss(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """USS<id>.csv (time,meas: echo time in us) -> times (N,), ranges (N,) m, NaN = no echo."""
     table = read_numeric_csv(path, ("time", "meas"))
     check_sorted_times(path, table["time"])
+    if (problem := uss.raw_unit_problem(table["meas"])) is not None:
+        row, text = problem
+        raise DataFormatError(path, text, row=None if row is None else row + 2, field=None if row is None else "meas")
     return table["time"], uss.range_from_raw(table["meas"])
 
 
@@ -425,7 +432,8 @@ def _read_stack(room_dir: Path, s: int, intr: Intrinsics, poses: PoseSource, che
     cam_path = _pose_file(room_dir / "poses", "cam", s, poses)
     lidar_path = _pose_file(room_dir / "poses", "lidar", s, poses)
     t_cam, cam_to_world = read_poses(cam_path)
-    if lidar_path.is_file():
+    has_lidar_poses = _present(lidar_path)
+    if has_lidar_poses:
         t_lidar, lidar_to_world = read_poses(lidar_path)
     else:  # a robot without a LiDAR: its LiDAR poses are unknown (NaN), never used for mapping
         t_lidar, lidar_to_world = t_cam, np.full_like(cam_to_world, np.nan)
@@ -433,7 +441,7 @@ def _read_stack(room_dir: Path, s: int, intr: Intrinsics, poses: PoseSource, che
     t_tof, irs_range = read_tof(meas / f"TOF{s}.csv")
     images = _numbered_files(meas / f"CAM{s}_color_image_raw", ".png")
     depth_dir = meas / f"CAM{s}_aligned_depth_to_color_image_raw"
-    depths = _numbered_files(depth_dir, ".npy") if depth_dir.is_dir() else []  # no depth camera: none
+    depths = _numbered_files(depth_dir, ".npy") if _present(depth_dir, "folder") else []  # no depth camera: none
     counts = {
         cam_path.name: len(t_cam),
         lidar_path.name: len(t_lidar),
@@ -449,7 +457,7 @@ def _read_stack(room_dir: Path, s: int, intr: Intrinsics, poses: PoseSource, che
         )
     check_same_times(meas / f"USS{s}.csv", t_uss, t_cam, cam_path.name)
     check_same_times(meas / f"TOF{s}.csv", t_tof, t_cam, cam_path.name)
-    if lidar_path.is_file():
+    if has_lidar_poses:
         check_same_times(lidar_path, t_lidar, t_cam, cam_path.name)
     check_pose_jumps(cam_path, t_cam, cam_to_world)
     if check_images and images:
@@ -466,11 +474,27 @@ def _read_stack(room_dir: Path, s: int, intr: Intrinsics, poses: PoseSource, che
                        image_paths=images, depth_paths=depths, split=np.empty(0, dtype=object))
 
 
+def _present(path: Path, kind: str = "file") -> bool:
+    """Whether an optional file (kind "file") or folder ("folder") of the layout is there: False
+    when nothing is at `path`; a link that leads nowhere, or a folder where a file belongs (and
+    the reverse), is refused in one line, not taken for "absent" (a split file behind a broken
+    link would silently give another split)."""
+    if kind == "file" and path.is_file() or kind == "folder" and path.is_dir():
+        return True
+    if path.is_symlink() and not path.exists():
+        raise DataFormatError(path, f"a link to {os.readlink(path)}, which does not exist; expected the {kind} "
+                                    "itself (or nothing here)")
+    if path.exists():
+        what = "a folder" if path.is_dir() else "a file" if path.is_file() else "not a regular file"
+        raise DataFormatError(path, f"is {what}; expected a {kind} (or nothing here)")
+    return False
+
+
 def _splits(room_dir: Path, lengths: dict[int, int], write_split: bool) -> dict[int, np.ndarray]:
     """Each stack's split labels: split/split.csv, else made from split_description.csv (or
     60/0/40), written only if `write_split`."""
     split_path = room_dir / "split" / "split.csv"
-    if split_path.is_file():
+    if _present(split_path):
         return read_split(split_path, lengths)
     ratios = read_split_ratios(room_dir / "split" / "split_description.csv")
     splits = {s: make_split(n, ratios) for s, n in lengths.items()}
@@ -483,7 +507,7 @@ def _lidar_scans(room_dir: Path) -> list[tuple[float, Path]]:
     """(time s, path) of lidars/filtered/<seconds>.<nanoseconds>.pcd, in time order."""
     lidar_dir = room_dir / "lidars" / "filtered"
     entries: list[tuple[float, Path]] = []
-    if lidar_dir.is_dir():
+    if _present(lidar_dir, "folder"):
         for p in lidar_dir.glob("*.pcd"):
             m = re.fullmatch(r"(\d+)\.(\d{9})\.pcd", p.name)
             if not m:  # "1700000000.5.pcd" would read as 5 ns: refused, not guessed

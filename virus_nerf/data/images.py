@@ -18,6 +18,9 @@ from virus_nerf.errors import DataFormatError, one_line
 from virus_nerf.sensors.camera import Intrinsics
 
 DEPTH_INVALID_MM = (0, 65535)
+# PIL's modes of more than 8 bits a pixel, which a colour image of the layout never has
+WIDE_MODES = {"I": "32-bit integer grey", "F": "32-bit float grey", "I;16": "16-bit grey", "I;16B": "16-bit grey",
+              "I;16L": "16-bit grey", "I;16N": "16-bit grey"}
 # What PIL raises on a damaged image file besides DecompressionBombError: OSError (unidentified,
 # truncated), and from deep inside its decoders SyntaxError, ValueError, EOFError, struct/zlib errors.
 IMAGE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, IndexError, struct.error, zlib.error)
@@ -31,13 +34,18 @@ def read_rgb(path: Path, intr: Intrinsics) -> np.ndarray:
 
     try:
         with Image.open(path) as im:
-            arr = np.asarray(im.convert("RGB"))
+            mode = im.mode
+            wide = mode in ("I", "F") or mode.startswith("I;")  # convert("RGB") would clip them to white
+            arr = None if wide else np.asarray(im.convert("RGB"))
     except FileNotFoundError:
         raise DataFormatError(path, "image file not found") from None
     except Image.DecompressionBombError as exc:
         raise huge_image_error(path, exc) from None
     except IMAGE_ERRORS as exc:
         raise DataFormatError(path, f"not a readable image: {one_line(exc, 200)}") from None
+    if arr is None:
+        raise DataFormatError(path, f"image mode {mode} ({WIDE_MODES.get(mode, 'more than 8 bits a pixel')}); "
+                                    "expected 8-bit colour or grey (RGB, RGBA, P, L)")
     if arr.shape[:2] != (intr.height, intr.width):
         raise DataFormatError(
             path, f"image is {arr.shape[1]}x{arr.shape[0]}; the intrinsics expect {intr.width}x{intr.height}"

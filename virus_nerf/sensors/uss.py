@@ -19,6 +19,32 @@ USS_MAX_RANGE_M = 8.0  # the URM37 V5.0's range (datasheet, docs/uss-range.md); 
 USS_MAX_PLAUSIBLE_M = 100.0
 
 
+# A raw reading beyond this is no echo time in microseconds (nanoseconds? the sensor's own no-echo
+# code is USS_NO_ECHO_RAW): refused where a table is read, naming the row
+USS_MAX_PLAUSIBLE_RAW = 10 * USS_NO_ECHO_RAW
+
+
+def raw_unit_problem(raw: np.ndarray) -> tuple[int | None, str] | None:
+    """A USS table's echo times (N,) that are not microseconds: (the first bad row's index or None,
+    the problem) or None. A reading beyond USS_MAX_PLAUSIBLE_RAW (nanoseconds?), or every echo
+    below the sensor's nearest range (USS_MIN_RANGE_M, 100 us: metres?); no echo (0, NaN, the
+    no-echo code) says nothing of the unit."""
+    raw = np.asarray(raw, dtype=np.float64)
+    beyond = np.flatnonzero(np.isfinite(raw) & (raw > USS_MAX_PLAUSIBLE_RAW))
+    if beyond.size:
+        value = float(raw[beyond[0]])
+        return int(beyond[0]), (f"{value:g} is beyond any echo time (> {USS_MAX_PLAUSIBLE_RAW:g} us; the sensor's "
+                                f"no-echo code is {USS_NO_ECHO_RAW:g}); expected microseconds (the file holds "
+                                "nanoseconds?)")
+    echoes = raw[np.isfinite(raw) & (raw > 0) & (raw < USS_NO_ECHO_RAW)]
+    nearest_raw = USS_MIN_RANGE_M * USS_RAW_PER_M
+    if echoes.size and echoes.max() < nearest_raw:
+        return None, (f"every echo time is below {nearest_raw:g} us, the sensor's nearest range of "
+                      f"{USS_MIN_RANGE_M * 100:g} cm (the largest {echoes.max():g}); expected microseconds "
+                      "(the file holds metres?)")
+    return None
+
+
 def range_from_raw(raw: np.ndarray) -> np.ndarray:
     """Raw echo times (us) -> ranges in metres, NaN where there was no echo."""
     raw = np.asarray(raw, dtype=np.float64)
