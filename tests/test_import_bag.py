@@ -112,7 +112,7 @@ def test_tf_poses_range_uss_and_compressed_images(tiny_office, tmp_path):
     code, out, err = run_cli(["import-bag", bag, "--out", tmp_path / "d", "--poses", "tf", "--tf-child", "rslidar",
                               "--room", "office"])
     assert code == 0, err
-    assert "no LiDAR in the bag" in out
+    assert "no LiDAR topic /rslidar_points in the bag" in out and "lidar.topic in a topics file" in out
     ref, got = load_recording(tiny_office, "office"), load_recording(tmp_path / "d", "office")
     _poses_close(ref, got)
     a, b = ref.stacks[1], got.stacks[1]
@@ -231,6 +231,16 @@ def test_a_topic_of_the_topics_file_missing_from_the_bag_is_named(tmp_path):
     _fails([bag, "--out", tmp_path / "out"], "no topic /CAM1/aligned_depth_to_color/image_raw", "--topics")
 
 
+def test_a_lidar_topic_the_topics_file_names_must_be_in_the_bag(tmp_path):
+    """Named in [lidar] but not in the bag: refused as any named topic (it was skipped, and the
+    report said the bag had no LiDAR though it had one under the default name)."""
+    bag = _mini_bag(tmp_path / "b.bag")
+    topics = _topics_file(tmp_path / "t.toml", uss="/USS1")
+    topics.write_text(topics.read_text() + '[lidar]\ntopic = "/nope"\n')
+    _fails([bag, "--out", tmp_path / "out", "--topics", topics, "--poses", "tf", "--tf-child", "rslidar"],
+           "no topic /nope (lidar.topic of the topics file", "/rslidar_points")
+
+
 def test_a_custom_type_the_importer_cannot_read_is_named(tmp_path):
     bag = _mini_bag(tmp_path / "b.bag", uss_type="robot/msg/Sonar")
     topics = _topics_file(tmp_path / "t.toml", uss="/USS1")
@@ -260,6 +270,11 @@ def test_a_bad_topics_file_and_bad_flags_are_named(tmp_path):
     bad.write_text("[stacks.1]\ncolor = 3\n")
     _fails([bag, "--out", tmp_path / "out", "--topics", bad], "stacks.1.color", "topic name")
     _fails([bag, "--out", tmp_path / "out", "--poses", "csv"], "--poses-file")
+    # a pose file with another --poses was ignored (KISS-ICP ran), silently
+    (tmp_path / "lidar.csv").write_text("time,x,y,z,qx,qy,qz,qw\n0,0,0,0,0,0,0,1\n")
+    _fails([bag, "--out", tmp_path / "out", "--poses-file", tmp_path / "lidar.csv"],
+           "--poses-file", "lidar.csv: read only with --poses csv (given --poses lidar-odometry); add --poses csv, "
+           "or leave --poses-file out")
     (tmp_path / "exists").mkdir()
     code, _, err = run_cli(["import-bag", bag, "--out", tmp_path / "exists"])
     assert code == 2 and "already exists" in err

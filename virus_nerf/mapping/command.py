@@ -136,8 +136,9 @@ def map_bag(
         raise UsageError(f"--poses {poses!r}: expected {', '.join(POSES[:-1])} or {POSES[-1]}")
     if import_first and poses == "odometry":
         raise UsageError("--poses odometry streams only: drop --import-first")
-    if poses == "csv" and poses_file is None:
-        raise UsageError("--poses csv needs --poses-file FILE (time,x,y,z,qx,qy,qz,qw or TUM)")
+    from virus_nerf.data.bags.poses import check_pose_flags
+
+    check_pose_flags(poses, poses_file)
     bag, out = Path(bag), Path(out)
     if not bag.exists():
         raise UsageError(f"BAG {bag}: no such file or folder; expected a ROS bag")

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Literal
 
 from virus_nerf.data.bags.odometry import KissIcpSettings, csv_track
+from virus_nerf.data.bags.poses import check_pose_flags
 from virus_nerf.data.bags.reader import BagReader
 from virus_nerf.data.bags.report import REPORT_NAME, ImportReport
 from virus_nerf.data.bags.stages import ImportRun, Plan
@@ -64,8 +65,7 @@ def import_bag(bag: str | Path, out: str | Path, topics: str | Path | TopicsConf
     if out.exists():
         raise OutputExistsError(out)
     cfg = topics if isinstance(topics, TopicsConfig) else read_topics(topics) if topics else default_topics()
-    if poses == "csv" and poses_file is None:
-        raise UsageError("--poses csv needs --poses-file FILE (time,x,y,z,qx,qy,qz,qw or TUM)")
+    check_pose_flags(poses, poses_file)
     csv_poses = csv_track(poses_file) if poses == "csv" else None
     room = room_name(bag) if room is None else room
     if not re.fullmatch(r"[A-Za-z0-9_-]+", room):
@@ -88,7 +88,7 @@ def plan_topics(reader: BagReader, cfg: TopicsConfig, poses: str, odometry_topic
             reader.require(topic, role, f"stacks.{s}.{role} of the {where}")
             roles[(s, role)] = topic
     bag_topics = reader.topics
-    if cfg.lidar.topic and cfg.lidar.topic in bag_topics:
+    if cfg.lidar.topic and (cfg.lidar.topic in bag_topics or cfg.lidar_named):  # a topic named must be there
         reader.require(cfg.lidar.topic, "lidar", f"lidar.topic of the {where}")
         roles[(None, "lidar")] = cfg.lidar.topic
     elif poses == "lidar-odometry":

@@ -25,7 +25,7 @@ from virus_nerf.data.bags.odometry import (
 )
 from virus_nerf.data.bags.reader import Message
 from virus_nerf.data.bags.topics import LidarConfig, TopicsConfig
-from virus_nerf.errors import DataFormatError
+from virus_nerf.errors import DataFormatError, UsageError
 
 
 class PoseSource:
@@ -298,6 +298,16 @@ class TfPoses(PoseSource):
 
 
 # ------------------------------------------------------------------------------- the frames
+
+
+def check_pose_flags(poses: str, poses_file: str | Path | None) -> None:
+    """--poses csv and --poses-file go together: one without the other is refused in one line (a
+    pose file given with another --poses was ignored, silently)."""
+    if poses == "csv" and poses_file is None:
+        raise UsageError("--poses csv needs --poses-file FILE (time,x,y,z,qx,qy,qz,qw or TUM)")
+    if poses != "csv" and poses_file is not None:
+        raise UsageError(f"--poses-file {poses_file}: read only with --poses csv (given --poses {poses}); add "
+                         "--poses csv, or leave --poses-file out")
 
 
 def make_pose_source(poses: str, cfg: TopicsConfig, bag: Path, *, present: Callable[[str], bool],

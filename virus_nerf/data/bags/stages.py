@@ -129,7 +129,10 @@ class ImportRun:
                 elif role == "odometry":
                     self.odometry.append((msg.time_s, m.decode_odometry(msg.msg, where)))
         if (None, "lidar") not in self.plan.roles:
-            self.notes.append("no LiDAR in the bag: no scans and no map (evaluation against a map is impossible)")
+            self.notes.append(f"no LiDAR topic {self.cfg.lidar.topic} in the bag: no scans and no map (evaluation "
+                              "against a map is impossible; a LiDAR on another topic: lidar.topic in a topics file)"
+                              if self.cfg.lidar.topic else "no LiDAR (lidar.topic empty): no scans and no map "
+                              "(evaluation against a map is impossible)")
         for key in self.plan.roles:
             if key[1] in ("lidar", "camera_info", "odometry") or key[1].startswith("tf"):
                 times = self.stamps[key]

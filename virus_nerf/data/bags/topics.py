@@ -90,6 +90,7 @@ class TopicsConfig:
     intrinsics_csv: Path | None = None  # used for stacks without a camera_info topic
     source: Path | None = None  # the file read (None = built-in defaults)
     notes: tuple[str, ...] = ()  # what the import report should say about the file (e.g. defaults used)
+    lidar_named: bool = False  # the file names lidar.topic: a bag without it is refused, not taken as LiDAR-less
 
     def for_sensors(self, sensors) -> TopicsConfig:
         """The topics a stream that trains `sensors` needs: without the depth images unless `rgbd`
@@ -165,7 +166,8 @@ def read_topics(path: str | Path) -> TopicsConfig:
         raise ConfigError(f"{intr!r}: expected a path string", file=path, key="intrinsics_csv")
     intr_path = None if intr is None else (path.parent / intr if not Path(intr).is_absolute() else Path(intr))
     return TopicsConfig(stacks=stacks, lidar=lidar, sync=sync, tf_topics=tuple(tf),
-                        intrinsics_csv=intr_path, source=path, notes=notes)
+                        intrinsics_csv=intr_path, source=path, notes=notes,
+                        lidar_named=bool(lidar.topic) and "topic" in doc.get("lidar", {}))
 
 
 class _Reader:
