@@ -882,3 +882,32 @@ def test_an_optional_file_behind_a_broken_link_is_refused_not_taken_for_absent(s
     want = "is a folder; expected a file" if where.endswith(".csv") else "is a file; expected a folder"
     with pytest.raises(DataFormatError, match=rf"office/{where}: {want} \(or nothing here\)$"):
         load_recording(sample_copy, "office")
+
+
+def test_an_empty_pcd_and_a_bad_header_line_are_named_in_short(tmp_path):
+    """pypcd4's header model is pydantic's: its message ran over several errors and a web link."""
+    head = "VERSION 0.7\nFIELDS x y z\n{size}TYPE {t} F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n" \
+           "POINTS 1\nDATA ascii\n1 2 3\n"
+    (tmp_path / "empty.pcd").write_bytes(b"")
+    with pytest.raises(DataFormatError, match=r"empty.pcd: empty file; expected a PCD file"):
+        read_pcd_xyz(tmp_path / "empty.pcd")
+    (tmp_path / "q.pcd").write_text(head.format(size="SIZE 4 4 4\n", t="Q"))
+    with pytest.raises(DataFormatError, match=r"q.pcd: not a readable PCD file \(expected ascii/binary/binary_compressed\): "
+                                              r"header TYPE, value 1: Input should be 'F', 'U' or 'I' \(got 'Q'\)$"):
+        read_pcd_xyz(tmp_path / "q.pcd")
+    (tmp_path / "nosize.pcd").write_text(head.format(size="", t="F"))
+    with pytest.raises(DataFormatError, match=r"nosize.pcd: .*: header line SIZE missing$"):
+        read_pcd_xyz(tmp_path / "nosize.pcd")
+    (tmp_path / "ok.pcd").write_text(head.format(size="SIZE 4 4 4\n", t="F"))
+    np.testing.assert_array_equal(read_pcd_xyz(tmp_path / "ok.pcd"), [[1, 2, 3]])
+
+
+def test_a_split_made_from_ratios_without_test_frames_names_the_ratios_file(sample_copy):
+    from virus_nerf.evaluation.testpoints import require_test_points
+
+    split = sample_copy / "office" / "split"
+    (split / "split.csv").unlink()
+    (split / "split_description.csv").write_text("train,val,test\n1,0,0\n")
+    with pytest.raises(DataFormatError, match=r"office/split/split_description.csv \(the ratios the split was made "
+                                              r"from; split.csv absent\), field 'CAM1': no CAM1 rows labelled 'test'"):
+        require_test_points(load_recording(sample_copy, "office"))

@@ -858,3 +858,22 @@ def test_the_metric_vs_time_plot_names_its_ground_truth(tmp_path, monkeypatch):
     assert title == "NeRF zone 3 (0-100 m) vs training time"
     assert {k: [e.step for e in v] for k, v in curves.items()} == {"NeRF, ground truth map": [10, 20],
                                                                    "NeRF, ground truth exact": [30]}
+
+
+def test_evaluate_and_export_name_run_json_when_the_recording_moved_and_a_file_as_no_run(run_copy, tmp_path):
+    """These commands have no --data: the error named one (it names run.json's field now); a --run
+    that is a file was reported as an --out that cannot be made."""
+    info = json.loads((run_copy / "run.json").read_text())
+    info["data"] = str(tmp_path / "moved")
+    (run_copy / "run.json").write_text(json.dumps(info))
+    for argv in (["evaluate", "--run", run_copy], ["export", "--run", run_copy, "--out", tmp_path / "x", "--what", "map"]):
+        code, _, err = run_cli(argv)
+        line = one_line_error(code, err, f"{run_copy / 'run.json'}, field 'data': data {tmp_path / 'moved'}: no such "
+                                         "folder; expected the recording the run was trained on")
+        assert "--data" not in line
+    assert not (tmp_path / "x").exists() and not (run_copy / "evaluation").exists()
+    (tmp_path / "file").write_text("x")
+    code, _, err = run_cli(["evaluate", "--run", tmp_path / "file"])
+    one_line_error(code, err, f"--run {tmp_path / 'file'}: is a file; expected a run folder")
+    code, _, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "y", "--poses", tmp_path])
+    one_line_error(code, err, f"--poses {tmp_path}: a folder; expected a CSV")

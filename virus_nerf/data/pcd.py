@@ -16,6 +16,24 @@ from virus_nerf.utils.io import atomic_path
 MAX_ABS_COORD_M = 10_000.0
 
 
+def _header_problem(exc: Exception) -> str:
+    """pypcd4's refusal in one short line: its header model's (pydantic) first error as the PCD
+    header line it concerns ("header line SIZE missing", "header TYPE, value 1: ..."), else the
+    exception's own text."""
+    errors = getattr(exc, "errors", None)
+    try:
+        first = errors()[0] if callable(errors) else None
+    except Exception:  # noqa: BLE001 - not pydantic's: its own text below
+        first = None
+    if not isinstance(first, dict) or not first.get("loc"):
+        return one_line(exc, 200)
+    line, *index = (str(v) for v in first["loc"])
+    where = f"header {line.upper()}" + (f", value {int(index[0]) + 1}" if index and index[0].isdigit() else "")
+    if first.get("type") == "missing":
+        return f"header line {line.upper()} missing"
+    return f"{where}: {one_line(first.get('msg', ''), 120)} (got {one_line(repr(first.get('input')), 40)})"
+
+
 def read_pcd_xyz(path: str | Path, *, nonempty: str | None = None) -> np.ndarray:
     """Read the x, y, z fields of a PCD file -> (N, 3) float32 (NaN and infinite points removed).
 
@@ -29,13 +47,15 @@ def read_pcd_xyz(path: str | Path, *, nonempty: str | None = None) -> np.ndarray
     if not path.is_file():
         raise DataFormatError(path, "PCD file not found")
     raw = path.read_bytes()
+    if not raw.strip():
+        raise DataFormatError(path, "empty file; expected a PCD file (a VERSION .. DATA header, then the points)")
     npoints = _check_body_size(path, raw)
     try:
         cloud = PointCloud.from_fileobj(io.BytesIO(raw))  # type: ignore[arg-type]
     except Exception as exc:  # pypcd4 raises several types for bad headers/encodings
         raise DataFormatError(
-            path, f"not a readable PCD file (expected ascii/binary/binary_compressed): {one_line(exc, 200)}"
-        ) from exc
+            path, f"not a readable PCD file (expected ascii/binary/binary_compressed): {_header_problem(exc)}"
+        ) from None
     missing = [f for f in ("x", "y", "z") if f not in cloud.fields]
     if missing:
         raise DataFormatError(

@@ -156,7 +156,12 @@ def pairing_warnings(recording: Recording, points: list[TestPoint]) -> list[str]
 def split_file(recording: Recording) -> str:
     """The split file a refusal names (the default split when the recording has none)."""
     path = recording.room_dir / "split" / "split.csv"
-    return str(path) if path.is_file() else f"{path} (absent: the default split made in memory)"
+    if path.is_file():
+        return str(path)
+    ratios = path.with_name("split_description.csv")
+    if ratios.is_file():  # its ratios made the split: the file to change
+        return f"{ratios} (the ratios the split was made from; split.csv absent)"
+    return f"{path} (absent: the default split made in memory)"
 
 
 def require_test_points(recording: Recording) -> None:

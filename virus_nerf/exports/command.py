@@ -87,7 +87,8 @@ def export(
         from virus_nerf.exports.views import read_pose_csv
 
         if not Path(poses).is_file():
-            raise UsageError(f"--poses {poses}: no such file; expected a CSV with columns time,x,y,z,qx,qy,qz,qw")
+            what = "a folder" if Path(poses).is_dir() else "no such file"
+            raise UsageError(f"--poses {poses}: {what}; expected a CSV with columns time,x,y,z,qx,qy,qz,qw")
         pose_set = read_pose_csv(Path(poses))
     out = Path(out)
     if out.exists():

@@ -143,7 +143,8 @@ def map_bag(
     if not bag.exists():
         raise UsageError(f"BAG {bag}: no such file or folder; expected a ROS bag")
     if topics is not None and not Path(topics).is_file():
-        raise UsageError(f"--topics {topics}: no such file; expected the importer's topic mapping file")
+        what = "a folder" if Path(topics).is_dir() else "no such file"
+        raise UsageError(f"--topics {topics}: {what}; expected the importer's topic mapping file")
     cfg = load_stream_config(config)
     require_new_folder("--out", out)
     if out_bag is not None:

@@ -239,12 +239,12 @@ def evaluate(run: Path, out: Path | None = None, n_rays: int | None = None, gt: 
     out = Path(out) if out is not None else Path(run) / "evaluation" / "metrics.json"
     if out.exists():
         raise OutputExistsError(out)
+    open_run(run, "--run")  # a --run that is no run folder is named as such, before --out is judged
     require_makeable("--out", out, out.parent)  # before ~10 s of loading and scoring
     # plots without metrics.json: an evaluation killed before its end, done again whole (plots
     # replaced once the new ones are complete); `.<plots>.partial-<pid>-*` of dead attempts go
     remove_stale_partials(plots_dir_for(out))
     redo = stopped_attempts_plots(plots_dir_for(out), out)  # a folder holding a user's files: refused
-    open_run(run, "--run")
     # a run a `train` still works in is said to be so (with or without a checkpoint yet), before
     # its files are read; nothing is written into a run that cannot be evaluated
     RunLock(Path(run), "--run").probe()

@@ -69,6 +69,9 @@ def load_trained(run: Path, flag: str, *, poses: str | None = None, quiet: bool 
     check_device(cfg)
     use_threads(cfg.threads)  # the run's: its scans are rendered as it rendered them
     state = read_checkpoint(Path(run) / CHECKPOINT, cfg)  # before the recording: a bad file fails at once
+    if not Path(info.data).is_dir():  # named as run.json's field: these commands have no --data
+        raise DataFormatError(Path(run) / RUN_INFO, f"data {info.data}: no such folder; expected the recording the "
+                              "run was trained on (moved? give its new place in run.json's data)", field="data")
     source, _ = resolve_pose_source(Path(info.data) / info.room, poses or "optimised")  # no LiDAR: odometry only
     recording = load_recording(info.data, info.room, poses=source)
     # the frames a large or driving run decodes go to a folder of this process's own, removed with
