@@ -738,16 +738,21 @@ def test_quaternions_written_w_x_y_z_are_warned_of(sample_copy):
     half turns (the LiDAR upside down): the recording reads, and a warning names the likely cause."""
     from virus_nerf.evaluation.testpoints import recording_warnings
 
-    for s in (1, 3):
+    for s in (3, 1):
         path = sample_copy / "office" / "poses" / f"poses_lidar_balm_sync{s}.csv"
         lines = path.read_text().splitlines()
         for k in range(1, len(lines)):
             c = lines[k].split(",")
             lines[k] = ",".join(c[:4] + [c[7], c[4], c[5], c[6]])  # w, x, y, z
         path.write_text("\n".join(lines) + "\n")
-    rec = load_recording(sample_copy, "office")
+        warnings = recording_warnings(load_recording(sample_copy, "office"))
+        if s == 3:  # one stack's file alone: half of all the poses, said of that file
+            assert ("the up axis of 100% of stack 3's LiDAR poses (poses/poses_lidar_*sync3.csv) points below the "
+                    "horizon: an upside-down LiDAR, or quaternions in w,x,y,z order? They are read as qx,qy,qz,qw") \
+                in warnings
     assert ("the up axis of 100% of the LiDAR poses (poses/poses_lidar_*) points below the horizon: an upside-down "
-            "LiDAR, or quaternions in w,x,y,z order? They are read as qx,qy,qz,qw") in recording_warnings(rec)
+            "LiDAR, or quaternions in w,x,y,z order? They are read as qx,qy,qz,qw") in warnings
+    assert not any("stack 3's LiDAR poses" in w for w in warnings)  # both: said once, of all
 
 
 def test_images_under_other_names_are_named_not_counted_as_none(sample_copy):
@@ -911,3 +916,14 @@ def test_a_split_made_from_ratios_without_test_frames_names_the_ratios_file(samp
     with pytest.raises(DataFormatError, match=r"office/split/split_description.csv \(the ratios the split was made "
                                               r"from; split.csv absent\), field 'CAM1': no CAM1 rows labelled 'test'"):
         require_test_points(load_recording(sample_copy, "office"))
+
+
+def test_a_recording_with_a_lidar_map_but_no_scans_says_the_lidar_row_stays_empty(sample_copy):
+    from virus_nerf.evaluation.testpoints import recording_warnings
+
+    assert recording_warnings(load_recording(sample_copy, "office")) == []
+    for p in (sample_copy / "office" / "lidars" / "filtered").iterdir():
+        p.unlink()
+    assert recording_warnings(load_recording(sample_copy, "office")) == [
+        f"{sample_copy / 'office' / 'lidars' / 'filtered'}: no LiDAR scans, though the recording has a LiDAR map: "
+        "the LiDAR's row stays empty (scans named <seconds>.<nanoseconds>.pcd)"]

@@ -100,10 +100,17 @@ def recording_warnings(recording: Recording, scored: bool = True) -> list[str]:
     from virus_nerf.sensors.geometry import upside_down_words
 
     out = []
-    lidar_poses = [s.lidar_to_world for s in recording.stacks.values()]
-    if lidar_poses and (note := upside_down_words(np.concatenate(lidar_poses), "the LiDAR poses (poses/poses_lidar_*)")):
+    lidar_poses = {s: st.lidar_to_world for s, st in recording.stacks.items()}
+    if lidar_poses and (note := upside_down_words(np.concatenate(list(lidar_poses.values())),
+                                                  "the LiDAR poses (poses/poses_lidar_*)")):
         out.append(note)
+    elif len(lidar_poses) > 1:  # one stack's file alone written w,x,y,z: half of all, said per file
+        out += [note for s, poses in lidar_poses.items()
+                if (note := upside_down_words(poses, f"stack {s}'s LiDAR poses (poses/poses_lidar_*sync{s}.csv)"))]
     out += stacks_apart_warnings(recording)
+    if scored and not recording.lidar_paths and recording.map_path is not None:
+        out.append(f"{recording.room_dir / 'lidars' / 'filtered'}: no LiDAR scans, though the recording has a LiDAR "
+                   "map: the LiDAR's row stays empty (scans named <seconds>.<nanoseconds>.pcd)")
     if scored and MAIN_STACK in recording.stacks:
         out += pairing_warnings(recording, make_test_points(recording))
     return out
