@@ -1200,3 +1200,61 @@ def test_a_growing_mapper_starts_around_its_first_camera_and_sections_may_be_dic
     (tmp_path / "snap").mkdir()
     with pytest.raises(OutputExistsError, match=r"snap: output folder already exists; choose a new snapshot folder"):
         _mapper().snapshot(tmp_path / "snap")
+
+
+def test_a_bad_optional_counter_of_a_state_is_refused_before_anything_loads():
+    """rays, visible_share, prior_frames, ... were converted after the field, Adam and the counters
+    had been loaded: a bad one left a half-loaded mapper behind a raw ValueError."""
+    a = _mapper()
+    for t in (0.0, 0.5, 1.0):
+        a.add_frame(_frame(t))
+    a.train(600.0, steps=3)
+    state = a.state()
+    for key, value, problem in (("rays", "x", "expected an integer >= 0, got 'x'"),
+                                ("prior_frames", -1, "expected an integer >= 0, got -1"),
+                                ("frames_at_start", 99, "99 is more than the state's 3 frames"),
+                                ("visible_share", 1.5, r"expected a number in \[0, 1\], got 1.5"),
+                                ("last_samples_per_ray", None, r"expected a number in \[0, inf\], got None")):
+        b = _mapper()
+        with pytest.raises(UsageError, match=rf"^Mapper.load_state state\['{key}'\]: {problem}$"):
+            b.load_state({**state, key: value})
+        assert b.step == 0 and b.seconds == 0.0 and b.samples == 0
+    b = _mapper()
+    b.load_state({**state, "frames_at_start": None})  # as a state saved before the first step
+    assert b.step == 3
+
+
+def test_a_bad_learning_rate_progress_or_a_non_finite_loss_changes_no_weight(tmp_path):
+    """train_step(progress=nan) made every weight NaN (lr nan), and a NaN field maps everything
+    free; a non-finite loss is skipped and counted, and the snapshot still writes."""
+    mapper = _mapper()
+    mapper.add_frame(_frame(0.0))
+    mapper.train(600.0, steps=2)
+    for bad in (float("nan"), -50.0, 1.5, "0.5", True):
+        with pytest.raises(UsageError, match=r"^Mapper.train_step progress .*: expected a number in \[0, 1\] or None$"):
+            mapper.train_step(progress=bad)
+    before = {k: v.clone() for k, v in mapper.field.state_dict().items()}
+    import virus_nerf.engine.mapper as engine
+
+    real = engine.step_loss
+
+    def nan_loss(*args, **kwargs):
+        terms = real(*args, **kwargs)
+        return dataclasses.replace(terms, total=terms.total * float("nan"))
+
+    engine.step_loss = nan_loss
+    try:
+        mapper.train(600.0, steps=2)
+    finally:
+        engine.step_loss = real
+    assert mapper.skipped_steps == 2 and mapper.step == 4 and mapper.last_loss is None
+    assert all(torch.equal(before[k], v) for k, v in mapper.field.state_dict().items())
+    info = mapper.snapshot(tmp_path / "s", n_rays=16, max_poses=1)
+    assert info.loss is None
+    mapper.train(600.0, steps=1)
+    assert mapper.skipped_steps == 2 and mapper.last_loss is not None
+
+
+def test_a_mapper_config_that_is_no_config_is_named():
+    with pytest.raises(UsageError, match=r"^Mapper config: got a dict; expected a MapperConfig \(or a TrainConfig\)"):
+        Mapper({"batch_size": 256}, {1: INTR}, BOX)

@@ -17,6 +17,7 @@ from virus_nerf.engine.state import (
     expected_frames,
     frames_mismatch,
     generators_problem,
+    optional_counters_problem,
     tensors_problem,
 )
 from virus_nerf.engine.views import serialised
@@ -87,7 +88,7 @@ class MapperCheckpoint:
                                f"hi={list(box.hi)}; the field would be read in another frame")
         own_grid = {k: v for k, v in self.grid.state_dict().items() if k not in self.grid.optional_state_keys}
         return tensors_problem("grid", state["grid"], own_grid, shapes=not self.extent.growing) \
-            or generators_problem(state) or self._frames_problem(state)
+            or generators_problem(state) or self._frames_problem(state) or optional_counters_problem(state)
 
     def _frames_problem(self, state: dict) -> tuple[str, str] | None:
         """("frame_times", what) when the state's frame list is malformed or the frames present do

@@ -109,6 +109,9 @@ class Mapper(MapViews, MapperCheckpoint):
         if max(box.size) > MAX_BOX_SIDE_M:  # before a map of 10^10 pixels is asked for
             raise UsageError(f"Mapper box: a side of {max(box.size):g} m; expected metres, a box of at most "
                              f"{MAX_BOX_SIDE_M:g} m (millimetres?)")
+        if not hasattr(config, "engine"):
+            raise UsageError(f"Mapper config: got a {type(config).__name__}; expected a MapperConfig (or a "
+                             "TrainConfig), e.g. MapperConfig(batch_size=1024)")
         config = config.engine()  # the engine's knobs alone (a TrainConfig's run knobs stay with the run)
         self.config = config
         self.schedules = schedules or Schedules.of(config)
@@ -136,6 +139,7 @@ class Mapper(MapViews, MapperCheckpoint):
         self.samples = 0
         self.rays = 0  # rays rendered, summed over steps
         self.last_loss: float | None = None
+        self.skipped_steps = 0  # steps whose loss was not finite: no update (this process's, not in the state)
         self.last_samples_per_ray = 0.0
         self.visible_share = 1.0  # the last step's visible sample share: picks the next render's path
         self.prior_s = 0.0  # seconds spent on the grid's sensor prior in `prepare`
@@ -431,6 +435,9 @@ class Mapper(MapViews, MapperCheckpoint):
         """The one training step, on the training clock: every frame added so far (the prior of
         new frames first); `progress` in [0, 1] of the budget sets the learning rate (the
         schedule's lr * lr_decay_to ** progress; default `self.progress()`)."""
+        if progress is not None and (isinstance(progress, bool) or not isinstance(progress, numbers.Real)
+                                     or not 0.0 <= progress <= 1.0):  # NaN too: it made every weight NaN
+            raise UsageError(f"Mapper.train_step progress {progress!r}: expected a number in [0, 1] or None")
         return self._timed_step(progress)[0]
 
     @serialised
@@ -441,7 +448,8 @@ class Mapper(MapViews, MapperCheckpoint):
         terms = self._step(progress)
         took = time.perf_counter() - t_start
         self.seconds += took
-        self.last_loss = float(terms.total.detach())
+        loss = float(terms.total.detach())
+        self.last_loss = loss if math.isfinite(loss) else None  # snapshot.json: a number or null
         return terms, took
 
     def _step(self, progress: float | None) -> LossTerms:
@@ -484,8 +492,12 @@ class Mapper(MapViews, MapperCheckpoint):
 
     def _optimise(self, terms: LossTerms) -> None:
         """Adam on the field; a batch that marched no occupied cell (all rays out of the box)
-        has no graph and changes nothing."""
+        has no graph and changes nothing, nor does a loss that is not finite (one such step would
+        make every weight NaN, and a NaN field maps everything free: counted in `skipped_steps`)."""
         self.optimizer.zero_grad(set_to_none=True)
+        if not bool(torch.isfinite(terms.total.detach())):
+            self.skipped_steps += 1
+            return
         if terms.total.requires_grad:
             terms.total.backward()
             self.optimizer.step()

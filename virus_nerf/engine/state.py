@@ -31,6 +31,32 @@ def counters_problem(state: Mapping) -> tuple[str, str] | None:
     return None
 
 
+# a state's optional counters (written by later releases than the first states): each an integer
+# >= 0, or a finite number in a range; frames_at_start is None before the first step
+OPTIONAL_COUNTS = ("rays", "stereo_points", "viewed_frames", "frames_at_start", "prior_frames")
+OPTIONAL_NUMBERS = {"last_samples_per_ray": (0.0, math.inf), "visible_share": (0.0, 1.0)}
+
+
+def optional_counters_problem(state: Mapping) -> tuple[str, str] | None:
+    """The optional counters, checked before `load_state` converts them: a bad one was found only
+    after the field and Adam had been replaced (a half-loaded mapper); the frame counts are at most
+    the state's frames where it lists them."""
+    frames = state.get("frames") if isinstance(state.get("frames"), int) else None
+    for key in OPTIONAL_COUNTS:
+        if key not in state or (state[key] is None and key == "frames_at_start"):
+            continue
+        value = state[key]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            return key, f"expected an integer >= 0, got {repr(value)[:60]}"
+        if frames is not None and key != "rays" and key != "stereo_points" and value > frames:
+            return key, f"{value} is more than the state's {frames} frames"
+    for key, (lo, hi) in OPTIONAL_NUMBERS.items():
+        value = state.get(key, lo)
+        if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:
+            return key, f"expected a number in [{lo:g}, {hi:g}], got {repr(value)[:60]}"
+    return None
+
+
 def tensors_problem(key: str, saved: Mapping, expected: Mapping, *, shapes: bool = True) -> tuple[str, str] | None:
     """Each tensor of entry `key` (field, grid) has the name, type and (with `shapes`) the shape of
     `expected`, the mapper's own state_dict."""

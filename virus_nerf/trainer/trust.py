@@ -33,6 +33,8 @@ def map_warnings(trainer) -> list[str]:
         silent.append("stereo (no triangulated point)")
     if silent:
         out.append(f"configured sensor(s) silent in the recording: {'; '.join(silent)}; their losses were zero")
+    if mapper.skipped_steps:
+        out.append(f"{mapper.skipped_steps} training step(s) had a loss that was not finite and changed nothing")
     done = getattr(mapper.grid, "warmup_done", None)
     if done is not None and not done:
         out.append(f"the run ended inside the occupancy grid's warm-up (step {mapper.step}, "
