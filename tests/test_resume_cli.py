@@ -877,3 +877,20 @@ def test_evaluate_and_export_name_run_json_when_the_recording_moved_and_a_file_a
     one_line_error(code, err, f"--run {tmp_path / 'file'}: is a file; expected a run folder")
     code, _, err = run_cli(["export", "--run", run_copy, "--out", tmp_path / "y", "--poses", tmp_path])
     one_line_error(code, err, f"--poses {tmp_path}: a folder; expected a CSV")
+
+
+def test_evaluate_of_a_run_stopped_part_way_says_so_as_export_does(run_copy, tmp_path):
+    """A run without metrics.json of its checkpoint's step (stopped part-way) was scored without a
+    word: the evaluation's metrics.json looked like a finished run's."""
+    code, out, err = run_cli(["evaluate", "--run", run_copy, "--n-rays", "32", "--no-plots", "--out", tmp_path / "a.json"])
+    assert code == 0, err
+    assert "did not finish" not in out and not any("did not finish" in w for w in
+                                                    json.loads((tmp_path / "a.json").read_text())["warnings"])
+    (run_copy / "metrics.json").unlink()
+    code, out, err = run_cli(["evaluate", "--run", run_copy, "--n-rays", "32", "--no-plots", "--out", tmp_path / "b.json"])
+    assert code == 0, err
+    step = json.loads((tmp_path / "b.json").read_text())["train"]["steps"]
+    said = (f"the run's training did not finish (stopped at step {step}; no metrics.json of its last step): scored as "
+            f"it stands (`virus-nerf train --resume --out {run_copy}` continues it)")
+    assert f"note: --run {run_copy}: {said}" in out
+    assert json.loads((tmp_path / "b.json").read_text())["warnings"][0] == said

@@ -69,7 +69,7 @@ def export(
     """
     from virus_nerf.errors import OutputExistsError, require_int, require_number
     from virus_nerf.trainer.run import load_trained
-    from virus_nerf.trainer.run_folder import METRICS, RunLock, open_run
+    from virus_nerf.trainer.run_folder import RunLock, open_run, training_finished
     from virus_nerf.utils.io import new_output_dir
 
     require_number("--resolution", resolution, 0.0)
@@ -106,25 +106,13 @@ def export(
         scale = image_scale if image_scale is not None else cfg.image_scale
         if "images" in kinds:  # before anything is rendered
             _image_intrinsics(trainer.recording, scale)
-        finished = _scored_at(Path(run) / METRICS) == trainer.mapper.step  # a resumed run's old one is not
+        finished = training_finished(Path(run), trainer.mapper.step)
         written = _export_all(trainer, cfg, tmp, kinds, pose_set, resolution, n_rays, max_poses, band, cloud_points,
                               scale, finished)
     if not finished:
         print(f"note: --run {run}: its training did not finish (no metrics.json of its last step; stopped at step "
               f"{trainer.mapper.step}): exported as it stands (`virus-nerf train --resume --out {run}` continues it)")
     print(f"wrote {out}/: " + ", ".join(written))
-
-
-def _scored_at(metrics: Path) -> int | None:
-    """The step of the run's metrics.json (`train` writes it when its budget is spent; a resume
-    past it leaves the earlier one until it ends too), or None without a readable one."""
-    import json
-
-    try:
-        steps = json.loads(metrics.read_text())["train"]["steps"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-    return steps if isinstance(steps, int) else None
 
 
 def _check_poses_see_the_room(path: Path, pose_set) -> None:

@@ -267,7 +267,7 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
     from virus_nerf.trainer.loop import TrainSummary
     from virus_nerf.trainer.report import RUN_SCAN_MAPS
     from virus_nerf.trainer.run import print_scores, score_run
-    from virus_nerf.trainer.run_folder import train_summary_block
+    from virus_nerf.trainer.run_folder import train_summary_block, training_finished
 
     if n_rays is not None or protocols is not None:
         ev = cfg.evaluation
@@ -297,6 +297,11 @@ def _evaluate_run(run: Path, out: Path, trainer, cfg, n_rays: int | None, protoc
     from virus_nerf.trainer.trust import map_warnings
 
     warnings = map_warnings(trainer)  # the run's own (metrics.json's): this document stands alone
+    if not training_finished(run, trainer.mapper.step):  # stopped part-way: said, as export says it
+        unfinished = (f"the run's training did not finish (stopped at step {trainer.mapper.step}; no metrics.json "
+                      f"of its last step): scored as it stands (`virus-nerf train --resume --out {run}` continues it)")
+        print(f"note: --run {run}: {unfinished}")
+        warnings = [unfinished, *warnings]
     if plots:
         write_plots(result, plots_dir_for(out), max_maps=RUN_SCAN_MAPS, replace=redo)
     elif redo:  # kept (never deleted), but not this evaluation's

@@ -170,6 +170,19 @@ def load_config_file(path: str | Path):
     return load_json_config(TrainConfig, path, saved=is_run_config(path))
 
 
+def training_finished(run: Path, step: int) -> bool:
+    """Whether the run's training finished at `step` (its checkpoint's): `train` writes metrics.json
+    when its budget is spent, at that step; a run stopped part-way has none, and one resumed past
+    it keeps the earlier one until it ends too."""
+    import json
+
+    try:
+        steps = json.loads((Path(run) / METRICS).read_text())["train"]["steps"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    return isinstance(steps, int) and steps == step
+
+
 def open_run(run: Path, flag: str):
     """A finished or interrupted run folder -> (TrainConfig, RunInfo); every problem named."""
     from virus_nerf.config_io import load_json_config
