@@ -1258,3 +1258,18 @@ def test_a_bad_learning_rate_progress_or_a_non_finite_loss_changes_no_weight(tmp
 def test_a_mapper_config_that_is_no_config_is_named():
     with pytest.raises(UsageError, match=r"^Mapper config: got a dict; expected a MapperConfig \(or a TrainConfig\)"):
         Mapper({"batch_size": 256}, {1: INTR}, BOX)
+
+
+def test_optional_counters_held_as_numpy_numbers_load():
+    """A state whose counters are numpy numbers (as code computing them with numpy would keep them)
+    loads as one with Python numbers."""
+    a = _mapper()
+    for t in (0.0, 0.5):
+        a.add_frame(_frame(t))
+    a.train(600.0, steps=2)
+    state = a.state()
+    numpy_state = {**state, "rays": np.int64(state["rays"]), "prior_frames": np.int32(state["prior_frames"]),
+                   "visible_share": np.float32(state["visible_share"])}
+    b = _mapper()
+    b.load_state(numpy_state)
+    assert b.step == 2 and b.rays == state["rays"]

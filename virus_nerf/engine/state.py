@@ -9,6 +9,7 @@ name the file of a damaged `checkpoint.pt` (trainer/run_folder.py). Each check r
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping
 
 # the entries every state holds (a state also has optional ones: box, rays, prior_frames, ...)
@@ -46,13 +47,13 @@ def optional_counters_problem(state: Mapping) -> tuple[str, str] | None:
         if key not in state or (state[key] is None and key == "frames_at_start"):
             continue
         value = state[key]
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:  # numpy's too
             return key, f"expected an integer >= 0, got {repr(value)[:60]}"
         if frames is not None and key != "rays" and key != "stereo_points" and value > frames:
             return key, f"{value} is more than the state's {frames} frames"
     for key, (lo, hi) in OPTIONAL_NUMBERS.items():
         value = state.get(key, lo)
-        if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not lo <= value <= hi:
             return key, f"expected a number in [{lo:g}, {hi:g}], got {repr(value)[:60]}"
     return None
 
