@@ -644,6 +644,9 @@ def test_map_bag_drops_late_frames_and_keeps_the_map_on_bad_data(bags, tiny_cfg,
     late = report["dropped"]["late (the mapper was behind)"]
     assert late >= 1 and report["frames"] >= 1 and report["frames"] + sum(report["dropped"].values()) == 30
     assert f"{late} late (the mapper was behind)" in stdout
+    if late >= 0.05 * (report["frames"] + late):  # fell behind: said in a line of its own
+        assert (f"map-bag: warning: the mapper fell behind the bag: {late} of {report['frames'] + late} frames were "
+                "dropped as late; a lower --playback (now 20) keeps up on this machine") in stdout
 
     rows = bags["csv"].read_text().splitlines()
     bad_csv = tmp_path / "jump.csv"
@@ -1176,3 +1179,15 @@ def test_a_late_camera_that_cannot_join_is_said_once(tmp_path):
     assert lines == ["warning: stack 3's camera_info came after the map was started with stacks [1], and it cannot "
                      "join: Mapper.add_stack intrinsics: the stacks' images differ in size (stack 1 640x480, stack 3 848x480); "
                      "its frames are not mapped in this run (said once)"]
+
+
+def test_a_stream_that_dropped_a_twentieth_of_its_frames_as_late_says_it_fell_behind():
+    from virus_nerf.data.bags.live import LATE
+    from virus_nerf.mapping.stream import StreamReport, behind_note
+
+    assert behind_note(StreamReport(frames=83, dropped={LATE: 33, "no pose": 2}), 4.0) == (
+        "the mapper fell behind the bag: 33 of 116 frames were dropped as late; a lower --playback (now 4) keeps up "
+        "on this machine")
+    assert behind_note(StreamReport(frames=96, dropped={LATE: 4}), 1.0) is None  # 4 of 100: below a twentieth
+    assert behind_note(StreamReport(frames=95, dropped={LATE: 5}), 1.0) is not None
+    assert behind_note(StreamReport(frames=10, dropped={"no pose": 9}), 1.0) is None

@@ -300,7 +300,7 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
     from virus_nerf.data.bags.live import LiveSync
     from virus_nerf.data.bags.poses import make_pose_source
     from virus_nerf.data.bags.reader import BagReader
-    from virus_nerf.mapping.stream import StreamRun, summary, warm_up
+    from virus_nerf.mapping.stream import StreamRun, behind_note, summary, warm_up
     from virus_nerf.trainer.config import TrainConfig
     from virus_nerf.trainer.run_folder import RunLock
     from virus_nerf.utils.stop import Stopped
@@ -362,6 +362,8 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
     print(f"map-bag: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s of wall time; "
           f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}"
           f"{sinks.note()}")
+    if (behind := behind_note(report, playback)) is not None:
+        print(f"map-bag: warning: {behind}")
 
 
 def run_made_nothing(out: Path) -> bool:

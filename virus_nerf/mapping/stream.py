@@ -483,6 +483,21 @@ class StreamRun:
         outputs.check("free some space; the snapshots in " + str(self.out / SNAPSHOTS) + " are whole")
 
 
+BEHIND_SHARE = 0.05  # a stream that dropped this share of its frames as late is said to have fallen behind
+
+
+def behind_note(report: StreamReport, playback: float) -> str | None:
+    """The line a stream that could not keep up with the bag ends with (the counts alone in the
+    summary are easily missed): a share of BEHIND_SHARE or more of its frames dropped as late."""
+    from virus_nerf.data.bags.live import LATE
+
+    late = report.dropped.get(LATE, 0)
+    if late == 0 or late < BEHIND_SHARE * (report.frames + late):
+        return None
+    return (f"the mapper fell behind the bag: {late} of {report.frames + late} frames were dropped as late; "
+            f"a lower --playback (now {playback:g}) keeps up on this machine")
+
+
 def summary(report: StreamReport) -> str:
     """One line: frames, dropped frames by reason, lag at the snapshots."""
     dropped = sum(report.dropped.values())

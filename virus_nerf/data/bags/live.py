@@ -59,6 +59,7 @@ from virus_nerf.data.frame import SyncFrame
 from virus_nerf.errors import DataFormatError
 from virus_nerf.sensors.camera import Intrinsics
 
+LATE = "late (the mapper was behind)"  # the drop reason of a colour image released past max_lag
 # MAX_JUMP_M (data/ethz.py): the robot moving further between two consecutive frames is a broken pose source
 JUMP_WINDOW_S = 1.0  # ... when they are at most this far apart in time
 MAX_SILENCE_S = 2.0  # a watched topic silent this long (bag time) has stopped
@@ -284,7 +285,7 @@ class LiveSync:
             return
         self.last_kept[s] = t
         if late:
-            self.dropped[s]["late (the mapper was behind)"] += 1
+            self.dropped[s][LATE] += 1
         else:
             self.waiting[s].append(msg)
 
