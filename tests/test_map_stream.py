@@ -1191,3 +1191,29 @@ def test_a_stream_that_dropped_a_twentieth_of_its_frames_as_late_says_it_fell_be
     assert behind_note(StreamReport(frames=96, dropped={LATE: 4}), 1.0) is None  # 4 of 100: below a twentieth
     assert behind_note(StreamReport(frames=95, dropped={LATE: 5}), 1.0) is not None
     assert behind_note(StreamReport(frames=10, dropped={"no pose": 9}), 1.0) is None
+
+
+def test_keep_snapshots_leaves_the_newest_on_disk_and_the_numbering_goes_on(bags, tiny_cfg, tmp_path):
+    """--keep-snapshots 1: a long drive's disk holds the newest snapshot folder only; every one is
+    still made and numbered, stream.json lists what is on disk and counts the removed; the final
+    map and mapper.pt as always. Refused at 0, with --import-first and with --resume."""
+    out = tmp_path / "keep"
+    code, stdout, stderr = run_cli(["map-bag", bags["ros1"], "--out", out, "--playback", "1", "--snapshot-every", "0.3",
+                                    "--first-snapshot", "0.2", "--keep-snapshots", "1", "--config", tiny_cfg,
+                                    "--n-rays", "32", "--max-poses", "3", "--poses", "csv", "--poses-file", bags["csv"],
+                                    "--max-lag", "100"])
+    assert code == 0, stderr
+    made = [ln.split(" -> ")[-1] for ln in stdout.splitlines() if ln.startswith("snapshot ")]
+    assert len(made) >= 2, stdout
+    on_disk = sorted(p.name for p in (out / "snapshots").iterdir() if p.is_dir())
+    assert on_disk == [Path(made[-1]).name] and Path(made[-1]).name.startswith(f"{len(made):04d}_")
+    report = json.loads((out / "stream.json").read_text())
+    assert report["snapshots"] == [f"snapshots/{on_disk[0]}"] and report["snapshots_removed"] == len(made) - 1
+    assert f"1 snapshot(s) (and {len(made) - 1} older ones removed) in" in stdout
+    assert (out / "map" / "map.pgm").is_file() and (out / "map" / "mapper.pt").is_file()
+    for extra, said in ((["--keep-snapshots", "0"], "--keep-snapshots 0"),
+                        (["--keep-snapshots", "2", "--import-first"], "--keep-snapshots streams only")):
+        code, _, err = run_cli(["map-bag", bags["ros1"], "--out", tmp_path / "no", *extra])
+        assert code == 2 and said in err and not (tmp_path / "no").exists(), err
+    code, _, err = run_cli(["map-bag", "--resume", "--out", out, "--keep-snapshots", "2"])
+    assert code == 2 and "--keep-snapshots cannot apply to it" in err, err

@@ -282,6 +282,8 @@ def test_ros2_flags_are_refused_in_one_line(tmp_path):
     assert code == 2 and "iron" in err and "humble" in err and len(err.strip().splitlines()) == 1
     code, _, err = run_cli(["ros2-play", tmp_path / "none.bag"])
     assert code == 2 and "no such file" in err
+    code, _, err = run_cli(["ros2", "--out", tmp_path / "o", "--tf-child", "x", "--keep-snapshots", "0"])
+    assert code == 2 and "--keep-snapshots 0" in err and len(err.strip().splitlines()) == 1
     os.environ["ROS_DOMAIN_ID"], old = "999", os.environ.get("ROS_DOMAIN_ID")
     try:
         code, _, err = run_cli(["ros2", "--out", tmp_path / "o", "--tf-child", "x"])

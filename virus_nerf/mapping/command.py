@@ -18,7 +18,13 @@ from typing import Annotated
 
 import tyro
 
-from virus_nerf.errors import DataFormatError, OutputExistsError, UsageError, require_number
+from virus_nerf.errors import (
+    DataFormatError,
+    OutputExistsError,
+    UsageError,
+    require_int,
+    require_number,
+)
 from virus_nerf.mapping.options import (
     DEFAULT_RASTER,
     NO_VIEW,
@@ -56,6 +62,7 @@ def map_bag(
     first_snapshot: float = 1.0,
     max_lag: float = 2.0,
     max_silence: float = 2.0,
+    keep_snapshots: int | None = None,
     config: Path | None = None,
     maps: Annotated[MapRaster, tyro.conf.arg(name="")] = DEFAULT_RASTER,
     view: Annotated[RerunSinks, tyro.conf.arg(name="")] = NO_VIEW,
@@ -100,6 +107,8 @@ def map_bag(
             was busy) is dropped, and counted; streaming only.
         max_silence: A sensor topic (or the pose source) silent this many recording seconds has
             stopped: the stream ends there (bad data); streaming only.
+        keep_snapshots: Keep only the newest N snapshot folders (the older ones this run wrote are
+            removed; default: all of them), for a long drive's disk; streaming only.
         config: JSON training config (a run's config.json works; default: the defaults).
         maps: The maps (--resolution, --n-rays, --max-poses; mapping/options.py).
         view: The live view (--rerun, --rerun-connect, --rerun-save; mapping/options.py).
@@ -118,7 +127,8 @@ def map_bag(
         # the final map is the last snapshot as it was made: a flag that asks for more is refused, not ignored
         unused = [flag for flag, given in (("--out-bag", out_bag is not None), ("--rerun*", view.wanted),
                                            ("--map-frame/--base-frame", frames_given),
-                                           ("--resolution/--n-rays/--max-poses", maps != DEFAULT_RASTER)) if given]
+                                           ("--resolution/--n-rays/--max-poses", maps != DEFAULT_RASTER),
+                                           ("--keep-snapshots", keep_snapshots is not None)) if given]
         if unused:
             raise UsageError(f"--resume writes the final map from the last snapshot as it was made; {unused[0]} "
                              "cannot apply to it: drop it")
@@ -132,6 +142,10 @@ def map_bag(
     require_number("--first-snapshot", first_snapshot, 0.0)
     require_number("--max-lag", max_lag, 0.0)
     require_number("--max-silence", max_silence, 0.0)
+    if keep_snapshots is not None:
+        require_int("--keep-snapshots", keep_snapshots, 1)
+        if import_first:
+            raise UsageError("--keep-snapshots streams only: drop --import-first")
     if poses not in POSES:
         raise UsageError(f"--poses {poses!r}: expected {', '.join(POSES[:-1])} or {POSES[-1]}")
     if import_first and poses == "odometry":
@@ -171,7 +185,7 @@ def map_bag(
             return
         stream_map_bag(bag, out, playback, snapshot_every, tcfg, cfg, pose_args, maps, sinks,
                        odometry_topic=odometry_topic, first_snapshot=first_snapshot, max_lag=max_lag,
-                       max_silence=max_silence)
+                       max_silence=max_silence, keep_snapshots=keep_snapshots)
 
 
 def _finish(out: Path) -> None:
@@ -292,7 +306,8 @@ def _import_then_replay(bag: Path, out: Path, playback: float, snapshot_every: f
 
 def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float, tcfg, cfg,
                    pose_args: dict, maps: MapRaster, sinks: Sinks, *, odometry_topic: str = "/odom",
-                   first_snapshot: float = 1.0, max_lag: float = 2.0, max_silence: float = 2.0) -> None:
+                   first_snapshot: float = 1.0, max_lag: float = 2.0, max_silence: float = 2.0,
+                   keep_snapshots: int | None = None) -> None:
     """The streaming path (mapping/stream.py) with the topic mapping `tcfg` (data.bags.topics
     TopicsConfig, read once by the command): topics checked against the bag before OUT is made;
     OUT removed again when the stream stops before its first frame (nothing was mapped)."""
@@ -334,7 +349,8 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
                 live, ros_bag = sinks.open(stack)
                 run = StreamRun(sync, out, cfg, playback=playback, snapshot_every=snapshot_every,
                                 first_snapshot=first_snapshot, max_lag=max_lag, drive_s=max(last - first, 0.0),
-                                live=live, ros_bag=ros_bag, warm_step_s=warm_step_s, **maps.kwargs())
+                                live=live, ros_bag=ros_bag, warm_step_s=warm_step_s, keep_snapshots=keep_snapshots,
+                                **maps.kwargs())
                 report = run.run(reader.iter_topics(sync.topics()))
         except BaseException as exc:
             nothing = run_made_nothing(out)
@@ -359,8 +375,9 @@ def stream_map_bag(bag: Path, out: Path, playback: float, snapshot_every: float,
         sinks.discard()
         raise DataFormatError(bag, f"no frame could be made ({summary(report)}); check the topics file's sync "
                               "tolerances and the pose source")
+    removed = f" (and {report.snapshots_removed} older ones removed)" if report.snapshots_removed else ""
     print(f"map-bag: {summary(report)}, {report.steps} steps in {report.wall_s:.1f} s of wall time; "
-          f"{len(report.snapshots)} snapshot(s) in {out / 'snapshots'}, final map in {report.final}"
+          f"{len(report.snapshots)} snapshot(s){removed} in {out / 'snapshots'}, final map in {report.final}"
           f"{sinks.note()}")
     if (behind := behind_note(report, playback)) is not None:
         print(f"map-bag: warning: {behind}")

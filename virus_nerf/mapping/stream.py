@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import shutil
 import statistics
 import time
 from collections.abc import Callable
@@ -66,7 +67,8 @@ def initial_box(positions: np.ndarray, extent, sensors=()) -> SceneBox:
 class StreamReport:
     """What a streaming run did (also OUT/stream.json)."""
 
-    snapshots: list[str] = field(default_factory=list)
+    snapshots: list[str] = field(default_factory=list)  # those on disk (--keep-snapshots removes older ones)
+    snapshots_removed: int = 0  # --keep-snapshots: the older snapshot folders removed
     final: str | None = None
     frames: int = 0
     steps: int = 0
@@ -123,8 +125,10 @@ class StreamRun:
                  first_snapshot: float = 1.0, max_lag: float = 2.0, drive_s: float = 0.0, resolution: float = 0.05,
                  n_rays: int = MAP_RAYS, max_poses: int = MAP_POSES, train_slice: float = 0.25, train_share: float = 0.5,
                  box: Callable[..., SceneBox] = initial_box, log: Callable[[str], None] = print,
-                 live=None, ros_bag=None, warm_step_s: float = 0.1) -> None:
+                 live=None, ros_bag=None, warm_step_s: float = 0.1, keep_snapshots: int | None = None) -> None:
         self.sync, self.out, self.config = sync, Path(out), config
+        self.keep_snapshots = keep_snapshots  # None: every snapshot stays; N: the newest N (a long drive's disk)
+        self.snapshots_made = 0
         self.playback, self.snapshot_every, self.max_lag = playback, snapshot_every, max_lag
         self.drive_s, self.resolution, self.n_rays, self.max_poses = drive_s, resolution, n_rays, max_poses
         self.train_slice, self.box, self.log, self.live, self.ros_bag = train_slice, box, log, live, ros_bag
@@ -381,7 +385,7 @@ class StreamRun:
             return False
         if self.behind > self.max_lag and now < self.next_snapshot + self.snapshot_every:
             return False
-        k = len(self.report.snapshots) + 1
+        k = self.snapshots_made + 1
         folder = self.out / SNAPSHOTS / f"{k:04d}_{now:.1f}s"
         lag = self.lag(now)
         self.snapshot_tried = True
@@ -391,15 +395,25 @@ class StreamRun:
             self._warn("snapshot", f"snapshot {k}: {exc.filename or folder}: could not be written "
                        f"({exc.strerror or exc}); mapping goes on")
         else:
+            self.snapshots_made = k
             self.report.snapshots.append(str(folder))
             self.report.lag_s.append(round(lag, 3))
             if self.report.first_snapshot_s is None:
                 self.report.first_snapshot_s = round(self.now(), 3)
             self.log(self._line(f"snapshot {k}", now, info, folder, lag))
             self._save_progress(folder)
+            self._remove_old_snapshots()
         after = self.train_next = self.now()  # the snapshot's time is not the messages'
         self.next_snapshot = next_snapshot_time(self.next_snapshot, self.snapshot_every, after, after - now)
         return True
+
+    def _remove_old_snapshots(self) -> None:
+        """--keep-snapshots N: the oldest snapshot folders this run wrote go, the newest N stay;
+        after the mapper's state names the newest (a kill in between leaves what `--resume` reads)."""
+        keep, r = self.keep_snapshots, self.report
+        while keep is not None and len(r.snapshots) > keep:
+            shutil.rmtree(r.snapshots.pop(0), ignore_errors=True)
+            r.snapshots_removed += 1
 
     def _snapshot(self, folder: Path, recording_time: float, with_state: bool = False):
         from virus_nerf.errors import require_folder

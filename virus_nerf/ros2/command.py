@@ -10,7 +10,7 @@ from typing import Annotated
 
 import tyro
 
-from virus_nerf.errors import UsageError, require_number
+from virus_nerf.errors import UsageError, require_int, require_number
 from virus_nerf.mapping.command import Sinks
 from virus_nerf.mapping.options import (
     DEFAULT_RASTER,
@@ -55,6 +55,7 @@ def ros2(
     maps: Annotated[MapRaster, tyro.conf.arg(name="")] = DEFAULT_RASTER,
     duration: float | None = None,
     exit_when_idle: float | None = None,
+    keep_snapshots: int | None = None,
     view: Annotated[RerunSinks, tyro.conf.arg(name="")] = NO_VIEW,
 ) -> None:
     """Map live from a ROS 2 robot over DDS and publish /map (no ROS install: the ros2 extra).
@@ -96,6 +97,8 @@ def ros2(
         maps: The maps (--resolution, --n-rays, --max-poses; mapping/options.py, as map-bag's).
         duration: Stop after this many wall-clock seconds (default: run until Ctrl-C or SIGTERM).
         exit_when_idle: Stop when no message came for this many seconds after the first one.
+        keep_snapshots: Keep only the newest N snapshot folders (the older ones this run wrote are removed;
+            default: all of them): a node left running for hours writes one every --publish-every seconds.
         view: The live view (--rerun, --rerun-connect, --rerun-save; as map-bag's).
     """
     from virus_nerf.mapping.ros_maps import require_frame
@@ -123,6 +126,8 @@ def ros2(
                              ("--drive", drive, 0.0), ("--max-lag", max_lag, 0.0),
                              ("--max-silence", max_silence, 0.0)):
         require_number(flag, value, low, lo_open=flag != "--first-map")
+    if keep_snapshots is not None:
+        require_int("--keep-snapshots", keep_snapshots, 1)
     maps.check()
     for flag, value in (("--duration", duration), ("--exit-when-idle", exit_when_idle)):
         if value is not None:
@@ -146,7 +151,7 @@ def ros2(
                  namespace=namespace,
                  publish_every=publish_every, first_map=first_map, drive=drive, max_lag=max_lag,
                  max_silence=max_silence, maps=maps, sinks=Sinks(view),
-                 duration=duration, exit_when_idle=exit_when_idle)
+                 duration=duration, exit_when_idle=exit_when_idle, keep_snapshots=keep_snapshots)
 
 
 def require_topic_names(tcfg) -> None:
@@ -167,7 +172,8 @@ def require_topic_names(tcfg) -> None:
 def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_child: str | None, odometry_topic: str,
              cfg, *, distro: str, domain: int | None, loopback: bool, names: dict, map_frame: str, namespace: str,
              publish_every: float, first_map: float, drive: float, max_lag: float, max_silence: float,
-             maps: MapRaster, sinks: Sinks, duration: float | None, exit_when_idle: float | None, log=print) -> None:
+             maps: MapRaster, sinks: Sinks, duration: float | None, exit_when_idle: float | None,
+             keep_snapshots: int | None = None, log=print) -> None:
     """The node (ros2/node.py) until a stop: --duration, --exit-when-idle, SIGINT or SIGTERM."""
     from virus_nerf.data.bags.live import LiveSync
     from virus_nerf.data.bags.poses import make_pose_source
@@ -222,7 +228,7 @@ def run_node(out: Path, topics: Path | None, poses: str, tf_parent: str, tf_chil
                 live, _ = sinks.open(stack)
                 run = StreamRun(sync, out, cfg, playback=1.0, snapshot_every=publish_every, first_snapshot=first_map,
                                 max_lag=max_lag, drive_s=drive, live=live, ros_bag=publisher,
-                                warm_step_s=warm_step_s, **maps.kwargs())
+                                warm_step_s=warm_step_s, keep_snapshots=keep_snapshots, **maps.kwargs())
                 report = run.run(messages)
         except BaseException as exc:
             nothing = run_made_nothing(out)
