@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -494,7 +495,8 @@ def test_ros2_play_clock_leaves_out_the_bags_own_clock(tmp_path):
 
 def test_ros2_play_loop_plays_until_a_stop(office_bag):
     """`ros2-play --loop` plays on until SIGINT (the 3 s bag at rate 4: 0.75 s a pass, still
-    playing after 2 s), then exits 130 with one line and no traceback."""
+    playing after 2 s), then exits 130 with one line, no traceback, and says what it played (it
+    said nothing of that before)."""
     import signal
 
     argv = ["ros2-play", str(office_bag), "--loop", "--rate", "4", "--delay", "0", "--localhost-only",
@@ -507,11 +509,14 @@ def test_ros2_play_loop_plays_until_a_stop(office_bag):
         time.sleep(2.0)
         assert proc.poll() is None  # still playing
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=30)
+        out, err = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 130 and "Traceback" not in err and len(err.strip().splitlines()) <= 1, err
+    said = re.search(r"^ros2-play: stopped by SIGINT; (\d+) messages on (\d+) topics \((\d+) passes of the bag\) "
+                     r"in [\d.]+ s \(at most [\d.]+ s late\)$", out, flags=re.M)
+    assert said is not None and int(said[1]) > 0 and int(said[3]) >= 2, out
 
 
 def test_a_publisher_that_left_is_forgotten():

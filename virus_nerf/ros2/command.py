@@ -310,8 +310,8 @@ def ros2_play(
             restart and keeps mapping).
     """
     from virus_nerf.ros2.dds import Participant, require_dds
-    from virus_nerf.ros2.play import play
-    from virus_nerf.utils.stop import stop_on_signals
+    from virus_nerf.ros2.play import PlayReport, play
+    from virus_nerf.utils.stop import Stopped, stop_on_signals
 
     require_number("--rate", rate, 0.0)
     if topic is not None and not topic:
@@ -323,12 +323,22 @@ def ros2_play(
         raise UsageError(f"BAG {bag}: no such file or folder; expected a ROS bag")
     require_dds()
     participant = Participant(distro, domain_id, loopback=_localhost_only(localhost_only))
+    report = PlayReport()
     try:
         with stop_on_signals():
-            report = play(Path(bag), participant, rate=rate, topics=topic, delay_s=delay,
-                          clock_hz=clock_hz if clock else 0.0,
-                          loops=0 if loop else 1)
+            play(Path(bag), participant, rate=rate, topics=topic, delay_s=delay, clock_hz=clock_hz if clock else 0.0,
+                 loops=0 if loop else 1, report=report)
+    except Stopped as exc:  # Ctrl-C ends a --loop: what was played, as a finished play says it
+        exc.reported = True
+        print(f"ros2-play: stopped by {exc.name}; {_played(report, clock)}")
+        raise
     finally:
         participant.close()
-    print(f"ros2-play: {report.messages} messages on {report.topics} topics in {report.wall_s:.1f} s "
-          f"(at most {report.behind_s:.2f} s late)" + (f", {report.clock_ticks} /clock ticks" if clock else ""))
+    print(f"ros2-play: {_played(report, clock)}")
+
+
+def _played(report, clock: bool) -> str:
+    """ros2-play's summary: messages, topics, passes of the bag, wall time, lateness, /clock ticks."""
+    passes = f" ({report.passes} passes of the bag)" if report.passes > 1 else ""
+    return (f"{report.messages} messages on {report.topics} topics{passes} in {report.wall_s:.1f} s "
+            f"(at most {report.behind_s:.2f} s late)" + (f", {report.clock_ticks} /clock ticks" if clock else ""))

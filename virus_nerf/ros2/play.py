@@ -82,16 +82,17 @@ def play_qos(topic: str, recorded) -> dds.QosKind:
 
 def play(bag: Path, participant: dds.Participant, *, rate: float = 1.0, topics: list[str] | None = None,
          delay_s: float = 1.0, clock_hz: float = 0.0, loops: int = 1,
-         log: Callable[[str], None] = print) -> PlayReport:
+         log: Callable[[str], None] = print, report: PlayReport | None = None) -> PlayReport:
     """Publish `bag`'s messages (of `topics`, default all) on the participant's domain; returns
     after the last one. delay_s: wall seconds between the publishers' creation and the first
     message, for discovery (`ros2 bag play --delay`); clock_hz: /clock ticks a wall-clock second
-    (0: no /clock); loops: plays of the bag (0: until stopped)."""
+    (0: no /clock); loops: plays of the bag (0: until stopped). `report`: filled as it plays, so
+    that a caller stopped part-way (a signal) can say what was played."""
     from virus_nerf.data.bags.reader import BagReader
     from virus_nerf.errors import UsageError
 
     store = types.typestore(participant.distro)
-    report = PlayReport()
+    report = report if report is not None else PlayReport()
     with BagReader(bag) as reader:
         known = reader.topics
         names = list(known) if topics is None else topics
@@ -110,12 +111,14 @@ def play(bag: Path, participant: dds.Participant, *, rate: float = 1.0, topics: 
             f"({participant.distro}), rate {rate:g}" + (f", /clock at {clock_hz:g} Hz" if clock else ""))
         time.sleep(delay_s)
         first = time.monotonic()
-        while loops == 0 or report.passes < loops:
-            report.passes += 1
-            if not _play_once(reader, names, writers, store, rate, clock, report):
-                break  # nothing to play
-        report.wall_s = time.monotonic() - first
-    report.clock_ticks = clock.ticks if clock is not None else 0
+        try:
+            while loops == 0 or report.passes < loops:
+                report.passes += 1
+                if not _play_once(reader, names, writers, store, rate, clock, report):
+                    break  # nothing to play
+        finally:  # a stop too: the report says what was played
+            report.wall_s = time.monotonic() - first
+            report.clock_ticks = clock.ticks if clock is not None else 0
     return report
 
 
