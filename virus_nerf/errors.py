@@ -127,6 +127,14 @@ def require_room_name(room: object, flag: str = "--room") -> None:
         raise UsageError(f"{flag} {room!r}: expected the name of a room folder inside --data (e.g. office)")
 
 
+def require_input_file(flag: str, path: str | Path, expected: str) -> None:
+    """The file argument `flag` names must be a file: else a one-line UsageError saying whether it
+    is a folder or missing, and what was `expected`."""
+    if not Path(path).is_file():
+        what = "a folder" if Path(path).is_dir() else "no such file"
+        raise UsageError(f"{flag} {path}: {what}; expected {expected}")
+
+
 def require_int(name: str, value: object, lo: int, hi: int | None = None) -> None:
     """`value` of argument `name` must be an integer (numpy's too) in [lo, hi]; else a one-line UsageError."""
     import numbers

@@ -448,8 +448,6 @@ class Mapper(MapViews, MapperCheckpoint):
         terms = self._step(progress)
         took = time.perf_counter() - t_start
         self.seconds += took
-        loss = float(terms.total.detach())
-        self.last_loss = loss if math.isfinite(loss) else None  # snapshot.json: a number or null
         return terms, took
 
     def _step(self, progress: float | None) -> LossTerms:
@@ -495,7 +493,9 @@ class Mapper(MapViews, MapperCheckpoint):
         has no graph and changes nothing, nor does a loss that is not finite (one such step would
         make every weight NaN, and a NaN field maps everything free: counted in `skipped_steps`)."""
         self.optimizer.zero_grad(set_to_none=True)
-        if not bool(torch.isfinite(terms.total.detach())):
+        loss = float(terms.total.detach())  # read here, before the update (a sync on a GPU)
+        self.last_loss = loss if math.isfinite(loss) else None  # snapshot.json: a number or null
+        if self.last_loss is None:
             self.skipped_steps += 1
             return
         if terms.total.requires_grad:

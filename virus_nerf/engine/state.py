@@ -34,7 +34,8 @@ def counters_problem(state: Mapping) -> tuple[str, str] | None:
 
 # a state's optional counters (written by later releases than the first states): each an integer
 # >= 0, or a finite number in a range; frames_at_start is None before the first step
-OPTIONAL_COUNTS = ("rays", "stereo_points", "viewed_frames", "frames_at_start", "prior_frames")
+FRAME_COUNTS = ("viewed_frames", "frames_at_start", "prior_frames")  # at most the state's frames
+OPTIONAL_COUNTS = ("rays", "stereo_points", *FRAME_COUNTS)
 OPTIONAL_NUMBERS = {"last_samples_per_ray": (0.0, math.inf), "visible_share": (0.0, 1.0)}
 
 
@@ -49,7 +50,7 @@ def optional_counters_problem(state: Mapping) -> tuple[str, str] | None:
         value = state[key]
         if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:  # numpy's too
             return key, f"expected an integer >= 0, got {repr(value)[:60]}"
-        if frames is not None and key != "rays" and key != "stereo_points" and value > frames:
+        if frames is not None and key in FRAME_COUNTS and value > frames:
             return key, f"{value} is more than the state's {frames} frames"
     for key, (lo, hi) in OPTIONAL_NUMBERS.items():
         value = state.get(key, lo)

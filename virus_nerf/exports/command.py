@@ -67,7 +67,7 @@ def export(
         cloud_points: At most this many rays (points) for the dense surface cloud.
         image_scale: Rendered image size as a share of the camera's (default: the run's image_scale).
     """
-    from virus_nerf.errors import OutputExistsError, require_int, require_number
+    from virus_nerf.errors import OutputExistsError, require_input_file, require_int, require_number
     from virus_nerf.trainer.run import load_trained
     from virus_nerf.trainer.run_folder import RunLock, open_run, training_finished
     from virus_nerf.utils.io import new_output_dir
@@ -86,9 +86,7 @@ def export(
     if poses is not None:
         from virus_nerf.exports.views import read_pose_csv
 
-        if not Path(poses).is_file():
-            what = "a folder" if Path(poses).is_dir() else "no such file"
-            raise UsageError(f"--poses {poses}: {what}; expected a CSV with columns time,x,y,z,qx,qy,qz,qw")
+        require_input_file("--poses", poses, "a CSV with columns time,x,y,z,qx,qy,qz,qw")
         pose_set = read_pose_csv(Path(poses))
     out = Path(out)
     if out.exists():

@@ -22,6 +22,7 @@ from virus_nerf.errors import (
     DataFormatError,
     OutputExistsError,
     UsageError,
+    require_input_file,
     require_int,
     require_number,
 )
@@ -156,9 +157,8 @@ def map_bag(
     bag, out = Path(bag), Path(out)
     if not bag.exists():
         raise UsageError(f"BAG {bag}: no such file or folder; expected a ROS bag")
-    if topics is not None and not Path(topics).is_file():
-        what = "a folder" if Path(topics).is_dir() else "no such file"
-        raise UsageError(f"--topics {topics}: {what}; expected the importer's topic mapping file")
+    if topics is not None:
+        require_input_file("--topics", topics, "the importer's topic mapping file")
     cfg = load_stream_config(config)
     require_new_folder("--out", out)
     if out_bag is not None:

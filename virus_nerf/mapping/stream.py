@@ -128,7 +128,6 @@ class StreamRun:
                  live=None, ros_bag=None, warm_step_s: float = 0.1, keep_snapshots: int | None = None) -> None:
         self.sync, self.out, self.config = sync, Path(out), config
         self.keep_snapshots = keep_snapshots  # None: every snapshot stays; N: the newest N (a long drive's disk)
-        self.snapshots_made = 0
         self.playback, self.snapshot_every, self.max_lag = playback, snapshot_every, max_lag
         self.drive_s, self.resolution, self.n_rays, self.max_poses = drive_s, resolution, n_rays, max_poses
         self.train_slice, self.box, self.log, self.live, self.ros_bag = train_slice, box, log, live, ros_bag
@@ -385,7 +384,7 @@ class StreamRun:
             return False
         if self.behind > self.max_lag and now < self.next_snapshot + self.snapshot_every:
             return False
-        k = self.snapshots_made + 1
+        k = len(self.report.snapshots) + self.report.snapshots_removed + 1  # written so far, and the next
         folder = self.out / SNAPSHOTS / f"{k:04d}_{now:.1f}s"
         lag = self.lag(now)
         self.snapshot_tried = True
@@ -395,7 +394,6 @@ class StreamRun:
             self._warn("snapshot", f"snapshot {k}: {exc.filename or folder}: could not be written "
                        f"({exc.strerror or exc}); mapping goes on")
         else:
-            self.snapshots_made = k
             self.report.snapshots.append(str(folder))
             self.report.lag_s.append(round(lag, 3))
             if self.report.first_snapshot_s is None:

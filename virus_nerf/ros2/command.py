@@ -10,7 +10,7 @@ from typing import Annotated
 
 import tyro
 
-from virus_nerf.errors import UsageError, require_int, require_number
+from virus_nerf.errors import UsageError, require_input_file, require_int, require_number
 from virus_nerf.mapping.command import Sinks
 from virus_nerf.mapping.options import (
     DEFAULT_RASTER,
@@ -132,9 +132,8 @@ def ros2(
     for flag, value in (("--duration", duration), ("--exit-when-idle", exit_when_idle)):
         if value is not None:
             require_number(flag, value, 0.0)
-    if topics is not None and not Path(topics).is_file():
-        what = "a folder" if Path(topics).is_dir() else "no such file"
-        raise UsageError(f"--topics {topics}: {what}; expected the importer's topic mapping file (TOML)")
+    if topics is not None:
+        require_input_file("--topics", topics, "the importer's topic mapping file (TOML)")
     out = Path(out)
     require_new_folder("--out", out)
     view.check()
